@@ -1,0 +1,90 @@
+"""Depth maps as dense matching gives them, not as a perfect renderer does.
+
+From the true z-depth: corners are rounded (smoothing across depth edges), the
+background side of occlusion edges and textureless shadows become holes, and
+Gaussian noise growing with the square of the depth plus gross outliers are added.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def _blur_valid(depth: np.ndarray, sigma: float) -> np.ndarray:
+    valid = np.isfinite(depth).astype(np.float64)
+    filled = np.where(valid > 0, depth, 0.0)
+    num = cv2.GaussianBlur(filled, (0, 0), sigma)
+    den = cv2.GaussianBlur(valid, (0, 0), sigma)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return num / den
+
+
+def depth_edges(depth: np.ndarray, jump: float = 0.5, rel: float = 0.02):
+    """Masks of depth discontinuities: (any side, far side), each (H, W) bool."""
+    d = np.where(np.isfinite(depth), depth, np.inf)
+    far = np.zeros(d.shape, bool)
+    edge = np.zeros(d.shape, bool)
+    for axis in (0, 1):
+        for shift in (1, -1):
+            nb = np.roll(d, shift, axis=axis)
+            with np.errstate(invalid="ignore"):
+                diff = d - nb
+            thr = np.maximum(jump, rel * np.minimum(d, nb))
+            big = np.abs(diff) > thr
+            big &= np.isfinite(d) | np.isfinite(nb)
+            edge |= big
+            far |= big & (diff > 0)
+    return edge, far
+
+
+def degrade_depth(
+    depth: np.ndarray,
+    gray: np.ndarray,
+    lit: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    sigma: float,
+    reference_depth: float,
+    outliers: float,
+) -> np.ndarray:
+    """Turn a true z-depth map into a dense-matching-like one.
+
+    Parameters
+    ----------
+    depth : (H, W) float
+        True z-depth, metres; NaN where nothing was hit.
+    gray : (H, W) uint8
+        The rendered image, for texture-dependent holes.
+    lit : (H, W) bool
+        Sunlit pixels (False in shadow).
+    rng : numpy.random.Generator
+    sigma : float
+        Noise standard deviation at ``reference_depth``, metres; it grows as depth^2.
+    reference_depth : float
+        Depth at which the noise is ``sigma`` (the flying height), metres.
+    outliers : float
+        Fraction of valid pixels replaced by gross errors.
+
+    Returns
+    -------
+    (H, W) float32 depth map, NaN where matching would fail.
+    """
+    out = depth.astype(np.float64).copy()
+    edge, far = depth_edges(depth)
+    band = cv2.dilate(edge.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    smooth = _blur_valid(depth, 1.5)
+    out[band] = smooth[band]
+    holes = cv2.dilate(far.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=2).astype(bool)
+    g = gray.astype(np.float64)
+    local_std = np.sqrt(np.maximum(cv2.blur(g * g, (7, 7)) - cv2.blur(g, (7, 7)) ** 2, 0))
+    dark_flat = (~lit) & (local_std < 2.5) & (g < 90)
+    dark_flat = cv2.morphologyEx(dark_flat.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3)))
+    holes |= dark_flat.astype(bool)
+    s = sigma * (np.nan_to_num(out, nan=reference_depth) / reference_depth) ** 2
+    out = out + rng.normal(0.0, 1.0, out.shape) * s
+    valid = np.isfinite(out) & ~holes
+    bad = valid & (rng.random(out.shape) < outliers)
+    out[bad] *= rng.uniform(0.75, 1.25, int(bad.sum()))
+    out[~valid] = np.nan
+    return out.astype(np.float32)

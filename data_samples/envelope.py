@@ -1,0 +1,244 @@
+"""A closed building mesh from the upper envelope of its roof faces.
+
+Overlapping wings (L, T, U and courtyard buildings, stepped tiers) each bring
+their own planar roof faces. The visible roof is their upper envelope: the faces'
+outlines and the lines where two faces' planes cross are noded into a planar
+arrangement; in each cell of it one face is on top. Cells become roof triangles,
+height jumps between neighbouring cells become vertical walls, and a bottom
+closes the solid. The result is watertight and consistently oriented (outward
+normals), with vertical edges split wherever walls meet at different heights.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+from shapely.geometry import LineString, Polygon
+from shapely.geometry.polygon import orient
+
+from .roofs import RoofFace
+
+GRID = 1e-4  # metres: coordinates are snapped to this grid so that vertices match exactly
+_EPS = 1e-3  # metres: offset used to probe the cell across an edge
+
+
+@dataclass
+class BuildingMesh:
+    """Triangles of one building.
+
+    Attributes
+    ----------
+    vertices : (V, 3) float64
+    triangles : (T, 3) int64, counter-clockwise seen from outside
+    part : (T,) uint8
+        0 = roof, 1 = wall, 2 = bottom.
+    axis : (T, 2) float64
+        Texture axis: the downslope direction on roofs, the wall direction on walls.
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    part: np.ndarray
+    axis: np.ndarray
+
+
+def _plane_z(plane: np.ndarray, x, y):
+    return plane[0] * x + plane[1] * y + plane[2]
+
+
+def _top_face(faces, polys, x: float, y: float) -> int:
+    """Index of the face on top at (x, y), or -1 outside every face."""
+    best, best_z = -1, -np.inf
+    pt = shapely.Point(x, y)
+    for i, (f, p) in enumerate(zip(faces, polys, strict=True)):
+        if p.covers(pt):
+            z = _plane_z(f.plane, x, y)
+            if z > best_z + 1e-9:
+                best, best_z = i, z
+    return best
+
+
+def _arrangement(faces: list[RoofFace], polys: list[Polygon]):
+    lines = [p.exterior for p in polys]
+    for i in range(len(faces)):
+        for j in range(i + 1, len(faces)):
+            inter = polys[i].intersection(polys[j])
+            if inter.area < 1e-8:
+                continue
+            d = faces[i].plane - faces[j].plane
+            n = np.hypot(d[0], d[1])
+            if n < 1e-9:
+                continue
+            # the line d0 x + d1 y + d2 = 0, long enough to cross the overlap
+            cx, cy = inter.centroid.x, inter.centroid.y
+            t = (d[0] * cx + d[1] * cy + d[2]) / n**2
+            px, py = cx - d[0] * t, cy - d[1] * t
+            L = 2.0 * np.sqrt(inter.envelope.area) + 1.0 + np.hypot(px - cx, py - cy)
+            ux, uy = -d[1] / n, d[0] / n
+            seg = LineString([(px - L * ux, py - L * uy), (px + L * ux, py + L * uy)])
+            cut = seg.intersection(inter)
+            if not cut.is_empty and cut.length > 1e-6:
+                lines.append(cut)
+    noded = shapely.set_precision(shapely.unary_union(lines), GRID)
+    noded = shapely.unary_union(noded)  # re-node after snapping
+    cells = [orient(c, 1.0) for c in shapely.get_parts(shapely.polygonize([noded]).geoms)]
+    return [c for c in cells if c.area > 1e-6]
+
+
+def building_mesh(faces: list[RoofFace], bottom_z: float) -> BuildingMesh:
+    """Mesh the upper envelope of roof faces into a closed solid down to ``bottom_z``.
+
+    Parameters
+    ----------
+    faces : list of RoofFace
+        Planar roof faces of all wings, possibly overlapping.
+    bottom_z : float
+        Height of the bottom face (below the terrain), metres.
+
+    Returns
+    -------
+    BuildingMesh
+    """
+    polys = [Polygon(f.xy) for f in faces]
+    cells = _arrangement(faces, polys)
+    tops = []
+    kept = []
+    for c in cells:
+        p = c.representative_point()
+        k = _top_face(faces, polys, p.x, p.y)
+        if k >= 0:
+            kept.append(c)
+            tops.append(k)
+    tri_pts, tri_part, tri_axis = [], [], []
+    node_z: dict[tuple, set] = defaultdict(set)
+
+    def key(x, y):
+        return (round(x / GRID), round(y / GRID))
+
+    walls = []
+    for cell, k in zip(kept, tops, strict=True):
+        plane = faces[k].plane
+        grad = np.array([plane[0], plane[1]])
+        down = -grad / np.linalg.norm(grad) if np.linalg.norm(grad) > 1e-9 else np.array([1, 0])
+        tris = shapely.get_parts(shapely.constrained_delaunay_triangles(cell))
+        for t in tris:
+            xy = np.asarray(t.exterior.coords)[:3]
+            if _area2(xy) < 0:
+                xy = xy[::-1]
+            z = _plane_z(plane, xy[:, 0], xy[:, 1])
+            tri_pts.append(np.column_stack([xy, z]))
+            tri_part.append(0)
+            tri_axis.append(down)
+            bottom = np.column_stack([xy[::-1], np.full(3, bottom_z)])
+            tri_pts.append(bottom)
+            tri_part.append(2)
+            tri_axis.append(np.array([1.0, 0.0]))
+        for ring in [cell.exterior, *cell.interiors]:
+            coords = np.asarray(ring.coords)
+            for p0, p1 in zip(coords[:-1], coords[1:], strict=True):
+                z0, z1 = _plane_z(plane, p0[0], p0[1]), _plane_z(plane, p1[0], p1[1])
+                node_z[key(*p0)].add(round(z0 / GRID))
+                d = p1 - p0
+                length = np.hypot(*d)
+                if length < 1e-9:
+                    continue
+                normal = np.array([d[1], -d[0]]) / length  # outward: interior is on the left
+                mid = 0.5 * (p0 + p1) + _EPS * normal
+                other = _top_face(faces, polys, mid[0], mid[1])
+                if other < 0:
+                    o0 = o1 = bottom_z
+                else:
+                    o0 = _plane_z(faces[other].plane, p0[0], p0[1])
+                    o1 = _plane_z(faces[other].plane, p1[0], p1[1])
+                walls.extend(_wall_pieces(p0, p1, z0, z1, o0, o1))
+    for p0, p1, lo0, hi0, lo1, hi1 in walls:
+        for p, lo, hi in ((p0, lo0, hi0), (p1, lo1, hi1)):
+            node_z[key(*p)].update((round(lo / GRID), round(hi / GRID)))
+    for p0, p1, lo0, hi0, lo1, hi1 in walls:
+        left = _chain(node_z[key(*p0)], lo0, hi0)
+        right = _chain(node_z[key(*p1)], lo1, hi1)
+        d = (p1 - p0) / np.hypot(*(p1 - p0))
+        for tri in _ladder(p0, left, p1, right):
+            tri_pts.append(tri)
+            tri_part.append(1)
+            tri_axis.append(d)
+    return _index(np.array(tri_pts), np.array(tri_part, np.uint8), np.array(tri_axis))
+
+
+def _area2(xy: np.ndarray) -> float:
+    return (xy[1, 0] - xy[0, 0]) * (xy[2, 1] - xy[0, 1]) - (xy[2, 0] - xy[0, 0]) * (
+        xy[1, 1] - xy[0, 1]
+    )
+
+
+def _wall_pieces(p0, p1, z0, z1, o0, o1):
+    """Wall parts along edge p0-p1 where this side (z) is above the other side (o)."""
+    tol = 1e-6
+    d0, d1 = z0 - o0, z1 - o1
+    if d0 > tol and d1 > tol:
+        return [(p0, p1, o0, z0, o1, z1)]
+    if d0 > tol and d1 < -tol or d0 < -tol and d1 > tol:
+        s = d0 / (d0 - d1)
+        pm = p0 + s * (p1 - p0)
+        zm = z0 + s * (z1 - z0)
+        return [(p0, pm, o0, z0, zm, zm)] if d0 > 0 else [(pm, p1, zm, zm, o1, z1)]
+    if d0 > tol:
+        return [(p0, p1, o0, z0, z1, z1)]
+    if d1 > tol:
+        return [(p0, p1, z0, z0, o1, z1)]
+    return []
+
+
+def _chain(zs: set, lo: float, hi: float) -> np.ndarray:
+    lo_k, hi_k = round(lo / GRID), round(hi / GRID)
+    ks = sorted(k for k in zs if lo_k <= k <= hi_k)
+    return np.array(ks, dtype=np.float64) * GRID
+
+
+def _ladder(p0, left: np.ndarray, p1, right: np.ndarray):
+    """Triangulate a vertical wall between two vertical chains of heights.
+
+    The wall's outside is to the right of p0 -> p1 (seen from above); triangles are
+    counter-clockwise seen from outside.
+    """
+    A = [np.array([p0[0], p0[1], z]) for z in left]
+    B = [np.array([p1[0], p1[1], z]) for z in right]
+    i = j = 0
+    out = []
+    while i < len(A) - 1 or j < len(B) - 1:
+        adv_a = j >= len(B) - 1 or (i < len(A) - 1 and left[i + 1] <= right[j + 1])
+        if adv_a:
+            tri = (A[i], B[j], A[i + 1])
+            i += 1
+        else:
+            tri = (A[i], B[j], B[j + 1])
+            j += 1
+        out.append(np.array(tri))
+    return out
+
+
+def _index(tri_pts: np.ndarray, part: np.ndarray, axis: np.ndarray) -> BuildingMesh:
+    """Merge triangle corners into shared vertices: same snapped xy, z within 3 GRID.
+
+    z is clustered rather than rounded, so that two planes meeting at a ridge whose
+    height falls on a rounding boundary still give one vertex.
+    """
+    pts = tri_pts.reshape(-1, 3)
+    kx = np.round(pts[:, 0] / GRID).astype(np.int64)
+    ky = np.round(pts[:, 1] / GRID).astype(np.int64)
+    order = np.lexsort((pts[:, 2], ky, kx))
+    new = np.ones(len(order), dtype=bool)
+    new[1:] = (
+        (np.diff(kx[order]) != 0) | (np.diff(ky[order]) != 0) | (np.diff(pts[order, 2]) > 3 * GRID)
+    )
+    cluster = np.cumsum(new) - 1
+    inverse = np.empty(len(order), dtype=np.int64)
+    inverse[order] = cluster
+    first = order[new]
+    verts = np.column_stack([kx[first] * GRID, ky[first] * GRID, pts[first, 2]])
+    tris = inverse.reshape(-1, 3)
+    ok = (tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 0] != tris[:, 2])
+    return BuildingMesh(verts, tris[ok], part[ok], axis[ok])

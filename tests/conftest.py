@@ -1,0 +1,21 @@
+import json
+from pathlib import Path
+
+import pytest
+
+from data_samples.generate import generate_sample
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory) -> Path:
+    """The tiny sample city, seed 0, generated once per test session."""
+    out = tmp_path_factory.mktemp("tiny") / "scene"
+    generate_sample(out, "tiny", 0)
+    return out
+
+
+@pytest.fixture(scope="session")
+def tiny_meta(tiny_scene) -> dict:
+    return json.loads((tiny_scene / "sample.json").read_text())

@@ -1,0 +1,51 @@
+import numpy as np
+import open3d as o3d
+import pytest
+from rasterio.crs import CRS
+
+from workbench.errors import InputError
+from workbench.meshio import read_ply, write_ply
+from workbench.raster import Grid, read_raster, write_raster
+
+
+def test_grid_geometry():
+    g = Grid.from_bounds(-10, -4, 10, 6, 0.5)
+    assert g.shape == (20, 40)
+    assert g.bounds == (-10, -4, 10, 6)
+    X, Y = g.cell_centers()
+    assert X[0, 0] == -9.75 and Y[0, 0] == 5.75  # north-west cell centre
+    r, c = g.world_to_cell(X, Y)
+    np.testing.assert_allclose(r, np.arange(20)[:, None] + 0 * X)
+    np.testing.assert_allclose(c, np.arange(40)[None, :] + 0 * X)
+
+
+def test_raster_roundtrip_keeps_grid_crs_and_nan(tmp_path):
+    g = Grid.from_bounds(100, 200, 132, 232, 1.0)
+    data = np.arange(32 * 32, dtype=np.float32).reshape(32, 32)
+    data[3, 4] = np.nan
+    crs = CRS.from_epsg(32631)
+    write_raster(tmp_path / "a.tif", data, g, crs)
+    back, g2, crs2 = read_raster(tmp_path / "a.tif")
+    assert g2 == g and crs2 == crs
+    np.testing.assert_array_equal(back[0], data)
+
+
+def test_read_raster_missing_names_file(tmp_path):
+    with pytest.raises(InputError, match="nope.tif"):
+        read_raster(tmp_path / "nope.tif", field="dsm")
+
+
+def test_ply_roundtrip_and_open3d_reads_it(tmp_path):
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) + 1000.25
+    t = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
+    cls = np.array([4, 4, 1, 2], np.uint8)
+    bid = np.array([7, 7, 0, -1], np.int32)
+    write_ply(tmp_path / "m.ply", v, t, face_properties={"class": cls, "building_id": bid})
+    v2, t2, props = read_ply(tmp_path / "m.ply")
+    np.testing.assert_array_equal(v2, v)
+    np.testing.assert_array_equal(t2, t)
+    np.testing.assert_array_equal(props["class"], cls)
+    np.testing.assert_array_equal(props["building_id"], bid)
+    m = o3d.io.read_triangle_mesh(str(tmp_path / "m.ply"))
+    assert len(m.triangles) == 4
+    np.testing.assert_allclose(np.asarray(m.vertices), v)

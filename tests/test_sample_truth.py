@@ -1,0 +1,238 @@
+"""The synthetic city against independent checks of its own ground truth."""
+
+import json
+
+import numpy as np
+import open3d as o3d
+import pytest
+import shapely
+
+from workbench.camera import Camera
+from workbench.footprints import read_footprints
+from workbench.meshio import read_ply
+from workbench.raster import read_raster
+from workbench.scene import load_scene
+
+
+def _scene_of(vertices, triangles):
+    scene = o3d.t.geometry.RaycastingScene()
+    m = o3d.t.geometry.TriangleMesh()
+    m.vertex.positions = o3d.core.Tensor(vertices.astype(np.float32))
+    m.triangle.indices = o3d.core.Tensor(triangles.astype(np.int32))
+    scene.add_triangles(m)
+    return scene
+
+
+def _cast(scene, origins, dirs):
+    rays = np.hstack([np.broadcast_to(origins, dirs.shape), dirs]).astype(np.float32)
+    ans = scene.cast_rays(o3d.core.Tensor(rays))
+    return ans["t_hit"].numpy().astype(np.float64), ans["primitive_ids"].numpy()
+
+
+@pytest.fixture(scope="module")
+def truth_mesh(tiny_scene):
+    v, t, props = read_ply(tiny_scene / "truth" / "mesh.ply")
+    return v, t, props, _scene_of(v, t)
+
+
+@pytest.fixture(scope="module")
+def true_cameras(tiny_scene):
+    doc = json.loads((tiny_scene / "truth" / "cameras.json").read_text())
+    return {
+        c["id"]: Camera(
+            np.array(c["K"]), np.array(c["R"]), np.array(c["t"]), c["width"], c["height"]
+        )
+        for c in doc["cameras"]
+    }
+
+
+def test_scene_is_valid_and_documented_layout(tiny_scene, tiny_meta):
+    s = load_scene(tiny_scene)
+    assert len(s.views) == tiny_meta["counts"]["views"] == 10
+    assert all(v.depth_path is not None for v in s.views)
+    assert s.truth is not None and s.footprints is not None and s.training_labels is not None
+    for name in (
+        "mesh.ply",
+        "buildings.json",
+        "ortho.tif",
+        "dsm.tif",
+        "dtm.tif",
+        "class.tif",
+        "footprints.geojson",
+        "building_id.tif",
+        "cameras.json",
+    ):
+        assert (tiny_scene / "truth" / name).exists(), name
+    assert (tiny_scene / "preview.png").stat().st_size > 10_000
+    assert 4 <= tiny_meta["counts"]["buildings"] <= 9
+
+
+def test_truth_rasters_share_grid_and_crs(tiny_scene):
+    s = load_scene(tiny_scene)
+    grids = []
+    for name in ("ortho", "dsm", "dtm", "class", "building_id"):
+        data, grid, crs = read_raster(tiny_scene / "truth" / f"{name}.tif")
+        assert crs == s.crs, name
+        grids.append(grid)
+    assert all(g == grids[0] for g in grids)
+    assert grids[0].gsd == pytest.approx(s.gsd)
+    assert grids[0].bounds == pytest.approx(s.bounds)
+
+
+def test_dsm_and_class_equal_vertical_ray_cast_of_mesh(tiny_scene, truth_mesh):
+    v, t, props, scene = truth_mesh
+    dsm, grid, _ = read_raster(tiny_scene / "truth" / "dsm.tif")
+    cls, _, _ = read_raster(tiny_scene / "truth" / "class.tif")
+    X, Y = grid.cell_centers()
+    top = v[:, 2].max() + 5
+    org = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, top)])
+    th, ids = _cast(scene, org, np.tile([0, 0, -1.0], (X.size, 1)))
+    z = top - th
+    assert np.isfinite(dsm).all()
+    np.testing.assert_allclose(dsm[0].ravel(), z, atol=2e-3)
+    np.testing.assert_array_equal(cls[0].ravel(), props["class"][ids])
+
+
+def test_dtm_is_below_dsm_and_equals_it_on_open_ground(tiny_scene):
+    dsm = read_raster(tiny_scene / "truth" / "dsm.tif")[0][0]
+    dtm = read_raster(tiny_scene / "truth" / "dtm.tif")[0][0]
+    cls = read_raster(tiny_scene / "truth" / "class.tif")[0][0]
+    assert np.all(dsm >= dtm - 1e-3)
+    ground = cls <= 2
+    np.testing.assert_allclose(dsm[ground], dtm[ground], atol=1e-3)
+    assert np.all(dsm[cls == 4] - dtm[cls == 4] > 2.0)
+
+
+def test_truth_points_reproject_to_pixels_whose_rays_hit_them(tiny_scene, truth_mesh, true_cameras):
+    v, t, props, scene = truth_mesh
+    rng = np.random.default_rng(1)
+    pick = rng.choice(len(t), 3000, replace=False)
+    bary = rng.dirichlet([1, 1, 1], len(pick))
+    pts = np.einsum("ij,ijk->ik", bary, v[t[pick]])
+    checked = 0
+    for cam in list(true_cameras.values())[::3]:
+        uv, depth = cam.project(pts)
+        inside = (depth > 0) & np.all((uv >= 0) & (uv <= [cam.width - 1, cam.height - 1]), axis=1)
+        origin, dirs = cam.pixel_rays(uv[inside])
+        th, _ = _cast(scene, origin, dirs)
+        d = depth[inside]
+        # the ray through the projection never passes the point ...
+        assert np.all(th <= d * (1 + 1e-5) + 1e-3)
+        # ... and stops at it wherever the point is visible (most of them)
+        visible = np.abs(th - d) < 1e-3 * d + 1e-3
+        assert visible.mean() > 0.3
+        checked += visible.sum()
+    assert checked > 1000
+
+
+def test_depth_maps_follow_the_noise_model(tiny_scene, tiny_meta, truth_mesh, true_cameras):
+    _, _, _, scene = truth_mesh
+    s = load_scene(tiny_scene)
+    sigma0 = tiny_meta["preset"]["depth_sigma"]
+    H = tiny_meta["preset"]["flying_height"]
+    outlier_frac, valid_frac, ratios = [], [], []
+    for view in s.views:
+        cam = true_cameras[view.id]
+        origin, dirs = cam.pixel_grid_rays()
+        true_depth, _ = _cast(scene, origin, dirs)
+        true_depth = true_depth.reshape(cam.height, cam.width)
+        depth = view.read_depth()
+        assert depth.dtype == np.float32 and depth.shape == (cam.height, cam.width)
+        ok = np.isfinite(depth) & np.isfinite(true_depth)
+        valid_frac.append(ok.sum() / np.isfinite(true_depth).sum())
+        res = (depth - true_depth)[ok]
+        expected = sigma0 * (true_depth[ok] / H) ** 2
+        z = res / expected
+        # corners are rounded near depth edges: judge the noise on smooth surfaces
+        gy, gx = np.gradient(np.nan_to_num(true_depth))
+        smooth = (np.hypot(gx, gy) < 0.05 * np.nan_to_num(true_depth, nan=1))[ok]
+        zs = z[smooth]
+        robust_sigma = 1.4826 * np.median(np.abs(zs - np.median(zs)))
+        ratios.append(robust_sigma)
+        outlier_frac.append(np.mean(np.abs(zs) > 8))
+    assert 0.8 < np.median(ratios) < 1.25, ratios
+    assert 0.01 < np.mean(outlier_frac) < 0.04, outlier_frac
+    assert 0.6 < np.mean(valid_frac) < 0.995, valid_frac  # holes exist, but not everywhere
+
+
+def test_buildings_json_matches_rasters(tiny_scene, truth_mesh):
+    v, t, props, _ = truth_mesh
+    doc = json.loads((tiny_scene / "truth" / "buildings.json").read_text())
+    bid = read_raster(tiny_scene / "truth" / "building_id.tif")[0][0]
+    dsm = read_raster(tiny_scene / "truth" / "dsm.tif")[0][0]
+    cls = read_raster(tiny_scene / "truth" / "class.tif")[0][0]
+    for b in doc["buildings"]:
+        m = (bid == b["id"]) & (cls == 4)
+        assert m.sum() > 0.5 * b["area_m2"] / 0.01, b["id"]  # mostly visible from above
+        assert dsm[m].max() == pytest.approx(b["ridge_z"], abs=0.15)
+        assert b["eave_z"] <= b["ridge_z"] + 1e-6
+        assert 3.0 <= b["height"] <= 60.0
+        poly = shapely.Polygon(b["footprint"][0], b["footprint"][1:])
+        assert poly.area == pytest.approx(b["area_m2"], rel=1e-4)
+        # each building of the truth mesh is closed and oriented outwards
+        tri = t[props["building_id"] == b["id"]]
+        mesh = o3d.geometry.TriangleMesh(
+            o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(tri)
+        )
+        mesh.remove_unreferenced_vertices()
+        assert mesh.is_watertight(), b["id"]
+        assert mesh.get_volume() > b["area_m2"] * (b["eave_z"] - b["base_z"])
+
+
+def test_gis_footprints_are_displaced_and_heights_overestimated(tiny_scene):
+    truth = {str(f.id): f for f in read_footprints(tiny_scene / "truth" / "footprints.geojson")}
+    gis = read_footprints(tiny_scene / "footprints_gis.geojson")
+    assert len(gis) == len(truth)
+    for f in gis:
+        tf = truth[f.id]
+        shift = f.polygon.centroid.distance(tf.polygon.centroid)
+        assert 0.5 < shift < 2.8, (f.id, shift)
+        assert 0.6 < f.polygon.hausdorff_distance(tf.polygon) < 4.0
+        ratio = f.height / tf.height
+        assert 1.3 - 0.3 / tf.height <= ratio <= 1.7 + 0.3 / tf.height
+
+
+def test_training_strokes(tiny_scene):
+    labels = read_raster(tiny_scene / "training" / "labels.tif")[0][0]
+    cls = read_raster(tiny_scene / "truth" / "class.tif")[0][0]
+    frac = np.mean(labels > 0)
+    assert 0.01 < frac < 0.035
+    assert set(np.unique(labels[labels > 0])) == {1, 2, 3, 4}
+    np.testing.assert_array_equal(labels[labels > 0], cls[labels > 0])
+
+
+def test_calibration_error_of_written_poses(tiny_scene, truth_mesh, true_cameras, tiny_meta):
+    v, t, props, _ = truth_mesh
+    pts = v[t[props["class"] <= 2][::50, 0]]
+    s = load_scene(tiny_scene)
+    errs = []
+    for view in s.views:
+        true = true_cameras[view.id]
+        a, _ = true.project(pts)
+        b, _ = view.camera.project(pts)
+        ok = np.all((a >= 0) & (a < [true.width, true.height]), axis=1)
+        errs.append(np.sqrt(np.mean(np.sum((a[ok] - b[ok]) ** 2, axis=1))))
+        assert not np.allclose(view.camera.R, true.R)  # the written poses are not the truth
+    assert 0.3 < np.median(errs) < 0.7, errs
+    assert tiny_meta["calibration_error_px_rms"] == pytest.approx(0.5, abs=0.02)
+
+
+def test_images_look_like_the_true_ortho_from_above(tiny_scene, true_cameras):
+    """The nadir image's pixel at a ground point has the ortho's colour there (same
+    surface, shading and sun): a check that images and truth are rendered alike."""
+    ortho, grid, _ = read_raster(tiny_scene / "truth" / "ortho.tif")
+    dsm = read_raster(tiny_scene / "truth" / "dsm.tif")[0][0]
+    cls = read_raster(tiny_scene / "truth" / "class.tif")[0][0]
+    s = load_scene(tiny_scene)
+    view = next(v for v in s.views if v.id.endswith("_n"))
+    img = view.read_image().astype(float)
+    cam = true_cameras[view.id]
+    X, Y = grid.cell_centers()
+    sel = (cls == 1)[::7, ::7]
+    pts = np.column_stack([X[::7, ::7][sel], Y[::7, ::7][sel], dsm[::7, ::7][sel]])
+    uv, _ = cam.project(pts)
+    ok = np.all((uv >= 1) & (uv < [cam.width - 2, cam.height - 2]), axis=1)
+    px = img[np.round(uv[ok, 1]).astype(int), np.round(uv[ok, 0]).astype(int)]
+    ref = np.moveaxis(ortho, 0, -1)[::7, ::7][sel][ok].astype(float)
+    corr = np.corrcoef(px.mean(1), ref.mean(1))[0, 1]
+    assert corr > 0.7, corr

@@ -1,0 +1,118 @@
+"""PLY meshes with per-face attributes (class, building id), readable by Open3D.
+
+Binary little-endian PLY: vertex x y z (float64), optional red green blue (uchar);
+face vertex_indices (uchar count, int32) and any extra per-face int32/uchar
+properties. Open3D and other tools read the geometry and ignore the extras.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+
+def write_ply(
+    path: str | os.PathLike,
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    *,
+    vertex_colors: np.ndarray | None = None,
+    face_properties: dict[str, np.ndarray] | None = None,
+) -> None:
+    """Write a triangle mesh.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float
+        Positions, metres.
+    triangles : (T, 3) int
+        Vertex indices, counter-clockwise seen from outside.
+    vertex_colors : (V, 3) uint8, optional
+    face_properties : dict of name -> (T,) uint8 or int32 array, optional
+    """
+    face_properties = face_properties or {}
+    V, T = len(vertices), len(triangles)
+    vfields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    if vertex_colors is not None:
+        vfields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    vrec = np.empty(V, dtype=vfields)
+    vrec["x"], vrec["y"], vrec["z"] = vertices.T
+    if vertex_colors is not None:
+        vrec["red"], vrec["green"], vrec["blue"] = np.asarray(vertex_colors, np.uint8).T
+    ffields = [("n", "u1"), ("v", "<i4", (3,))]
+    ptypes = {}
+    for name, arr in face_properties.items():
+        kind = "u1" if arr.dtype == np.uint8 else "<i4"
+        ffields.append((name, kind))
+        ptypes[name] = "uchar" if kind == "u1" else "int"
+    frec = np.empty(T, dtype=ffields)
+    frec["n"] = 3
+    frec["v"] = triangles
+    for name, arr in face_properties.items():
+        frec[name] = arr
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "comment city-workbench",
+        f"element vertex {V}",
+        "property double x",
+        "property double y",
+        "property double z",
+    ]
+    if vertex_colors is not None:
+        header += ["property uchar red", "property uchar green", "property uchar blue"]
+    header += [f"element face {T}", "property list uchar int vertex_indices"]
+    header += [f"property {ptypes[n]} {n}" for n in face_properties]
+    header.append("end_header")
+    with open(path, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        f.write(vrec.tobytes())
+        f.write(frec.tobytes())
+
+
+def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """Read a mesh written by :func:`write_ply`.
+
+    Returns
+    -------
+    vertices : (V, 3) float64
+    triangles : (T, 3) int32
+    face_properties : dict of name -> (T,) array
+    """
+    with open(path, "rb") as f:
+        lines = []
+        while True:
+            line = f.readline()
+            if not line:
+                raise ValueError(f"{path}: truncated PLY header")
+            line = line.decode("ascii").strip()
+            lines.append(line)
+            if line == "end_header":
+                break
+        body = f.read()
+    if "format binary_little_endian 1.0" not in lines:
+        raise ValueError(f"{path}: only binary little-endian PLY is supported")
+    types = {"double": "<f8", "float": "<f4", "uchar": "u1", "int": "<i4", "uint": "<u4"}
+    elements, cur = [], None
+    for line in lines:
+        parts = line.split()
+        if parts[0] == "element":
+            cur = (parts[1], int(parts[2]), [])
+            elements.append(cur)
+        elif parts[0] == "property" and cur is not None:
+            if parts[1] == "list":
+                cur[2].append(("n", types[parts[2]]))
+                cur[2].append((parts[4], types[parts[3]], (3,)))
+            else:
+                cur[2].append((parts[2], types[parts[1]]))
+    out, offset = {}, 0
+    for name, count, fields in elements:
+        dt = np.dtype(fields)
+        out[name] = np.frombuffer(body, dtype=dt, count=count, offset=offset)
+        offset += dt.itemsize * count
+    v = out["vertex"]
+    vertices = np.column_stack([v["x"], v["y"], v["z"]]).astype(np.float64)
+    f = out["face"]
+    props = {n: np.array(f[n]) for n in f.dtype.names if n not in ("n", "vertex_indices")}
+    return vertices, np.array(f["vertex_indices"], dtype=np.int32), props

@@ -1,0 +1,185 @@
+"""North-up GeoTIFF rasters that always travel with their grid and CRS.
+
+A :class:`Grid` is the ortho grid of the workbench: an axis-aligned, north-up
+array of square cells. Row 0 is the northern edge; cell centres are at
+``(xmin + (col + 0.5) * gsd, ymax - (row + 0.5) * gsd)``.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import rasterio
+from rasterio.crs import CRS
+from rasterio.errors import CRSError, RasterioIOError
+from rasterio.transform import Affine
+
+from .errors import InputError
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A north-up grid of square cells.
+
+    Attributes
+    ----------
+    xmin, ymax : float
+        World coordinates of the north-west corner of the grid (metres).
+    gsd : float
+        Cell size (ground sampling distance), metres.
+    width, height : int
+        Number of columns and rows.
+    """
+
+    xmin: float
+    ymax: float
+    gsd: float
+    width: int
+    height: int
+
+    @classmethod
+    def from_bounds(cls, xmin: float, ymin: float, xmax: float, ymax: float, gsd: float) -> Grid:
+        """The grid of cells of size ``gsd`` covering the bounds (rounded outwards)."""
+        if gsd <= 0:
+            raise ValueError(f"gsd must be positive, got {gsd}")
+        width = int(np.ceil((xmax - xmin) / gsd - 1e-9))
+        height = int(np.ceil((ymax - ymin) / gsd - 1e-9))
+        return cls(float(xmin), float(ymax), float(gsd), width, height)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.height, self.width)
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(xmin, ymin, xmax, ymax) in world metres."""
+        return (
+            self.xmin,
+            self.ymax - self.height * self.gsd,
+            self.xmin + self.width * self.gsd,
+            self.ymax,
+        )
+
+    @property
+    def transform(self) -> Affine:
+        return Affine(self.gsd, 0.0, self.xmin, 0.0, -self.gsd, self.ymax)
+
+    def cell_centers(self) -> tuple[np.ndarray, np.ndarray]:
+        """World x and y of every cell centre, each of shape (height, width)."""
+        xs = self.xmin + (np.arange(self.width) + 0.5) * self.gsd
+        ys = self.ymax - (np.arange(self.height) + 0.5) * self.gsd
+        return np.meshgrid(xs, ys)
+
+    def world_to_cell(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Row and column (float, cell centres at integers) of world points."""
+        col = (np.asarray(x) - self.xmin) / self.gsd - 0.5
+        row = (self.ymax - np.asarray(y)) / self.gsd - 0.5
+        return row, col
+
+    @classmethod
+    def from_transform(cls, transform: Affine, width: int, height: int) -> Grid:
+        if abs(transform.b) > 1e-12 or abs(transform.d) > 1e-12:
+            raise ValueError("raster is rotated; only north-up rasters are supported")
+        if abs(transform.a + transform.e) > 1e-9 * abs(transform.a) or transform.a <= 0:
+            raise ValueError("raster cells are not square and north-up")
+        return cls(transform.c, transform.f, transform.a, width, height)
+
+
+def parse_crs(value, *, path: str | os.PathLike, field: str = "crs") -> CRS:
+    """Parse an EPSG code (``"EPSG:32631"``, ``32631``), WKT or PROJ string.
+
+    Raises
+    ------
+    InputError
+        Naming ``path`` and ``field`` when the CRS is unknown.
+    """
+    try:
+        crs = CRS.from_user_input(value)
+    except (CRSError, TypeError, ValueError) as exc:
+        raise InputError(path, field, f"unknown CRS {str(value)[:60]!r} ({exc})") from None
+    return crs
+
+
+def write_raster(
+    path: str | os.PathLike,
+    data: np.ndarray,
+    grid: Grid,
+    crs: CRS | None,
+    *,
+    nodata: float | int | None = None,
+    descriptions: list[str] | None = None,
+) -> None:
+    """Write a tiled, compressed, north-up GeoTIFF.
+
+    Parameters
+    ----------
+    path : path
+        Output file.
+    data : (H, W) or (B, H, W) ndarray
+        Pixel values; float rasters use NaN as nodata.
+    grid : Grid
+        The grid the data lies on; ``data`` must have its shape.
+    crs : rasterio.crs.CRS or None
+        Coordinate reference system (None for a local frame).
+    nodata : number, optional
+        Nodata value; defaults to NaN for float data, none for integer data.
+    descriptions : list of str, optional
+        One description per band (for example the class names).
+    """
+    arr = data[None] if data.ndim == 2 else data
+    if arr.shape[1:] != grid.shape:
+        raise ValueError(f"data shape {arr.shape[1:]} does not match grid {grid.shape}")
+    if nodata is None and np.issubdtype(arr.dtype, np.floating):
+        nodata = float("nan")
+    profile = dict(
+        driver="GTiff",
+        width=grid.width,
+        height=grid.height,
+        count=arr.shape[0],
+        dtype=arr.dtype,
+        crs=crs,
+        transform=grid.transform,
+        nodata=nodata,
+        compress="deflate",
+        predictor=3 if np.issubdtype(arr.dtype, np.floating) else 2,
+        interleave="band" if arr.shape[0] > 4 else "pixel",
+    )
+    if grid.width >= 16 and grid.height >= 16:
+        profile.update(tiled=True, blockxsize=256, blockysize=256)
+    if arr.dtype == np.uint8 and arr.shape[0] == 3:
+        profile["photometric"] = "RGB"
+    with rasterio.open(path, "w", **profile) as dst:
+        dst.write(arr)
+        if descriptions:
+            for i, d in enumerate(descriptions, start=1):
+                dst.set_band_description(i, d)
+
+
+def read_raster(path: str | os.PathLike, *, field: str | None = None):
+    """Read a north-up GeoTIFF.
+
+    Returns
+    -------
+    data : (B, H, W) ndarray
+    grid : Grid
+    crs : rasterio.crs.CRS or None
+
+    Raises
+    ------
+    InputError
+        When the file is missing, unreadable or not north-up.
+    """
+    if not os.path.exists(path):
+        raise InputError(path, field, "file not found")
+    try:
+        with rasterio.open(path) as src:
+            data = src.read()
+            grid = Grid.from_transform(src.transform, src.width, src.height)
+            crs = src.crs
+    except RasterioIOError as exc:
+        raise InputError(path, field, f"not a readable raster ({exc})") from None
+    except ValueError as exc:
+        raise InputError(path, field, str(exc)) from None
+    return data, grid, crs
