@@ -23,7 +23,10 @@ import json, sys
 from data_samples.generate import generate_sample
 meta = generate_sample(sys.argv[1], sys.argv[2], int(sys.argv[3]), overwrite=True)
 print(json.dumps({"timing": meta["timing"], "counts": meta["counts"],
-                  "image_size": meta["preset"]["image_size"]}))
+                  "image_size": meta["preset"]["image_size"],
+                  "quality": {k: meta[k] for k in ("calibration_error_px_rms",
+                              "depth_maps_median_over_views", "gis_footprints", "coverage",
+                              "training_label_fraction")}}))
 """
 
 
@@ -61,6 +64,7 @@ def bench_sample(preset: str, repeat: int, work: Path) -> dict:
         "views_per_s": counts["views"] / med["views"],
         "rendered_mpx_per_s": pixels / med["views"] / 1e6,
         "spread_total_s": [round(r[0]["timing"]["total"], 2) for r in runs],
+        "quality": runs[0][0]["quality"],
     }
 
 
@@ -93,6 +97,20 @@ def main() -> int:
                 f"{r['rendered_mpx_per_s']:.2f} Mpx/s rendered (primary + shadow ray per px)"
             )
             print(f"  peak memory: {r['peak_memory_mib']:.0f} MiB")
+            q = r["quality"]
+            d = q["depth_maps_median_over_views"]
+            g = q["gis_footprints"]
+            print(
+                f"  dataset: calibration error {q['calibration_error_px_rms']:.2f} px RMS; "
+                f"depth noise {d['noise_ratio']:.2f} x model, {d['outlier_fraction']:.1%} "
+                f"outliers, {d['valid_fraction']:.1%} valid"
+            )
+            print(
+                f"           GIS footprints: shift {g['centroid_shift_m']:.2f} m, IoU "
+                f"{g['iou']:.2f}, heights x{g['height_factor']:.2f}; nadir overlap "
+                f"{q['coverage']['nadir_overlap_x']:.0%}; training labels "
+                f"{q['training_label_fraction']:.1%}"
+            )
     (args.out / "bench.json").write_text(json.dumps(results, indent=1) + "\n")
     print(f"\nwrote {args.out / 'bench.json'}")
     return 0

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections import Counter
 from pathlib import Path
 
 import cv2
@@ -23,16 +24,19 @@ from workbench.imageio import write_rgb
 from workbench.meshio import write_ply
 from workbench.progress import progress
 from workbench.raster import Grid, write_raster
+from workbench.raycast import cast
 from workbench.scene import write_scene_json
 
-from .depth import degrade_depth
+from .depth import degrade_depth, depth_error_stats
+from .gis import gis_footprint
 from .layout import make_layout
 from .preset_names import preset_index
 from .presets import PRESETS, Preset
 from .preview import colorize_classes, colorize_height, contact_sheet
-from .render import Exposure, cast, render_view, shade, vertical_hits
+from .render import Exposure, render_view, shade, vertical_hits
 from .rig import camera_rig, ground_margin, perturb_pose, reprojection_rms
 from .shading import tone_map
+from .strokes import paint_strokes
 from .terrain import Terrain
 from .world import build_world
 
@@ -113,7 +117,7 @@ def generate_sample(
         timing["truth_rasters"] = time.perf_counter() - t
 
         t = time.perf_counter()
-        views, calib, shown = _render_views(tmp, world, scene, cams, sun, p, rng)
+        views, calib, shown, depth_quality = _render_views(tmp, world, scene, cams, sun, p, rng)
         timing["views"] = time.perf_counter() - t
 
         t = time.perf_counter()
@@ -133,7 +137,7 @@ def generate_sample(
         ]
         _write_json(tmp / "truth" / "footprints.geojson", footprints_geojson(truth_fp))
         (tmp / "training").mkdir()
-        labels = _paint(truth["class"], p.gsd, rng["strokes"])
+        labels = paint_strokes(truth["class"], p.gsd, rng["strokes"])
         write_raster(tmp / "training" / "labels.tif", labels, grid, SAMPLE_CRS, nodata=0)
         write_ply(
             tmp / "truth" / "mesh.ply",
@@ -173,12 +177,14 @@ def generate_sample(
                 "shapes": _count(b["shape"] for b in buildings),
             },
             "calibration_error_px_rms": round(float(np.sqrt(np.mean(np.square(calib["rms"])))), 4),
+            "depth_maps_median_over_views": depth_quality,
+            "gis_footprints": _gis_stats(gis, layout),
             "class_fractions": {
                 n: round(float(np.mean(truth["class"] == c)), 4)
                 for c, n in ((1, "ground"), (2, "grass"), (3, "tree"), (4, "building"))
             },
             "training_label_fraction": round(float(np.mean(labels > 0)), 4),
-            "coverage": _coverage(cams, truth["dsm"], grid),
+            "coverage": _coverage(cams, truth["dsm"], grid, p),
         }
         _write_json(tmp / "sample.json", meta)
         sheet = _preview(shown, truth, labels, gis, grid)
@@ -219,7 +225,7 @@ def _truth_rasters(world, scene, grid: Grid, sun) -> dict:
 def _render_views(tmp: Path, world, scene, cams, sun, p: Preset, rng):
     (tmp / "images").mkdir()
     (tmp / "depth").mkdir()
-    views, true_poses, rms, shown = [], [], [], []
+    views, true_poses, rms, shown, depth_stats = [], [], [], [], []
     side = np.linspace(-p.size / 2, p.size / 2, 25)
     X, Y = np.meshgrid(side, side)
     probe = cast(
@@ -249,6 +255,9 @@ def _render_views(tmp: Path, world, scene, cams, sun, p: Preset, rng):
             reference_depth=p.flying_height,
             outliers=p.depth_outliers,
         )
+        depth_stats.append(
+            depth_error_stats(depth, r.depth, sigma=p.depth_sigma, reference_depth=p.flying_height)
+        )
         write_rgb(tmp / "images" / f"{name}.png", r.rgb)
         np.save(tmp / "depth" / f"{name}.npy", depth)
         written = perturb_pose(cam, p.calibration_error_px, p.flying_height, rng["calib"], probe)
@@ -264,7 +273,9 @@ def _render_views(tmp: Path, world, scene, cams, sun, p: Preset, rng):
         true_poses.append({"id": name, **cam.to_dict()})
         if name.endswith(("_n", "_E", "_S")) and len(shown) < 3:
             shown.append((r.rgb, name))
-    return views, {"true": true_poses, "rms": [x for x in rms if np.isfinite(x)]}, shown
+    calib = {"true": true_poses, "rms": [x for x in rms if np.isfinite(x)]}
+    depth = {k: round(float(np.median([d[k] for d in depth_stats])), 4) for k in depth_stats[0]}
+    return views, calib, shown, depth
 
 
 def _buildings_json(layout, world) -> list[dict]:
@@ -309,8 +320,6 @@ def _buildings_json(layout, world) -> list[dict]:
 
 
 def _gis(layout, buildings, rng) -> list[dict]:
-    from .gis import gis_footprint
-
     out = []
     for spec, b in zip(layout.buildings, buildings, strict=True):
         poly, height, info = gis_footprint(spec.footprint, b["height"], rng)
@@ -324,14 +333,34 @@ def _gis(layout, buildings, rng) -> list[dict]:
     return out
 
 
-def _paint(cls, gsd, rng):
-    from .strokes import paint_strokes
+def _gis_stats(gis: list[dict], layout) -> dict:
+    """Medians of how far the GIS footprints are from the true ones."""
+    shift = [
+        g["polygon"].centroid.distance(b.footprint.centroid)
+        for g, b in zip(gis, layout.buildings, strict=True)
+    ]
+    haus = [
+        g["polygon"].hausdorff_distance(b.footprint)
+        for g, b in zip(gis, layout.buildings, strict=True)
+    ]
+    iou = [
+        g["polygon"].intersection(b.footprint).area / g["polygon"].union(b.footprint).area
+        for g, b in zip(gis, layout.buildings, strict=True)
+    ]
+    factor = [g["properties"]["height_factor"] for g in gis]
+    if not gis:
+        return {}
+    return {
+        "centroid_shift_m": round(float(np.median(shift)), 3),
+        "hausdorff_m": round(float(np.median(haus)), 3),
+        "iou": round(float(np.median(iou)), 4),
+        "height_factor": round(float(np.median(factor)), 3),
+    }
 
-    return paint_strokes(cls, gsd, rng)
 
-
-def _coverage(cams, dsm: np.ndarray, grid: Grid) -> dict:
-    """How many nadir views see each cell (ignoring occlusion): overlap figures."""
+def _coverage(cams, dsm: np.ndarray, grid: Grid, p: Preset) -> dict:
+    """Overlap figures: nadir forward/side overlap, and how many views see each cell
+    (ignoring occlusion)."""
     X, Y = grid.cell_centers()
     pts = np.column_stack([X.ravel(), Y.ravel(), np.nan_to_num(dsm.ravel(), nan=0.0)])
     nadir = np.zeros(len(pts), int)
@@ -342,7 +371,14 @@ def _coverage(cams, dsm: np.ndarray, grid: Grid) -> dict:
         any_view += inside
         if name.endswith("_n"):
             nadir += inside
+    w, h = p.image_size
+    footprint = np.array([w, h]) * p.flying_height / p.focal_px  # nadir image on flat ground, m
+    overlap = [
+        round(float(1 - p.spacing[i] / footprint[i]), 4) if p.grid[i] > 1 else None for i in (0, 1)
+    ]
     return {
+        "nadir_overlap_x": overlap[0],
+        "nadir_overlap_y": overlap[1],
         "cells_seen_by_2_nadir_views": round(float(np.mean(nadir >= 2)), 4),
         "median_views_per_cell": float(np.median(any_view)),
         "cells_seen_by_no_view": round(float(np.mean(any_view == 0)), 4),
@@ -378,10 +414,7 @@ def _preview(shown, truth, labels, gis, grid: Grid) -> np.ndarray:
 
 
 def _count(items) -> dict:
-    out: dict[str, int] = {}
-    for it in items:
-        out[it] = out.get(it, 0) + 1
-    return dict(sorted(out.items()))
+    return dict(sorted(Counter(items).items()))
 
 
 def _write_json(path: Path, obj) -> None:

@@ -9,62 +9,22 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import open3d as o3d
 
 from workbench.camera import Camera
 from workbench.raster import Grid
+from workbench.raycast import Hits, cast, occluded
 
 from .shading import SKY_RGB, albedo, irradiance, tone_map
 from .world import World
-
-_CHUNK = 1 << 20
-
-
-@dataclass
-class Hits:
-    """What the rays hit: z-depth (ray parameter), triangle, point, oriented normal."""
-
-    t: np.ndarray  # (N,) inf where nothing was hit
-    tri: np.ndarray  # (N,) int64, -1 where nothing was hit
-    points: np.ndarray  # (N, 3)
-    normals: np.ndarray  # (N, 3) facing the ray origin
-
-
-def cast(scene: o3d.t.geometry.RaycastingScene, origins: np.ndarray, dirs: np.ndarray) -> Hits:
-    """Cast rays (origins (N, 3) or (3,), directions (N, 3)); t is in units of |dir|."""
-    n = len(dirs)
-    origins = np.broadcast_to(origins, (n, 3))
-    t = np.empty(n, np.float64)
-    tri = np.empty(n, np.int64)
-    nrm = np.empty((n, 3), np.float64)
-    for s in range(0, n, _CHUNK):
-        e = min(n, s + _CHUNK)
-        rays = np.hstack([origins[s:e], dirs[s:e]]).astype(np.float32)
-        ans = scene.cast_rays(o3d.core.Tensor(rays))
-        t[s:e] = ans["t_hit"].numpy()
-        ids = ans["primitive_ids"].numpy().astype(np.int64)
-        ids[~np.isfinite(t[s:e])] = -1
-        tri[s:e] = ids
-        nrm[s:e] = ans["primitive_normals"].numpy()
-    hit = np.isfinite(t)
-    points = np.where(hit[:, None], origins + dirs * np.where(hit, t, 0)[:, None], np.nan)
-    flip = np.sum(nrm * dirs, axis=1) > 0
-    nrm[flip] *= -1
-    return Hits(t, tri, points, nrm)
 
 
 def sun_lit(scene, hits: Hits, sun: np.ndarray) -> np.ndarray:
     """(N,) bool: the hit point sees the sun (a shadow ray per hit)."""
     lit = np.zeros(len(hits.t), bool)
     idx = np.nonzero(hits.tri >= 0)[0]
-    facing = hits.normals[idx] @ sun > 0
-    idx = idx[facing]
-    for s in range(0, len(idx), _CHUNK):
-        i = idx[s : s + _CHUNK]
-        org = hits.points[i] + 0.03 * hits.normals[i]
-        rays = np.hstack([org, np.broadcast_to(sun, (len(i), 3))]).astype(np.float32)
-        occluded = scene.test_occlusions(o3d.core.Tensor(rays)).numpy()
-        lit[i] = ~occluded
+    idx = idx[hits.normals[idx] @ sun > 0]
+    org = hits.points[idx] + 0.03 * hits.normals[idx]
+    lit[idx] = ~occluded(scene, org, sun)
     return lit
 
 

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
+from workbench.raycast import raycasting_scene
+
 from .envelope import building_mesh
 from .layout import GROUND_CLASS, GROUND_MATERIALS, RURAL, Layout
 from .roofs import wing_roof_faces
@@ -92,13 +94,9 @@ class World:
 
         Primitive ids of hits index the selected triangles in order.
         """
-        tris = self.triangles if mask is None else self.triangles[mask]
-        scene = o3d.t.geometry.RaycastingScene()
-        mesh = o3d.t.geometry.TriangleMesh()
-        mesh.vertex.positions = o3d.core.Tensor(self.vertices.astype(np.float32))
-        mesh.triangle.indices = o3d.core.Tensor(tris.astype(np.int32))
-        scene.add_triangles(mesh)
-        return scene
+        return raycasting_scene(
+            self.vertices, self.triangles if mask is None else self.triangles[mask]
+        )
 
 
 class _Builder:

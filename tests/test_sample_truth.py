@@ -7,32 +7,24 @@ import open3d as o3d
 import pytest
 import shapely
 
+from data_samples.depth import depth_error_stats
 from workbench.camera import Camera
 from workbench.footprints import read_footprints
 from workbench.meshio import read_ply
 from workbench.raster import read_raster
+from workbench.raycast import cast, raycasting_scene
 from workbench.scene import load_scene
 
 
-def _scene_of(vertices, triangles):
-    scene = o3d.t.geometry.RaycastingScene()
-    m = o3d.t.geometry.TriangleMesh()
-    m.vertex.positions = o3d.core.Tensor(vertices.astype(np.float32))
-    m.triangle.indices = o3d.core.Tensor(triangles.astype(np.int32))
-    scene.add_triangles(m)
-    return scene
-
-
 def _cast(scene, origins, dirs):
-    rays = np.hstack([np.broadcast_to(origins, dirs.shape), dirs]).astype(np.float32)
-    ans = scene.cast_rays(o3d.core.Tensor(rays))
-    return ans["t_hit"].numpy().astype(np.float64), ans["primitive_ids"].numpy()
+    hits = cast(scene, origins, dirs)
+    return hits.t, hits.tri
 
 
 @pytest.fixture(scope="module")
 def truth_mesh(tiny_scene):
     v, t, props = read_ply(tiny_scene / "truth" / "mesh.ply")
-    return v, t, props, _scene_of(v, t)
+    return v, t, props, raycasting_scene(v, t)
 
 
 @pytest.fixture(scope="module")
@@ -65,6 +57,7 @@ def test_scene_is_valid_and_documented_layout(tiny_scene, tiny_meta):
         assert (tiny_scene / "truth" / name).exists(), name
     assert (tiny_scene / "preview.png").stat().st_size > 10_000
     assert 4 <= tiny_meta["counts"]["buildings"] <= 9
+    assert 0.6 <= tiny_meta["coverage"]["nadir_overlap_x"] <= 0.8  # the 60-80 %
 
 
 def test_truth_rasters_share_grid_and_crs(tiny_scene):
@@ -128,31 +121,44 @@ def test_truth_points_reproject_to_pixels_whose_rays_hit_them(tiny_scene, truth_
 def test_depth_maps_follow_the_noise_model(tiny_scene, tiny_meta, truth_mesh, true_cameras):
     _, _, _, scene = truth_mesh
     s = load_scene(tiny_scene)
-    sigma0 = tiny_meta["preset"]["depth_sigma"]
-    H = tiny_meta["preset"]["flying_height"]
-    outlier_frac, valid_frac, ratios = [], [], []
+    prm = tiny_meta["preset"]
+    stats = []
     for view in s.views:
         cam = true_cameras[view.id]
         origin, dirs = cam.pixel_grid_rays()
         true_depth, _ = _cast(scene, origin, dirs)
-        true_depth = true_depth.reshape(cam.height, cam.width)
         depth = view.read_depth()
         assert depth.dtype == np.float32 and depth.shape == (cam.height, cam.width)
-        ok = np.isfinite(depth) & np.isfinite(true_depth)
-        valid_frac.append(ok.sum() / np.isfinite(true_depth).sum())
-        res = (depth - true_depth)[ok]
-        expected = sigma0 * (true_depth[ok] / H) ** 2
-        z = res / expected
-        # corners are rounded near depth edges: judge the noise on smooth surfaces
-        gy, gx = np.gradient(np.nan_to_num(true_depth))
-        smooth = (np.hypot(gx, gy) < 0.05 * np.nan_to_num(true_depth, nan=1))[ok]
-        zs = z[smooth]
-        robust_sigma = 1.4826 * np.median(np.abs(zs - np.median(zs)))
-        ratios.append(robust_sigma)
-        outlier_frac.append(np.mean(np.abs(zs) > 8))
-    assert 0.8 < np.median(ratios) < 1.25, ratios
-    assert 0.01 < np.mean(outlier_frac) < 0.04, outlier_frac
-    assert 0.6 < np.mean(valid_frac) < 0.995, valid_frac  # holes exist, but not everywhere
+        stats.append(
+            depth_error_stats(
+                depth,
+                true_depth.reshape(cam.height, cam.width),
+                sigma=prm["depth_sigma"],
+                reference_depth=prm["flying_height"],
+            )
+        )
+    ratio = np.median([x["noise_ratio"] for x in stats])
+    outliers = np.mean([x["outlier_fraction"] for x in stats])
+    valid = np.mean([x["valid_fraction"] for x in stats])
+    assert 0.8 < ratio < 1.25, stats
+    assert 0.01 < outliers < 0.04, stats
+    assert 0.6 < valid < 0.995, stats  # holes exist, but not everywhere
+
+
+def test_depth_error_stats_on_a_hand_made_case():
+    rng = np.random.default_rng(0)
+    true = np.full((200, 200), 50.0)
+    noisy = true + rng.normal(0, 0.15, true.shape)  # exactly the model at 50 m
+    noisy[:10] = np.nan
+    noisy[100, :40] += 20.0  # 40 gross errors; the Gaussian tail beyond 8 sigma is ~1e-15
+    st = depth_error_stats(noisy, true, sigma=0.15, reference_depth=50.0)
+    assert st["noise_ratio"] == pytest.approx(1.0, rel=0.03)
+    assert st["outlier_fraction"] == pytest.approx(40 / (190 * 200), rel=1e-9)
+    assert st["valid_fraction"] == pytest.approx(0.95)
+    twice = depth_error_stats(
+        true + rng.normal(0, 0.3, true.shape), true, sigma=0.15, reference_depth=50.0
+    )
+    assert twice["noise_ratio"] == pytest.approx(2.0, rel=0.03)
 
 
 def test_buildings_json_matches_rasters(tiny_scene, truth_mesh):

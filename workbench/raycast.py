@@ -1,0 +1,101 @@
+"""Ray casting with Open3D's RaycastingScene, on NumPy arrays.
+
+Coordinates go to Open3D as float32: keep them small (a local origin) when they are
+large, as projected coordinates of real data are.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+
+_CHUNK = 1 << 20
+
+
+def raycasting_scene(vertices: np.ndarray, triangles: np.ndarray) -> o3d.t.geometry.RaycastingScene:
+    """An Open3D ray-casting scene of one triangle mesh.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float
+    triangles : (T, 3) int
+
+    Returns
+    -------
+    RaycastingScene whose hits' primitive ids index ``triangles``.
+    """
+    scene = o3d.t.geometry.RaycastingScene()
+    mesh = o3d.t.geometry.TriangleMesh()
+    mesh.vertex.positions = o3d.core.Tensor(np.asarray(vertices, dtype=np.float32))
+    mesh.triangle.indices = o3d.core.Tensor(np.asarray(triangles, dtype=np.int32))
+    scene.add_triangles(mesh)
+    return scene
+
+
+@dataclass
+class Hits:
+    """What rays hit.
+
+    Attributes
+    ----------
+    t : (N,) float64
+        Ray parameter of the hit in units of the direction's length (inf for a miss);
+        with camera rays of unit camera-frame z, this is the z-depth.
+    tri : (N,) int64
+        Triangle index, -1 for a miss.
+    points : (N, 3) float64
+        Hit points (NaN for a miss).
+    normals : (N, 3) float64
+        Unit face normals turned to face the ray origin.
+    """
+
+    t: np.ndarray
+    tri: np.ndarray
+    points: np.ndarray
+    normals: np.ndarray
+
+
+def cast(scene: o3d.t.geometry.RaycastingScene, origins: np.ndarray, dirs: np.ndarray) -> Hits:
+    """Cast rays from ``origins`` ((N, 3) or (3,)) along ``dirs`` (N, 3), in chunks."""
+    dirs = np.asarray(dirs, dtype=np.float64)
+    n = len(dirs)
+    origins = np.broadcast_to(np.asarray(origins, dtype=np.float64), (n, 3))
+    t = np.empty(n, np.float64)
+    tri = np.empty(n, np.int64)
+    nrm = np.empty((n, 3), np.float64)
+    for s in range(0, n, _CHUNK):
+        e = min(n, s + _CHUNK)
+        rays = np.hstack([origins[s:e], dirs[s:e]]).astype(np.float32)
+        ans = scene.cast_rays(o3d.core.Tensor(rays))
+        t[s:e] = ans["t_hit"].numpy()
+        ids = ans["primitive_ids"].numpy().astype(np.int64)
+        ids[~np.isfinite(t[s:e])] = -1
+        tri[s:e] = ids
+        nrm[s:e] = ans["primitive_normals"].numpy()
+    hit = np.isfinite(t)
+    points = np.where(hit[:, None], origins + dirs * np.where(hit, t, 0)[:, None], np.nan)
+    flip = np.sum(nrm * dirs, axis=1) > 0
+    nrm[flip] *= -1
+    return Hits(t, tri, points, nrm)
+
+
+def occluded(
+    scene: o3d.t.geometry.RaycastingScene, origins: np.ndarray, dirs: np.ndarray
+) -> np.ndarray:
+    """(N,) bool: each ray from ``origins`` along ``dirs`` hits something.
+
+    ``origins`` and ``dirs`` are (N, 3) or (3,) and broadcast against each other.
+    """
+    origins = np.atleast_2d(np.asarray(origins, dtype=np.float64))
+    dirs = np.atleast_2d(np.asarray(dirs, dtype=np.float64))
+    n = max(len(origins), len(dirs))
+    origins = np.broadcast_to(origins, (n, 3))
+    dirs = np.broadcast_to(dirs, (n, 3))
+    out = np.empty(n, bool)
+    for s in range(0, n, _CHUNK):
+        e = min(n, s + _CHUNK)
+        rays = np.hstack([origins[s:e], dirs[s:e]]).astype(np.float32)
+        out[s:e] = scene.test_occlusions(o3d.core.Tensor(rays)).numpy()
+    return out
