@@ -1,7 +1,8 @@
 """Depth maps as dense matching gives them, not as a perfect renderer does.
 
 From the true z-depth: corners are rounded (smoothing across depth edges), the
-background side of occlusion edges and textureless shadows become holes, and
+background beside occluding edges (on the side the stereo partner, displaced along
+the image x axis, cannot see) and textureless shadows become holes, and
 Gaussian noise growing with the square of the depth plus gross outliers are added.
 """
 
@@ -21,9 +22,16 @@ def _blur_valid(depth: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def depth_edges(depth: np.ndarray, jump: float = 0.5, rel: float = 0.02):
-    """Masks of depth discontinuities: (any side, far side), each (H, W) bool."""
+    """Masks of depth discontinuities, each (H, W) bool.
+
+    Returns
+    -------
+    edge : pixels next to a jump in any direction
+    occluded : pixels just right of a nearer surface (their left neighbour is nearer):
+        the background a stereo partner displaced along the image x axis cannot see
+    """
     d = np.where(np.isfinite(depth), depth, np.inf)
-    far = np.zeros(d.shape, bool)
+    occluded = np.zeros(d.shape, bool)
     edge = np.zeros(d.shape, bool)
     for axis in (0, 1):
         for shift in (1, -1):
@@ -34,8 +42,9 @@ def depth_edges(depth: np.ndarray, jump: float = 0.5, rel: float = 0.02):
             big = np.abs(diff) > thr
             big &= np.isfinite(d) | np.isfinite(nb)
             edge |= big
-            far |= big & (diff > 0)
-    return edge, far
+            if axis == 1 and shift == 1:  # nb is the left neighbour
+                occluded |= big & (diff > 0)
+    return edge, occluded
 
 
 def degrade_depth(
@@ -71,14 +80,16 @@ def degrade_depth(
     (H, W) float32 depth map, NaN where matching would fail.
     """
     out = depth.astype(np.float64).copy()
-    edge, far = depth_edges(depth)
+    edge, occluded = depth_edges(depth)
     band = cv2.dilate(edge.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     smooth = _blur_valid(depth, 1.5)
     out[band] = smooth[band]
-    holes = cv2.dilate(far.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=2).astype(bool)
+    # occlusion holes extend a few pixels to the right of the nearer surface's edge
+    holes = cv2.dilate(occluded.astype(np.uint8), np.ones((1, 7), np.uint8), anchor=(0, 0))
+    holes = holes.astype(bool)
     g = gray.astype(np.float64)
     local_std = np.sqrt(np.maximum(cv2.blur(g * g, (7, 7)) - cv2.blur(g, (7, 7)) ** 2, 0))
-    dark_flat = (~lit) & (local_std < 2.5) & (g < 90)
+    dark_flat = (~lit) & (local_std < 1.5) & (g < 60)  # only the darkest, flattest shadows
     dark_flat = cv2.morphologyEx(dark_flat.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3)))
     holes |= dark_flat.astype(bool)
     s = sigma * (np.nan_to_num(out, nan=reference_depth) / reference_depth) ** 2

@@ -23,7 +23,7 @@ class Preset:
     max_height: float  # tallest building above ground
     tall_fraction: float  # share of buildings that are tall flat/stepped blocks
     ground_cell: float  # size of the ground material cells (and terrain mesh in the area)
-    gsd: float  # reference ortho ground sampling distance of truth/ and training labels
+    gsd: float  # reference ortho GSD of truth/ and training labels (~1.3x the image GSD)
     image_size: tuple[int, int]  # width, height
     flying_height: float  # above the mean terrain
     focal_px: float  # nadir focal length
@@ -57,14 +57,14 @@ PRESETS = {
         max_height=22.0,
         tall_fraction=0.15,
         ground_cell=0.5,
-        gsd=0.1,
+        gsd=0.25,
         image_size=(640, 480),
-        flying_height=45.0,
-        focal_px=450.0,
+        flying_height=60.0,
+        focal_px=500.0,
         oblique_focal_scale=1.0,
-        oblique_tilt=42.0,
-        grid=(2, 1),
-        spacing=(22.0, 0.0),
+        oblique_tilt=40.0,
+        grid=(2, 2),
+        spacing=(24.0, 20.0),
         parcel=(11.0, 17.0),
         parks=0.0,
         lots=0.0,
@@ -76,7 +76,7 @@ PRESETS = {
         max_height=60.0,
         tall_fraction=0.12,
         ground_cell=0.5,
-        gsd=0.2,
+        gsd=0.25,
         image_size=(1024, 768),
         flying_height=115.0,
         focal_px=575.0,

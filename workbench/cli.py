@@ -62,7 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--preset",
         choices=["tiny", "small", "city"],
         default="tiny",
-        help="tiny: 64 m, ~6 buildings, 10 views of 640x480 (seconds); "
+        help="tiny: 64 m, ~6 buildings, 20 views of 640x480 (seconds); "
         "small: 200 m, ~30 buildings, 45 views of 1024x768 (the benchmark); "
         "city: 1 km, ~500 buildings, 495 views (minutes). Default: tiny",
     )
@@ -124,6 +124,54 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--overwrite", action="store_true", help="replace SCENE if it exists")
     p.set_defaults(func=cmd_import_colmap)
+
+    p = sub.add_parser(
+        "fusion",
+        help="fuse views (or a LiDAR cloud) into ortho colour, DSM/DTM/nDSM and classes",
+        description="Fuse the calibrated views of SCENE (their depth maps) into north-up "
+        "rasters: ortho.tif (vector median colour), dsm.tif (median height), dtm.tif, "
+        "ndsm.tif, class_prob.tif, class.tif, count.tif, plus fusion.json and preview.png. "
+        "With --points, rasterise a LAS/LAZ/PLY cloud into the same products.",
+    )
+    p.add_argument("scene", type=Path, nargs="?", metavar="SCENE", help="scene folder")
+    p.add_argument("--points", type=Path, metavar="CLOUD", help="LAS, LAZ or PLY point cloud")
+    p.add_argument("-o", "--out", type=Path, required=True, metavar="OUT", help="output folder")
+    p.add_argument(
+        "--gsd",
+        type=_positive_float,
+        metavar="METRES",
+        help="cell size in the CRS's units (default: the scene's gsd, else the "
+        "nadir view's; for clouds, the point spacing)",
+    )
+    p.add_argument(
+        "--bounds",
+        type=float,
+        nargs=4,
+        metavar=("XMIN", "YMIN", "XMAX", "YMAX"),
+        help="area to fuse, world units (default: the scene's bounds)",
+    )
+    p.add_argument("--crs", help="CRS of a point cloud that carries none (EPSG code or WKT)")
+    p.add_argument(
+        "--truth",
+        type=Path,
+        metavar="SCENE",
+        help="score the products against SCENE/truth into fusion.json",
+    )
+    p.add_argument(
+        "--classifier",
+        type=Path,
+        metavar="FILE",
+        help="reuse a saved forest instead of training one",
+    )
+    p.add_argument(
+        "--save-classifier",
+        type=Path,
+        metavar="FILE",
+        help="save the trained forest for another scene",
+    )
+    p.add_argument("--seed", type=_non_negative_int, default=0, help="random seed (default 0)")
+    p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
+    p.set_defaults(func=cmd_fusion)
 
     p = sub.add_parser(
         "demo",
@@ -211,6 +259,28 @@ def cmd_import_colmap(args) -> int:
         overwrite=args.overwrite,
     )
     print(f"wrote {path}")
+    return 0
+
+
+def cmd_fusion(args) -> int:
+    from fusion.cli_fusion import run_fusion
+
+    if (args.scene is None) == (args.points is None):
+        raise WorkbenchError("fusion: give either SCENE or --points CLOUD")
+    record = run_fusion(args)
+    q = record.get("quality", {})
+    print(f"wrote {args.out}: {record['grid']['width']} x {record['grid']['height']} cells "
+          f"at {record['grid']['gsd']:g}, {record['stages_total_s']:.1f} s")  # fmt: skip
+    if q:
+        d, c = q.get("dsm", {}), q.get("classification", {})
+        if d.get("rmse_m") is not None:
+            print(f"  DSM RMSE {d['rmse_m']:.3f} m, median |e| {d['median_abs_m']:.3f} m, "
+                  f"valid {d['valid_fraction']:.1%}")  # fmt: skip
+        if c.get("overall_accuracy") is not None:
+            per = ", ".join(f"{k} {v:.3f}" for k, v in c["per_class_accuracy"].items())
+            print(f"  classes: overall {c['overall_accuracy']:.3f} ({per})")
+        if q.get("ortho_mae"):
+            print(f"  ortho MAE {q['ortho_mae']['mean']:.1f} / 255")
     return 0
 
 

@@ -1,0 +1,94 @@
+"""The per-view random forest: training, saving and loading.
+
+Saved classifiers are pickles (joblib): load only files you trust, as with any
+scikit-learn model.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import joblib
+import numpy as np
+from sklearn.ensemble import RandomForestClassifier
+
+from workbench.errors import InputError
+
+CLASSES = (1, 2, 3, 4)  # ground, grass, tree, building
+CLASS_NAMES = ("ground", "grass", "tree", "building")
+FORMAT = "city-workbench-forest"
+
+
+def train_forest(
+    X: np.ndarray,
+    y: np.ndarray,
+    *,
+    n_trees: int = 8,
+    max_depth: int = 14,
+    seed: int = 0,
+    n_jobs: int | None = None,
+) -> RandomForestClassifier:
+    """Train the random forest of the paper (8 trees, depth 14 by default).
+
+    Parameters
+    ----------
+    X : (N, F) float
+        Feature vectors.
+    y : (N,) int
+        Class codes 1-4.
+    seed : int
+        Seed of the forest's bootstrap and feature choices.
+    n_jobs : int, optional
+        Parallel jobs (default: all cores).
+    """
+    forest = RandomForestClassifier(
+        n_estimators=n_trees, max_depth=max_depth, random_state=seed,
+        n_jobs=n_jobs if n_jobs is not None else os.cpu_count(),
+        class_weight="balanced",
+    )  # fmt: skip
+    forest.fit(X, y)
+    return forest
+
+
+def predict_proba(forest: RandomForestClassifier, X: np.ndarray) -> np.ndarray:
+    """(N, 4) probabilities of classes 1-4 (zero for classes the forest never saw)."""
+    out = np.zeros((len(X), len(CLASSES)), np.float32)
+    if len(X) == 0:
+        return out
+    p = forest.predict_proba(X)
+    for j, c in enumerate(forest.classes_):
+        out[:, CLASSES.index(int(c))] = p[:, j]
+    return out
+
+
+def save_classifier(path: str | os.PathLike, forest, *, features: str, meta: dict) -> None:
+    """Save a forest with what it needs to be reused: its feature set and provenance."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    joblib.dump({"format": FORMAT, "version": 1, "features": features, "meta": meta,
+                 "forest": forest}, tmp)  # fmt: skip
+    os.replace(tmp, path)
+
+
+def load_classifier(path: str | os.PathLike, *, features: str):
+    """Load a forest saved by :func:`save_classifier`; check its feature set.
+
+    Returns
+    -------
+    forest, meta
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, None, "classifier file not found")
+    try:
+        doc = joblib.load(path)
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure means a bad file
+        raise InputError(path, None, f"not a saved classifier ({type(exc).__name__})") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise InputError(path, "format", "not a city-workbench classifier")
+    if doc.get("features") != features:
+        raise InputError(
+            path, "features", f"trained on {doc.get('features')!r} features, {features!r} needed"
+        )
+    return doc["forest"], doc.get("meta", {})

@@ -1,0 +1,78 @@
+"""The ``workbench fusion`` command: options in, products and fusion.json out."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from workbench.atomic import atomic_output_dir
+from workbench.metrics import classification, colour_mae, height_errors
+from workbench.scene import load_scene
+from workbench.truth import truth_rasters
+
+from .classifier import save_classifier
+from .outputs import write_fusion
+from .scene_fusion import FEATURES, FusionOptions, fuse_views
+
+
+def run_fusion(args) -> dict:
+    """Run fusion for parsed CLI arguments; return the fusion.json record."""
+    t0 = time.perf_counter()
+    opts = FusionOptions(gsd=args.gsd, bounds=tuple(args.bounds) if args.bounds else None,
+                         seed=args.seed, classifier=args.classifier)  # fmt: skip
+    if args.points is not None:
+        from .points import fuse_points
+
+        result, crs, inputs = fuse_points(args.points, opts, crs=args.crs)
+    else:
+        scene = load_scene(args.scene)
+        result = fuse_views(scene, opts)
+        crs = scene.crs
+        inputs = {"scene": str(scene.scene_json), "views": len(scene.views)}
+    g = result.grid
+    record = {
+        "inputs": inputs,
+        "parameters": {
+            k: (str(v) if v is not None and not isinstance(v, int | float | tuple) else v)
+            for k, v in vars(opts).items()
+        },  # fmt: skip
+        "grid": {
+            "xmin": g.xmin,
+            "ymax": g.ymax,
+            "gsd": g.gsd,
+            "width": g.width,
+            "height": g.height,
+            "crs": crs.to_string() if crs else None,
+        },  # fmt: skip
+        **result.record,
+        "stages_total_s": round(time.perf_counter() - t0, 3),
+    }
+    if args.truth is not None:
+        record["quality"] = fusion_quality(result, args.truth)
+    with atomic_output_dir(args.out, overwrite=args.overwrite) as tmp:
+        write_fusion(tmp, result, crs, record)
+        if args.save_classifier is not None and result.forest is not None:
+            save_classifier(args.save_classifier, result.forest, features=FEATURES,
+                            meta={"trained_on": record["inputs"], "seed": args.seed})  # fmt: skip
+    return record
+
+
+def fusion_quality(result, truth_scene) -> dict:
+    """Scores of the fused products against the truth, with the median-vs-mean ablation."""
+    t = truth_rasters(truth_scene, result.grid)
+    q = {}
+    if "dsm" in t:
+        q["dsm"] = height_errors(result.dsm, t["dsm"])
+        q["dsm_mean_fusion"] = height_errors(result.ablation["dsm_mean"], t["dsm"])
+    if "dtm" in t:
+        q["dtm"] = height_errors(result.dtm, t["dtm"])
+    if "ortho" in t:
+        seen = result.count != 0
+        q["ortho_mae"] = colour_mae(result.ortho, t["ortho"], seen)
+        mean = result.ablation["ortho_mean"]
+        ok = seen & np.isfinite(mean[..., 0])
+        q["ortho_mae_mean_fusion"] = colour_mae(np.round(mean), t["ortho"], ok)
+    if "class" in t and np.isfinite(result.class_prob).any():
+        q["classification"] = classification(result.classes, t["class"])
+    return q

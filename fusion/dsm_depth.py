@@ -1,0 +1,53 @@
+"""Depth maps ray-cast from a DSM (Open3D RaycastingScene).
+
+Used twice: for a scene with a DSM and no depth maps (a true orthophoto: every
+pixel's depth, hence its visibility, comes from the DSM surface), and to give pixels
+without a matched depth (textureless shadows) their elevation cue.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from workbench.camera import Camera
+from workbench.raster import Grid
+from workbench.raycast import cast, raycasting_scene
+
+from .interpolate import push_pull_fill
+
+
+class DsmSurface:
+    """A DSM as a triangle surface for ray casting.
+
+    Coordinates are shifted to a local origin (the grid's centre) so that float32 ray
+    casting keeps millimetres on projected coordinates of millions of metres.
+
+    Parameters
+    ----------
+    dsm : (H, W) float
+        Heights, NaN where unknown (filled by interpolation for the surface).
+    grid : Grid
+    """
+
+    def __init__(self, dsm: np.ndarray, grid: Grid):
+        filled = push_pull_fill(dsm, np.isfinite(dsm))
+        X, Y = grid.cell_centers()
+        x0, y0, x1, y1 = grid.bounds
+        self.origin = np.array([(x0 + x1) / 2, (y0 + y1) / 2, float(np.nanmedian(filled))])
+        verts = np.column_stack([X.ravel(), Y.ravel(), filled.ravel()]) - self.origin
+        H, W = grid.shape
+        j, i = np.meshgrid(np.arange(W - 1), np.arange(H - 1))
+        v00 = (i * W + j).ravel()
+        tris = np.concatenate([
+            np.column_stack([v00, v00 + W, v00 + 1]),
+            np.column_stack([v00 + 1, v00 + W, v00 + W + 1]),
+        ])  # fmt: skip
+        self.scene = raycasting_scene(verts, tris)
+
+    def depth_map(self, camera: Camera, step: int = 1) -> np.ndarray:
+        """(H, W) z-depth of the surface seen by every pixel, NaN where the ray misses."""
+        origin, dirs = camera.pixel_grid_rays(step)
+        hits = cast(self.scene, origin - self.origin, dirs)
+        h = len(range(0, camera.height, step))
+        w = len(range(0, camera.width, step))
+        return np.where(np.isfinite(hits.t), hits.t, np.nan).astype(np.float32).reshape(h, w)

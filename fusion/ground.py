@@ -1,0 +1,105 @@
+"""A terrain model (DTM) from a surface model (DSM) by a progressive morphological filter.
+
+Zhang et al. (2003): grey openings with growing windows remove objects smaller than
+the window; a cell stays ground while the DSM rises above the opened surface by less
+than a threshold that grows with the window and the terrain slope. The filter runs
+on a coarse grid (objects are metres wide, terrain is smooth), the ground cells are
+interpolated into a surface, and the result is resampled to the DSM's grid.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from .interpolate import push_pull_fill
+
+
+def progressive_morphological_filter(
+    dsm: np.ndarray,
+    cell: float,
+    *,
+    max_window: float = 80.0,
+    slope: float = 0.3,
+    dh0: float = 0.5,
+    dh_max: float = 3.0,
+) -> np.ndarray:
+    """(H, W) bool mask of ground cells.
+
+    Parameters
+    ----------
+    dsm : (H, W) float
+        Surface heights, metres; NaN cells are never ground.
+    cell : float
+        Cell size, metres.
+    max_window : float
+        Largest window, metres: about the largest building's width.
+    slope : float
+        Terrain slope allowance (rise over run) for the height threshold.
+    dh0, dh_max : float
+        Initial and largest height thresholds, metres.
+    """
+    valid = np.isfinite(dsm)
+    surface = push_pull_fill(dsm, valid).astype(np.float32)
+    ground = valid.copy()
+    largest = max(3, int(max_window / cell) | 1)
+    windows = [w for w in (2 * 2**k + 1 for k in range(32)) if w < largest] + [largest]
+    prev_w = 1
+    opened = surface
+    for w in windows:
+        kernel = np.ones((w, w), np.uint8)
+        opened = cv2.morphologyEx(opened, cv2.MORPH_OPEN, kernel)
+        dh = min(dh0 + slope * (w - prev_w) * cell, dh_max)
+        ground &= (surface - opened) <= dh
+        prev_w = w
+    return ground
+
+
+def dtm_from_dsm(
+    dsm: np.ndarray, gsd: float, *, coarse: float = 1.0, **kw
+) -> tuple[np.ndarray, np.ndarray]:
+    """DTM and ground mask of a DSM.
+
+    Parameters
+    ----------
+    dsm : (H, W) float
+        Surface heights, metres, NaN where unknown.
+    gsd : float
+        Cell size of ``dsm``, metres.
+    coarse : float
+        Cell size at which the filter runs, metres (at least ``gsd``).
+    **kw
+        Passed to :func:`progressive_morphological_filter`.
+
+    Returns
+    -------
+    dtm : (H, W) float32, defined everywhere the DSM's extent reaches
+    ground : (H, W) bool, cells of the DSM judged ground
+    """
+    H, W = dsm.shape
+    f = max(1, int(round(coarse / gsd)))
+    hc, wc = -(-H // f), -(-W // f)
+    pad = np.full((hc * f, wc * f), np.nan)
+    pad[:H, :W] = dsm
+    blocks = pad.reshape(hc, f, wc, f)
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            low = np.nanmin(
+                blocks, axis=(1, 3)
+            )  # the lowest return of a block is the best ground candidate
+    # a 5 x 5 median removes the pits that gross depth errors leave, before the openings
+    # (which follow the lowest points) can take them for terrain
+    low = cv2.medianBlur(push_pull_fill(low, np.isfinite(low)).astype(np.float32), 5)
+    ground_c = progressive_morphological_filter(low, gsd * f, **kw)
+    dtm_c = push_pull_fill(low, ground_c)
+    dtm = cv2.resize(dtm_c.astype(np.float32), (wc * f, hc * f), interpolation=cv2.INTER_LINEAR)[
+        :H, :W
+    ]
+    ground = np.isfinite(dsm) & (np.abs(dsm - dtm) < kw.get("dh0", 0.5) + 0.25)
+    # refine at full resolution: interpolate the ground cells only
+    dtm = push_pull_fill(dsm, ground).astype(np.float32)
+    dtm = np.minimum(dtm, np.where(np.isfinite(dsm), dsm, np.inf)).astype(np.float32)
+    return dtm, ground

@@ -1,0 +1,236 @@
+"""LiDAR point clouds (LAS/LAZ via laspy, PLY via Open3D) rasterised into the ortho products.
+
+DSM: the highest return per cell; ortho: the colour (or intensity) of that return;
+classes: the LAS classification of that return, ASPRS codes mapped to ours; DTM:
+the ground class where the file has one, the progressive morphological filter
+otherwise. Lengths are in the CRS's units (US survey feet stay feet); the ground
+filter's metric parameters are converted.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from rasterio.crs import CRS
+
+from workbench.errors import InputError
+from workbench.raster import Grid, parse_crs
+
+from .ground import dtm_from_dsm
+from .interpolate import push_pull_fill, small_holes
+from .records import StageTimer
+from .scene_fusion import FILLED, HOLE_CELLS, FusionOptions, FusionResult, check_memory
+
+log = logging.getLogger(__name__)
+
+# ASPRS LAS classification -> workbench class (1 ground, 2 grass, 3 tree, 4 building)
+ASPRS_TO_CLASS = {2: 1, 3: 2, 4: 3, 5: 3, 6: 4, 9: 1, 11: 1}
+ASPRS_NOISE = (7, 18)
+
+
+@dataclass
+class PointCloud:
+    """Points and what they carry; xyz in the CRS's units."""
+
+    xyz: np.ndarray  # (N, 3) float64
+    rgb: np.ndarray | None  # (N, 3) uint8
+    intensity: np.ndarray | None  # (N,) float
+    classification: np.ndarray | None  # (N,) uint8, ASPRS codes
+    crs: CRS | None
+    source: str
+
+
+def _las_crs(las, path) -> CRS | None:
+    for vlr in las.header.vlrs:
+        wkt = getattr(vlr, "string", None)
+        if type(vlr).__name__ == "WktCoordinateSystemVlr" and wkt:
+            return parse_crs(wkt, path=path, field="WKT VLR")
+    for vlr in las.header.vlrs:
+        keys = getattr(vlr, "geo_keys", None)
+        if keys:
+            for k in keys:
+                if k.id == 3072 and k.value_offset not in (0, 32767):  # ProjectedCSTypeGeoKey
+                    return parse_crs(f"EPSG:{k.value_offset}", path=path, field="GeoKeys")
+    return None
+
+
+def read_points(path: str | os.PathLike, crs: str | None = None) -> PointCloud:
+    """Read a LAS, LAZ or PLY cloud.
+
+    Parameters
+    ----------
+    path : path
+    crs : str, optional
+        EPSG code or WKT for a cloud that carries none (overrides nothing else).
+
+    Raises
+    ------
+    InputError
+        Missing or corrupt file, unknown CRS.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, None, "point cloud not found")
+    suffix = path.suffix.lower()
+    given = parse_crs(crs, path="--crs", field="crs") if crs else None
+    if suffix in (".las", ".laz"):
+        import laspy
+
+        try:
+            las = laspy.read(path)
+        except Exception as exc:  # noqa: BLE001 - laspy raises many types for bad files
+            raise InputError(path, None, f"not a readable LAS/LAZ file ({exc})") from None
+        xyz = np.column_stack([las.x, las.y, las.z]).astype(np.float64)
+        names = set(las.point_format.dimension_names)
+        rgb = None
+        if {"red", "green", "blue"} <= names:
+            rgb16 = np.column_stack([las.red, las.green, las.blue]).astype(np.float64)
+            scale = 257.0 if rgb16.max() > 255 else 1.0
+            rgb = np.clip(np.round(rgb16 / scale), 0, 255).astype(np.uint8)
+        intensity = np.asarray(las.intensity, np.float64) if "intensity" in names else None
+        cls = np.asarray(las.classification, np.uint8) if "classification" in names else None
+        file_crs = _las_crs(las, path)
+        if file_crs is None and given is None:
+            raise InputError(path, "crs", "the file names no CRS; pass --crs")
+        return PointCloud(xyz, rgb, intensity, cls, given or file_crs, str(path))
+    if suffix == ".ply":
+        import open3d as o3d
+
+        pc = o3d.io.read_point_cloud(str(path))
+        if len(pc.points) == 0:
+            raise InputError(path, None, "no points (or not a readable PLY file)")
+        rgb = (np.asarray(pc.colors) * 255).round().astype(np.uint8) if pc.has_colors() else None
+        return PointCloud(np.asarray(pc.points, np.float64), rgb, None, None, given, str(path))
+    raise InputError(path, None, "expected a .las, .laz or .ply point cloud")
+
+
+def default_gsd(xyz: np.ndarray) -> float:
+    """Cell size for a cloud: its mean point spacing on the ground, rounded up a little."""
+    span = np.ptp(xyz[:, :2], axis=0)
+    spacing = float(np.sqrt(max(span[0] * span[1], 1e-9) / len(xyz)))
+    return float(np.round(spacing * 1.25, 2 if spacing < 1 else 1)) or spacing
+
+
+def _top_per_cell(cells: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Index of the highest point of every occupied cell."""
+    order = np.lexsort((z, cells))
+    last = np.ones(len(order), bool)
+    last[:-1] = cells[order][1:] != cells[order][:-1]
+    return order[last]
+
+
+def fuse_points(path, opts: FusionOptions | None = None, *, crs: str | None = None):
+    """Rasterise a point cloud into a :class:`FusionResult`.
+
+    Returns
+    -------
+    result : FusionResult
+    crs : CRS or None
+    inputs : dict summary of the cloud
+    """
+    opts = opts or FusionOptions()
+    timer = StageTimer()
+    with timer.stage("read"):
+        cloud = read_points(path, crs)
+    xyz = cloud.xyz
+    keep = np.ones(len(xyz), bool)
+    if cloud.classification is not None:
+        keep &= ~np.isin(cloud.classification, ASPRS_NOISE)
+    if opts.bounds is not None:
+        x0, y0, x1, y1 = opts.bounds
+        keep &= (xyz[:, 0] >= x0) & (xyz[:, 0] < x1) & (xyz[:, 1] >= y0) & (xyz[:, 1] < y1)
+    if not keep.any():
+        raise InputError(path, "bounds", "no points inside the bounds")
+    xyz = xyz[keep]
+    gsd = opts.gsd or default_gsd(xyz)
+    if opts.bounds is not None:
+        grid = Grid.from_bounds(*opts.bounds, gsd)
+    else:
+        lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+        grid = Grid.from_bounds(lo[0], lo[1], hi[0] + 1e-6, hi[1] + 1e-6, gsd)
+    check_memory(grid, opts, 1)
+    unit = (
+        cloud.crs.linear_units_factor[1]
+        if cloud.crs is not None and cloud.crs.is_projected
+        else 1.0
+    )
+    with timer.stage("rasterise"):
+        r, c = grid.world_to_cell(xyz[:, 0], xyz[:, 1])
+        r = np.clip(np.floor(r + 0.5).astype(np.int64), 0, grid.height - 1)
+        c = np.clip(np.floor(c + 0.5).astype(np.int64), 0, grid.width - 1)
+        cells = r * grid.width + c
+        n = grid.width * grid.height
+        top = _top_per_cell(cells, xyz[:, 2])
+        dsm = np.full(n, np.nan)
+        dsm[cells[top]] = xyz[top, 2]
+        dsm = dsm.reshape(grid.shape)
+        count = np.bincount(cells, minlength=n).reshape(grid.shape)
+        holes = small_holes(~np.isfinite(dsm), HOLE_CELLS)
+        dsm = np.where(holes, push_pull_fill(dsm, np.isfinite(dsm)), dsm).astype(np.float32)
+        ortho = np.zeros((n, 3), np.uint8)
+        if cloud.rgb is not None:
+            ortho[cells[top]] = cloud.rgb[keep][top]
+        elif cloud.intensity is not None:
+            inten = cloud.intensity[keep][top]
+            hi_i = np.percentile(inten, 99) or 1.0
+            ortho[cells[top]] = np.clip(inten / hi_i * 255, 0, 255).astype(np.uint8)[:, None]
+        ortho = ortho.reshape(*grid.shape, 3)
+    with timer.stage("ground"):
+        metric = dict(coarse=1.0 / unit, max_window=80.0 / unit, dh0=0.5 / unit, dh_max=3.0 / unit)
+        cls = cloud.classification[keep] if cloud.classification is not None else None
+        if cls is not None and (cls == 2).sum() > 100:
+            g = cls == 2
+            ground = np.full(n, np.nan)
+            gtop = _top_per_cell(cells[g], -xyz[g, 2])  # the lowest ground return per cell
+            ground[cells[g][gtop]] = xyz[g][gtop, 2]
+            ground = ground.reshape(grid.shape)
+            dtm = push_pull_fill(ground, np.isfinite(ground)).astype(np.float32)
+            dtm_source = "LAS ground class (2), interpolated"
+        else:
+            dtm, _ = dtm_from_dsm(dsm, gsd, **metric)
+            dtm_source = "progressive morphological filter"
+        dtm = np.where(np.isfinite(dsm), np.minimum(dtm, dsm), np.nan).astype(np.float32)
+        ndsm = (dsm - dtm).astype(np.float32)
+    with timer.stage("classes"):
+        prob = np.full((4, n), np.nan, np.float32)
+        class_source = "none: the cloud has no classification"
+        if cls is not None:
+            mapped = np.zeros(256, np.uint8)
+            for k, v in ASPRS_TO_CLASS.items():
+                mapped[k] = v
+            top_cls = mapped[cls[top]]
+            known = top_cls > 0
+            onehot = np.zeros((4, known.sum()), np.float32)
+            onehot[top_cls[known] - 1, np.arange(known.sum())] = 1.0
+            prob[:, cells[top][known]] = onehot
+            share = float(known.mean())
+            class_source = (
+                f"LAS classification (ASPRS codes mapped) for {share:.1%} of the occupied "
+                "cells; unclassified returns (code 1) left unknown"
+            )
+        prob = prob.reshape(4, *grid.shape)
+    count16 = np.minimum(count, np.iinfo(np.int16).max).astype(np.int16)
+    count16[holes] = FILLED
+    inputs = {
+        "points": cloud.source,
+        "n_points": int(len(cloud.xyz)),
+        "n_points_used": int(keep.sum()),
+        "crs": cloud.crs.to_string() if cloud.crs is not None else None,
+        "units_per_metre": round(1.0 / unit, 6),
+        "has_rgb": cloud.rgb is not None,
+        "has_intensity": cloud.intensity is not None,
+        "has_classification": cloud.classification is not None,
+    }
+    record = {
+        "mode": "point cloud",
+        "dtm_source": dtm_source,
+        "class_source": class_source,
+        "filled_small_holes": int(holes.sum()),
+        "stages": timer.stages,
+    }
+    result = FusionResult(grid, ortho, dsm, dtm, ndsm, prob, count16, {}, record, None)
+    return result, cloud.crs, inputs

@@ -1,0 +1,37 @@
+"""Time and peak memory of each stage of a run, for the run's JSON record."""
+
+from __future__ import annotations
+
+import contextlib
+import resource
+import sys
+import time
+
+
+def peak_memory_mb() -> float:
+    """Peak resident memory of this process so far, MiB."""
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / (1024 * 1024) if sys.platform == "darwin" else rss / 1024
+
+
+class StageTimer:
+    """Collects ``{stage: {"wall_s", "peak_memory_mb"}}``; peak memory is the process's
+    peak so far when the stage ends (it never decreases)."""
+
+    def __init__(self):
+        self.stages: dict[str, dict] = {}
+
+    @contextlib.contextmanager
+    def stage(self, name: str):
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.stages[name] = {
+                "wall_s": round(time.perf_counter() - t0, 3),
+                "peak_memory_mb": round(peak_memory_mb(), 1),
+            }
+
+    @property
+    def total_s(self) -> float:
+        return round(sum(s["wall_s"] for s in self.stages.values()), 3)

@@ -1,0 +1,482 @@
+"""Fusion of many calibrated views into ortho colour, height and class rasters.
+
+Kluckner & Bischof (2010), sections 3 and 4: each view's depth map lifts its pixels
+into the ortho grid; per cell the height is the median of the observations, the
+colour the vector median, the class the accumulated and normalised probabilities of
+a per-view random forest on Sigma Points features.
+
+Passes over the views (each reads a view's files once):
+
+1. heights: lift, keep the visible surface per cell, median -> DSM; ground filter ->
+   DTM, nDSM;
+2. training: Sigma Points of every view with the elevation cue from the DTM; the
+   training strokes are projected into the views through their depth maps (so the
+   forest learns from the same per-view features it will classify, facades of
+   oblique views included);
+3. classification and colour: per view, class probabilities of its pixels; per cell,
+   accumulated probabilities and the vector median colour.
+
+The ortho grid is processed in tiles: a pass keeps only the current tile's
+observations, so memory follows the tile size, not the area.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from workbench.errors import InputError, WorkbenchError
+from workbench.progress import progress
+from workbench.raster import Grid, read_raster
+from workbench.scene import Scene, View
+from workbench.truth import sample_to_grid
+
+from .classifier import CLASSES, load_classifier, predict_proba, train_forest
+from .dsm_depth import DsmSurface
+from .ground import dtm_from_dsm
+from .interpolate import push_pull_fill, small_holes
+from .observations import ViewObservations, lift_depth, observe
+from .records import StageTimer
+from .robust import group_count, group_mean, group_median, vector_median
+from .sigma_points import N_FEATURES, feature_cues, sigma_points
+
+log = logging.getLogger(__name__)
+
+FEATURES = "sigma_points_lab_grad_elev_11x11_v1"
+HOLE_CELLS = 9  # holes up to this many cells are interpolated (and flagged -1 in count)
+FILLED = -1
+
+
+@dataclass
+class FusionOptions:
+    """Parameters of :func:`fuse_views` (lengths in metres)."""
+
+    gsd: float | None = None
+    bounds: tuple[float, float, float, float] | None = None
+    tile: int = 1024  # cells per tile side
+    tolerance: float = 1.0  # visibility band behind the nearest surface of a cell
+    patch: int = 11
+    n_trees: int = 8
+    max_depth: int = 14
+    samples_per_class: int = 20000
+    training_views: int = 16  # views the training samples are drawn from (spread evenly)
+    projections: int = 8  # random directions of the vector median
+    seed: int = 0
+    classifier: str | os.PathLike | None = None
+    max_memory_fraction: float = 0.5
+
+
+@dataclass
+class FusionResult:
+    grid: Grid
+    ortho: np.ndarray  # (H, W, 3) uint8
+    dsm: np.ndarray
+    dtm: np.ndarray
+    ndsm: np.ndarray
+    class_prob: np.ndarray  # (4, H, W) float32, NaN where unseen
+    count: np.ndarray  # (H, W) int16, -1 where interpolated
+    ablation: dict = field(default_factory=dict)  # mean-fused colour and height
+    record: dict = field(default_factory=dict)
+    forest: object = None
+
+    @property
+    def classes(self) -> np.ndarray:
+        """(H, W) uint8 class codes 1-4, 0 where unseen."""
+        seen = np.isfinite(self.class_prob[0])
+        return np.where(seen, np.argmax(np.nan_to_num(self.class_prob), axis=0) + 1, 0).astype(
+            np.uint8
+        )
+
+
+class DsmDepthView:
+    """A view whose depth map is ray-cast from a DSM surface (computed once, kept)."""
+
+    def __init__(self, view: View, surface: DsmSurface):
+        self.view, self.surface = view, surface
+        self.id, self.camera, self.image_path = view.id, view.camera, view.image_path
+        self.depth_path = None
+        self._depth = None
+
+    def read_image(self) -> np.ndarray:
+        return self.view.read_image()
+
+    def read_depth(self) -> np.ndarray:
+        if self._depth is None:
+            self._depth = self.surface.depth_map(self.camera)
+        return self._depth
+
+
+def default_grid(scene: Scene, opts: FusionOptions) -> Grid:
+    """The ortho grid: --bounds or the scene's bounds; --gsd or the scene's gsd or the
+    nadir-most view's ground sampling distance."""
+    bounds = opts.bounds or scene.bounds
+    gsd = opts.gsd or scene.gsd
+    views = [v for v in scene.views if v.depth_path is not None]
+    if gsd is None or bounds is None:
+        nadir = max(views, key=lambda v: -v.camera.viewing_direction[2])
+        depth = nadir.read_depth()
+        if gsd is None:
+            gsd = float(np.nanmedian(depth)) / nadir.camera.K[0, 0]
+        if bounds is None:
+            xs, ys = [], []
+            for v in views:
+                _, xyz = lift_depth(v.camera, v.read_depth()[::8, ::8])
+                xs += [xyz[:, 0].min(), xyz[:, 0].max()]
+                ys += [xyz[:, 1].min(), xyz[:, 1].max()]
+            bounds = (min(xs), min(ys), max(xs), max(ys))
+    return Grid.from_bounds(*bounds, gsd)
+
+
+def check_memory(grid: Grid, opts: FusionOptions, n_views: int) -> None:
+    """Refuse a grid whose rasters would not fit in memory, before allocating."""
+    cells = grid.width * grid.height
+    tile_cells = min(cells, opts.tile * opts.tile)
+    need = cells * 48 + tile_cells * 8 * min(n_views, 64) * 4  # rasters + a tile's observations
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    if need > opts.max_memory_fraction * total:
+        raise WorkbenchError(
+            f"--gsd {grid.gsd:g}: a {grid.width} x {grid.height} grid needs about "
+            f"{need / 2**30:.1f} GiB, more than {opts.max_memory_fraction:.0%} of this "
+            f"machine's {total / 2**30:.0f} GiB; use a larger --gsd or smaller --bounds"
+        )
+
+
+def _tiles(grid: Grid, size: int):
+    for r0 in range(0, grid.height, size):
+        for c0 in range(0, grid.width, size):
+            yield r0, c0, min(size, grid.height - r0), min(size, grid.width - c0)
+
+
+def _in_tile(obs: ViewObservations, grid: Grid, tile):
+    """The visible observations in the tile.
+
+    Returns
+    -------
+    sel : indices into ``obs``; local : their cell index inside the tile;
+    reliable : whether each is a top-surface observation away from depth jumps.
+    """
+    r0, c0, h, w = tile
+    r, c = np.divmod(obs.cells, grid.width)
+    inside = (r >= r0) & (r < r0 + h) & (c >= c0) & (c < c0 + w)
+    sel = np.flatnonzero(inside & obs.visible)
+    return sel, (r[sel] - r0) * w + (c[sel] - c0), obs.top_surface[sel]
+
+
+def preferred(cells: np.ndarray, reliable: np.ndarray, n_cells: int) -> np.ndarray:
+    """(N,) bool: the observations a cell fuses: its reliable ones, or all of its
+    visible ones where it has no reliable one (cells beside depth edges)."""
+    has_reliable = np.bincount(cells[reliable], minlength=n_cells) > 0
+    return reliable | ~has_reliable[cells]
+
+
+def _view_boxes(views: list[View], grid: Grid) -> list[tuple]:
+    """(row0, col0, row1, col1) of the cells each view's depth map reaches."""
+    boxes = []
+    for v in views:
+        _, xyz = lift_depth(v.camera, v.read_depth()[::4, ::4])
+        if len(xyz) == 0:
+            boxes.append(None)
+            continue
+        r, c = grid.world_to_cell(xyz[:, 0], xyz[:, 1])
+        boxes.append((r.min() - 8, c.min() - 8, r.max() + 8, c.max() + 8))
+    return boxes
+
+
+def _touches(box, tile) -> bool:
+    if box is None:
+        return False
+    r0, c0, h, w = tile
+    return not (box[2] < r0 or box[0] >= r0 + h or box[3] < c0 or box[1] >= c0 + w)
+
+
+def elevation_image(obs_pixels, xyz, shape, dtm: np.ndarray, grid: Grid) -> np.ndarray:
+    """(H, W) elevation above the DTM of the surface each pixel sees, metres.
+
+    Pixels without a depth take the pyramid interpolation of their neighbours'.
+    """
+    r, c = grid.world_to_cell(xyz[:, 0], xyz[:, 1])
+    r = np.clip(np.floor(r + 0.5).astype(int), 0, grid.height - 1)
+    c = np.clip(np.floor(c + 0.5).astype(int), 0, grid.width - 1)
+    elev = np.full(shape[0] * shape[1], np.nan)
+    elev[obs_pixels] = xyz[:, 2] - dtm[r, c]
+    elev = elev.reshape(shape)
+    valid = np.isfinite(elev)
+    if not valid.any():
+        return np.zeros(shape, np.float32)
+    return push_pull_fill(elev, valid).astype(np.float32)
+
+
+def view_features(
+    view: View, rgb, depth, dtm, grid, patch, surface=None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sigma Points of a view (H*W, 78) and its lifted pixels and points.
+
+    Pixels without a matched depth take it from the fused ``surface`` (a
+    :class:`~fusion.dsm_depth.DsmSurface`) for their elevation cue: the interpolation
+    of their neighbours would lift a shadow beside a tower to the tower's height.
+    """
+    pixels, xyz = lift_depth(view.camera, depth)
+    if surface is not None and len(pixels) < depth.size:
+        filled = np.where(np.isfinite(depth), depth, surface.depth_map(view.camera))
+        all_pixels, all_xyz = lift_depth(view.camera, filled)
+        elev = elevation_image(all_pixels, all_xyz, depth.shape, dtm, grid)
+    else:
+        elev = elevation_image(pixels, xyz, depth.shape, dtm, grid)
+    feats = sigma_points(feature_cues(rgb, elev), patch).reshape(-1, N_FEATURES)
+    return feats, pixels, xyz
+
+
+def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
+    """Fuse the views of a scene into ortho rasters.
+
+    Views with depth maps are lifted through them; views without one are skipped
+    with a warning. A scene whose views have no depth map but which has a DSM gets
+    a true orthophoto: each view's depth is ray-cast from the DSM.
+
+    Parameters
+    ----------
+    scene : Scene
+    opts : FusionOptions
+
+    Returns
+    -------
+    FusionResult
+    """
+    opts = opts or FusionOptions()
+    timer = StageTimer()
+    views = [v for v in scene.views if v.depth_path is not None]
+    skipped = [v.id for v in scene.views if v.depth_path is None]
+    mode = "depth maps"
+    if not views and scene.dsm is not None and scene.views:
+        with timer.stage("dsm_surface"):
+            dsm_in, dsm_grid, _ = read_raster(scene.dsm, field="dsm")
+            if opts.gsd is None and opts.bounds is None:
+                opts = replace(opts, gsd=dsm_grid.gsd, bounds=dsm_grid.bounds)
+            given = DsmSurface(dsm_in[0].astype(np.float64), dsm_grid)
+        views = [DsmDepthView(v, given) for v in scene.views]
+        skipped, mode = [], "true orthophoto (depth ray-cast from the scene's DSM)"
+    if views and skipped:
+        log.warning("%d view(s) without a depth map skipped: %s", len(skipped), ", ".join(skipped))
+    if not views:
+        raise InputError(
+            scene.scene_json,
+            "images",
+            "no view has a depth map, and no DSM or point cloud is given",
+        )
+    with timer.stage("grid"):
+        grid = default_grid(scene, opts)
+        check_memory(grid, opts, len(views))
+        boxes = _view_boxes(views, grid)
+    H, W = grid.shape
+    tiles = list(_tiles(grid, opts.tile))
+    dsm = np.full(grid.shape, np.nan, np.float32)
+    dsm_mean = np.full(grid.shape, np.nan, np.float32)
+    count = np.zeros(grid.shape, np.int32)
+    n_obs = 0
+    with timer.stage("heights"):
+        for tile in progress(tiles, "heights (tiles)"):
+            r0, c0, h, w = tile
+            cells, z, rel = [], [], []
+            for v, box in zip(views, boxes, strict=True):
+                if not _touches(box, tile):
+                    continue
+                obs = observe(v.camera, v.read_depth(), grid, tolerance=opts.tolerance)
+                sel, local, reliable = _in_tile(obs, grid, tile)
+                cells.append(local)
+                z.append(obs.xyz[sel, 2].astype(np.float32))
+                rel.append(reliable)
+            cells = np.concatenate(cells) if cells else np.zeros(0, np.int64)
+            z = np.concatenate(z) if z else np.zeros(0, np.float32)
+            rel = np.concatenate(rel) if rel else np.zeros(0, bool)
+            cells, z = cells[rel], z[rel]
+            n_obs += len(z)
+            dsm[r0 : r0 + h, c0 : c0 + w] = group_median(cells, z, h * w).reshape(h, w)
+            dsm_mean[r0 : r0 + h, c0 : c0 + w] = group_mean(cells, z, h * w).reshape(h, w)
+            count[r0 : r0 + h, c0 : c0 + w] = group_count(cells, h * w).reshape(h, w)
+    with timer.stage("ground"):
+        if mode == "depth maps":
+            spikes = isolated_spikes(dsm, count)
+            dsm[spikes] = np.nan
+            count[spikes] = 0
+        else:  # the DSM is an input: it is the height product as it is
+            dsm = sample_to_grid(dsm_in, dsm_grid, grid)[0].astype(np.float32)
+            spikes = np.zeros(grid.shape, bool)
+        holes = small_holes(~np.isfinite(dsm), HOLE_CELLS)
+        dsm = np.where(holes, push_pull_fill(dsm, np.isfinite(dsm)), dsm).astype(np.float32)
+        dtm_full, _ = dtm_from_dsm(dsm, grid.gsd)
+        dtm = np.where(np.isfinite(dsm), dtm_full, np.nan).astype(np.float32)
+        ndsm = (dsm - dtm).astype(np.float32)
+
+    forest, class_source = None, None
+    # the surface that gives shadowed pixels their elevation cue: where no view saw the
+    # top surface (beside towers, in their shadows) the ground is the better guess
+    surface = DsmSurface(np.where(np.isfinite(dsm), dsm, dtm_full), grid)
+    with timer.stage("training"):
+        if opts.classifier is not None:
+            forest, meta = load_classifier(opts.classifier, features=FEATURES)
+            class_source = f"classifier file {opts.classifier}"
+        elif scene.training_labels is not None:
+            forest, n_train = _train(views, scene.training_labels, dsm, dtm, grid, opts, surface)
+            name = Path(scene.training_labels).name
+            class_source = f"forest trained on {n_train} pixels of {name} projected into the views"
+    prob_sum = np.zeros((len(CLASSES),) + grid.shape, np.float32)
+    ortho = np.zeros(grid.shape + (3,), np.uint8)
+    ortho_mean = np.full(grid.shape + (3,), np.nan, np.float32)
+    with tempfile.TemporaryDirectory(prefix="fusion-") as cache:
+        with timer.stage("classification"):
+            n_px = 0
+            for i, v in enumerate(progress(views, "classifying views")):
+                if forest is None:
+                    break
+                rgb, depth = v.read_image(), v.read_depth()
+                feats, pixels, xyz = view_features(v, rgb, depth, dtm, grid, opts.patch, surface)
+                probs = np.zeros((depth.size, len(CLASSES)), np.uint8)
+                probs[pixels] = np.round(predict_proba(forest, feats[pixels]) * 255).astype(
+                    np.uint8
+                )
+                n_px += len(pixels)
+                np.save(Path(cache) / f"{i}.npy", probs)
+        with timer.stage("colour_and_class"):
+            for tile in progress(tiles, "colour and classes (tiles)"):
+                r0, c0, h, w = tile
+                cells, colours, probs, rel = [], [], [], []
+                for i, (v, box) in enumerate(zip(views, boxes, strict=True)):
+                    if not _touches(box, tile):
+                        continue
+                    depth = v.read_depth()
+                    obs = observe(v.camera, depth, grid, tolerance=opts.tolerance)
+                    sel, local, reliable = _in_tile(obs, grid, tile)
+                    cells.append(local)
+                    rel.append(reliable)
+                    colours.append(v.read_image().reshape(-1, 3)[obs.pixels[sel]])
+                    if forest is not None:
+                        probs.append(np.load(Path(cache) / f"{i}.npy")[obs.pixels[sel]])
+                cells = np.concatenate(cells) if cells else np.zeros(0, np.int64)
+                colours = np.concatenate(colours) if colours else np.zeros((0, 3), np.uint8)
+                n = h * w
+                use = preferred(cells, np.concatenate(rel) if rel else np.zeros(0, bool), n)
+                cells, colours = cells[use], colours[use]
+                probs = [np.concatenate(probs)[use]] if probs else []
+                ortho[r0 : r0 + h, c0 : c0 + w] = vector_median(
+                    cells, colours, n, n_projections=opts.projections, seed=opts.seed
+                ).reshape(h, w, 3)
+                ortho_mean[r0 : r0 + h, c0 : c0 + w] = group_mean(
+                    cells, colours.astype(np.float32), n
+                ).reshape(h, w, 3)
+                if probs:
+                    p = np.concatenate(probs).astype(np.float32) / 255.0
+                    for k in range(len(CLASSES)):
+                        prob_sum[k, r0 : r0 + h, c0 : c0 + w] = np.bincount(
+                            cells, p[:, k], minlength=n
+                        ).reshape(h, w)
+    with timer.stage("finish"):
+        seen = count > 0
+        with np.errstate(invalid="ignore", divide="ignore"):
+            class_prob = prob_sum / prob_sum.sum(axis=0, keepdims=True)
+        class_prob[:, ~seen] = np.nan
+        if forest is None:
+            class_prob[:] = np.nan
+        ortho = _fill_small_rgb(ortho, seen, holes)
+        count16 = np.minimum(count, np.iinfo(np.int16).max).astype(np.int16)
+        count16[holes] = FILLED
+    record = {
+        "mode": mode,
+        "views": {"used": len(views), "skipped_no_depth": len(skipped), "skipped_ids": skipped},
+        "observations": int(n_obs),
+        "class_source": class_source or "none (no training labels and no --classifier)",
+        "filled_small_holes": int(holes.sum()),
+        "rejected_isolated_spikes": int(spikes.sum()),
+        "stages": timer.stages,
+        "observations_per_s": round(n_obs / max(timer.stages["heights"]["wall_s"], 1e-9)),
+    }
+    if forest is not None and timer.stages["classification"]["wall_s"] > 0:
+        record["classification_mpx_per_s"] = round(
+            n_px / 1e6 / timer.stages["classification"]["wall_s"], 3
+        )
+    ablation = {"dsm_mean": dsm_mean, "ortho_mean": ortho_mean}
+    return FusionResult(grid, ortho, dsm, dtm, ndsm, class_prob, count16, ablation, record, forest)
+
+
+def isolated_spikes(
+    dsm: np.ndarray, count: np.ndarray, *, max_count: int = 4, jump: float = 1.0
+) -> np.ndarray:
+    """(H, W) bool: thinly observed cells that stand alone, spikes or pits.
+
+    A median of a few observations fails when most of them are gross depth errors.
+    Such a cell differs by more than ``jump`` metres from at least 7 of its 8
+    neighbours, whereas a cell on a real edge shares its height with the neighbours
+    on its own side. Cells seen more than ``max_count`` times are trusted.
+    """
+    H, W = dsm.shape
+    pad = np.pad(dsm, 1, constant_values=np.nan)
+    differ = np.zeros((H, W), np.int16)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy == dx == 0:
+                continue
+            nb = pad[1 + dy : 1 + dy + H, 1 + dx : 1 + dx + W]
+            with np.errstate(invalid="ignore"):
+                differ += (np.abs(dsm - nb) > jump) | np.isnan(nb)
+    return np.isfinite(dsm) & (count <= max_count) & (differ >= 7)
+
+
+def _fill_small_rgb(ortho, seen, holes):
+    if not holes.any():
+        return ortho
+    out = ortho.copy()
+    for k in range(3):
+        out[..., k] = np.where(
+            holes, np.round(push_pull_fill(ortho[..., k].astype(float), seen)), ortho[..., k]
+        )
+    return out
+
+
+def _train(views, labels_path, dsm, dtm, grid: Grid, opts: FusionOptions, surface=None):
+    """Train the forest on the training strokes projected into the views.
+
+    A stroke labels the top surface seen from above: a view pixel inherits its label
+    only where the pixel's point lies on that surface (within the visibility
+    tolerance of the fused DSM), not on a facade or an edge's rounded depth.
+    """
+    data, label_grid, _ = read_raster(labels_path, field="training_labels")
+    labels = data[0]
+    rng = np.random.default_rng(opts.seed)
+    # a spread subset of views gives as varied samples as all of them, in less time
+    step = max(1, int(np.ceil(len(views) / opts.training_views)))
+    views = views[::step]
+    per_view = max(200, opts.samples_per_class // len(views))
+    X, y = [], []
+    for v in progress(views, "training samples"):
+        rgb, depth = v.read_image(), v.read_depth()
+        feats, pixels, xyz = view_features(v, rgb, depth, dtm, grid, opts.patch, surface)
+        r, c = label_grid.world_to_cell(xyz[:, 0], xyz[:, 1])
+        r, c = np.floor(r + 0.5).astype(int), np.floor(c + 0.5).astype(int)
+        inside = (r >= 0) & (r < label_grid.height) & (c >= 0) & (c < label_grid.width)
+        lab = np.zeros(len(pixels), np.uint8)
+        lab[inside] = labels[r[inside], c[inside]]
+        gr, gc = grid.world_to_cell(xyz[:, 0], xyz[:, 1])
+        gr = np.clip(np.floor(gr + 0.5).astype(int), 0, grid.height - 1)
+        gc = np.clip(np.floor(gc + 0.5).astype(int), 0, grid.width - 1)
+        with np.errstate(invalid="ignore"):
+            on_top = np.abs(xyz[:, 2] - dsm[gr, gc]) < opts.tolerance
+        lab[~on_top] = 0
+        if not (lab > 0).any():
+            continue
+        chosen = []
+        for k in CLASSES:
+            idx = np.flatnonzero(lab == k)
+            if len(idx):
+                chosen.append(rng.choice(idx, min(per_view, len(idx)), replace=False))
+        chosen = np.concatenate(chosen)
+        X.append(feats[pixels[chosen]])
+        y.append(lab[chosen])
+    if not X:
+        raise InputError(labels_path, None, "no training label falls inside any view")
+    X, y = np.concatenate(X), np.concatenate(y)
+    forest = train_forest(X, y, n_trees=opts.n_trees, max_depth=opts.max_depth, seed=opts.seed)
+    return forest, len(y)

@@ -1,0 +1,120 @@
+"""The fusion steps as plain functions, on hand-computed cases."""
+
+import numpy as np
+import pytest
+
+from fusion.ground import dtm_from_dsm
+from fusion.interpolate import push_pull_fill, small_holes
+from fusion.observations import depth_jumps, observe
+from fusion.robust import group_count, group_mean, group_median, vector_median
+from fusion.sigma_points import N_FEATURES, feature_cues, sigma_points
+from workbench.camera import Camera, look_at_rotation
+from workbench.raster import Grid
+
+
+def test_group_median_and_mean():
+    cells = np.array([0, 0, 0, 2, 2, 2, 2, 3])
+    vals = np.array([5.0, 1.0, 100.0, 4.0, 1.0, 3.0, 2.0, 7.0])
+    med = group_median(cells, vals, 5)
+    np.testing.assert_array_equal(med[[0, 2, 3]], [5.0, 2.5, 7.0])
+    assert np.isnan(med[1]) and np.isnan(med[4])
+    np.testing.assert_allclose(group_mean(cells, vals, 5)[[0, 2, 3]], [106 / 3, 2.5, 7.0])
+    np.testing.assert_array_equal(group_count(cells, 5), [3, 0, 4, 1, 0])
+
+
+def test_vector_median_rejects_outliers_and_returns_an_observed_colour():
+    rng = np.random.default_rng(0)
+    grey = np.array([120, 120, 120])
+    obs = np.clip(grey + rng.normal(0, 4, (9, 3)), 0, 255).astype(np.uint8)
+    obs[:3] = [[255, 0, 0], [245, 10, 5], [250, 5, 10]]  # a red car seen by three views
+    cells = np.zeros(9, np.int64)
+    vm = vector_median(cells, obs, 1, seed=1)[0]
+    assert any((vm == o).all() for o in obs)  # one of the observations, not a new colour
+    assert np.abs(vm.astype(int) - grey).max() <= 12
+    mean = obs.astype(float).mean(axis=0)
+    assert np.abs(mean - grey).max() > 30  # the mean is pulled by the outliers
+
+
+def test_vector_median_several_cells_and_empty_cells():
+    cells = np.array([1, 1, 1, 3])
+    v = np.array([[10, 10, 10], [12, 11, 10], [200, 0, 0], [5, 6, 7]], np.uint8)
+    out = vector_median(cells, v, 4)
+    assert (out[0] == 0).all() and (out[2] == 0).all()
+    assert tuple(out[3]) == (5, 6, 7)
+    assert tuple(out[1]) in {(10, 10, 10), (12, 11, 10)}
+
+
+def test_sigma_points_match_a_direct_computation():
+    rng = np.random.default_rng(2)
+    rgb = rng.integers(0, 255, (40, 50, 3), dtype=np.uint8)
+    elev = rng.normal(3, 1, (40, 50)).astype(np.float32)
+    cues = feature_cues(rgb, elev)
+    assert cues.shape == (40, 50, 6)
+    f = sigma_points(cues, 11)
+    assert f.shape == (40, 50, N_FEATURES) and N_FEATURES == 78
+    y, x = 20, 25
+    P = cues[y - 5 : y + 6, x - 5 : x + 6].reshape(-1, 6).astype(np.float64)
+    mu, S = P.mean(0), np.cov(P.T, bias=True)
+    L = np.linalg.cholesky(S + np.eye(6) * 1e-6 * np.trace(S) / 6)
+    a = np.sqrt(12)
+    ref = np.concatenate([mu[None], mu + a * L.T, mu - a * L.T]).ravel()
+    np.testing.assert_allclose(f[y, x], ref, rtol=1e-4, atol=1e-3)
+
+
+def test_sigma_points_of_a_flat_patch_collapse_to_the_mean():
+    cues = np.ones((30, 30, 6), np.float32) * np.arange(1, 7, dtype=np.float32)
+    f = sigma_points(cues).reshape(30, 30, 13, 6)
+    np.testing.assert_allclose(f[15, 15], np.tile(np.arange(1, 7), (13, 1)), atol=1e-2)
+
+
+def test_push_pull_fills_a_plane_exactly_enough():
+    y, x = np.mgrid[0:64, 0:64]
+    plane = 0.1 * x + 0.05 * y + 3
+    valid = np.ones_like(plane, bool)
+    valid[20:30, 20:34] = False
+    filled = push_pull_fill(np.where(valid, plane, np.nan), valid)
+    np.testing.assert_array_equal(filled[valid], plane[valid])
+    assert np.abs(filled - plane).max() < 0.5
+
+
+def test_small_holes_only_inner_and_small():
+    m = np.zeros((20, 20), bool)
+    m[5, 5] = True  # one cell
+    m[10:14, 10:14] = True  # 16 cells
+    m[0, 0:3] = True  # touches the border
+    h = small_holes(m, 9)
+    assert h[5, 5] and not h[10:14, 10:14].any() and not h[0, 0:3].any()
+
+
+def test_dtm_removes_buildings_and_keeps_sloped_ground():
+    gsd = 0.25
+    y, x = np.mgrid[0:400, 0:400] * gsd
+    ground = 20 + 0.03 * x + 0.01 * y
+    dsm = ground.copy()
+    dsm[100:180, 120:220] += 12.0  # a 20 m x 25 m building
+    dsm[300:320, 50:70] += 6.0  # a tree-sized object
+    dtm, is_ground = dtm_from_dsm(dsm, gsd)
+    assert np.abs(dtm - ground).max() < 0.3
+    assert not is_ground[100:180, 120:220].any()
+    assert is_ground[350:, 300:].all()
+
+
+def test_depth_jumps_flag_edges_not_slopes():
+    d = np.full((40, 40), 60.0, np.float32)
+    d[:, 20:] = 52.0  # an 8 m step
+    d += np.linspace(0, 1.0, 40)[None, :].astype(np.float32)  # a gentle ramp elsewhere
+    j = depth_jumps(d)
+    assert j[:, 17:23].all() and not j[:, 3:15].any() and not j[:, 25:37].any()
+
+
+def test_observe_keeps_the_nearest_surface_of_a_cell():
+    # a nadir camera 50 m above; two pixels see the same cell at different depths
+    R = look_at_rotation([0, 0, -1])
+    K = np.array([[100.0, 0, 2.0], [0, 100.0, 2.0], [0, 0, 1]])
+    cam = Camera(K, R, -R @ np.array([0.0, 0.0, 50.0]), 5, 5)
+    depth = np.full((5, 5), 50.0, np.float32)
+    depth[2, 2] = 40.0  # a roof point at z = 10 above the cell of the centre
+    grid = Grid.from_bounds(-1.25, -1.25, 1.25, 1.25, 2.5)  # one 2.5 m cell for all pixels
+    obs = observe(cam, depth, grid, tolerance=1.0)
+    assert len(obs.cells) == 25 and (obs.cells == 0).all()
+    assert obs.visible.sum() == 1 and obs.xyz[obs.visible][0, 2] == pytest.approx(10.0)
