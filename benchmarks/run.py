@@ -97,8 +97,9 @@ def bench_fusion(scene: Path, repeat: int, work: Path) -> dict:
     reads = [run_child(READ_CHILD, str(scene))[0]["read_s"] for _ in range(3)]
     res = runs[0][0]
     walls = [sum(st["wall_s"] for st in r[0]["stages"].values()) for r in runs]
-    stages = {k: statistics.median(r[0]["stages"][k]["wall_s"] for r in runs)
-              for k in res["stages"]}  # fmt: skip
+    stages = {
+        k: statistics.median(r[0]["stages"][k]["wall_s"] for r in runs) for k in res["stages"]
+    }
     return {
         "repeat": repeat,
         "stage_median_s": stages,

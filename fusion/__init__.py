@@ -12,6 +12,11 @@ from .scene_fusion import FusionOptions, FusionResult, fuse_views
 from .sigma_points import feature_cues, sigma_points
 
 __all__ = [
-    "FusionOptions", "FusionResult", "feature_cues", "fuse_views", "group_median",
-    "sigma_points", "vector_median",
-]  # fmt: skip
+    "FusionOptions",
+    "FusionResult",
+    "feature_cues",
+    "fuse_views",
+    "group_median",
+    "sigma_points",
+    "vector_median",
+]

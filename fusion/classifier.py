@@ -43,10 +43,12 @@ def train_forest(
         Parallel jobs (default: all cores).
     """
     forest = RandomForestClassifier(
-        n_estimators=n_trees, max_depth=max_depth, random_state=seed,
+        n_estimators=n_trees,
+        max_depth=max_depth,
+        random_state=seed,
         n_jobs=n_jobs if n_jobs is not None else os.cpu_count(),
         class_weight="balanced",
-    )  # fmt: skip
+    )
     forest.fit(X, y)
     return forest
 
@@ -66,8 +68,9 @@ def save_classifier(path: str | os.PathLike, forest, *, features: str, meta: dic
     """Save a forest with what it needs to be reused: its feature set and provenance."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp")
-    joblib.dump({"format": FORMAT, "version": 1, "features": features, "meta": meta,
-                 "forest": forest}, tmp)  # fmt: skip
+    joblib.dump(
+        {"format": FORMAT, "version": 1, "features": features, "meta": meta, "forest": forest}, tmp
+    )
     os.replace(tmp, path)
 
 

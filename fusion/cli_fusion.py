@@ -19,8 +19,12 @@ from .scene_fusion import FEATURES, FusionOptions, fuse_views
 def run_fusion(args) -> dict:
     """Run fusion for parsed CLI arguments; return the fusion.json record."""
     t0 = time.perf_counter()
-    opts = FusionOptions(gsd=args.gsd, bounds=tuple(args.bounds) if args.bounds else None,
-                         seed=args.seed, classifier=args.classifier)  # fmt: skip
+    opts = FusionOptions(
+        gsd=args.gsd,
+        bounds=tuple(args.bounds) if args.bounds else None,
+        seed=args.seed,
+        classifier=args.classifier,
+    )
     if args.points is not None:
         from .points import fuse_points
 
@@ -36,7 +40,7 @@ def run_fusion(args) -> dict:
         "parameters": {
             k: (str(v) if v is not None and not isinstance(v, int | float | tuple) else v)
             for k, v in vars(opts).items()
-        },  # fmt: skip
+        },
         "grid": {
             "xmin": g.xmin,
             "ymax": g.ymax,
@@ -44,7 +48,7 @@ def run_fusion(args) -> dict:
             "width": g.width,
             "height": g.height,
             "crs": crs.to_string() if crs else None,
-        },  # fmt: skip
+        },
         **result.record,
         "stages_total_s": round(time.perf_counter() - t0, 3),
     }
@@ -53,8 +57,12 @@ def run_fusion(args) -> dict:
     with atomic_output_dir(args.out, overwrite=args.overwrite) as tmp:
         write_fusion(tmp, result, crs, record)
         if args.save_classifier is not None and result.forest is not None:
-            save_classifier(args.save_classifier, result.forest, features=FEATURES,
-                            meta={"trained_on": record["inputs"], "seed": args.seed})  # fmt: skip
+            save_classifier(
+                args.save_classifier,
+                result.forest,
+                features=FEATURES,
+                meta={"trained_on": record["inputs"], "seed": args.seed},
+            )
     return record
 
 

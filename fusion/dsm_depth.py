@@ -38,10 +38,12 @@ class DsmSurface:
         H, W = grid.shape
         j, i = np.meshgrid(np.arange(W - 1), np.arange(H - 1))
         v00 = (i * W + j).ravel()
-        tris = np.concatenate([
-            np.column_stack([v00, v00 + W, v00 + 1]),
-            np.column_stack([v00 + 1, v00 + W, v00 + W + 1]),
-        ])  # fmt: skip
+        tris = np.concatenate(
+            [
+                np.column_stack([v00, v00 + W, v00 + 1]),
+                np.column_stack([v00 + 1, v00 + W, v00 + W + 1]),
+            ]
+        )
         self.scene = raycasting_scene(verts, tris)
 
     def depth_map(self, camera: Camera, step: int = 1) -> np.ndarray:

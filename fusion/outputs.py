@@ -13,8 +13,17 @@ from workbench.raster import write_raster
 
 from .classifier import CLASS_NAMES
 
-PRODUCTS = ("ortho.tif", "dsm.tif", "dtm.tif", "ndsm.tif", "class_prob.tif", "class.tif",
-            "count.tif", "fusion.json", "preview.png")  # fmt: skip
+PRODUCTS = (
+    "ortho.tif",
+    "dsm.tif",
+    "dtm.tif",
+    "ndsm.tif",
+    "class_prob.tif",
+    "class.tif",
+    "count.tif",
+    "fusion.json",
+    "preview.png",
+)
 
 
 def write_fusion(out: Path, result, crs, record: dict) -> None:
@@ -24,17 +33,36 @@ def write_fusion(out: Path, result, crs, record: dict) -> None:
     write_raster(out / "dsm.tif", result.dsm, g, crs)
     write_raster(out / "dtm.tif", result.dtm, g, crs)
     write_raster(out / "ndsm.tif", result.ndsm, g, crs)
-    write_raster(out / "class_prob.tif", result.class_prob.astype(np.float32), g, crs,
-                 descriptions=list(CLASS_NAMES))  # fmt: skip
+    write_raster(
+        out / "class_prob.tif",
+        result.class_prob.astype(np.float32),
+        g,
+        crs,
+        descriptions=list(CLASS_NAMES),
+    )
     write_raster(out / "class.tif", result.classes, g, crs, nodata=0)
-    write_raster(out / "count.tif", result.count, g, crs, nodata=None,
-                 descriptions=["observations per cell (-1: interpolated small hole)"])  # fmt: skip
+    write_raster(
+        out / "count.tif",
+        result.count,
+        g,
+        crs,
+        nodata=None,
+        descriptions=["observations per cell (-1: interpolated small hole)"],
+    )
     (out / "fusion.json").write_text(json.dumps(record, indent=1, default=_jsonable) + "\n")
-    write_rgb(out / "preview.png", contact_sheet([[
-        (result.ortho, "fused ortho"),
-        (colorize_height(result.ndsm), "nDSM"),
-        (colorize_classes(result.classes), "classes"),
-    ]], height=360))  # fmt: skip
+    write_rgb(
+        out / "preview.png",
+        contact_sheet(
+            [
+                [
+                    (result.ortho, "fused ortho"),
+                    (colorize_height(result.ndsm), "nDSM"),
+                    (colorize_classes(result.classes), "classes"),
+                ]
+            ],
+            height=360,
+        ),
+    )
 
 
 def _jsonable(o):

@@ -20,8 +20,11 @@ from rasterio.crs import CRS
 from workbench.errors import InputError
 from workbench.raster import Grid, parse_crs
 
+from .classifier import load_classifier
 from .ground import dtm_from_dsm
 from .interpolate import push_pull_fill, small_holes
+from .raster_forest import FEATURES as RASTER_FEATURES
+from .raster_forest import classify_rasters, synthetic_raster_forest
 from .records import StageTimer
 from .scene_fusion import FILLED, HOLE_CELLS, FusionOptions, FusionResult, check_memory
 
@@ -209,10 +212,26 @@ def fuse_points(path, opts: FusionOptions | None = None, *, crs: str | None = No
             prob[:, cells[top][known]] = onehot
             share = float(known.mean())
             class_source = (
-                f"LAS classification (ASPRS codes mapped) for {share:.1%} of the occupied "
-                "cells; unclassified returns (code 1) left unknown"
+                f"LAS classification (ASPRS codes mapped) for {share:.1%} of the occupied cells"
             )
         prob = prob.reshape(4, *grid.shape)
+        unknown = np.isfinite(dsm) & ~np.isfinite(prob[0])
+        if unknown.any():
+            if opts.classifier is not None:
+                forest = load_classifier(opts.classifier, features=RASTER_FEATURES)[0]
+                origin = f"the forest in {opts.classifier}"
+            else:
+                forest = synthetic_raster_forest()
+                origin = "a forest trained on the synthetic city's rasters"
+            rgb = ortho if (cloud.rgb is not None or cloud.intensity is not None) else None
+            guess = classify_rasters(forest, dsm, dtm, rgb, gsd * unit, unit)
+            prob[:, unknown] = guess[:, unknown]
+            share = float(unknown.sum() / np.isfinite(dsm).sum())
+            class_source = (
+                (class_source + "; " if cloud.classification is not None else "")
+                + f"{origin} (nDSM, slope, roughness, curvature, brightness, greenness) "
+                f"for {share:.1%} of the cells"
+            )
     count16 = np.minimum(count, np.iinfo(np.int16).max).astype(np.int16)
     count16[holes] = FILLED
     inputs = {

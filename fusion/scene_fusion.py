@@ -41,6 +41,7 @@ from .dsm_depth import DsmSurface
 from .ground import dtm_from_dsm
 from .interpolate import push_pull_fill, small_holes
 from .observations import ViewObservations, lift_depth, observe
+from .raster_forest import classify_rasters, synthetic_raster_forest
 from .records import StageTimer
 from .robust import group_count, group_mean, group_median, vector_median
 from .sigma_points import N_FEATURES, feature_cues, sigma_points
@@ -379,16 +380,20 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
         with np.errstate(invalid="ignore", divide="ignore"):
             class_prob = prob_sum / prob_sum.sum(axis=0, keepdims=True)
         class_prob[:, ~seen] = np.nan
-        if forest is None:
-            class_prob[:] = np.nan
         ortho = _fill_small_rgb(ortho, seen, holes)
+        if forest is None:  # no strokes, no classifier: the forest for label-free rasters
+            class_prob = classify_rasters(synthetic_raster_forest(), dsm, dtm, ortho, grid.gsd)
+            class_source = (
+                "a forest trained on the synthetic city's rasters (nDSM, slope, "
+                "roughness, curvature, brightness, greenness): no training labels"
+            )
         count16 = np.minimum(count, np.iinfo(np.int16).max).astype(np.int16)
         count16[holes] = FILLED
     record = {
         "mode": mode,
         "views": {"used": len(views), "skipped_no_depth": len(skipped), "skipped_ids": skipped},
         "observations": int(n_obs),
-        "class_source": class_source or "none (no training labels and no --classifier)",
+        "class_source": class_source,
         "filled_small_holes": int(holes.sum()),
         "rejected_isolated_spikes": int(spikes.sum()),
         "stages": timer.stages,

@@ -15,13 +15,23 @@ from workbench.errors import InputError
 from workbench.raster import read_raster
 from workbench.scene import load_scene
 
-PRODUCTS = ("ortho.tif", "dsm.tif", "dtm.tif", "ndsm.tif", "class_prob.tif", "class.tif",
-            "count.tif", "fusion.json", "preview.png")  # fmt: skip
+PRODUCTS = (
+    "ortho.tif",
+    "dsm.tif",
+    "dtm.tif",
+    "ndsm.tif",
+    "class_prob.tif",
+    "class.tif",
+    "count.tif",
+    "fusion.json",
+    "preview.png",
+)
 
 
 def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "workbench.cli", *map(str, args)],
-                          capture_output=True, text=True)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "workbench.cli", *map(str, args)], capture_output=True, text=True
+    )
 
 
 @pytest.fixture(scope="module")
@@ -90,8 +100,9 @@ def test_record_has_stages_and_throughput(fused):
 
 def test_saved_classifier_is_reused(fused, tiny_scene, tmp_path):
     _, record, clf = fused
-    proc = _cli("fusion", tiny_scene, "-o", tmp_path / "again", "--classifier", clf,
-                "--truth", tiny_scene)  # fmt: skip
+    proc = _cli(
+        "fusion", tiny_scene, "-o", tmp_path / "again", "--classifier", clf, "--truth", tiny_scene
+    )
     assert proc.returncode == 0, proc.stderr
     again = json.loads((tmp_path / "again" / "fusion.json").read_text())
     assert again["class_source"].startswith("classifier file")
@@ -114,9 +125,9 @@ def test_scene_without_depth_or_dsm_is_refused(tiny_scene, tmp_path):
     for v in doc["images"]:
         v.pop("depth")
         v["file"] = str(tiny_scene / v["file"])
-    (tmp_path / "scene.json").write_text(json.dumps(doc | {"footprints": None,
-                                                           "training_labels": None,
-                                                           "truth": None}))  # fmt: skip
+    (tmp_path / "scene.json").write_text(
+        json.dumps(doc | {"footprints": None, "training_labels": None, "truth": None})
+    )
     proc = _cli("fusion", tmp_path, "-o", tmp_path / "o")
     assert proc.returncode == 2
     assert "no view has a depth map, and no DSM or point cloud is given" in proc.stderr
@@ -192,8 +203,20 @@ def test_las_without_crs_needs_one(tmp_path):
     with pytest.raises(InputError, match="pass --crs"):
         read_points(tmp_path / "nocrs.las")
     assert read_points(tmp_path / "nocrs.las", "EPSG:28992").crs.to_epsg() == 28992
-    proc = _cli("fusion", "--points", tmp_path / "nocrs.las", "-o", tmp_path / "o",
-                "--bounds", "100", "100", "200", "200", "--crs", "EPSG:28992")  # fmt: skip
+    proc = _cli(
+        "fusion",
+        "--points",
+        tmp_path / "nocrs.las",
+        "-o",
+        tmp_path / "o",
+        "--bounds",
+        "100",
+        "100",
+        "200",
+        "200",
+        "--crs",
+        "EPSG:28992",
+    )
     assert proc.returncode == 2 and "no points inside the bounds" in proc.stderr
 
 
@@ -202,9 +225,12 @@ def test_true_orthophoto_from_a_dsm(tiny_scene, tmp_path):
     for v in doc["images"]:
         v.pop("depth")
         v["file"] = str(tiny_scene / v["file"])
-    doc.update(dsm=str(tiny_scene / "truth" / "dsm.tif"),
-               training_labels=str(tiny_scene / "training" / "labels.tif"),
-               footprints=None, truth=None)  # fmt: skip
+    doc.update(
+        dsm=str(tiny_scene / "truth" / "dsm.tif"),
+        training_labels=str(tiny_scene / "training" / "labels.tif"),
+        footprints=None,
+        truth=None,
+    )
     (tmp_path / "scene.json").write_text(json.dumps(doc))
     proc = _cli("fusion", tmp_path, "-o", tmp_path / "o", "--truth", tiny_scene)
     assert proc.returncode == 0, proc.stderr
@@ -214,3 +240,22 @@ def test_true_orthophoto_from_a_dsm(tiny_scene, tmp_path):
     assert q["dsm"]["rmse_m"] < 1e-3  # the given DSM is the height product
     assert q["ortho_mae"]["mean"] <= 10.0
     assert q["classification"]["overall_accuracy"] >= 0.9
+
+
+def test_raster_forest_on_an_unseen_synthetic_city(tmp_path):
+    """The forest for unlabelled clouds, on rasters of a city it was not trained on."""
+    from data_samples.generate import generate_sample
+    from fusion.ground import dtm_from_dsm
+    from fusion.raster_forest import classify_rasters, synthetic_raster_forest
+    from workbench.metrics import classification
+
+    generate_sample(tmp_path / "s", "tiny", 7)
+    dsm, grid, _ = read_raster(tmp_path / "s" / "truth" / "dsm.tif")
+    ortho = np.moveaxis(read_raster(tmp_path / "s" / "truth" / "ortho.tif")[0], 0, -1)
+    truth = read_raster(tmp_path / "s" / "truth" / "class.tif")[0][0]
+    dtm, _ = dtm_from_dsm(dsm[0], grid.gsd)
+    prob = classify_rasters(synthetic_raster_forest(), dsm[0], dtm, ortho, grid.gsd)
+    np.testing.assert_allclose(prob.sum(axis=0), 1.0, atol=1e-5)
+    pred = np.argmax(prob, axis=0) + 1
+    score = classification(pred, truth)
+    assert score["overall_accuracy"] >= 0.85, score

@@ -176,8 +176,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "demo",
         help="run the main job on the tiny sample city",
-        description="Generate the tiny sample city, validate it and summarise what was made. "
-        "Later stages (fusion, modeling, comparison) join this command as they land.",
+        description="Generate the tiny sample city, fuse its views and score the fusion "
+        "against the truth. Later stages (modeling, comparison) join this command as they land.",
     )
     p.add_argument("-o", "--out", type=Path, default=Path("demo_out"), help="output folder")
     p.add_argument("--seed", type=_non_negative_int, default=0, help="random seed (default 0)")
@@ -269,13 +269,17 @@ def cmd_fusion(args) -> int:
         raise WorkbenchError("fusion: give either SCENE or --points CLOUD")
     record = run_fusion(args)
     q = record.get("quality", {})
-    print(f"wrote {args.out}: {record['grid']['width']} x {record['grid']['height']} cells "
-          f"at {record['grid']['gsd']:g}, {record['stages_total_s']:.1f} s")  # fmt: skip
+    print(
+        f"wrote {args.out}: {record['grid']['width']} x {record['grid']['height']} cells "
+        f"at {record['grid']['gsd']:g}, {record['stages_total_s']:.1f} s"
+    )
     if q:
         d, c = q.get("dsm", {}), q.get("classification", {})
         if d.get("rmse_m") is not None:
-            print(f"  DSM RMSE {d['rmse_m']:.3f} m, median |e| {d['median_abs_m']:.3f} m, "
-                  f"valid {d['valid_fraction']:.1%}")  # fmt: skip
+            print(
+                f"  DSM RMSE {d['rmse_m']:.3f} m, median |e| {d['median_abs_m']:.3f} m, "
+                f"valid {d['valid_fraction']:.1%}"
+            )
         if c.get("overall_accuracy") is not None:
             per = ", ".join(f"{k} {v:.3f}" for k, v in c["per_class_accuracy"].items())
             print(f"  classes: overall {c['overall_accuracy']:.3f} ({per})")
@@ -285,30 +289,72 @@ def cmd_fusion(args) -> int:
 
 
 def cmd_demo(args) -> int:
+    from types import SimpleNamespace
+
     from data_samples.generate import generate_sample
+    from fusion.cli_fusion import run_fusion
 
     from .scene import load_scene
 
     t0 = time.perf_counter()
-    scene_dir = args.out / "scene"
+    scene_dir, fusion_dir = args.out / "scene", args.out / "fusion"
     if args.out.exists() and not args.overwrite and any(args.out.iterdir()):
         raise WorkbenchError(f"{args.out}: output exists (pass --overwrite to replace it)")
     args.out.mkdir(parents=True, exist_ok=True)
+    print(f"1/2 generating the tiny sample city (seed {args.seed}) ...", flush=True)
     meta = generate_sample(scene_dir, "tiny", args.seed, overwrite=True)
     scene = load_scene(scene_dir)
     c = meta["counts"]
-    print(f"sample city 'tiny' (seed {args.seed}) in {meta['timing']['total']:.1f} s:")
     roofs = ", ".join(f"{n} {kind}" for kind, n in c["roof_types"].items())
-    print(f"  {c['buildings']} buildings ({roofs})")
     print(
-        f"  {len(scene.views)} views with depth maps, {c['trees']} trees, "
-        f"{c['triangles']} triangles of truth mesh"
+        f"    {c['buildings']} buildings ({roofs}), {c['trees']} trees, {len(scene.views)} "
+        f"views with depth maps, in {meta['timing']['total']:.1f} s"
     )
     print(
-        f"  calibration error of the written poses: {meta['calibration_error_px_rms']:.2f} px RMS"
+        f"    calibration error of the written poses: {meta['calibration_error_px_rms']:.2f} px RMS"
     )
-    print(f"  scene:   {scene.scene_json}")
-    print(f"  preview: {scene_dir / 'preview.png'}")
+    print("2/2 fusing the views into ortho, DSM/DTM/nDSM and classes ...", flush=True)
+    record = run_fusion(
+        SimpleNamespace(
+            scene=scene_dir,
+            points=None,
+            out=fusion_dir,
+            gsd=None,
+            bounds=None,
+            crs=None,
+            truth=scene_dir,
+            classifier=None,
+            save_classifier=None,
+            seed=args.seed,
+            overwrite=True,
+        )
+    )
+    q = record["quality"]
+    d, cl = q["dsm"], q["classification"]
+    rows = [
+        (
+            "DSM RMSE / median |e|",
+            f"{d['rmse_m']:.2f} m / {d['median_abs_m']:.3f} m",
+            "{rmse_m:.2f} m / {median_abs_m:.3f} m".format(**q["dsm_mean_fusion"]),
+        ),
+        ("DSM valid cells", f"{d['valid_fraction']:.1%}", ""),
+        ("DTM RMSE", f"{q['dtm']['rmse_m']:.2f} m", ""),
+        (
+            "ortho MAE (0-255)",
+            f"{q['ortho_mae']['mean']:.1f}",
+            f"{q['ortho_mae_mean_fusion']['mean']:.1f}",
+        ),
+        ("classes, overall", f"{cl['overall_accuracy']:.3f}", ""),
+    ] + [(f"  {k}", f"{v:.3f}", "") for k, v in cl["per_class_accuracy"].items()]
+    print(f"\n    {'fusion vs truth':<24}{'median fusion':>22}{'mean fusion':>22}")
+    for name, a, b in rows:
+        print(f"    {name:<24}{a:>22}{b:>22}")
+    print(
+        f"\n    fusion took {record['stages_total_s']:.1f} s; modeling and comparison join "
+        "this demo as they land"
+    )
+    print(f"  scene preview:  {scene_dir / 'preview.png'}")
+    print(f"  fusion preview: {fusion_dir / 'preview.png'}")
     print(f"demo finished in {time.perf_counter() - t0:.1f} s")
     return 0
 

@@ -60,8 +60,11 @@ def height_errors(model: np.ndarray, truth: np.ndarray, mask: np.ndarray | None 
     out = {"valid_fraction": float(ok.sum() / max(m.sum(), 1))}
     if ok.any():
         e = (model[ok] - truth[ok]).astype(np.float64)
-        out.update(rmse_m=float(np.sqrt(np.mean(e**2))), mae_m=float(np.mean(np.abs(e))),
-                   median_abs_m=float(np.median(np.abs(e))))  # fmt: skip
+        out.update(
+            rmse_m=float(np.sqrt(np.mean(e**2))),
+            mae_m=float(np.mean(np.abs(e))),
+            median_abs_m=float(np.median(np.abs(e))),
+        )
     return out
 
 
