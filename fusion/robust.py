@@ -17,7 +17,7 @@ def group_count(cells: np.ndarray, n_cells: int) -> np.ndarray:
 def group_mean(cells: np.ndarray, values: np.ndarray, n_cells: int) -> np.ndarray:
     """(n_cells, ...) mean of ``values`` per cell, NaN for empty cells."""
     count = np.bincount(cells, minlength=n_cells).astype(np.float64)
-    v = values.reshape(len(values), -1)
+    v = values.reshape(len(values), int(np.prod(values.shape[1:])))
     sums = np.stack([np.bincount(cells, v[:, k], minlength=n_cells) for k in range(v.shape[1])], 1)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = sums / count[:, None]
@@ -96,7 +96,7 @@ def vector_median(
         dev = np.abs(proj[:, p] - med[cells])
         mad = group_median(cells, dev, n_cells)
         score = np.maximum(score, dev / (mad[cells] + 1e-6))
-    order = _order_by_cell_then_value(cells, score)
+    order = np.lexsort((score, cells))  # exact: near-ties must not depend on the tiling
     first = np.ones(len(order), bool)
     first[1:] = cells[order][1:] != cells[order][:-1]
     winners = order[first]

@@ -179,12 +179,12 @@ def _view_boxes(views: list[View], grid: Grid) -> list[tuple]:
     """(row0, col0, row1, col1) of the cells each view's depth map reaches."""
     boxes = []
     for v in views:
-        _, xyz = lift_depth(v.camera, v.read_depth()[::4, ::4])
+        _, xyz = lift_depth(v.camera, v.read_depth())
         if len(xyz) == 0:
             boxes.append(None)
             continue
         r, c = grid.world_to_cell(xyz[:, 0], xyz[:, 1])
-        boxes.append((r.min() - 8, c.min() - 8, r.max() + 8, c.max() + 8))
+        boxes.append((r.min() - 1, c.min() - 1, r.max() + 1, c.max() + 1))
     return boxes
 
 

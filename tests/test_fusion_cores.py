@@ -118,3 +118,11 @@ def test_observe_keeps_the_nearest_surface_of_a_cell():
     obs = observe(cam, depth, grid, tolerance=1.0)
     assert len(obs.cells) == 25 and (obs.cells == 0).all()
     assert obs.visible.sum() == 1 and obs.xyz[obs.visible][0, 2] == pytest.approx(10.0)
+
+
+def test_empty_groups():
+    empty = np.zeros(0, np.int64)
+    assert np.isnan(group_mean(empty, np.zeros(0), 3)).all()
+    assert group_mean(empty, np.zeros((0, 3)), 3).shape == (3, 3)
+    assert np.isnan(group_median(empty, np.zeros(0), 3)).all()
+    assert (vector_median(empty, np.zeros((0, 3), np.uint8), 3) == 0).all()

@@ -259,3 +259,18 @@ def test_raster_forest_on_an_unseen_synthetic_city(tmp_path):
     pred = np.argmax(prob, axis=0) + 1
     score = classification(pred, truth)
     assert score["overall_accuracy"] >= 0.85, score
+
+
+def test_tiles_give_the_same_rasters_as_one_tile(tiny_scene):
+    from fusion.scene_fusion import FusionOptions, fuse_views
+
+    scene = load_scene(tiny_scene)
+    scene.training_labels = None  # classes from the raster forest: the test is about tiling
+    bounds = (-20.0, -12.0, 10.0, 14.0)
+    one = fuse_views(scene, FusionOptions(bounds=bounds, tile=4096))
+    many = fuse_views(scene, FusionOptions(bounds=bounds, tile=48))
+    assert one.grid == many.grid and one.grid.width > 48 * 2
+    np.testing.assert_array_equal(one.dsm, many.dsm)
+    np.testing.assert_array_equal(one.ortho, many.ortho)
+    np.testing.assert_array_equal(one.count, many.count)
+    np.testing.assert_array_equal(one.classes, many.classes)
