@@ -133,9 +133,8 @@ def observe(
         surface, metres (absorbs depth noise and slanted surfaces).
     """
     pixels, xyz = lift_depth(camera, depth)
-    row, col = grid.world_to_cell(xyz[:, 0], xyz[:, 1])
-    row, col = np.floor(row + 0.5).astype(np.int64), np.floor(col + 0.5).astype(np.int64)
-    inside = (row >= 0) & (row < grid.height) & (col >= 0) & (col < grid.width)
+    row, col = grid.cell_index(xyz[:, 0], xyz[:, 1])
+    inside = grid.contains(row, col)
     pixels, xyz = pixels[inside], xyz[inside]
     cells = row[inside] * grid.width + col[inside]
     d = depth.ravel()[pixels]

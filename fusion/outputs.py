@@ -13,18 +13,6 @@ from workbench.raster import write_raster
 
 from .classifier import CLASS_NAMES
 
-PRODUCTS = (
-    "ortho.tif",
-    "dsm.tif",
-    "dtm.tif",
-    "ndsm.tif",
-    "class_prob.tif",
-    "class.tif",
-    "count.tif",
-    "fusion.json",
-    "preview.png",
-)
-
 
 def write_fusion(out: Path, result, crs, record: dict) -> None:
     """Write every product of a :class:`~fusion.scene_fusion.FusionResult` into ``out``."""

@@ -162,9 +162,7 @@ def fuse_points(path, opts: FusionOptions | None = None, *, crs: str | None = No
         else 1.0
     )
     with timer.stage("rasterise"):
-        r, c = grid.world_to_cell(xyz[:, 0], xyz[:, 1])
-        r = np.clip(np.floor(r + 0.5).astype(np.int64), 0, grid.height - 1)
-        c = np.clip(np.floor(c + 0.5).astype(np.int64), 0, grid.width - 1)
+        r, c = grid.cell_index(xyz[:, 0], xyz[:, 1], clip=True)
         cells = r * grid.width + c
         n = grid.width * grid.height
         top = _top_per_cell(cells, xyz[:, 2])

@@ -126,7 +126,7 @@ def default_grid(scene: Scene, opts: FusionOptions) -> Grid:
         if bounds is None:
             xs, ys = [], []
             for v in views:
-                _, xyz = lift_depth(v.camera, v.read_depth()[::8, ::8])
+                _, xyz = lift_depth(v.camera, v.read_depth())
                 xs += [xyz[:, 0].min(), xyz[:, 0].max()]
                 ys += [xyz[:, 1].min(), xyz[:, 1].max()]
             bounds = (min(xs), min(ys), max(xs), max(ys))
@@ -200,9 +200,7 @@ def elevation_image(obs_pixels, xyz, shape, dtm: np.ndarray, grid: Grid) -> np.n
 
     Pixels without a depth take the pyramid interpolation of their neighbours'.
     """
-    r, c = grid.world_to_cell(xyz[:, 0], xyz[:, 1])
-    r = np.clip(np.floor(r + 0.5).astype(int), 0, grid.height - 1)
-    c = np.clip(np.floor(c + 0.5).astype(int), 0, grid.width - 1)
+    r, c = grid.cell_index(xyz[:, 0], xyz[:, 1], clip=True)
     elev = np.full(shape[0] * shape[1], np.nan)
     elev[obs_pixels] = xyz[:, 2] - dtm[r, c]
     elev = elev.reshape(shape)
@@ -459,14 +457,11 @@ def _train(views, labels_path, dsm, dtm, grid: Grid, opts: FusionOptions, surfac
     for v in progress(views, "training samples"):
         rgb, depth = v.read_image(), v.read_depth()
         feats, pixels, xyz = view_features(v, rgb, depth, dtm, grid, opts.patch, surface)
-        r, c = label_grid.world_to_cell(xyz[:, 0], xyz[:, 1])
-        r, c = np.floor(r + 0.5).astype(int), np.floor(c + 0.5).astype(int)
-        inside = (r >= 0) & (r < label_grid.height) & (c >= 0) & (c < label_grid.width)
+        r, c = label_grid.cell_index(xyz[:, 0], xyz[:, 1])
+        inside = label_grid.contains(r, c)
         lab = np.zeros(len(pixels), np.uint8)
         lab[inside] = labels[r[inside], c[inside]]
-        gr, gc = grid.world_to_cell(xyz[:, 0], xyz[:, 1])
-        gr = np.clip(np.floor(gr + 0.5).astype(int), 0, grid.height - 1)
-        gc = np.clip(np.floor(gc + 0.5).astype(int), 0, grid.width - 1)
+        gr, gc = grid.cell_index(xyz[:, 0], xyz[:, 1], clip=True)
         with np.errstate(invalid="ignore"):
             on_top = np.abs(xyz[:, 2] - dsm[gr, gc]) < opts.tolerance
         lab[~on_top] = 0

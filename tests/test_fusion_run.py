@@ -274,3 +274,21 @@ def test_tiles_give_the_same_rasters_as_one_tile(tiny_scene):
     np.testing.assert_array_equal(one.ortho, many.ortho)
     np.testing.assert_array_equal(one.count, many.count)
     np.testing.assert_array_equal(one.classes, many.classes)
+
+
+def test_default_grid_without_scene_bounds_covers_what_the_views_see(tiny_scene):
+    from fusion.observations import lift_depth
+    from fusion.scene_fusion import FusionOptions, default_grid
+
+    scene = load_scene(tiny_scene)
+    aoi = scene.bounds
+    scene.bounds, scene.gsd = None, None
+    grid = default_grid(scene, FusionOptions())
+    x0, y0, x1, y1 = grid.bounds
+    assert x0 <= aoi[0] and y0 <= aoi[1] and x1 >= aoi[2] and y1 >= aoi[3]
+    v = scene.views[0]
+    _, xyz = lift_depth(v.camera, v.read_depth())
+    assert x0 <= xyz[:, 0].min() and x1 >= xyz[:, 0].max()
+    nadir = next(v for v in scene.views if v.id.endswith("_n"))
+    expected = np.nanmedian(nadir.read_depth()) / nadir.camera.K[0, 0]
+    assert grid.gsd == pytest.approx(expected, rel=0.2)  # about the nadir image's GSD

@@ -49,3 +49,15 @@ def test_ply_roundtrip_and_open3d_reads_it(tmp_path):
     m = o3d.io.read_triangle_mesh(str(tmp_path / "m.ply"))
     assert len(m.triangles) == 4
     np.testing.assert_allclose(np.asarray(m.vertices), v)
+
+
+def test_cell_index_nearest_and_clipped():
+    g = Grid.from_bounds(0, 0, 4, 2, 1.0)  # 2 rows x 4 columns
+    r, c = g.cell_index(
+        np.array([0.01, 3.99, 2.5, -0.5, 4.5]), np.array([1.99, 0.01, 1.0, 1.5, 0.5])
+    )
+    np.testing.assert_array_equal(r[:2], [0, 1])
+    np.testing.assert_array_equal(c[:2], [0, 3])
+    assert not g.contains(r, c)[3:].any() and g.contains(r, c)[:2].all()
+    rc, cc = g.cell_index(np.array([-0.5, 4.5]), np.array([1.5, 0.5]), clip=True)
+    np.testing.assert_array_equal(cc, [0, 3])

@@ -78,6 +78,26 @@ class Grid:
         row = (self.ymax - np.asarray(y)) / self.gsd - 0.5
         return row, col
 
+    def cell_index(
+        self, x: np.ndarray, y: np.ndarray, *, clip: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Row and column (int64) of the cell containing each world point.
+
+        With ``clip``, points outside the grid take the nearest border cell; otherwise
+        their indices fall outside ``[0, height)`` x ``[0, width)``.
+        """
+        row, col = self.world_to_cell(x, y)
+        row = np.floor(row + 0.5).astype(np.int64)
+        col = np.floor(col + 0.5).astype(np.int64)
+        if clip:
+            row = np.clip(row, 0, self.height - 1)
+            col = np.clip(col, 0, self.width - 1)
+        return row, col
+
+    def contains(self, row: np.ndarray, col: np.ndarray) -> np.ndarray:
+        """Whether integer cell indices lie inside the grid."""
+        return (row >= 0) & (row < self.height) & (col >= 0) & (col < self.width)
+
     @classmethod
     def from_transform(cls, transform: Affine, width: int, height: int) -> Grid:
         if abs(transform.b) > 1e-12 or abs(transform.d) > 1e-12:

@@ -16,9 +16,8 @@ def sample_to_grid(data: np.ndarray, src: Grid, dst: Grid) -> np.ndarray:
     if src == dst:
         return data
     X, Y = dst.cell_centers()
-    r, c = src.world_to_cell(X, Y)
-    r, c = np.floor(r + 0.5).astype(int), np.floor(c + 0.5).astype(int)
-    inside = (r >= 0) & (r < src.height) & (c >= 0) & (c < src.width)
+    r, c = src.cell_index(X, Y)
+    inside = src.contains(r, c)
     fill = np.nan if np.issubdtype(data.dtype, np.floating) else 0
     out = np.full(data.shape[:-2] + dst.shape, fill, dtype=data.dtype)
     out[..., inside] = data[..., r[inside], c[inside]]
