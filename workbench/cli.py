@@ -362,10 +362,10 @@ def cmd_demo(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.WARNING,
-        format="%(levelname)s %(name)s: %(message)s",
-    )
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if args.verbose:  # our own debug messages, not every library's
+        for name in ("workbench", "fusion", "modeling", "data_samples"):
+            logging.getLogger(name).setLevel(logging.DEBUG)
     try:
         return args.func(args)
     except WorkbenchError as exc:
