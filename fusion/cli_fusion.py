@@ -24,6 +24,7 @@ def run_fusion(args) -> dict:
         bounds=tuple(args.bounds) if args.bounds else None,
         seed=args.seed,
         classifier=args.classifier,
+        raster_prior=args.raster_prior,
     )
     if args.points is not None:
         from .points import fuse_points
@@ -83,4 +84,9 @@ def fusion_quality(result, truth_scene) -> dict:
         q["ortho_mae_mean_fusion"] = colour_mae(np.round(mean), t["ortho"], ok)
     if "class" in t and np.isfinite(result.class_prob).any():
         q["classification"] = classification(result.classes, t["class"])
+        raster = result.ablation.get("raster_prob")
+        if raster is not None:  # what the label-free raster forest alone would give
+            seen = np.isfinite(raster[0])
+            alone = np.where(seen, np.argmax(np.nan_to_num(raster), axis=0) + 1, 0)
+            q["classification_raster_forest_alone"] = classification(alone, t["class"])
     return q

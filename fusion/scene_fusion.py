@@ -69,6 +69,7 @@ class FusionOptions:
     projections: int = 8  # random directions of the vector median
     seed: int = 0
     classifier: str | os.PathLike | None = None
+    raster_prior: bool = False  # multiply in the raster forest's probabilities (not the paper)
     max_memory_fraction: float = 0.5
 
 
@@ -379,8 +380,15 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
             class_prob = prob_sum / prob_sum.sum(axis=0, keepdims=True)
         class_prob[:, ~seen] = np.nan
         ortho = _fill_small_rgb(ortho, seen, holes)
+        raster_prob = classify_rasters(synthetic_raster_forest(), dsm, dtm, ortho, grid.gsd)
+        if forest is not None and opts.raster_prior:
+            # product of experts: the views' accumulated evidence and the ortho rasters'
+            with np.errstate(invalid="ignore", divide="ignore"):
+                prod = class_prob * raster_prob
+                class_prob = prod / prod.sum(axis=0, keepdims=True)
+            class_source += "; multiplied by the raster forest's probabilities (--raster-prior)"
         if forest is None:  # no strokes, no classifier: the forest for label-free rasters
-            class_prob = classify_rasters(synthetic_raster_forest(), dsm, dtm, ortho, grid.gsd)
+            class_prob = raster_prob
             class_source = (
                 "a forest trained on the synthetic city's rasters (nDSM, slope, "
                 "roughness, curvature, brightness, greenness): no training labels"
@@ -401,7 +409,7 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
         record["classification_mpx_per_s"] = round(
             n_px / 1e6 / timer.stages["classification"]["wall_s"], 3
         )
-    ablation = {"dsm_mean": dsm_mean, "ortho_mean": ortho_mean}
+    ablation = {"dsm_mean": dsm_mean, "ortho_mean": ortho_mean, "raster_prob": raster_prob}
     return FusionResult(grid, ortho, dsm, dtm, ndsm, class_prob, count16, ablation, record, forest)
 
 

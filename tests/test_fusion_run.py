@@ -292,3 +292,19 @@ def test_default_grid_without_scene_bounds_covers_what_the_views_see(tiny_scene)
     nadir = next(v for v in scene.views if v.id.endswith("_n"))
     expected = np.nanmedian(nadir.read_depth()) / nadir.camera.K[0, 0]
     assert grid.gsd == pytest.approx(expected, rel=0.2)  # about the nadir image's GSD
+
+
+def test_raster_prior_is_reported_and_optional(fused, tiny_scene, tmp_path):
+    _, record, _ = fused
+    q = record["quality"]
+    assert "raster forest" not in record["class_source"]  # the paper's method by default
+    assert q["classification_raster_forest_alone"]["overall_accuracy"] > 0.5
+    proc = _cli("fusion", tiny_scene, "-o", tmp_path / "p", "--truth", tiny_scene, "--raster-prior")
+    assert proc.returncode == 0, proc.stderr
+    with_prior = json.loads((tmp_path / "p" / "fusion.json").read_text())
+    assert "--raster-prior" in with_prior["class_source"]
+    prob = read_raster(tmp_path / "p" / "class_prob.tif")[0]
+    seen = np.isfinite(prob[0])
+    np.testing.assert_allclose(prob[:, seen].sum(axis=0), 1.0, atol=1e-5)
+    # the same views and forest: the prior changes the classes, not the heights
+    assert with_prior["quality"]["dsm"] == q["dsm"]
