@@ -235,6 +235,13 @@ def _render_views(tmp: Path, world, scene, cams, sun, p: Preset, rng):
     ).points
     probe = probe[np.isfinite(probe[:, 0])]
     view_seeds = rng["views"].spawn(len(cams))
+    nx, ny = p.grid
+    # the preview: the central nadir view, and obliques that look into the area
+    preview = (
+        f"v{(ny // 2) * nx + nx // 2:03d}_n",
+        f"v{(ny // 2) * nx:03d}_E",
+        f"v{(ny - 1) * nx + nx // 2:03d}_S",
+    )
     for (name, cam), vs in progress(list(zip(cams, view_seeds, strict=True)), "rendering views"):
         vr = np.random.default_rng(vs)
         exposure = Exposure(
@@ -271,7 +278,7 @@ def _render_views(tmp: Path, world, scene, cams, sun, p: Preset, rng):
             }
         )
         true_poses.append({"id": name, **cam.to_dict()})
-        if name.endswith(("_n", "_E", "_S")) and len(shown) < 3:
+        if name in preview:
             shown.append((r.rgb, name))
     calib = {"true": true_poses, "rms": [x for x in rms if np.isfinite(x)]}
     depth = {k: round(float(np.median([d[k] for d in depth_stats])), 4) for k in depth_stats[0]}
