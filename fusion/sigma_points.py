@@ -56,27 +56,49 @@ def sigma_points(cues: np.ndarray, patch: int = 11, alpha: float | None = None) 
     """
     H, W, d = cues.shape
     alpha = np.sqrt(2 * d) if alpha is None else alpha
-    # float64 and centred cues: E[xy] - E[x]E[y] cancels badly otherwise, and a
-    # covariance that comes out slightly indefinite has no Cholesky factor
+    # float64 and centred cues: E[xy] - E[x]E[y] cancels badly otherwise
     offset = cues.reshape(-1, d).astype(np.float64).mean(axis=0)
     c = cues.astype(np.float64) - offset
     box = dict(ddepth=-1, ksize=(patch, patch), normalize=True, borderType=cv2.BORDER_REFLECT)
-    mu = np.dstack([cv2.boxFilter(c[..., i], **box) for i in range(d)])
-    cov = np.empty((H, W, d, d), np.float64)
+    mu = [cv2.boxFilter(c[..., i], **box) for i in range(d)]
+    cov = {}
     for i in range(d):
-        for j in range(i, d):
-            e = cv2.boxFilter(c[..., i] * c[..., j], **box) - mu[..., i] * mu[..., j]
-            cov[..., i, j] = e
-            cov[..., j, i] = e
+        for j in range(i + 1):
+            cov[i, j] = cv2.boxFilter(c[..., i] * c[..., j], **box) - mu[i] * mu[j]
     # a small ridge keeps flat patches (zero variance) positive definite
-    ridge = 1e-6 * np.maximum(np.trace(cov, axis1=-2, axis2=-1) / d, 1e-4)
-    idx = np.arange(d)
-    cov[..., idx, idx] += ridge[..., None]
-    chol = np.linalg.cholesky(cov).astype(np.float32)  # columns are (sqrt Sigma)_i
-    mu = (mu + offset).astype(np.float32)  # undo the centring
+    ridge = 1e-6 * np.maximum(sum(cov[i, i] for i in range(d)) / d, 1e-4)
+    chol = cholesky_images(cov, d, ridge)
     out = np.empty((H, W, 2 * d + 1, d), np.float32)
-    out[..., 0, :] = mu
-    cols = np.swapaxes(chol, -1, -2) * np.float32(alpha)  # row i = alpha * column i
-    np.add(mu[..., None, :], cols, out=out[..., 1 : d + 1, :])
-    np.subtract(mu[..., None, :], cols, out=out[..., d + 1 :, :])
+    for k in range(d):
+        m = mu[k] + offset[k]
+        out[..., 0, k] = m
+        for i in range(d):  # point i: mu + alpha * column i of the factor (L[k, i], k >= i)
+            step = alpha * chol[k, i] if k >= i else 0.0
+            out[..., 1 + i, k] = m + step
+            out[..., 1 + d + i, k] = m - step
     return out.reshape(H, W, d * (2 * d + 1))
+
+
+def cholesky_images(cov: dict, d: int, ridge: np.ndarray) -> dict:
+    """Cholesky factors of a covariance per pixel, on images (no (H, W, d, d) arrays).
+
+    Parameters
+    ----------
+    cov : dict (i, j) -> (H, W) array for j <= i
+        Lower triangle of the covariance.
+    d : int
+    ridge : (H, W) array added to the diagonal.
+
+    Returns
+    -------
+    dict (i, j) -> (H, W) array, j <= i: the lower-triangular factor L with L L^T = cov.
+    Pivots that rounding leaves non-positive are clamped to the ridge rather than failing.
+    """
+    L = {}
+    for j in range(d):
+        acc = cov[j, j] + ridge - sum(L[j, k] ** 2 for k in range(j))
+        L[j, j] = np.sqrt(np.maximum(acc, ridge))
+        inv = 1.0 / L[j, j]
+        for i in range(j + 1, d):
+            L[i, j] = (cov[i, j] - sum(L[i, k] * L[j, k] for k in range(j))) * inv
+    return L
