@@ -22,6 +22,7 @@ from workbench.atomic import atomic_output_dir
 from workbench.footprints import footprints_geojson
 from workbench.imageio import write_rgb
 from workbench.meshio import write_ply
+from workbench.pictures import colorize_classes, colorize_height, contact_sheet
 from workbench.progress import progress
 from workbench.raster import Grid, write_raster
 from workbench.raycast import cast
@@ -32,7 +33,6 @@ from .gis import gis_footprint
 from .layout import make_layout
 from .preset_names import preset_index
 from .presets import PRESETS, Preset
-from .preview import colorize_classes, colorize_height, contact_sheet
 from .render import Exposure, render_view, shade, vertical_hits
 from .rig import camera_rig, ground_margin, perturb_pose, reprojection_rms
 from .shading import tone_map

@@ -13,6 +13,7 @@ from workbench.truth import truth_rasters
 
 from .classifier import save_classifier
 from .outputs import write_fusion
+from .raster_forest import classify_rasters, synthetic_raster_forest
 from .scene_fusion import FEATURES, FusionOptions, fuse_views
 
 
@@ -84,9 +85,12 @@ def fusion_quality(result, truth_scene) -> dict:
         q["ortho_mae_mean_fusion"] = colour_mae(np.round(mean), t["ortho"], ok)
     if "class" in t and np.isfinite(result.class_prob).any():
         q["classification"] = classification(result.classes, t["class"])
-        raster = result.ablation.get("raster_prob")
-        if raster is not None:  # what the label-free raster forest alone would give
-            seen = np.isfinite(raster[0])
-            alone = np.where(seen, np.argmax(np.nan_to_num(raster), axis=0) + 1, 0)
-            q["classification_raster_forest_alone"] = classification(alone, t["class"])
+        # what the label-free raster forest alone would give, for comparison
+        g = result.grid
+        raster = classify_rasters(
+            synthetic_raster_forest(), result.dsm, result.dtm, result.ortho, g.gsd
+        )
+        seen = np.isfinite(raster[0])
+        alone = np.where(seen, np.argmax(np.nan_to_num(raster), axis=0) + 1, 0)
+        q["classification_raster_forest_alone"] = classification(alone, t["class"])
     return q

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from data_samples.preview import colorize_classes, colorize_height, contact_sheet
 from workbench.imageio import write_rgb
+from workbench.pictures import colorize_classes, colorize_height, contact_sheet
 from workbench.raster import write_raster
 
 from .classifier import CLASS_NAMES

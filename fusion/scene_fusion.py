@@ -148,6 +148,11 @@ def check_memory(grid: Grid, opts: FusionOptions, n_views: int) -> None:
         )
 
 
+def _joined(parts: list, dtype, tail: tuple = ()) -> np.ndarray:
+    """The views' arrays of one tile end to end (an empty array of ``dtype`` for none)."""
+    return np.concatenate(parts) if parts else np.zeros((0, *tail), dtype)
+
+
 def _tiles(grid: Grid, size: int):
     for r0 in range(0, grid.height, size):
         for c0 in range(0, grid.width, size):
@@ -290,9 +295,7 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
                 cells.append(local)
                 z.append(obs.xyz[sel, 2].astype(np.float32))
                 rel.append(reliable)
-            cells = np.concatenate(cells) if cells else np.zeros(0, np.int64)
-            z = np.concatenate(z) if z else np.zeros(0, np.float32)
-            rel = np.concatenate(rel) if rel else np.zeros(0, bool)
+            cells, z, rel = _joined(cells, np.int64), _joined(z, np.float32), _joined(rel, bool)
             cells, z = cells[rel], z[rel]
             n_obs += len(z)
             dsm[r0 : r0 + h, c0 : c0 + w] = group_median(cells, z, h * w).reshape(h, w)
@@ -312,10 +315,11 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
         dtm = np.where(np.isfinite(dsm), dtm_full, np.nan).astype(np.float32)
         ndsm = (dsm - dtm).astype(np.float32)
 
-    forest, class_source = None, None
-    # the surface that gives shadowed pixels their elevation cue: where no view saw the
-    # top surface (beside towers, in their shadows) the ground is the better guess
-    surface = DsmSurface(np.where(np.isfinite(dsm), dsm, dtm_full), grid)
+    forest, class_source, surface = None, None, None
+    if opts.classifier is not None or scene.training_labels is not None:
+        # the surface that gives shadowed pixels their elevation cue: where no view saw the
+        # top surface (beside towers, in their shadows) the ground is the better guess
+        surface = DsmSurface(np.where(np.isfinite(dsm), dsm, dtm_full), grid)
     with timer.stage("training"):
         if opts.classifier is not None:
             forest, meta = load_classifier(opts.classifier, features=FEATURES)
@@ -356,10 +360,9 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
                     colours.append(v.read_image().reshape(-1, 3)[obs.pixels[sel]])
                     if forest is not None:
                         probs.append(np.load(Path(cache) / f"{i}.npy")[obs.pixels[sel]])
-                cells = np.concatenate(cells) if cells else np.zeros(0, np.int64)
-                colours = np.concatenate(colours) if colours else np.zeros((0, 3), np.uint8)
+                cells, colours = _joined(cells, np.int64), _joined(colours, np.uint8, (3,))
                 n = h * w
-                use = preferred(cells, np.concatenate(rel) if rel else np.zeros(0, bool), n)
+                use = preferred(cells, _joined(rel, bool), n)
                 cells, colours = cells[use], colours[use]
                 probs = [np.concatenate(probs)[use]] if probs else []
                 ortho[r0 : r0 + h, c0 : c0 + w] = vector_median(
@@ -380,7 +383,9 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
             class_prob = prob_sum / prob_sum.sum(axis=0, keepdims=True)
         class_prob[:, ~seen] = np.nan
         ortho = _fill_small_rgb(ortho, seen, holes)
-        raster_prob = classify_rasters(synthetic_raster_forest(), dsm, dtm, ortho, grid.gsd)
+        raster_prob = None
+        if forest is None or opts.raster_prior:
+            raster_prob = classify_rasters(synthetic_raster_forest(), dsm, dtm, ortho, grid.gsd)
         if forest is not None and opts.raster_prior:
             # product of experts: the views' accumulated evidence and the ortho rasters'
             with np.errstate(invalid="ignore", divide="ignore"):
@@ -409,7 +414,7 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
         record["classification_mpx_per_s"] = round(
             n_px / 1e6 / timer.stages["classification"]["wall_s"], 3
         )
-    ablation = {"dsm_mean": dsm_mean, "ortho_mean": ortho_mean, "raster_prob": raster_prob}
+    ablation = {"dsm_mean": dsm_mean, "ortho_mean": ortho_mean}
     return FusionResult(grid, ortho, dsm, dtm, ndsm, class_prob, count16, ablation, record, forest)
 
 

@@ -308,3 +308,4 @@ def test_raster_prior_is_reported_and_optional(fused, tiny_scene, tmp_path):
     np.testing.assert_allclose(prob[:, seen].sum(axis=0), 1.0, atol=1e-5)
     # the same views and forest: the prior changes the classes, not the heights
     assert with_prior["quality"]["dsm"] == q["dsm"]
+

@@ -1,4 +1,4 @@
-"""A contact sheet of a sample: a few views beside the true ortho, classes and DSM."""
+"""Pictures people look at: colour maps for class and height rasters, titled contact sheets."""
 
 from __future__ import annotations
 
