@@ -74,15 +74,17 @@ def fusion_quality(result, truth_scene) -> dict:
     q = {}
     if "dsm" in t:
         q["dsm"] = height_errors(result.dsm, t["dsm"])
-        q["dsm_mean_fusion"] = height_errors(result.ablation["dsm_mean"], t["dsm"])
+        if "dsm_mean" in result.ablation:  # views only: a cloud has one height per cell
+            q["dsm_mean_fusion"] = height_errors(result.ablation["dsm_mean"], t["dsm"])
     if "dtm" in t:
         q["dtm"] = height_errors(result.dtm, t["dtm"])
     if "ortho" in t:
         seen = result.count != 0
         q["ortho_mae"] = colour_mae(result.ortho, t["ortho"], seen)
-        mean = result.ablation["ortho_mean"]
-        ok = seen & np.isfinite(mean[..., 0])
-        q["ortho_mae_mean_fusion"] = colour_mae(np.round(mean), t["ortho"], ok)
+        if "ortho_mean" in result.ablation:
+            mean = result.ablation["ortho_mean"]
+            ok = seen & np.isfinite(mean[..., 0])
+            q["ortho_mae_mean_fusion"] = colour_mae(np.round(mean), t["ortho"], ok)
     if "class" in t and np.isfinite(result.class_prob).any():
         q["classification"] = classification(result.classes, t["class"])
         # what the label-free raster forest alone would give, for comparison

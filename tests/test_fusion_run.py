@@ -309,3 +309,24 @@ def test_raster_prior_is_reported_and_optional(fused, tiny_scene, tmp_path):
     # the same views and forest: the prior changes the classes, not the heights
     assert with_prior["quality"]["dsm"] == q["dsm"]
 
+
+def test_point_cloud_scored_against_a_scene_truth(tiny_scene, tmp_path):
+    """The truth mesh's vertices as a cloud, fused and scored on the scene's grid."""
+    bounds = load_scene(tiny_scene).bounds
+    proc = _cli(
+        "fusion",
+        "--points",
+        tiny_scene / "truth" / "mesh.ply",
+        "-o",
+        tmp_path / "c",
+        "--truth",
+        tiny_scene,
+        "--bounds",
+        *bounds,
+        "--gsd",
+        "1.0",
+    )
+    assert proc.returncode == 0, proc.stderr
+    q = json.loads((tmp_path / "c" / "fusion.json").read_text())["quality"]
+    assert q["dtm"]["rmse_m"] < 1.0
+    assert "dsm_mean_fusion" not in q  # no mean fusion of a cloud: absent, not invented
