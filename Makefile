@@ -12,6 +12,7 @@ demo: setup
 	$(BIN)/workbench demo -o $(DEMO_OUT) --overwrite
 
 test: setup
+	@bash scripts/setup.sh --browser
 	$(BIN)/python -m pytest -q
 
 test-fast: setup

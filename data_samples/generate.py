@@ -25,7 +25,7 @@ from workbench.meshio import write_ply
 from workbench.pictures import colorize_classes, colorize_height, contact_sheet
 from workbench.progress import progress
 from workbench.raster import Grid, write_raster
-from workbench.raycast import cast
+from workbench.raycast import cast, vertical_hits
 from workbench.scene import write_scene_json
 
 from .depth import degrade_depth, depth_error_stats
@@ -33,7 +33,7 @@ from .gis import gis_footprint
 from .layout import make_layout
 from .preset_names import preset_index
 from .presets import PRESETS, Preset
-from .render import Exposure, render_view, shade, vertical_hits
+from .render import Exposure, render_view, shade
 from .rig import camera_rig, ground_margin, perturb_pose, reprojection_rms
 from .shading import tone_map
 from .strokes import paint_strokes

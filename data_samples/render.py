@@ -11,7 +11,6 @@ import cv2
 import numpy as np
 
 from workbench.camera import Camera
-from workbench.raster import Grid
 from workbench.raycast import Hits, cast, occluded
 
 from .shading import SKY_RGB, albedo, irradiance, tone_map
@@ -79,11 +78,3 @@ def render_view(world, scene, cam: Camera, sun, exposure: Exposure, rng) -> View
     rgb = np.clip(np.round(dn), 0, 255).astype(np.uint8)
     depth = np.where(np.isfinite(hits.t), hits.t, np.nan).astype(np.float32).reshape(H, W)
     return ViewRender(rgb, depth, lit.reshape(H, W), hits.tri.reshape(H, W))
-
-
-def vertical_hits(scene, grid: Grid, z_top: float) -> Hits:
-    """Cast vertical rays down through every cell centre of ``grid``."""
-    X, Y = grid.cell_centers()
-    origins = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, z_top)])
-    dirs = np.tile([0.0, 0.0, -1.0], (X.size, 1))
-    return cast(scene, origins, dirs)

@@ -19,13 +19,13 @@ from rasterio.crs import CRS
 
 from workbench.errors import InputError
 from workbench.raster import Grid, parse_crs
+from workbench.records import StageTimer
 
 from .classifier import load_classifier
 from .ground import dtm_from_dsm
 from .interpolate import push_pull_fill, small_holes
 from .raster_forest import FEATURES as RASTER_FEATURES
 from .raster_forest import classify_rasters, synthetic_raster_forest
-from .records import StageTimer
 from .scene_fusion import FILLED, HOLE_CELLS, FusionOptions, FusionResult, check_memory
 
 log = logging.getLogger(__name__)

@@ -33,6 +33,7 @@ import numpy as np
 from workbench.errors import InputError, WorkbenchError
 from workbench.progress import progress
 from workbench.raster import Grid, read_raster
+from workbench.records import StageTimer
 from workbench.scene import Scene, View
 from workbench.truth import sample_to_grid
 
@@ -42,7 +43,6 @@ from .ground import dtm_from_dsm
 from .interpolate import push_pull_fill, small_holes
 from .observations import ViewObservations, lift_depth, observe
 from .raster_forest import classify_rasters, synthetic_raster_forest
-from .records import StageTimer
 from .robust import group_count, group_mean, group_median, vector_median
 from .sigma_points import N_FEATURES, feature_cues, sigma_points
 

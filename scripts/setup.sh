@@ -25,6 +25,14 @@ ensure_system_library() {  # $1 = soname, $2 = Debian package
 ensure_system_library libusb-1.0.so.0 libusb-1.0-0
 ensure_system_library libgomp.so.1 libgomp1
 
+# --browser: Debian's Chromium, for the test that renders the comparison report
+if [ "${1:-}" = "--browser" ] && ! command -v chromium >/dev/null; then
+    echo "setup: installing Chromium (renders the comparison report in a test)"
+    sudo=""; [ "$(id -u)" != 0 ] && sudo="sudo"
+    { $sudo apt-get update -qq && DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq chromium >/dev/null; } \
+        || echo "setup: warning: Chromium did not install; the report screenshot test will skip" >&2
+fi
+
 want=$(sha256sum pyproject.toml | cut -d' ' -f1)
 if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ] && "$VENV/bin/python" -c "import open3d, workbench" 2>/dev/null; then
     exit 0

@@ -181,10 +181,44 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_fusion)
 
     p = sub.add_parser(
+        "compare",
+        help="score runs against the same truth: metrics.json and report.html",
+        description="Score fusion and model runs on the same metrics against the same "
+        "truth; write REPORT/metrics.json, REPORT/report.html (one self-contained page) and "
+        "REPORT/figures/, and print the side-by-side table.",
+    )
+    p.add_argument("runs", type=Path, nargs="+", metavar="RUN", help="fusion or model run folder")
+    p.add_argument("--truth", type=Path, metavar="SCENE", help="a scene with truth/")
+    p.add_argument("--truth-dsm", type=Path, metavar="FILE", help="true DSM GeoTIFF (real data)")
+    p.add_argument("--truth-dtm", type=Path, metavar="FILE", help="true DTM GeoTIFF (real data)")
+    p.add_argument("--truth-footprints", type=Path, metavar="FILE", help="true footprints GeoJSON")
+    p.add_argument("--truth-class", type=Path, metavar="FILE", help="true class GeoTIFF (1-4)")
+    p.add_argument("-o", "--out", type=Path, required=True, metavar="REPORT", help="report folder")
+    p.add_argument("--names", nargs="+", metavar="NAME", help="run names (default: folder names)")
+    p.add_argument(
+        "--tolerance",
+        type=_positive_float,
+        default=1.0,
+        metavar="METRES",
+        help="vertical tolerance of the 3D completeness and correctness (default 1)",
+    )
+    p.add_argument(
+        "--max-error",
+        type=_positive_float,
+        default=2.0,
+        metavar="METRES",
+        help="the red end of the error colour maps (default 2)",
+    )
+    p.add_argument("--seed", type=_non_negative_int, default=0, help="seed of surface samples")
+    p.add_argument("--overwrite", action="store_true", help="replace REPORT if it exists")
+    p.set_defaults(func=cmd_compare)
+
+    p = sub.add_parser(
         "demo",
         help="run the main job on the tiny sample city",
-        description="Generate the tiny sample city, fuse its views and score the fusion "
-        "against the truth. Later stages (modeling, comparison) join this command as they land.",
+        description="Generate the tiny sample city, fuse its views, score the runs against "
+        "the truth with `compare` and write the report. The modeling paths join this command "
+        "as they land.",
     )
     p.add_argument("-o", "--out", type=Path, default=Path("demo_out"), help="output folder")
     p.add_argument("--seed", type=_non_negative_int, default=0, help="random seed (default 0)")
@@ -295,20 +329,58 @@ def cmd_fusion(args) -> int:
     return 0
 
 
+def cmd_compare(args) -> int:
+    from .compare import check_truth_args, compare_runs, summary
+    from .evaluate import EvaluationOptions
+    from .runs import load_run
+    from .truth import load_file_truth, load_scene_truth
+
+    check_truth_args(args)
+    if args.truth is not None:
+        truth = load_scene_truth(args.truth)
+    else:
+        first = load_run(args.runs[0])
+        grid = crs = None
+        if first.raster("dsm") or first.raster("class"):
+            from .raster import read_raster
+
+            _, grid, crs = read_raster(first.raster("dsm") or first.raster("class"))
+        truth = load_file_truth(
+            dsm=args.truth_dsm,
+            dtm=args.truth_dtm,
+            footprints=args.truth_footprints,
+            cls=args.truth_class,
+            grid=grid,
+            crs=crs,
+        )
+    options = EvaluationOptions(
+        tolerance_m=args.tolerance, max_error_m=args.max_error, seed=args.seed
+    )
+    doc = compare_runs(
+        args.runs, truth, args.out, names=args.names, options=options, overwrite=args.overwrite
+    )
+    print(summary(doc))
+    print(f"report: {args.out / 'report.html'}")
+    return 0
+
+
 def cmd_demo(args) -> int:
     from types import SimpleNamespace
 
     from data_samples.generate import generate_sample
     from fusion.cli_fusion import run_fusion
 
+    from .compare import compare_runs, summary
     from .scene import load_scene
+    from .truth import load_scene_truth
 
     t0 = time.perf_counter()
     scene_dir, fusion_dir = args.out / "scene", args.out / "fusion"
+    report_dir = args.out / "report"
     if args.out.exists() and not args.overwrite and any(args.out.iterdir()):
         raise WorkbenchError(f"{args.out}: output exists (pass --overwrite to replace it)")
     args.out.mkdir(parents=True, exist_ok=True)
-    print(f"1/2 generating the tiny sample city (seed {args.seed}) ...", flush=True)
+    print(f"1/3 generating the tiny sample city (seed {args.seed}) ...", flush=True)
     meta = generate_sample(scene_dir, "tiny", args.seed, overwrite=True)
     scene = load_scene(scene_dir)
     c = meta["counts"]
@@ -320,7 +392,7 @@ def cmd_demo(args) -> int:
     print(
         f"    calibration error of the written poses: {meta['calibration_error_px_rms']:.2f} px RMS"
     )
-    print("2/2 fusing the views into ortho, DSM/DTM/nDSM and classes ...", flush=True)
+    print("2/3 fusing the views into ortho, DSM/DTM/nDSM and classes ...", flush=True)
     record = run_fusion(
         SimpleNamespace(
             scene=scene_dir,
@@ -338,34 +410,23 @@ def cmd_demo(args) -> int:
         )
     )
     q = record["quality"]
-    d, cl = q["dsm"], q["classification"]
-    rows = [
-        (
-            "DSM RMSE / median |e|",
-            f"{d['rmse_m']:.2f} m / {d['median_abs_m']:.3f} m",
-            "{rmse_m:.2f} m / {median_abs_m:.3f} m".format(**q["dsm_mean_fusion"]),
-        ),
-        ("DSM valid cells", f"{d['valid_fraction']:.1%}", ""),
-        ("DTM RMSE", f"{q['dtm']['rmse_m']:.2f} m", ""),
-        (
-            "ortho MAE (0-255)",
-            f"{q['ortho_mae']['mean']:.1f}",
-            f"{q['ortho_mae_mean_fusion']['mean']:.1f}",
-        ),
-        ("classes, overall", f"{cl['overall_accuracy']:.3f}", ""),
-    ] + [(f"  {k}", f"{v:.3f}", "") for k, v in cl["per_class_accuracy"].items()]
-    alone = q.get("classification_raster_forest_alone")
-    if alone:
-        rows.append(("classes, raster forest", f"{alone['overall_accuracy']:.3f}", ""))
-    print(f"\n    {'fusion vs truth':<24}{'median fusion':>22}{'mean fusion':>22}")
-    for name, a, b in rows:
-        print(f"    {name:<24}{a:>22}{b:>22}")
     print(
-        f"\n    fusion took {record['stages_total_s']:.1f} s; modeling and comparison join "
-        "this demo as they land"
+        f"    {record['stages_total_s']:.1f} s; mean fusion instead of the median: DSM RMSE "
+        f"{q['dsm_mean_fusion']['rmse_m']:.2f} m (median {q['dsm']['rmse_m']:.2f} m), ortho MAE "
+        f"{q['ortho_mae_mean_fusion']['mean']:.1f} (median {q['ortho_mae']['mean']:.1f})"
+    )
+    print("3/3 scoring the runs against the truth ...", flush=True)
+    truth = load_scene_truth(scene_dir)
+    doc = compare_runs([fusion_dir], truth, report_dir, names=["fusion"], overwrite=True)
+    print()
+    print(summary(doc))
+    print(
+        "\n    the modeling paths (workbench model superpixel / voxel) join this demo and "
+        "its report as they land"
     )
     print(f"  scene preview:  {scene_dir / 'preview.png'}")
     print(f"  fusion preview: {fusion_dir / 'preview.png'}")
+    print(f"  report:         {report_dir / 'report.html'}")
     print(f"demo finished in {time.perf_counter() - t0:.1f} s")
     return 0
 

@@ -81,3 +81,228 @@ def colour_mae(model: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict:
     d = np.abs(model[mask].astype(np.float64) - truth[mask].astype(np.float64))
     per = d.mean(axis=0)
     return {"r": float(per[0]), "g": float(per[1]), "b": float(per[2]), "mean": float(per.mean())}
+
+
+def footprint_2d(pred: np.ndarray, truth: np.ndarray) -> dict:
+    """Pixel-level building detection (the variational paper, section IV.A).
+
+    Parameters
+    ----------
+    pred, truth : (H, W) bool
+        Building cells of the model and of the truth.
+
+    Returns
+    -------
+    dict with ``completeness`` TP/(TP+FN), ``correctness`` TP/(TP+FP), ``quality``
+    TP/(TP+FP+FN), and the cell counts ``tp``, ``fp``, ``fn``; a ratio whose denominator
+    is 0 is absent.
+    """
+    tp = int(np.count_nonzero(pred & truth))
+    fp = int(np.count_nonzero(pred & ~truth))
+    fn = int(np.count_nonzero(~pred & truth))
+    out = {"tp": tp, "fp": fp, "fn": fn}
+    for key, den in (
+        ("completeness", tp + fn),
+        ("correctness", tp + fp),
+        ("quality", tp + fp + fn),
+    ):
+        if den:
+            out[key] = tp / den
+    return out
+
+
+def building_objects(truth_ids: np.ndarray, pred_ids: np.ndarray, min_cover: float = 0.5) -> dict:
+    """Object-level building detection.
+
+    A true building is found when at least ``min_cover`` of its cells are model building
+    cells; a model building is correct when at least ``min_cover`` of its cells are true
+    building cells.
+
+    Parameters
+    ----------
+    truth_ids, pred_ids : (H, W) int
+        Building ids, 0 for no building.
+
+    Returns
+    -------
+    dict with ``truth_buildings``, ``found``, ``model_buildings``, ``correct``.
+    """
+
+    def covered(ids: np.ndarray, other: np.ndarray) -> tuple[int, int]:
+        labels, inv = np.unique(ids[ids > 0], return_inverse=True)
+        if not len(labels):
+            return 0, 0
+        size = np.bincount(inv)
+        hit = np.bincount(inv, weights=other[ids > 0] > 0)
+        return len(labels), int(np.count_nonzero(hit >= min_cover * size))
+
+    n_truth, found = covered(truth_ids, pred_ids)
+    n_pred, correct = covered(pred_ids, truth_ids)
+    return {
+        "truth_buildings": n_truth,
+        "found": found,
+        "model_buildings": n_pred,
+        "correct": correct,
+    }
+
+
+def volume_3d(pred_height: np.ndarray, truth_height: np.ndarray, tolerance: float = 1.0) -> dict:
+    """Voxel-based 3D completeness, correctness and quality (the variational paper, IV.A).
+
+    Every building cell is a column of voxels from the ground up to its height. In a cell
+    that both call building, the column agrees up to the lower of the two heights and,
+    within ``tolerance``, all the way up; the height difference beyond the tolerance is
+    false positive volume (model too high) or false negative volume (model too low).
+    Columns of one side only are wholly false positive or false negative. Volumes are in
+    cell-metres: multiply by the cell area for cubic metres.
+
+    Parameters
+    ----------
+    pred_height, truth_height : (H, W) float
+        Building height above the (common) ground, metres; 0 or NaN where no building.
+    tolerance : float
+        Vertical tolerance, metres.
+
+    Returns
+    -------
+    dict with ``completeness`` VTP/(VTP+VFN), ``correctness`` VTP/(VTP+VFP), ``quality``
+    VTP/(VTP+VFP+VFN), the volumes ``vtp``, ``vfp``, ``vfn`` and ``tolerance_m``.
+    """
+    hp = np.clip(np.nan_to_num(pred_height, nan=0.0), 0.0, None).astype(np.float64)
+    ht = np.clip(np.nan_to_num(truth_height, nan=0.0), 0.0, None).astype(np.float64)
+    both = (hp > 0) & (ht > 0)
+    excess = np.where(both, np.maximum(np.abs(hp - ht) - tolerance, 0.0), 0.0)
+    vtp = float(np.sum(np.where(both, np.maximum(hp, ht) - excess, 0.0)))
+    vfp = float(np.sum(np.where(both, np.where(hp > ht, excess, 0.0), hp)))
+    vfn = float(np.sum(np.where(both, np.where(ht > hp, excess, 0.0), ht)))
+    out = {"vtp": vtp, "vfp": vfp, "vfn": vfn, "tolerance_m": tolerance}
+    for key, den in (
+        ("completeness", vtp + vfn),
+        ("correctness", vtp + vfp),
+        ("quality", vtp + vfp + vfn),
+    ):
+        if den > 0:
+            out[key] = vtp / den
+    return out
+
+
+def building_heights(
+    surface: np.ndarray, ground: np.ndarray, ids: np.ndarray, percentile: float = 99.0
+) -> dict[int, float]:
+    """Height of each building: a high percentile of surface minus ground over its cells.
+
+    The percentile rather than the maximum keeps one outlying cell (an antenna, a noisy
+    DSM spike) from setting a building's height.
+
+    Parameters
+    ----------
+    surface, ground : (H, W) float
+        Metres; NaN where unknown.
+    ids : (H, W) int
+        Building ids, 0 for none.
+
+    Returns
+    -------
+    {id: height in metres} for every id with at least one known cell.
+    """
+    h = surface - ground
+    m = (ids > 0) & np.isfinite(h)
+    if not m.any():
+        return {}
+    order = np.argsort(ids[m], kind="stable")
+    sid, sh = ids[m][order], h[m][order]
+    labels, start = np.unique(sid, return_index=True)
+    return {
+        int(k): float(np.percentile(part, percentile))
+        for k, part in zip(labels, np.split(sh, start[1:]), strict=True)
+    }
+
+
+def height_error_pct(model: dict[int, float], truth: dict[int, float]) -> dict[int, float]:
+    """Signed error of each true building's height in percent of its true height.
+
+    A building the model has no height for counts as height 0 (an error of -100 %).
+    """
+    return {k: 100.0 * (model.get(k, 0.0) - t) / t for k, t in truth.items() if t > 0}
+
+
+def surface_distances(
+    points_a: np.ndarray, dist_a_to_b: np.ndarray, points_b: np.ndarray, dist_b_to_a: np.ndarray
+) -> dict:
+    """Hausdorff-type distances between two surfaces from point samples of both.
+
+    Parameters
+    ----------
+    points_a, points_b : (N, 3), (M, 3) float
+        Samples of surfaces A (the model) and B (the truth); only their counts are used.
+    dist_a_to_b, dist_b_to_a : (N,), (M,) float
+        Distance of each sample to the other surface, metres.
+
+    Returns
+    -------
+    dict with the symmetric ``hausdorff_mean_m`` (the mean of the two directed means),
+    ``hausdorff_rms_m`` (root of the mean of the two directed mean squares) and
+    ``hausdorff_max_m`` (the Hausdorff distance), plus each direction's ``mean_m``,
+    ``rms_m``, ``max_m`` under ``model_to_truth`` and ``truth_to_model``.
+    """
+    if not len(points_a) or not len(points_b):
+        return {}
+    d = {}
+    for key, e in (("model_to_truth", dist_a_to_b), ("truth_to_model", dist_b_to_a)):
+        d[key] = {
+            "mean_m": float(np.mean(e)),
+            "rms_m": float(np.sqrt(np.mean(e**2))),
+            "max_m": float(np.max(e)),
+            "samples": len(e),
+        }
+    a, b = d["model_to_truth"], d["truth_to_model"]
+    return {
+        "hausdorff_mean_m": (a["mean_m"] + b["mean_m"]) / 2,
+        "hausdorff_rms_m": float(np.sqrt((a["rms_m"] ** 2 + b["rms_m"] ** 2) / 2)),
+        "hausdorff_max_m": max(a["max_m"], b["max_m"]),
+        **d,
+    }
+
+
+def complexity(faces: list[int], watertight: list[bool]) -> dict:
+    """Model complexity (the LOD paper's Table 1): ``faces_total``,
+    ``faces_per_building_median`` and ``watertight_fraction`` over buildings."""
+    if not faces:
+        return {"buildings": 0}
+    return {
+        "buildings": len(faces),
+        "faces_total": int(np.sum(faces)),
+        "faces_per_building_median": float(np.median(faces)),
+        "watertight_fraction": float(np.mean(watertight)),
+    }
+
+
+def plane_angles_deg(normals_a: np.ndarray, normals_b: np.ndarray) -> np.ndarray:
+    """(N,) angle between the planes of unit normals ``normals_a`` and ``normals_b``
+    ((N, 3) each), degrees in [0, 90]: a plane's two normals are the same plane."""
+    c = np.abs(np.sum(normals_a * normals_b, axis=-1))
+    return np.degrees(np.arccos(np.clip(c, 0.0, 1.0)))
+
+
+def roof_type_accuracy(pred: list[str], truth: list[str]) -> dict:
+    """Share of buildings whose roof type label matches the truth's, and the confusion
+    as ``{true type: {predicted type: count}}``."""
+    if not truth:
+        return {}
+    conf: dict[str, dict[str, int]] = {}
+    for p, t in zip(pred, truth, strict=True):
+        conf.setdefault(t, {}).setdefault(p, 0)
+        conf[t][p] += 1
+    hits = sum(p == t for p, t in zip(pred, truth, strict=True))
+    return {"roof_type_accuracy": hits / len(truth), "confusion": conf}
+
+
+def cost(stages: dict) -> dict:
+    """Total wall time (s) and peak memory (MiB) from ``{stage: {wall_s, peak_memory_mb}}``."""
+    if not stages:
+        return {}
+    out = {"wall_s": float(sum(s.get("wall_s", 0.0) for s in stages.values()))}
+    mem = [s["peak_memory_mb"] for s in stages.values() if "peak_memory_mb" in s]
+    if mem:
+        out["peak_memory_mb"] = float(max(mem))
+    return out

@@ -40,3 +40,27 @@ def contact_sheet(rows: list[list[tuple[np.ndarray, str]]], height: int = 260) -
     width = max(r.shape[1] for r in built)
     pad = [np.pad(r, ((0, 4), (0, width - r.shape[1]), (0, 0)), constant_values=255) for r in built]
     return np.vstack(pad)
+
+
+def colorize_error(err: np.ndarray, max_error: float) -> np.ndarray:
+    """Errors to colours as in the voxel paper's Fig. 8: green at 0, blue at half of
+    ``max_error``, red at or above it; NaN white.
+
+    Parameters
+    ----------
+    err : (...) float
+        Non-negative errors, metres.
+    max_error : float
+        Metres.
+
+    Returns
+    -------
+    (..., 3) uint8 RGB
+    """
+    s = np.clip(np.nan_to_num(err, nan=0.0) / max_error, 0.0, 1.0)[..., None]
+    green, blue, red = (np.array(c, np.float64) for c in ((0, 200, 0), (0, 0, 255), (255, 0, 0)))
+    low = green + (blue - green) * np.clip(2 * s, 0, 1)
+    rgb = np.where(s < 0.5, low, blue + (red - blue) * np.clip(2 * s - 1, 0, 1))
+    out = np.round(rgb).astype(np.uint8)
+    out[~np.isfinite(err)] = 255
+    return out

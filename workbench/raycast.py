@@ -11,6 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
+from .raster import Grid
+
 _CHUNK = 1 << 20
 
 
@@ -98,4 +100,26 @@ def occluded(
         e = min(n, s + _CHUNK)
         rays = np.hstack([origins[s:e], dirs[s:e]]).astype(np.float32)
         out[s:e] = scene.test_occlusions(o3d.core.Tensor(rays)).numpy()
+    return out
+
+
+def vertical_hits(scene: o3d.t.geometry.RaycastingScene, grid: Grid, z_top: float) -> Hits:
+    """Cast rays straight down from height ``z_top`` through every cell centre of ``grid``.
+
+    Returns
+    -------
+    Hits of ``grid.height * grid.width`` rays in row-major cell order: the top surface.
+    """
+    X, Y = grid.cell_centers()
+    origins = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, z_top)])
+    return cast(scene, origins, np.tile([0.0, 0.0, -1.0], (X.size, 1)))
+
+
+def unsigned_distance(scene: o3d.t.geometry.RaycastingScene, points: np.ndarray) -> np.ndarray:
+    """(N,) float64 distance from each of ``points`` (N, 3) to the nearest triangle."""
+    points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    out = np.empty(len(points), np.float64)
+    for s in range(0, len(points), _CHUNK):
+        q = o3d.core.Tensor(points[s : s + _CHUNK])
+        out[s : s + _CHUNK] = scene.compute_distance(q).numpy()
     return out

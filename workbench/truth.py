@@ -1,13 +1,19 @@
-"""Ground truth of a scene (``truth/``), sampled onto any run's grid."""
+"""Ground truth, sampled onto one evaluation grid: a scene's ``truth/`` or loose files."""
 
 from __future__ import annotations
 
+import json
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from rasterio.features import rasterize
 
 from .errors import InputError
+from .footprints import read_footprints
+from .meshio import read_ply
 from .raster import Grid, read_raster
+from .raycast import raycasting_scene, vertical_hits
 from .scene import load_scene
 
 
@@ -46,3 +52,163 @@ def truth_rasters(scene_or_truth: str | Path, grid: Grid) -> dict[str, np.ndarra
             data = sample_to_grid(data, src, grid)
             out[name] = np.moveaxis(data, 0, -1) if name == "ortho" else data[0]
     return out
+
+
+@dataclass
+class TruthMesh:
+    """The true buildings' surfaces: vertices (V, 3), triangles (T, 3), and the building
+    id of each triangle (T,)."""
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    building: np.ndarray
+
+
+@dataclass
+class Truth:
+    """Whatever truth exists, on the evaluation grid (rasters (H, W), metres, NaN unknown).
+
+    Attributes
+    ----------
+    grid, crs
+        The evaluation grid: the truth DSM's.
+    dsm, dtm : top surface and bare ground, or None.
+    cls : (H, W) uint8 top-surface classes 1-4 (0 unknown), or None.
+    ortho : (H, W, 3) uint8, or None.
+    building_ids : (H, W) int
+        Building footprints, by id (0: no building), or None. From a mesh these are the
+        buildings seen from above without trees, so overhung roofs count as building.
+    building_surface : (H, W) float
+        Height of the buildings' top surface, NaN off buildings, or None.
+    roof_normals : (H, W, 3) float
+        Unit normal of the roof under each building cell, or None.
+    buildings : {id: record}
+        Per-building facts (roof_type, height, base_z, ...) where known.
+    mesh : TruthMesh or None
+    sources : {what: file}
+    """
+
+    grid: Grid
+    crs: object
+    dsm: np.ndarray | None = None
+    dtm: np.ndarray | None = None
+    cls: np.ndarray | None = None
+    ortho: np.ndarray | None = None
+    building_ids: np.ndarray | None = None
+    building_surface: np.ndarray | None = None
+    roof_normals: np.ndarray | None = None
+    buildings: dict[int, dict] = field(default_factory=dict)
+    mesh: TruthMesh | None = None
+    sources: dict[str, str] = field(default_factory=dict)
+
+
+def load_scene_truth(scene_or_truth: str | Path) -> Truth:
+    """The full truth of a synthetic scene, on the grid of its ``truth/dsm.tif``."""
+    folder = truth_folder(scene_or_truth)
+    _, grid, crs = read_raster(folder / "dsm.tif", field="truth dsm")
+    r = truth_rasters(folder, grid)
+    truth = Truth(grid, crs, dsm=r["dsm"], dtm=r.get("dtm"), cls=r.get("class"))
+    truth.ortho = r.get("ortho")
+    truth.sources = {k: str(folder / f"{k}.tif") for k in r}
+    mesh_path = folder / "mesh.ply"
+    if mesh_path.exists():
+        vertices, triangles, props = read_ply(mesh_path)
+        if "building_id" not in props:
+            raise InputError(mesh_path, "building_id", "the truth mesh has no per-face building id")
+        keep = props["building_id"] > 0
+        truth.mesh = TruthMesh(vertices, triangles[keep], props["building_id"][keep])
+        truth.building_ids, truth.building_surface, truth.roof_normals = top_down(
+            truth.mesh.vertices, truth.mesh.triangles, truth.mesh.building, grid
+        )
+        truth.sources["mesh"] = str(mesh_path)
+    elif "building_id" in r:
+        truth.building_ids = r["building_id"].astype(np.int64)
+        truth.building_surface = np.where(truth.building_ids > 0, truth.dsm, np.nan)
+    path = folder / "buildings.json"
+    if path.exists():
+        try:
+            records = json.loads(path.read_text())["buildings"]
+            truth.buildings = {int(b["id"]): b for b in records}
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+            raise InputError(path, "buildings", f"unreadable ({exc})") from None
+        truth.sources["buildings"] = str(path)
+    return truth
+
+
+def load_file_truth(
+    *,
+    dsm: Path | None = None,
+    dtm: Path | None = None,
+    footprints: Path | None = None,
+    cls: Path | None = None,
+    grid: Grid | None = None,
+    crs=None,
+) -> Truth:
+    """Truth from loose files, for real data. The grid is the DSM's, else the class
+    raster's, else ``grid``; footprints are burnt into it with their feature ids."""
+    rasters = {}
+    for name, path in (("dsm", dsm), ("class", cls), ("dtm", dtm)):
+        if path is not None:
+            data, src, src_crs = read_raster(path, field=f"truth {name}")
+            rasters[name] = (data, src, src_crs, path)
+    for name in ("dsm", "class"):
+        if name in rasters:
+            _, grid, crs, _ = rasters[name]
+            break
+    if grid is None:
+        raise InputError(footprints or Path("."), None, "a truth raster or a run grid is needed")
+    truth = Truth(grid, crs)
+    for name, (data, src, _, path) in rasters.items():
+        band = sample_to_grid(data, src, grid)[0]
+        if name == "class":
+            truth.cls = band.astype(np.uint8)
+        else:
+            setattr(truth, name, band.astype(np.float64))
+        truth.sources[name] = str(path)
+    if footprints is not None:
+        items = read_footprints(footprints)
+        shapes = [(f.polygon, i) for i, f in enumerate(items, start=1)]
+        truth.building_ids = rasterize(
+            shapes, out_shape=grid.shape, transform=grid.transform, fill=0, dtype="int32"
+        ).astype(np.int64)
+        truth.sources["footprints"] = str(footprints)
+        if truth.dsm is not None:
+            truth.building_surface = np.where(truth.building_ids > 0, truth.dsm, np.nan)
+    return truth
+
+
+def top_down(
+    vertices: np.ndarray, triangles: np.ndarray, building: np.ndarray, grid: Grid
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Buildings seen straight down at every cell centre of ``grid``.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float
+    triangles : (T, 3) int
+    building : (T,) int
+        Building id of each triangle (> 0).
+
+    Returns
+    -------
+    ids : (H, W) int64, 0 where no building
+    surface : (H, W) float64 height of the top surface, NaN where no building
+    normals : (H, W, 3) float64 unit normal of that surface (facing up), NaN where none
+    """
+    H, W = grid.shape
+    if not len(triangles):
+        return np.zeros((H, W), np.int64), np.full((H, W), np.nan), np.full((H, W, 3), np.nan)
+    # Open3D casts in float32: work relative to the grid centre, as projected
+    # coordinates of real data are too large for centimetres in float32
+    xmin, ymin, xmax, ymax = grid.bounds
+    origin = np.array([(xmin + xmax) / 2, (ymin + ymax) / 2, 0.0])
+    local = vertices - origin
+    shifted = Grid(grid.xmin - origin[0], grid.ymax - origin[1], grid.gsd, W, H)
+    hits = vertical_hits(
+        raycasting_scene(local, triangles), shifted, float(local[:, 2].max()) + 10.0
+    )
+    hit = hits.tri >= 0
+    ids = np.where(hit, building[np.where(hit, hits.tri, 0)], 0).reshape(H, W).astype(np.int64)
+    surface = hits.points[:, 2].reshape(H, W)
+    normals = np.where(hit[:, None], hits.normals, np.nan).reshape(H, W, 3)
+    return ids, surface, normals

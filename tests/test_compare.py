@@ -1,0 +1,183 @@
+"""`workbench compare` end to end: the metrics checked against themselves on the truth."""
+
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import rasterio
+
+from data_samples.truth_run import truth_model_run
+from workbench.raster import read_raster
+
+
+def _cli(*args):
+    return subprocess.run(
+        [sys.executable, "-m", "workbench.cli", *map(str, args)], capture_output=True, text=True
+    )
+
+
+def _truth_fusion_run(scene, out):
+    """A fusion run whose rasters are the truth's."""
+    out.mkdir(parents=True)
+    for src, dst in (("dsm", "dsm"), ("class", "class"), ("ortho", "ortho"), ("dtm", "dtm")):
+        shutil.copy(scene / "truth" / f"{src}.tif", out / f"{dst}.tif")
+    (out / "fusion.json").write_text(json.dumps({"stages": {"all": {"wall_s": 2.0}}}))
+    return out
+
+
+@pytest.fixture(scope="module")
+def report(tiny_scene, tmp_path_factory):
+    root = tmp_path_factory.mktemp("compare")
+    runs = [
+        truth_model_run(tiny_scene, root / "same"),
+        truth_model_run(tiny_scene, root / "up", shift=(0, 0, 1.0)),
+        truth_model_run(tiny_scene, root / "less", drop=(1,)),
+        _truth_fusion_run(tiny_scene, root / "raster"),
+    ]
+    out = root / "report"
+    proc = _cli("compare", *runs, "--truth", tiny_scene, "-o", out)
+    assert proc.returncode == 0, proc.stderr
+    return out, json.loads((out / "metrics.json").read_text()), proc.stdout
+
+
+def test_truth_against_itself_is_perfect(report):
+    m = report[1]["runs"]["same"]
+    for group in ("footprint_2d", "volume_3d"):
+        for key in ("completeness", "correctness", "quality"):
+            assert m[group][key] == 1.0
+    assert m["height"]["rmse_m"] == pytest.approx(0.0, abs=1e-6)
+    assert m["surface"]["hausdorff_max_m"] < 1e-3
+    assert m["buildings"]["height_error_pct_median"] == pytest.approx(0.0, abs=1e-6)
+    assert m["buildings"]["roof_type_accuracy"] == 1.0
+    assert m["roofs"]["plane_angle_median_deg"] == pytest.approx(0.0, abs=0.01)
+    assert m["complexity"]["watertight_fraction"] == 1.0
+    objects = m["footprint_2d"]["objects"]
+    assert objects["found"] == objects["truth_buildings"] == objects["model_buildings"]
+
+
+def test_raster_truth_run_is_perfect(report):
+    m = report[1]["runs"]["raster"]
+    assert m["classification"]["overall_accuracy"] == 1.0
+    assert m["dsm"]["rmse_m"] == 0.0 and m["dsm"]["valid_fraction"] == 1.0
+    assert m["ortho"]["mae"] == 0.0
+    assert m["cost"]["wall_s"] == 2.0
+
+
+def test_model_one_metre_too_high(report):
+    m = report[1]["runs"]["up"]
+    assert m["height"]["rmse_m"] == pytest.approx(1.0, abs=1e-4)
+    assert m["height"]["mae_m"] == pytest.approx(1.0, abs=1e-4)
+    assert m["surface"]["hausdorff_max_m"] == pytest.approx(1.0, abs=1e-3)
+    assert m["volume_3d"]["quality"] == 1.0  # within the default 1 m tolerance
+    assert m["footprint_2d"]["quality"] == 1.0
+
+
+def test_missing_building_costs_its_area(report, tiny_scene):
+    ids = read_raster(tiny_scene / "truth" / "building_id.tif")[0][0]
+    m = report[1]["runs"]["less"]
+    # the building-only truth counts cells under trees too, so compare with the mesh truth
+    same = report[1]["runs"]["same"]["footprint_2d"]["tp"]
+    assert m["footprint_2d"]["fn"] + m["footprint_2d"]["tp"] == same
+    assert m["footprint_2d"]["completeness"] == pytest.approx(1 - m["footprint_2d"]["fn"] / same)
+    assert abs(m["footprint_2d"]["fn"] - np.count_nonzero(ids == 1)) <= 0.02 * same
+    assert m["footprint_2d"]["correctness"] == 1.0
+    o = m["footprint_2d"]["objects"]
+    assert o["found"] == o["truth_buildings"] - 1
+    rows = {r["id"]: r for r in report[1]["per_building"]["less"]}
+    assert rows[1]["height_error_pct"] == -100.0 and rows[1]["covered_fraction"] == 0.0
+
+
+def test_groups_without_data_are_absent(report):
+    runs = report[1]["runs"]
+    assert "classification" not in runs["same"] and "dsm" not in runs["same"]
+    assert "surface" not in runs["raster"] and "complexity" not in runs["raster"]
+    assert "texture" not in runs["same"]  # the truth has no seams to report
+
+
+def test_report_is_one_self_contained_page(report):
+    out, doc, stdout = report
+    page = (out / "report.html").read_text()
+    assert "http://" not in page.replace('xmlns="http://www.w3.org/2000/svg"', "")
+    assert "https://" not in page
+    assert page.count("data:image/png;base64,") >= 4 * 2 + 3  # maps, renders, truth
+    for name in doc["runs"]:
+        assert name in page and name in stdout
+    assert "<svg" in page  # the per-building height error chart
+    assert any((out / "figures").glob("render-*.png"))
+
+
+def test_loose_file_truth_scores_what_it_can(tiny_scene, tmp_path):
+    run = truth_model_run(tiny_scene, tmp_path / "same")
+    truth = tiny_scene / "truth"
+    out = tmp_path / "report"
+    proc = _cli(
+        "compare", run, "--truth-dsm", truth / "dsm.tif",
+        "--truth-footprints", truth / "footprints.geojson", "-o", out,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    m = json.loads((out / "metrics.json").read_text())["runs"]["same"]
+    assert m["footprint_2d"]["quality"] > 0.97  # rasterised polygons vs ray-cast meshes
+    assert "volume_3d" not in m and "surface" not in m  # no DTM, no mesh truth
+    assert "classification" not in m
+
+
+@pytest.mark.parametrize(
+    "case, expect",
+    [
+        ("not_a_run", "not a run folder"),
+        ("missing_mesh", "buildings[0].mesh"),
+        ("bad_json", "not valid JSON"),
+        ("names", "--names"),
+        ("no_truth", "--truth"),
+        ("crs", "dsm.tif: crs"),
+    ],
+)
+def test_bad_input_is_one_line_and_writes_nothing(tiny_scene, tmp_path, case, expect):
+    run = tmp_path / "run"
+    run.mkdir()
+    args = [run, "--truth", tiny_scene]
+    if case == "missing_mesh":
+        (run / "model.json").write_text(json.dumps({"buildings": [{"id": 7}]}))
+    elif case == "bad_json":
+        (run / "model.json").write_text("{")
+    elif case == "names":
+        truth_model_run(tiny_scene, run, drop=())
+        args += ["--names", "a", "b"]
+    elif case == "no_truth":
+        truth_model_run(tiny_scene, run)
+        args = [run]
+    elif case == "crs":
+        run.rmdir()
+        _truth_fusion_run(tiny_scene, run)
+        with rasterio.open(run / "dsm.tif", "r+") as ds:
+            ds.crs = "EPSG:32631"
+    out = tmp_path / "report"
+    proc = _cli("compare", *args, "-o", out)
+    assert proc.returncode == 2
+    assert expect in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_existing_report_needs_overwrite(report, tiny_scene):
+    out = report[0]
+    proc = _cli("compare", out.parent / "same", "--truth", tiny_scene, "-o", out)
+    assert proc.returncode == 2 and "exists" in proc.stderr
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None, reason="Chromium is not installed")
+def test_report_renders_in_headless_chromium(report, tmp_path):
+    cv2 = pytest.importorskip("cv2")
+    shot = tmp_path / "report.png"
+    proc = subprocess.run(
+        [sys.executable, "scripts/screenshot.py", report[0] / "report.html", shot],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 0, proc.stderr
+    img = cv2.imread(str(shot))
+    assert img.shape[1] == 1400
+    rows_with_ink = np.mean(img.min(axis=(1, 2)) < 200)  # text, tables and pictures
+    assert rows_with_ink > 0.5

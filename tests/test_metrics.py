@@ -1,0 +1,147 @@
+"""The shared metrics on hand-computed cases."""
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from workbench import metrics
+from workbench.meshes import is_watertight, sample_surface, triangle_areas
+from workbench.pictures import colorize_error
+from workbench.report import bar_chart_svg, summary_rows
+
+
+def test_classification_confusion_and_accuracies():
+    truth = np.array([[1, 1, 2, 4], [4, 4, 3, 0]])
+    pred = np.array([[1, 2, 2, 4], [4, 1, 3, 4]])  # the 0 cell is not scored
+    c = metrics.classification(pred, truth)
+    assert c["scored_cells"] == 7
+    assert c["overall_accuracy"] == pytest.approx(5 / 7)
+    assert c["per_class_accuracy"] == pytest.approx(
+        {"ground": 0.5, "grass": 1.0, "tree": 1.0, "building": 2 / 3}
+    )
+    assert c["mean_class_accuracy"] == pytest.approx((0.5 + 1 + 1 + 2 / 3) / 4)
+    assert c["confusion"][3] == [1, 0, 0, 2]
+
+
+def test_footprint_of_an_eroded_square_has_the_known_completeness():
+    truth = np.zeros((20, 20), bool)
+    truth[5:15, 5:15] = True  # 100 cells
+    eroded = np.zeros_like(truth)
+    eroded[6:14, 6:14] = True  # 64 cells
+    f = metrics.footprint_2d(eroded, truth)
+    assert (f["tp"], f["fp"], f["fn"]) == (64, 0, 36)
+    assert f["completeness"] == pytest.approx(0.64)
+    assert f["correctness"] == 1.0
+    assert f["quality"] == pytest.approx(0.64)
+    shifted = np.roll(truth, 2, axis=1)  # 80 shared, 20 each side
+    f = metrics.footprint_2d(shifted, truth)
+    assert f["quality"] == pytest.approx(80 / 120)
+    assert "quality" not in metrics.footprint_2d(np.zeros_like(truth), np.zeros_like(truth))
+
+
+def test_objects_found_need_half_their_cells():
+    truth = np.zeros((10, 10), int)
+    truth[0:4, 0:4] = 1  # 16 cells
+    truth[6:10, 6:10] = 2
+    pred = np.zeros_like(truth)
+    pred[0:2, 0:4] = 5  # exactly half of building 1
+    pred[6:7, 6:10] = 6  # a quarter of building 2
+    pred[0:3, 7:10] = 7  # nothing true under it
+    o = metrics.building_objects(truth, pred)
+    assert o == {"truth_buildings": 2, "found": 1, "model_buildings": 3, "correct": 2}
+
+
+def test_volume_3d_by_hand():
+    truth = np.array([[10.0, 10.0, 0.0, 4.0]])
+    pred = np.array([[10.5, 13.0, 5.0, np.nan]])
+    v = metrics.volume_3d(pred, truth, tolerance=1.0)
+    # cell 1: within tolerance, 10.5 agrees; cell 2: 11 agrees, 2 too high;
+    # cell 3: 5 false positive; cell 4: 4 false negative
+    assert v["vtp"] == pytest.approx(10.5 + 11.0)
+    assert v["vfp"] == pytest.approx(2.0 + 5.0)
+    assert v["vfn"] == pytest.approx(4.0)
+    assert v["quality"] == pytest.approx(21.5 / 32.5)
+    same = metrics.volume_3d(truth, truth)
+    assert same["completeness"] == same["correctness"] == same["quality"] == 1.0
+
+
+def test_building_heights_and_percent_errors():
+    ids = np.array([[1, 1, 2, 0]])
+    ground = np.array([[100.0, 100.0, 50.0, 0.0]])
+    surface = np.array([[110.0, 110.0, 60.0, 999.0]])
+    h = metrics.building_heights(surface, ground, ids, percentile=100)
+    assert h == {1: 10.0, 2: 10.0}
+    err = metrics.height_error_pct({1: 11.0}, h)
+    assert err == pytest.approx({1: 10.0, 2: -100.0})  # building 2 missing: -100 %
+
+
+def test_surface_distances_symmetric_summary():
+    a, b = np.zeros((2, 3)), np.zeros((3, 3))
+    s = metrics.surface_distances(a, np.array([0.0, 2.0]), b, np.array([1.0, 1.0, 4.0]))
+    assert s["model_to_truth"]["mean_m"] == 1.0 and s["truth_to_model"]["mean_m"] == 2.0
+    assert s["hausdorff_mean_m"] == 1.5
+    assert s["hausdorff_max_m"] == 4.0
+    assert s["hausdorff_rms_m"] == pytest.approx(np.sqrt((2.0 + 6.0) / 2))
+
+
+def test_plane_angles_ignore_normal_sign():
+    up = np.array([[0, 0, 1.0], [0, 0, 1.0]])
+    tilted = np.array([[0, np.sin(np.radians(30)), np.cos(np.radians(30))], [0, 0, -1.0]])
+    assert metrics.plane_angles_deg(up, tilted) == pytest.approx([30.0, 0.0])
+
+
+def test_complexity_roof_types_and_cost():
+    c = metrics.complexity([12, 20, 40], [True, True, False])
+    assert c["faces_total"] == 72 and c["faces_per_building_median"] == 20
+    assert c["watertight_fraction"] == pytest.approx(2 / 3)
+    r = metrics.roof_type_accuracy(["flat", "gable", "hipped"], ["flat", "hipped", "hipped"])
+    assert r["roof_type_accuracy"] == pytest.approx(2 / 3)
+    assert r["confusion"]["hipped"] == {"gable": 1, "hipped": 1}
+    cost = metrics.cost({"a": {"wall_s": 1.5, "peak_memory_mb": 300}, "b": {"wall_s": 2.0}})
+    assert cost == {"wall_s": 3.5, "peak_memory_mb": 300.0}
+
+
+def test_watertight_needs_closed_consistent_outward_faces():
+    box = o3d.geometry.TriangleMesh.create_box(2, 3, 4)
+    v, t = np.asarray(box.vertices), np.asarray(box.triangles).copy()
+    assert is_watertight(v, t)
+    assert not is_watertight(v, t[:-1])  # a hole
+    assert not is_watertight(v, t[:, ::-1])  # inside out
+    t[0] = t[0, ::-1]
+    assert not is_watertight(v, t)  # one face flipped
+
+
+def test_surface_samples_are_on_the_mesh_and_spread_by_area():
+    box = o3d.geometry.TriangleMesh.create_box(1, 1, 10)
+    v, t = np.asarray(box.vertices), np.asarray(box.triangles)
+    assert triangle_areas(v, t).sum() == pytest.approx(42.0)
+    p, tri = sample_surface(v, t, 42000, np.random.default_rng(0))
+    on_faces = np.isclose(p, 0).any(axis=1) | np.isclose(p, [1, 1, 10]).any(axis=1)
+    assert on_faces.all()
+    top = np.isclose(p[:, 2], 10).mean()  # top face: 1 of 42 square metres
+    assert top == pytest.approx(1 / 42, abs=0.005)
+
+
+def test_error_colours_green_blue_red():
+    rgb = colorize_error(np.array([0.0, 1.0, 2.0, 5.0, np.nan]), max_error=2.0)
+    assert rgb[0].tolist() == [0, 200, 0]
+    assert rgb[1].tolist() == [0, 0, 255]
+    assert rgb[2].tolist() == rgb[3].tolist() == [255, 0, 0]
+    assert rgb[4].tolist() == [255, 255, 255]
+
+
+def test_summary_marks_every_tied_best_run():
+    runs = {
+        "a": {"height": {"rmse_m": 1.0}, "footprint_2d": {"quality": 0.9}},
+        "b": {"height": {"rmse_m": 1.0}},
+        "c": {"height": {"rmse_m": 2.0}},
+    }
+    rows = {label: (cells, best) for label, cells, best in summary_rows(runs)}
+    assert rows["height RMSE on buildings (m)"] == (["1.00", "1.00", "2.00"], {0, 1})
+    assert rows["footprint 2D: quality"] == (["0.900", "", ""], set())
+    assert not any(label.startswith("volume") for label in rows)  # no data: no row
+
+
+def test_bar_chart_draws_one_bar_per_value():
+    svg = bar_chart_svg(["1", "2"], {"a": [5.0, -3.0], "b": [None, 1.0]}, "%")
+    assert svg.startswith("<svg") and svg.count("<rect") == 3 + 2  # bars + legend keys

@@ -1,0 +1,87 @@
+"""Triangle meshes as arrays: reading any format Open3D reads, surface samples, closedness."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import open3d as o3d
+
+from .errors import InputError
+
+
+def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a triangle mesh (PLY, OBJ, ... whatever Open3D reads), welding equal vertices.
+
+    OBJ files split vertices along texture seams; welding makes the mesh's topology
+    (closedness, orientation) that of its geometry.
+
+    Returns
+    -------
+    vertices : (V, 3) float64
+    triangles : (T, 3) int64
+    """
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise InputError(path, None, "no such mesh file")
+    mesh = o3d.io.read_triangle_mesh(path, enable_post_processing=False, print_progress=False)
+    if not mesh.has_vertices():
+        raise InputError(path, "vertices", "no readable vertices (not a mesh Open3D can read)")
+    mesh.remove_duplicated_vertices()
+    return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.triangles, np.int64)
+
+
+def triangle_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(T,) area of each triangle, square metres."""
+    a, b, c = (vertices[triangles[:, i]] for i in range(3))
+    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+
+
+def sample_surface(
+    vertices: np.ndarray, triangles: np.ndarray, n: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points spread uniformly by area over a mesh.
+
+    Returns
+    -------
+    points : (n, 3) float64
+    tri : (n,) int64
+        The triangle each point lies on.
+    """
+    area = triangle_areas(vertices, triangles)
+    if n <= 0 or area.sum() <= 0:
+        return np.empty((0, 3)), np.empty(0, np.int64)
+    tri = rng.choice(len(triangles), size=n, p=area / area.sum())
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    a, b, c = (vertices[triangles[tri, i]] for i in range(3))
+    return a + u[:, None] * (b - a) + v[:, None] * (c - a), tri
+
+
+def is_watertight(vertices: np.ndarray, triangles: np.ndarray) -> bool:
+    """Closed 2-manifold without self-intersections, consistently oriented (Open3D)."""
+    if not len(triangles):
+        return False
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(triangles.astype(np.int32))
+    )
+    return bool(
+        mesh.is_watertight() and _consistently_oriented(triangles) and _outward(vertices, triangles)
+    )
+
+
+def _consistently_oriented(triangles: np.ndarray) -> bool:
+    # neighbours walk their shared edge in opposite directions: every directed edge is
+    # unique and its reverse is present
+    e = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
+    n = int(e.max()) + 1
+    key = e[:, 0] * n + e[:, 1]
+    rev = e[:, 1] * n + e[:, 0]
+    return len(np.unique(key)) == len(key) and bool(np.isin(rev, key).all())
+
+
+def _outward(vertices: np.ndarray, triangles: np.ndarray) -> bool:
+    # a closed mesh whose faces turn outwards encloses a positive signed volume
+    a, b, c = (vertices[triangles[:, i]] - vertices.mean(axis=0) for i in range(3))
+    return float(np.sum(a * np.cross(b, c))) > 0

@@ -1,0 +1,74 @@
+"""Pictures of meshes by ray casting (no OpenGL): the same viewpoints for every run."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .camera import Camera, look_at_rotation
+from .raycast import cast, raycasting_scene
+
+_LIGHT = np.array([-0.4, -0.5, 0.77])
+_BACKGROUND = np.array([245, 245, 245], np.uint8)
+
+
+def viewpoints(
+    bounds: tuple[float, float, float, float],
+    z_range: tuple[float, float],
+    width: int = 640,
+    height: int = 480,
+) -> dict[str, Camera]:
+    """Cameras that frame ``bounds`` (world xmin, ymin, xmax, ymax) from two sides.
+
+    ``"south-west"`` and ``"north-east"`` look down at 40 degrees at the centre of the
+    box spanned by the bounds and ``z_range`` (metres).
+    """
+    xmin, ymin, xmax, ymax = bounds
+    centre = np.array([(xmin + xmax) / 2, (ymin + ymax) / 2, (z_range[0] + z_range[1]) / 2])
+    radius = 0.5 * np.linalg.norm([xmax - xmin, ymax - ymin, z_range[1] - z_range[0]])
+    f = 0.5 * width / np.tan(np.radians(25.0))  # 50 degree horizontal field of view
+    K = np.array([[f, 0, width / 2 - 0.5], [0, f, height / 2 - 0.5], [0, 0, 1.0]])
+    dist = 1.1 * radius / np.sin(np.radians(25.0))
+    elev = np.radians(40.0)
+    out = {}
+    for name, az in (("south-west", 225.0), ("north-east", 45.0)):
+        a = np.radians(az)
+        toward = np.array([np.sin(a) * np.cos(elev), np.cos(a) * np.cos(elev), np.sin(elev)])
+        c = centre + dist * toward
+        R = look_at_rotation(-toward)
+        out[name] = Camera(K, R, -R @ c, width, height)
+    return out
+
+
+def render_mesh(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    camera: Camera,
+    face_colors: np.ndarray | None = None,
+) -> np.ndarray:
+    """Lambert-shaded picture of a mesh.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float
+        World metres.
+    triangles : (T, 3) int
+    camera : Camera
+    face_colors : (T, 3) uint8, optional
+        Colour of each face (default light grey).
+
+    Returns
+    -------
+    (height, width, 3) uint8 RGB; the background is light grey.
+    """
+    img = np.tile(_BACKGROUND, (camera.height * camera.width, 1))
+    if len(triangles):
+        origin = camera.center  # cast near the origin: float32 keeps its precision there
+        centre, dirs = camera.pixel_grid_rays()
+        scene = raycasting_scene(vertices - origin, triangles)
+        hits = cast(scene, centre - origin, dirs)
+        hit = hits.tri >= 0
+        colors = np.full((len(triangles), 3), 200, np.uint8) if face_colors is None else face_colors
+        light = _LIGHT / np.linalg.norm(_LIGHT)
+        shade = 0.35 + 0.65 * np.abs(hits.normals[hit] @ light)
+        img[hit] = np.clip(colors[hits.tri[hit]] * shade[:, None], 0, 255).astype(np.uint8)
+    return img.reshape(camera.height, camera.width, 3)
