@@ -38,3 +38,27 @@ def truth_model_run(
     }
     (out / "model.json").write_text(json.dumps(record))
     return out
+
+
+def truth_fusion_run(scene: Path, out: Path) -> Path:
+    """Write the truth rasters of ``scene`` as a fusion run (one-hot class probabilities):
+    what a perfect fusion would give, to test the modeling paths apart from the fusion's
+    errors."""
+    from workbench.raster import read_raster, write_raster
+
+    out.mkdir(parents=True)
+    rasters = {}
+    for name in ("ortho", "dsm", "dtm", "class"):
+        data, grid, crs = read_raster(scene / "truth" / f"{name}.tif")
+        rasters[name] = data
+        nodata = 0 if name == "class" else None
+        write_raster(
+            out / f"{name}.tif", data if len(data) > 1 else data[0], grid, crs, nodata=nodata
+        )
+    cls = rasters["class"][0]
+    prob = np.stack([(cls == k).astype(np.float32) for k in (1, 2, 3, 4)])
+    write_raster(out / "class_prob.tif", prob, grid, crs)
+    write_raster(out / "ndsm.tif", rasters["dsm"][0] - rasters["dtm"][0], grid, crs)
+    record = {"method": "truth", "stages": {"copy": {"wall_s": 2.0, "peak_memory_mb": 100.0}}}
+    (out / "fusion.json").write_text(json.dumps(record))
+    return out

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import rasterio
 
-from data_samples.truth_run import truth_model_run
+from data_samples.truth_run import truth_fusion_run, truth_model_run
 from workbench.raster import read_raster
 
 
@@ -19,15 +19,6 @@ def _cli(*args):
     )
 
 
-def _truth_fusion_run(scene, out):
-    """A fusion run whose rasters are the truth's."""
-    out.mkdir(parents=True)
-    for src, dst in (("dsm", "dsm"), ("class", "class"), ("ortho", "ortho"), ("dtm", "dtm")):
-        shutil.copy(scene / "truth" / f"{src}.tif", out / f"{dst}.tif")
-    (out / "fusion.json").write_text(json.dumps({"stages": {"all": {"wall_s": 2.0}}}))
-    return out
-
-
 @pytest.fixture(scope="module")
 def report(tiny_scene, tmp_path_factory):
     root = tmp_path_factory.mktemp("compare")
@@ -35,7 +26,7 @@ def report(tiny_scene, tmp_path_factory):
         truth_model_run(tiny_scene, root / "same"),
         truth_model_run(tiny_scene, root / "up", shift=(0, 0, 1.0)),
         truth_model_run(tiny_scene, root / "less", drop=(1,)),
-        _truth_fusion_run(tiny_scene, root / "raster"),
+        truth_fusion_run(tiny_scene, root / "raster"),
     ]
     out = root / "report"
     proc = _cli("compare", *runs, "--truth", tiny_scene, "-o", out)
@@ -151,7 +142,7 @@ def test_bad_input_is_one_line_and_writes_nothing(tiny_scene, tmp_path, case, ex
         args = [run]
     elif case == "crs":
         run.rmdir()
-        _truth_fusion_run(tiny_scene, run)
+        truth_fusion_run(tiny_scene, run)
         with rasterio.open(run / "dsm.tif", "r+") as ds:
             ds.crs = "EPSG:32631"
     out = tmp_path / "report"

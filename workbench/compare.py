@@ -13,6 +13,7 @@ from .atomic import atomic_output_dir
 from .errors import InputError, WorkbenchError
 from .evaluate import Evaluation, EvaluationOptions, evaluate, stacked_meshes
 from .imageio import write_rgb
+from .meshes import raster_mesh
 from .pictures import colorize_classes, colorize_error, colorize_height
 from .render import render_mesh, viewpoints
 from .report import report_html, summary_text
@@ -164,7 +165,7 @@ def _renders(
     else:
         z = np.concatenate([b.vertices[:, 2] for r in models for b in r.buildings])
     cams = viewpoints(truth.grid.bounds, (float(z.min()), float(z.max())))
-    ground = terrain_mesh(truth.dtm, truth.grid) if truth.dtm is not None else None
+    ground = raster_mesh(truth.dtm, truth.grid, step=8) if truth.dtm is not None else None
 
     def picture(vertices, triangles, cam, colors=None):
         if ground is not None:  # the same pale ground under every model
@@ -191,22 +192,6 @@ def _renders(
                 img = picture(vertices, triangles, cam, colors)
                 out.append((img, f"{run.name}, error, {view}"))
     return out
-
-
-def terrain_mesh(dtm: np.ndarray, grid, step: int = 8) -> tuple[np.ndarray, np.ndarray] | None:
-    """A coarse triangle mesh of a DTM (every ``step``-th cell), NaN cells filled with
-    the median height."""
-    z = dtm[::step, ::step]
-    if not np.isfinite(z).any() or min(z.shape) < 2:
-        return None
-    z = np.where(np.isfinite(z), z, np.nanmedian(z))
-    X, Y = grid.cell_centers()
-    vertices = np.column_stack([X[::step, ::step].ravel(), Y[::step, ::step].ravel(), z.ravel()])
-    h, w = z.shape
-    i = np.arange(h * w).reshape(h, w)[:-1, :-1].ravel()
-    quads = np.column_stack([i, i + w, i + w + 1, i + 1])
-    triangles = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
-    return vertices, triangles
 
 
 def check_truth_args(args) -> None:

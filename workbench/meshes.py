@@ -85,3 +85,26 @@ def _outward(vertices: np.ndarray, triangles: np.ndarray) -> bool:
     # a closed mesh whose faces turn outwards encloses a positive signed volume
     a, b, c = (vertices[triangles[:, i]] - vertices.mean(axis=0) for i in range(3))
     return float(np.sum(a * np.cross(b, c))) > 0
+
+
+def raster_mesh(z: np.ndarray, grid, step: int = 1) -> tuple[np.ndarray, np.ndarray] | None:
+    """A triangle mesh (facing up) of a height raster on ``grid`` through every ``step``-th
+    cell centre; NaN heights take the median. None when fewer than 2 x 2 samples are known.
+
+    Returns
+    -------
+    vertices : (V, 3) float64 world metres
+    triangles : (T, 3) int64
+    """
+    zs = z[::step, ::step]
+    if not np.isfinite(zs).any() or min(zs.shape) < 2:
+        return None
+    zs = np.where(np.isfinite(zs), zs, np.nanmedian(zs))
+    X, Y = grid.cell_centers()
+    vertices = np.column_stack([X[::step, ::step].ravel(), Y[::step, ::step].ravel(), zs.ravel()])
+    h, w = zs.shape
+    i = np.arange(h * w).reshape(h, w)[:-1, :-1].ravel()
+    triangles = np.concatenate(
+        [np.column_stack([i, i + w, i + w + 1]), np.column_stack([i, i + w + 1, i + 1])]
+    )
+    return vertices, triangles

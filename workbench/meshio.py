@@ -116,3 +116,52 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, dict[str,
     f = out["face"]
     props = {n: np.array(f[n]) for n in f.dtype.names if n not in ("n", "vertex_indices")}
     return vertices, np.array(f["vertex_indices"], dtype=np.int32), props
+
+
+def write_obj(
+    path: str | os.PathLike,
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    *,
+    vertex_colors: np.ndarray | None = None,
+    material: str | None = None,
+    mtllib: str | None = None,
+) -> None:
+    """Write a triangle mesh as Wavefront OBJ (world metres, millimetre precision).
+
+    Parameters
+    ----------
+    vertices : (V, 3) float
+    triangles : (T, 3) int
+        Counter-clockwise seen from outside.
+    vertex_colors : (V, 3) uint8, optional
+        Written as the widely read ``v x y z r g b`` extension (0-1).
+    material, mtllib : str, optional
+        ``usemtl`` name and the ``.mtl`` file (relative to the OBJ) that defines it.
+    """
+    lines = ["# city-workbench"]
+    if mtllib:
+        lines.append(f"mtllib {mtllib}")
+    if vertex_colors is None:
+        lines += [f"v {x:.3f} {y:.3f} {z:.3f}" for x, y, z in vertices]
+    else:
+        c = np.asarray(vertex_colors, np.float64) / 255.0
+        lines += [
+            f"v {x:.3f} {y:.3f} {z:.3f} {r:.3f} {g:.3f} {b:.3f}"
+            for (x, y, z), (r, g, b) in zip(vertices, c, strict=True)
+        ]
+    if material:
+        lines.append(f"usemtl {material}")
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in triangles]
+    with open(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+
+
+def write_mtl(path: str | os.PathLike, materials: dict[str, tuple[int, int, int]]) -> None:
+    """Write an ``.mtl`` of plain diffuse colours ``{name: (r, g, b) 0-255}``."""
+    lines = ["# city-workbench"]
+    for name, rgb in materials.items():
+        r, g, b = (v / 255.0 for v in rgb)
+        lines += [f"newmtl {name}", f"Kd {r:.3f} {g:.3f} {b:.3f}", "Ka 0 0 0", "Ks 0 0 0", ""]
+    with open(path, "w") as f:
+        f.write("\n".join(lines))

@@ -1,0 +1,268 @@
+"""`workbench model superpixel`: read a fusion run, model its buildings, write the run."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+from skimage.segmentation import find_boundaries
+
+from workbench import metrics
+from workbench.atomic import atomic_output_dir
+from workbench.errors import InputError
+from workbench.imageio import write_rgb
+from workbench.meshes import raster_mesh
+from workbench.meshio import write_mtl, write_obj, write_ply
+from workbench.pictures import colorize_classes, contact_sheet
+from workbench.progress import progress
+from workbench.raster import Grid, read_raster, write_raster
+from workbench.records import StageTimer
+from workbench.render import render_mesh, viewpoints
+
+from .aggregate import superpixel_graph
+from .buildings import split_buildings
+from .superpixel_model import (
+    BuildingModel,
+    SuperpixelOptions,
+    label_prototypes,
+    model_building,
+    observed_faces,
+    plane_hypotheses,
+    refine_classes,
+    refit_planes,
+    roof_prototypes,
+    superpixel_points,
+)
+from .superpixels import quickshift_superpixels
+
+log = logging.getLogger(__name__)
+
+FUSION_RASTERS = ("ortho", "dsm", "dtm", "class_prob", "class")
+BUILDING = 4
+
+
+def read_fusion_dir(folder: Path) -> tuple[dict[str, np.ndarray], Grid, object]:
+    """The rasters of a fusion run, checked to share one grid and CRS.
+
+    Raises
+    ------
+    InputError
+        Naming the missing or mismatched file.
+    """
+    if not Path(folder).is_dir():
+        raise InputError(folder, None, "no such fusion folder")
+    out, grid, crs = {}, None, None
+    for name in FUSION_RASTERS:
+        path = Path(folder) / f"{name}.tif"
+        if not path.exists():
+            raise InputError(path, None, "missing: not the output folder of `workbench fusion`")
+        data, g, c = read_raster(path)
+        if grid is None:
+            grid, crs = g, c
+        elif g != grid:
+            raise InputError(path, "transform", f"grid differs from {folder}/ortho.tif's")
+        elif c != crs:
+            raise InputError(path, "crs", f"CRS differs from {folder}/ortho.tif's")
+        out[name] = data
+    if out["ortho"].shape[0] != 3 or out["class_prob"].shape[0] != 4:
+        raise InputError(Path(folder) / "class_prob.tif", "bands", "expected RGB and 4 classes")
+    return out, grid, crs
+
+
+def run_superpixel(
+    fusion_dir: Path, out: Path, options: SuperpixelOptions, *, truth=None, overwrite: bool = False
+) -> dict:
+    """The whole path; returns the model.json record."""
+    timer = StageTimer()
+    with atomic_output_dir(out, overwrite=overwrite) as tmp:
+        with timer.stage("read"):
+            r, grid, crs = read_fusion_dir(fusion_dir)
+            rgb = np.moveaxis(r["ortho"], 0, -1)
+            dsm, dtm = r["dsm"][0].astype(np.float64), r["dtm"][0].astype(np.float64)
+            prob, pixel_class = r["class_prob"], r["class"][0]
+        with timer.stage("superpixels"):
+            labels = quickshift_superpixels(
+                rgb, options.sigma, options.tau, options.ratio, seed=options.seed
+            )
+        with timer.stage("aggregation"):
+            graph = superpixel_graph(labels, rgb, prob, dsm)
+        with timer.stage("class_crf"):
+            sp_class = refine_classes(graph, options.omega_class)
+            crf_class = sp_class[labels].astype(np.uint8)
+            sp_argmax = (graph.class_sum.argmax(axis=1) + 1)[labels].astype(np.uint8)
+            no_data = ~(np.nan_to_num(prob).sum(axis=0) > 0)
+            crf_class[no_data] = 0
+            sp_argmax[no_data] = 0
+        with timer.stage("buildings"):
+            owner = split_buildings(
+                sp_class == BUILDING, labels, grid.gsd, options.opening_m, options.min_area_m2
+            )
+            pts = superpixel_points(labels, dsm, grid)
+        adjacency = {(int(a), int(b)) for a, b in graph.edges} | {
+            (int(b), int(a)) for a, b in graph.edges
+        }
+        models: list[tuple[int, BuildingModel]] = []
+        prototype_raster = np.zeros(labels.shape, np.int32)
+        hyp_s = proto_s = crf_s = mesh_s = 0.0
+        import time
+
+        for b in progress(range(1, int(owner.max()) + 1), "modeling buildings"):
+            members = np.flatnonzero(owner == b)
+            t0 = time.perf_counter()
+            hyps = plane_hypotheses(members, pts, options)
+            t1 = time.perf_counter()
+            if hyps:
+                protos = roof_prototypes(hyps, pts, adjacency, options)
+            else:  # no plane anywhere: one flat roof at the median height
+                z = np.nanmedian(graph.height_median[members])
+                protos = np.array([[0.0, 0.0, 1.0, -z]]) if np.isfinite(z) else np.empty((0, 4))
+            t2 = time.perf_counter()
+            if not len(protos):
+                continue
+            assign = label_prototypes(members, protos, pts, graph, options)
+            protos = refit_planes(members, assign, protos, pts, options)
+            t3 = time.perf_counter()
+            sp_face = np.zeros(graph.n, np.int32)
+            sp_face[members] = assign + 1
+            rows, cols = np.nonzero(owner[labels] == b)
+            r0, r1, c0, c1 = rows.min(), rows.max() + 2, cols.min(), cols.max() + 2
+            r0, c0 = max(r0 - 1, 0), max(c0 - 1, 0)
+            crop = np.where(owner[labels[r0:r1, c0:c1]] == b, sp_face[labels[r0:r1, c0:c1]], 0)
+            crop = observed_faces(crop, np.isfinite(dsm[r0:r1, c0:c1]))
+            crop_grid = Grid(
+                grid.xmin + c0 * grid.gsd,
+                grid.ymax - r0 * grid.gsd,
+                grid.gsd,
+                crop.shape[1],
+                crop.shape[0],
+            )
+            parts = model_building(crop, crop_grid, protos, dtm[r0:r1, c0:c1], options)
+            t4 = time.perf_counter()
+            hyp_s, proto_s, crf_s, mesh_s = (
+                hyp_s + t1 - t0,
+                proto_s + t2 - t1,
+                crf_s + t3 - t2,
+                mesh_s + t4 - t3,
+            )
+            prototype_raster[r0:r1, c0:c1][crop > 0] = crop[crop > 0] + 10 * b
+            for k, model in enumerate(parts):
+                model.record.update(
+                    superpixels=len(members), hypotheses=len(hyps), prototypes=len(protos)
+                )
+                models.append((f"{b}" if k == 0 else f"{b}-{k}", model))
+        for name, sec in (
+            ("plane_hypotheses", hyp_s),
+            ("prototypes", proto_s),
+            ("prototype_crf", crf_s),
+            ("roof_modeling", mesh_s),
+        ):
+            timer.stages[name] = {
+                "wall_s": round(sec, 3),
+                "peak_memory_mb": timer.stages["buildings"]["peak_memory_mb"],
+            }
+        with timer.stage("write"):
+            record = _write(
+                tmp, models, rgb, dtm, grid, crs, crf_class, labels, prototype_raster, options
+            )
+        record["stages"] = timer.stages
+        record["input"] = {
+            "fusion": str(Path(fusion_dir).absolute()),
+            "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd},
+        }
+        record["superpixels"] = graph.n
+        if truth is not None:
+            record["classification_table"] = _table1(truth, grid, pixel_class, sp_argmax, crf_class)
+        (tmp / "model.json").write_text(json.dumps(record, indent=1) + "\n")
+    return record
+
+
+def _table1(truth_scene, grid, pixel, superpixel, crf) -> dict:
+    """The super-pixel paper's Table 1 rows against the truth: pixel, super-pixel, CRF."""
+    from workbench.truth import truth_rasters
+
+    t = truth_rasters(truth_scene, grid)["class"]
+    return {
+        name: metrics.classification(c, t)
+        for name, c in (("pixel", pixel), ("superpixel", superpixel), ("crf", crf))
+    }
+
+
+def _write(
+    tmp: Path, models, rgb, dtm, grid: Grid, crs, crf_class, labels, prototype_raster, options
+) -> dict:
+    (tmp / "buildings").mkdir()
+    materials = {"wall": (170, 170, 170)}
+    buildings, all_v, all_t, all_c = [], [], [], []
+    offset = 0
+    for b, m in models:
+        colors = _vertex_colours(m.vertices, rgb, grid)
+        bid = str(b)
+        write_ply(tmp / "buildings" / f"{bid}.ply", m.vertices, m.triangles, vertex_colors=colors)
+        materials[f"roof_{bid}"] = tuple(int(v) for v in np.median(colors, axis=0))
+        write_obj(
+            tmp / "buildings" / f"{bid}.obj",
+            m.vertices,
+            m.triangles,
+            vertex_colors=colors,
+            material=f"roof_{bid}",
+            mtllib="materials.mtl",
+        )
+        buildings.append({"id": bid, "mesh": f"buildings/{bid}.ply", **m.record})
+        all_v.append(m.vertices)
+        all_t.append(m.triangles + offset)
+        all_c.append(colors)
+        offset += len(m.vertices)
+    write_mtl(tmp / "buildings" / "materials.mtl", materials)
+    ground = raster_mesh(dtm, grid, step=max(1, round(2.0 / grid.gsd)))
+    if ground is not None:
+        all_v.append(ground[0])
+        all_t.append(ground[1] + offset)
+        all_c.append(_vertex_colours(ground[0], rgb, grid))
+    V, T, Cc = np.concatenate(all_v), np.concatenate(all_t), np.concatenate(all_c)
+    write_ply(tmp / "scene.ply", V, T, vertex_colors=Cc)
+    write_obj(tmp / "scene.obj", V, T, vertex_colors=Cc)
+    write_raster(tmp / "class.tif", crf_class, grid, crs, nodata=0)
+    write_raster(tmp / "superpixels.tif", labels.astype(np.int32), grid, crs, nodata=None)
+    _preview(tmp / "preview.png", rgb, labels, crf_class, prototype_raster, models, grid, dtm)
+    n = len(buildings)
+    if n == 0:
+        log.warning("no building pixels survived the class CRF: the model is empty")
+    return {
+        "method": "superpixel",
+        "parameters": vars(options),
+        "buildings": buildings,
+        "counts": {
+            "buildings": n,
+            "faces": int(sum(b["faces"] for b in buildings)),
+            "watertight": int(sum(b["watertight"] for b in buildings)),
+        },
+    }
+
+
+def _vertex_colours(vertices: np.ndarray, rgb: np.ndarray, grid: Grid) -> np.ndarray:
+    r, c = grid.cell_index(vertices[:, 0], vertices[:, 1], clip=True)
+    return rgb[r, c]
+
+
+def _preview(path, rgb, labels, classes, prototypes, models, grid, dtm) -> None:
+    edges = rgb.copy()
+    edges[find_boundaries(labels, mode="inner")] = (255, 255, 0)
+    rng = np.random.default_rng(0)
+    palette = rng.integers(60, 255, (int(prototypes.max()) + 1, 3)).astype(np.uint8)
+    palette[0] = 0
+    proto = palette[prototypes]
+    row = [
+        (edges, "super-pixels"),
+        (colorize_classes(classes), "CRF classes"),
+        (proto, "roof prototypes"),
+    ]
+    if models:
+        V = np.concatenate([m.vertices for _, m in models])
+        offs = np.cumsum([0] + [len(m.vertices) for _, m in models])[:-1]
+        T = np.concatenate([m.triangles + o for (_, m), o in zip(models, offs, strict=True)])
+        z = V[:, 2]
+        cam = viewpoints(grid.bounds, (float(np.nanmin(dtm)), float(z.max())))["south-west"]
+        row.append((render_mesh(V, T, cam, np.full((len(T), 3), 205, np.uint8)), "models"))
+    write_rgb(path, contact_sheet([row], height=360))

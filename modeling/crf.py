@@ -1,0 +1,128 @@
+"""Conditional random fields on a super-pixel adjacency graph (the super-pixel paper, eq. 2).
+
+E(c) = sum_i D_i(c_i) + omega * sum_(i,j) w_ij [c_i != c_j], minimised with graph cuts
+(PyMaxflow): one exact cut for two labels, alpha-expansion moves for more.
+"""
+
+from __future__ import annotations
+
+import maxflow
+import numpy as np
+
+
+def crf_energy(
+    labels: np.ndarray, unary: np.ndarray, edges: np.ndarray, weights: np.ndarray, omega: float
+) -> float:
+    """Energy of a labelling.
+
+    Parameters
+    ----------
+    labels : (N,) int
+        Label index of each node.
+    unary : (N, L) float
+        D_i(l), the cost of giving node i label l.
+    edges : (E, 2) int
+        Node pairs.
+    weights : (E,) float
+        w_ij >= 0 of each pair.
+    omega : float
+        Weight of the pairwise term.
+    """
+    data = unary[np.arange(len(labels)), labels].sum()
+    cut = labels[edges[:, 0]] != labels[edges[:, 1]] if len(edges) else np.zeros(0, bool)
+    return float(data + omega * weights[cut].sum())
+
+
+def binary_cut(
+    unary: np.ndarray, edges: np.ndarray, weights: np.ndarray, omega: float
+) -> np.ndarray:
+    """The exact minimiser of a two-label Potts energy: one s-t min cut.
+
+    Parameters as :func:`crf_energy` with L = 2. Returns (N,) labels in {0, 1}.
+    """
+    g = maxflow.Graph[float]()
+    nodes = g.add_nodes(len(unary))
+    # a node on the sink side takes label 1 and pays the source capacity
+    g.add_grid_tedges(nodes, unary[:, 1], unary[:, 0])
+    if len(edges):
+        w = omega * weights
+        g.add_edges(nodes[edges[:, 0]], nodes[edges[:, 1]], w, w)
+    g.maxflow()
+    return g.get_grid_segments(nodes).astype(np.int64)
+
+
+def alpha_expansion(
+    unary: np.ndarray,
+    edges: np.ndarray,
+    weights: np.ndarray,
+    omega: float,
+    init: np.ndarray | None = None,
+    max_sweeps: int = 5,
+) -> np.ndarray:
+    """Minimise a Potts energy by alpha-expansion moves (Boykov et al. 2001).
+
+    Each move lets any node switch to one label alpha, solved exactly by a min cut; sweeps
+    over all labels repeat until no move lowers the energy. The result is within a factor
+    2 of the optimum for Potts energies; two labels get the exact :func:`binary_cut`.
+
+    Parameters as :func:`crf_energy`; ``init`` defaults to the unary minimum.
+
+    Returns
+    -------
+    (N,) int labels.
+    """
+    n, n_labels = unary.shape
+    if n == 0:
+        return np.zeros(0, np.int64)
+    if n_labels == 2:
+        return binary_cut(unary, edges, weights, omega)
+    labels = unary.argmin(axis=1) if init is None else np.asarray(init, np.int64).copy()
+    if n_labels == 1:
+        return np.zeros(n, np.int64)
+    w = omega * np.asarray(weights, np.float64)
+    i, j = (edges[:, 0], edges[:, 1]) if len(edges) else (np.zeros(0, int),) * 2
+    energy = crf_energy(labels, unary, edges, weights, omega)
+    for _ in range(max_sweeps):
+        improved = False
+        for alpha in range(n_labels):
+            proposal = _expand(labels, alpha, unary, i, j, w)
+            e = crf_energy(proposal, unary, edges, weights, omega)
+            if e < energy - 1e-9:
+                labels, energy, improved = proposal, e, True
+        if not improved:
+            break
+    return labels
+
+
+def _expand(labels, alpha, unary, i, j, w) -> np.ndarray:
+    """One alpha-expansion move: x = 1 switches a node to alpha."""
+    n = len(labels)
+    keep_cost = unary[np.arange(n), labels]
+    move_cost = unary[:, alpha].copy()
+    move_cost[labels == alpha] = keep_cost[labels == alpha]  # already alpha: no choice
+    source = move_cost.copy()  # paid when x = 1
+    sink = keep_cost.copy()  # paid when x = 0
+    g = maxflow.Graph[float]()
+    nodes = g.add_nodes(n)
+    if len(i):
+        # E(x_i, x_j) for a Potts pair: A = w[ci != cj], B = w[ci != alpha] (x_j = 1),
+        # C = w[cj != alpha] (x_i = 1), D = 0. E = A + (C - A) x_i + (D - C) x_j
+        # + (B + C - A - D)(1 - x_i) x_j, with B + C - A - D >= 0 for a metric.
+        ci, cj = labels[i], labels[j]
+        A = w * (ci != cj)
+        B = w * (ci != alpha)
+        C = w * (cj != alpha)
+        pair = B + C - A
+        lin_i = C - A
+        lin_j = -C
+        np.add.at(source, i, np.maximum(lin_i, 0))
+        np.add.at(sink, i, np.maximum(-lin_i, 0))
+        np.add.at(source, j, np.maximum(lin_j, 0))
+        np.add.at(sink, j, np.maximum(-lin_j, 0))
+        g.add_edges(nodes[i], nodes[j], pair, np.zeros_like(pair))
+    g.add_grid_tedges(nodes, source, sink)
+    g.maxflow()
+    x = g.get_grid_segments(nodes)
+    out = labels.copy()
+    out[x] = alpha
+    return out

@@ -1,0 +1,336 @@
+"""Rooftop modeling (the super-pixel paper, section 5.3): roof faces from the prototype
+labels, straightened, lifted to their planes, walled down to the ground, closed.
+
+The faces of a building form a planar coverage: polygons that share their boundaries
+vertex for vertex. Every roof vertex is lifted vertically onto its face's plane; where two
+faces meet at different heights, or a face meets the outside, a vertical wall fills the
+gap, split at every height any face has at its ends, so that the mesh is closed and every
+edge has exactly two triangles.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import rasterio.features
+import shapely
+from shapely.geometry import Polygon, shape
+from shapely.geometry.polygon import orient
+
+from workbench.raster import Grid
+
+from .planes import plane_heights
+
+_EPS = 1e-7  # metres, on coordinates
+_Z_EPS = 0.02  # metres: heights this close at a vertex are one level (one vertex)
+
+
+def face_polygons(
+    faces: np.ndarray, grid: Grid, tolerance: float, min_face_m2: float = 2.0
+) -> tuple[list[Polygon], list[int]]:
+    """Polygons of the labelled faces, simplified together so that shared boundaries
+    stay shared (a topology-preserving simplification of the coverage).
+
+    Parameters
+    ----------
+    faces : (H, W) int
+        Face label of every cell, 0 outside the building.
+    grid : Grid
+    tolerance : float
+        Simplification tolerance, metres.
+    min_face_m2 : float
+        Connected face regions smaller than this join the neighbouring face they share
+        most boundary with: slivers carry no plane worth a polygon.
+
+    Returns
+    -------
+    polygons, face label of each
+    """
+    min_cells = max(1, int(round(min_face_m2 / grid.gsd**2)))
+    faces = untangle_diagonals(merge_small_regions(faces, min_cells))
+    polys, labels = [], []
+    for geom, value in rasterio.features.shapes(
+        faces.astype(np.int32), mask=faces > 0, transform=grid.transform, connectivity=4
+    ):
+        polys.append(shape(geom))
+        labels.append(int(value))
+    if not polys:
+        return [], []
+    simple = shapely.coverage_simplify(np.array(polys, dtype=object), tolerance)
+    parts, out_labels = [], []
+    for p, lab in zip(simple, labels, strict=True):
+        p = shapely.make_valid(p) if not p.is_valid else p
+        for part in getattr(p, "geoms", [p]):
+            if isinstance(part, Polygon) and part.area > 1e-6:
+                parts.append(part)
+                out_labels.append(lab)
+    return [orient(_fill_small_holes(p, parts, 4 * grid.gsd**2), 1.0) for p in parts], out_labels
+
+
+def merge_small_regions(faces: np.ndarray, min_cells: int) -> np.ndarray:
+    """Give every 4-connected region of one face label smaller than ``min_cells`` the
+    label of the neighbouring face it shares most cell edges with (0 stays 0)."""
+    import cv2
+
+    out = faces.copy()
+    for label in np.unique(faces[faces > 0]):
+        n, comp, stats, _ = cv2.connectedComponentsWithStats(
+            (faces == label).astype(np.uint8), connectivity=4
+        )
+        for k in np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] < min_cells) + 1:
+            region = comp == k
+            ring = (
+                cv2.dilate(
+                    region.astype(np.uint8), np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)
+                )
+                > 0
+            )
+            around = out[ring & ~region]
+            around = around[(around > 0) & (around != label)]
+            if len(around):
+                out[region] = np.bincount(around).argmax()
+    return out
+
+
+def untangle_diagonals(faces: np.ndarray) -> np.ndarray:
+    """Remove 2 x 2 blocks where one label touches itself only across a corner.
+
+    Such a corner would be shared by two polygons of one face (or two stretches of the
+    outline), and the solid would pinch there: not a manifold. The corner is bridged by
+    giving one of the two other cells the touching label (outside cells join the
+    building rather than the reverse).
+    """
+    f = np.pad(faces, 1).copy()
+    for _ in range(f.size):
+        a, b, c, d = f[:-1, :-1], f[:-1, 1:], f[1:, :-1], f[1:, 1:]
+        main = (a == d) & (b != a) & (c != a)  # a and d touch at the corner
+        anti = (b == c) & (a != b) & (d != b)
+        if not (main.any() or anti.any()):
+            break
+        r, k = np.nonzero(main | anti)
+        r, k = r[0], k[0]  # one at a time: a fix can create or remove others nearby
+        if main[r, k]:
+            if f[r, k] != 0:
+                f[r, k + 1] = f[r, k]  # the top-right cell joins the face
+            else:
+                f[r, k] = f[r, k + 1]  # an outside corner: fill it from a neighbour
+        elif f[r, k + 1] != 0:
+            f[r, k] = f[r, k + 1]
+        else:
+            f[r, k + 1] = f[r, k]
+    return f[1:-1, 1:-1]
+
+
+def _fill_small_holes(poly: Polygon, others: list[Polygon], min_area: float) -> Polygon:
+    """Fill holes below ``min_area`` that no other face fills: slivers left by the
+    simplification, which would pinch the solid where they touch the outline."""
+    keep = []
+    for ring in poly.interiors:
+        hole = Polygon(ring)
+        filled = any(o is not poly and o.representative_point().within(hole) for o in others)
+        if hole.area >= min_area or filled:
+            keep.append(ring)
+    return Polygon(poly.exterior, keep) if len(keep) != len(poly.interiors) else poly
+
+
+def extrude_faces(
+    polygons: list[Polygon], planes: list[np.ndarray], base_z: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """A closed, outward-oriented mesh of roof faces on their planes over a flat floor.
+
+    Parameters
+    ----------
+    polygons : list of Polygon
+        A coverage (shared boundaries, no overlaps), world metres.
+    planes : list of (4,) arrays
+        The plane of each polygon's roof.
+    base_z : float
+        Height of the floor, metres (below every roof).
+
+    Returns
+    -------
+    vertices : (V, 3) float64
+    triangles : (T, 3) int64, counter-clockwise seen from outside
+    """
+
+    def roof(f: int, x, y):
+        return plane_heights(planes[f], x, y)
+
+    rings, xy = _noded_rings(polygons)
+    rings = _split_crossings(rings, xy, roof)
+    xy = np.asarray(xy)
+    z_of = [roof(f, xy[:, 0], xy[:, 1]) for f in range(len(planes))]  # (F, V2)
+    owner = {}
+    for f, face in enumerate(rings):
+        for ring in face:
+            for a, b in zip(ring, np.roll(ring, -1), strict=True):
+                owner[(a, b)] = f
+    lows, heights = _levels(rings, z_of, base_z, len(xy))
+    verts: dict[tuple[int, int], int] = {}
+
+    def level(v: int, z: float) -> int:
+        return int(np.searchsorted(lows[v], z + _Z_EPS, side="right")) - 1
+
+    def vid(v: int, li: int) -> int:
+        if (v, li) not in verts:
+            verts[(v, li)] = len(verts)
+        return verts[(v, li)]
+
+    tris = []
+    for f, face in enumerate(rings):
+        poly = Polygon(xy[face[0]], [xy[r] for r in face[1:]])
+        for t in _triangulate(poly, xy):
+            tris.append([vid(v, level(v, z_of[f][v])) for v in t])  # roof, up
+            tris.append([vid(v, 0) for v in t[::-1]])  # floor (the lowest level), down
+        for ring in face:
+            for a, b in zip(ring, np.roll(ring, -1), strict=True):
+                g = owner.get((b, a))
+                low_a = 0 if g is None else level(a, z_of[g][a])
+                low_b = 0 if g is None else level(b, z_of[g][b])
+                high_a, high_b = level(a, z_of[f][a]), level(b, z_of[f][b])
+                if high_a < low_a or high_b < low_b:
+                    continue  # the other face is higher: its wall
+                if high_a == low_a and high_b == low_b:
+                    continue  # the faces meet without a step
+                chain_a = np.arange(low_a, high_a + 1)
+                chain_b = np.arange(low_b, high_b + 1)
+                for tri in _strip(chain_a, chain_b, heights[a], heights[b]):
+                    tris.append([vid(a if side == 0 else b, li) for side, li in tri])
+    vertices = np.zeros((len(verts), 3))
+    for (v, li), i in verts.items():
+        vertices[i] = (xy[v, 0], xy[v, 1], heights[v][li])
+    return vertices, np.asarray(tris, np.int64).reshape(-1, 3)
+
+
+def _noded_rings(polygons: list[Polygon]) -> tuple[list[list[np.ndarray]], list]:
+    """Rings as vertex-id arrays over one shared vertex table, every vertex of any ring
+    lying on another ring's edge inserted there (no T-junctions)."""
+    coords = []
+    for p in polygons:
+        for r in [p.exterior, *p.interiors]:
+            coords.append(np.asarray(r.coords)[:-1])
+    allxy = np.concatenate(coords) if coords else np.empty((0, 2))
+    keys = np.round(allxy / _EPS / 10).astype(np.int64)
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    xy = [tuple(allxy[i]) for i in first]
+    table = np.asarray(xy)
+    rings, k = [], 0
+    for p in polygons:
+        face = []
+        for r in [p.exterior, *p.interiors]:
+            m = len(r.coords) - 1
+            ids = inverse.ravel()[k : k + m]
+            k += m
+            face.append(_insert_on_edges(ids, table))
+        rings.append(face)
+    return rings, xy
+
+
+def _insert_on_edges(ring: np.ndarray, table: np.ndarray) -> np.ndarray:
+    out = []
+    for a, b in zip(ring, np.roll(ring, -1), strict=True):
+        out.append(a)
+        pa, pb = table[a], table[b]
+        d = pb - pa
+        L2 = d @ d
+        if L2 == 0:
+            continue
+        t = (table - pa) @ d / L2
+        perp = np.abs((table[:, 0] - pa[0]) * d[1] - (table[:, 1] - pa[1]) * d[0]) / np.sqrt(L2)
+        on = np.flatnonzero((t > 1e-9) & (t < 1 - 1e-9) & (perp < 10 * _EPS))
+        out.extend(on[np.argsort(t[on])])
+    return np.asarray(out, np.int64)
+
+
+def _split_crossings(rings, xy: list, roof) -> list:
+    """Insert a vertex where two neighbouring faces' roofs cross along their shared
+    edge, so that each wall piece has one face above the other. ``roof(f, x, y)`` is the
+    height of face f."""
+    while True:
+        table = np.asarray(xy)
+        owner = {}
+        for f, face in enumerate(rings):
+            for ring in face:
+                for a, b in zip(ring, np.roll(ring, -1), strict=True):
+                    owner[(a, b)] = f
+        found = None
+        for (a, b), f in owner.items():
+            g = owner.get((b, a))
+            if g is None or g < f:
+                continue
+            da = float(roof(f, *table[a]) - roof(g, *table[a]))
+            db = float(roof(f, *table[b]) - roof(g, *table[b]))
+            if (da > _Z_EPS and db < -_Z_EPS) or (da < -_Z_EPS and db > _Z_EPS):
+                found = (a, b, f, g, da / (da - db))
+                break
+        if found is None:
+            return rings
+        a, b, f, g, t = found
+        xy.append(tuple(table[a] + t * (table[b] - table[a])))
+        new = len(xy) - 1
+        for face_id, (u, v) in ((f, (a, b)), (g, (b, a))):
+            for i, ring in enumerate(rings[face_id]):
+                pos = np.flatnonzero((ring == u) & (np.roll(ring, -1) == v))
+                if len(pos):
+                    rings[face_id][i] = np.insert(ring, pos[0] + 1, new)
+
+
+def _levels(rings, z_of, base_z: float, n: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The distinct heights at every 2D vertex (the floor, level 0, and each face's roof
+    there), heights within ``_Z_EPS`` of the next lower one merged into one level.
+
+    Returns the lowest height of each level (for look-ups) and each level's mean height.
+    """
+    found: list[list[float]] = [[base_z] for _ in range(n)]
+    for f, face in enumerate(rings):
+        for ring in face:
+            for a in ring:
+                found[a].append(float(z_of[f][a]))
+    lows, means = [], []
+    for zs in found:
+        zs = np.sort(np.asarray(zs))
+        cluster = np.r_[0, np.cumsum(np.diff(zs) > _Z_EPS)]
+        lows.append(zs[np.r_[True, np.diff(cluster) > 0]])
+        means.append(np.bincount(cluster, weights=zs) / np.bincount(cluster))
+    for m in means:
+        m[0] = base_z  # the floor stays flat
+    return lows, means
+
+
+def _strip(chain_p: np.ndarray, chain_q: np.ndarray, z_p: np.ndarray, z_q: np.ndarray) -> list:
+    """Triangles between two vertical chains of levels at the ends p (side 0) and q
+    (side 1) of a wall, outward for a face to the left of p -> q; ``z_p``, ``z_q`` are the
+    heights of the levels. Each triangle corner is (side, level)."""
+
+    def t(chain, i):
+        z = z_p if chain is chain_p else z_q
+        span = z[chain[-1]] - z[chain[0]]
+        return (z[chain[i]] - z[chain[0]]) / span if span > 0 else 1.0
+
+    i = j = 0
+    out = []
+    while i < len(chain_p) - 1 or j < len(chain_q) - 1:
+        step_q = i == len(chain_p) - 1 or (
+            j < len(chain_q) - 1 and t(chain_q, j + 1) <= t(chain_p, i + 1)
+        )
+        if step_q:
+            out.append([(0, chain_p[i]), (1, chain_q[j]), (1, chain_q[j + 1])])
+            j += 1
+        else:
+            out.append([(0, chain_p[i]), (1, chain_q[j]), (0, chain_p[i + 1])])
+            i += 1
+    return out
+
+
+def _triangulate(poly: Polygon, xy: np.ndarray) -> list[list[int]]:
+    """Constrained Delaunay triangles of a polygon as counter-clockwise vertex-id triples
+    (no new vertices)."""
+    keys = {tuple(np.round(p / _EPS / 10).astype(np.int64)): i for i, p in enumerate(xy)}
+    out = []
+    for tri in shapely.constrained_delaunay_triangles(poly).geoms:
+        c = np.asarray(tri.exterior.coords)[:3]
+        ids = [keys[tuple(np.round(p / _EPS / 10).astype(np.int64))] for p in c]
+        area = (c[1, 0] - c[0, 0]) * (c[2, 1] - c[0, 1]) - (c[2, 0] - c[0, 0]) * (c[1, 1] - c[0, 1])
+        if abs(area) < 1e-12:
+            continue
+        out.append(ids if area > 0 else ids[::-1])
+    return out

@@ -1,0 +1,316 @@
+"""The super-pixel modeling path (the super-pixel paper, sections 4.1 to 5.3), on arrays.
+
+Each step of the paper is one function here or in the module named after it:
+quickshift_superpixels (4.1), superpixel_graph (aggregation), refine_classes (4.2, eq. 2-3),
+split_buildings, plane_hypotheses (5.1), roof_prototypes (5.2), label_prototypes (5.2,
+the prototype CRF), model_building (5.3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import shapely
+from shapely.geometry import mapping
+
+from workbench.meshes import is_watertight
+from workbench.raster import Grid
+
+from .aggregate import SuperpixelGraph
+from .crf import alpha_expansion
+from .planes import plane_heights, point_plane_distances, ransac_plane
+from .prototypes import cluster_prototypes, hypothesis_similarity
+from .roof_mesh import extrude_faces, face_polygons, untangle_diagonals
+from .roof_types import roof_type
+
+
+@dataclass
+class SuperpixelOptions:
+    """Parameters of the path (the paper's values where it gives them).
+
+    Attributes
+    ----------
+    sigma, tau, ratio : Quickshift kernel width and largest link, pixels; colour weight.
+    omega_class : weight of the class CRF's pairwise term (eq. 2; the paper: 3).
+    omega_roof : weight of the prototype CRF's pairwise term (the paper: 5).
+    opening_m : radius of the opening that splits weakly touching buildings, metres.
+    min_area_m2 : smallest building kept, square metres.
+    ransac_threshold_m, ransac_iterations : RANSAC inlier distance and iterations.
+    prototype_tolerance_m : affinity propagation's preference is minus this: a hypothesis
+        joins another's prototype when that explains its points to about this distance.
+    truncation_m : point-to-plane distances are truncated here in the prototype unary, so
+        that a tree over a roof does not decide its plane.
+    simplify_m : tolerance of the roof polygons' simplification, metres.
+    seed : RANSAC and affinity propagation seed.
+    """
+
+    sigma: float = 2.0
+    tau: float = 8.0
+    ratio: float = 1.0
+    omega_class: float = 3.0
+    omega_roof: float = 5.0
+    opening_m: float = 1.0
+    min_area_m2: float = 20.0
+    ransac_threshold_m: float = 0.15
+    ransac_iterations: int = 200
+    prototype_tolerance_m: float = 0.25
+    truncation_m: float = 2.0
+    simplify_m: float = 0.5
+    seed: int = 0
+
+
+def refine_classes(graph: SuperpixelGraph, omega: float) -> np.ndarray:
+    """The class CRF on super-pixels (eq. 2 and 3), by alpha-expansion over the classes.
+
+    Unary: -log of the super-pixel's aggregated (mean) class likelihood, counted once per
+    cell of the super-pixel, so that it grows with the area as the pairwise term (the
+    number of boundary cells) grows with the perimeter; pairwise: b / (1 + g) for
+    differing labels.
+
+    Returns
+    -------
+    (N,) class codes 1..C.
+    """
+    likelihood = graph.class_sum / np.maximum(graph.count, 1)[:, None]
+    unary = -np.log(np.clip(likelihood, 1e-6, 1.0)) * graph.count[:, None]
+    return alpha_expansion(unary, graph.edges, graph.pairwise, omega) + 1
+
+
+@dataclass
+class SuperpixelPoints:
+    """The DSM points of every super-pixel: ``points[starts[i]:ends[i]]`` (world metres)."""
+
+    points: np.ndarray
+    starts: np.ndarray
+    ends: np.ndarray
+
+    def of(self, i: int) -> np.ndarray:
+        return self.points[self.starts[i] : self.ends[i]]
+
+
+def superpixel_points(labels: np.ndarray, dsm: np.ndarray, grid: Grid) -> SuperpixelPoints:
+    """Group the DSM's known cells, as 3D points, by super-pixel."""
+    X, Y = grid.cell_centers()
+    ok = np.isfinite(dsm)
+    lab = labels[ok]
+    order = np.argsort(lab, kind="stable")
+    pts = np.column_stack([X[ok], Y[ok], dsm[ok]])[order]
+    n = int(labels.max()) + 1
+    sl = lab[order]
+    return SuperpixelPoints(
+        pts, np.searchsorted(sl, np.arange(n)), np.searchsorted(sl, np.arange(n), side="right")
+    )
+
+
+def plane_hypotheses(
+    members: np.ndarray, pts: SuperpixelPoints, options: SuperpixelOptions
+) -> dict[int, np.ndarray]:
+    """A RANSAC plane for each super-pixel of a building (section 5.1).
+
+    Returns {super-pixel: plane (4,)} for those with enough points and a roof-like plane.
+    """
+    import open3d as o3d
+
+    o3d.utility.random.seed(options.seed)
+    out = {}
+    for i in members:
+        plane = ransac_plane(pts.of(i), options.ransac_threshold_m, options.ransac_iterations)
+        if plane is not None:
+            out[int(i)] = plane
+    return out
+
+
+def roof_prototypes(
+    hypotheses: dict[int, np.ndarray],
+    pts: SuperpixelPoints,
+    adjacency: set[tuple[int, int]],
+    options: SuperpixelOptions,
+) -> np.ndarray:
+    """Cluster the hypotheses into prototypes by affinity propagation (section 5.2).
+
+    Returns
+    -------
+    (P, 4) prototype planes.
+    """
+    owners = np.array(list(hypotheses))
+    planes = np.array([hypotheses[i] for i in owners])
+    S = hypothesis_similarity(planes, [pts.of(i) for i in owners], owners, adjacency)
+    exemplars, _ = cluster_prototypes(S, -options.prototype_tolerance_m, options.seed)
+    return planes[exemplars]
+
+
+def label_prototypes(
+    members: np.ndarray,
+    prototypes: np.ndarray,
+    pts: SuperpixelPoints,
+    graph: SuperpixelGraph,
+    options: SuperpixelOptions,
+) -> np.ndarray:
+    """The prototype CRF (section 5.2): each building super-pixel takes a prototype.
+
+    Unary: summed (truncated) point-to-plane distance of the super-pixel's points to the
+    prototype; pairwise: b / (1 + g), weight ``omega_roof``.
+
+    Returns
+    -------
+    (len(members),) prototype index of each member.
+    """
+    unary = np.zeros((len(members), len(prototypes)))
+    for row, i in enumerate(members):
+        p = pts.of(i)
+        if len(p):
+            d = np.stack([point_plane_distances(pl, p) for pl in prototypes], axis=1)
+            unary[row] = np.minimum(d, options.truncation_m).sum(axis=0)
+    index = np.full(graph.n, -1)
+    index[members] = np.arange(len(members))
+    e = graph.edges
+    inside = (index[e[:, 0]] >= 0) & (index[e[:, 1]] >= 0)
+    edges = np.stack([index[e[inside, 0]], index[e[inside, 1]]], axis=1)
+    return alpha_expansion(unary, edges, graph.pairwise[inside], options.omega_roof)
+
+
+def refit_planes(
+    members: np.ndarray, assignment: np.ndarray, prototypes: np.ndarray, pts, options
+) -> np.ndarray:
+    """Each used prototype refitted (RANSAC) to all points of the super-pixels it won."""
+    out = prototypes.copy()
+    for k in np.unique(assignment):
+        p = np.concatenate([pts.of(i) for i in members[assignment == k]] or [np.empty((0, 3))])
+        plane = ransac_plane(p, options.ransac_threshold_m, options.ransac_iterations)
+        if plane is not None:
+            out[k] = plane
+    return out
+
+
+def observed_faces(faces: np.ndarray, observed: np.ndarray) -> np.ndarray:
+    """Face labels restricted to observed cells, keeping unobserved cells that lie
+    inside the building (enclosed by its faces).
+
+    Cells no view saw beside a wall are mostly occluded ground; a super-pixel that
+    straddles them would otherwise carry its roof out over the street.
+
+    Parameters
+    ----------
+    faces : (h, w) int
+        Face label + 1 per cell, 0 outside the building.
+    observed : (h, w) bool
+        Cells with a known height.
+    """
+    kept = np.where(observed, faces, 0)
+    gaps = (kept == 0).astype(np.uint8)
+    n, comp = cv2.connectedComponents(gaps, connectivity=4)
+    border = np.unique(np.concatenate([comp[0], comp[-1], comp[:, 0], comp[:, -1]]))
+    enclosed = (gaps > 0) & ~np.isin(comp, border)
+    return np.where(enclosed, faces, kept)
+
+
+@dataclass
+class BuildingModel:
+    """One modelled building: mesh (world metres) and its model.json record."""
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    record: dict = field(default_factory=dict)
+
+
+def model_building(
+    face_raster: np.ndarray,
+    grid: Grid,
+    planes: np.ndarray,
+    ground: np.ndarray,
+    options: SuperpixelOptions,
+) -> list[BuildingModel]:
+    """Rooftop modeling (section 5.3): the faces become straight-edged polygons (a
+    topology-preserving simplification of their shared boundaries), each vertex is lifted
+    to its face's plane, walls go down to the ground, and the mesh is closed.
+
+    Each 4-connected part of the building becomes one model (parts below
+    ``min_area_m2`` are dropped); a part whose simplified mesh is not closed is rebuilt
+    from its unsimplified cell outlines.
+
+    Parameters
+    ----------
+    face_raster : (h, w) int
+        Prototype index + 1 of every cell of the building, 0 elsewhere (a crop).
+    grid : Grid
+        The crop's grid.
+    planes : (P, 4)
+        Prototype planes.
+    ground : (h, w) float
+        DTM of the crop, metres.
+
+    Returns
+    -------
+    list of BuildingModel, largest first.
+    """
+    faces = untangle_diagonals(face_raster)
+    n, parts, stats, _ = cv2.connectedComponentsWithStats(
+        (faces > 0).astype(np.uint8), connectivity=4
+    )
+    out = []
+    for k in np.argsort(-stats[:, cv2.CC_STAT_AREA]):
+        if k == 0 or stats[k, cv2.CC_STAT_AREA] * grid.gsd**2 < options.min_area_m2:
+            continue
+        part = np.where(parts == k, faces, 0)
+        g = ground[part > 0]
+        base = float(np.nanmin(g)) if np.isfinite(g).any() else float(np.nanmin(ground))
+        model = None
+        for tolerance in (options.simplify_m, 1e-3):
+            model = _model_part(part, grid, planes, base, tolerance)
+            if model is not None and model.record["watertight"]:
+                break
+        if model is not None:
+            out.append(model)
+    return out
+
+
+def _model_part(
+    faces: np.ndarray, grid: Grid, planes: np.ndarray, ground: float, tolerance: float
+) -> BuildingModel | None:
+    polygons, labels = face_polygons(faces, grid, tolerance)
+    if not polygons:
+        return None
+    face_planes = [planes[k - 1] for k in labels]
+    outline = shapely.union_all(polygons)
+    edge = outline.boundary
+    roof_z, eave_z = [], []
+    for poly, plane in zip(polygons, face_planes, strict=True):
+        xy = np.asarray(poly.exterior.coords)
+        z = plane_heights(plane, xy[:, 0], xy[:, 1])
+        roof_z.append(z)
+        on_outline = shapely.distance(shapely.points(xy), edge) < 1e-6
+        eave_z.append(z[on_outline])
+    roof_z = np.concatenate(roof_z)
+    eave_z = np.concatenate(eave_z)
+    base = min(ground, float(roof_z.min()) - 0.5)
+    vertices, triangles = extrude_faces(polygons, face_planes, base)
+    used = sorted(set(labels))
+    areas, heights = [], []
+    for u in used:
+        mine = [p for p, k in zip(polygons, labels, strict=True) if k == u]
+        area = sum(p.area for p in mine)
+        areas.append(area)
+        heights.append(
+            sum(p.area * plane_heights(planes[u - 1], *p.centroid.coords[0]) for p in mine) / area
+        )
+    areas, heights = np.array(areas), np.array(heights)
+    record = {
+        "footprint": mapping(outline),
+        "roof_planes": [
+            {
+                "normal": planes[u - 1][:3].round(5).tolist(),
+                "offset": round(float(planes[u - 1][3]), 4),
+                "area_m2": round(float(a), 2),
+            }
+            for u, a in zip(used, areas, strict=True)
+        ],
+        "roof_type": roof_type(planes[np.array(used) - 1], areas, heights, eave_z),
+        "base_z": round(base, 3),
+        "eave_z": round(float(eave_z.min() if len(eave_z) else roof_z.min()), 3),
+        "ridge_z": round(float(roof_z.max()), 3),
+        "faces": int(len(triangles)),
+        "watertight": is_watertight(vertices, triangles),
+    }
+    return BuildingModel(vertices, triangles, record)

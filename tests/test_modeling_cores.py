@@ -1,0 +1,181 @@
+"""The super-pixel path's steps on hand-computed cases."""
+
+import itertools
+
+import numpy as np
+import pytest
+from shapely.geometry import Polygon, box
+
+from modeling.aggregate import superpixel_graph
+from modeling.buildings import split_buildings
+from modeling.crf import alpha_expansion, binary_cut, crf_energy
+from modeling.planes import plane_heights, ransac_plane
+from modeling.prototypes import cluster_prototypes, hypothesis_similarity
+from modeling.roof_mesh import extrude_faces, face_polygons, untangle_diagonals
+from modeling.roof_types import roof_type
+from modeling.superpixels import quickshift_superpixels
+from workbench.meshes import is_watertight
+from workbench.raster import Grid
+
+
+def _plane(a, b, c):
+    """The plane z = a x + b y + c as (n, d)."""
+    p = np.array([-a, -b, 1.0, -c])
+    return p / np.linalg.norm(p[:3])
+
+
+def _volume(v, t):
+    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    return float(np.sum(a * np.cross(b, c)) / 6)
+
+
+def _brute_force(unary, edges, w, omega):
+    n, L = unary.shape
+    return min(
+        crf_energy(np.array(c), unary, edges, w, omega)
+        for c in itertools.product(range(L), repeat=n)
+    )
+
+
+def test_graph_cuts_against_brute_force():
+    rng = np.random.default_rng(1)
+    for trial in range(40):
+        n, L = 7, 2 + trial % 3
+        unary = rng.random((n, L)) * 3
+        edges = np.array([(a, b) for a in range(n) for b in range(a + 1, n) if rng.random() < 0.4])
+        edges = edges.reshape(-1, 2)
+        w = rng.random(len(edges))
+        best = _brute_force(unary, edges, w, 1.0)
+        got = crf_energy(alpha_expansion(unary, edges, w, 1.0), unary, edges, w, 1.0)
+        if L == 2:
+            assert got == pytest.approx(best)  # one exact cut
+        assert best - 1e-9 <= got <= 2 * best + 1e-9  # alpha-expansion's Potts bound
+        assert got <= crf_energy(unary.argmin(1), unary, edges, w, 1.0) + 1e-9
+
+
+def test_binary_cut_smooths_a_weak_outlier():
+    unary = np.array([[0.0, 1.0], [0.0, 1.0], [0.6, 0.4], [0.0, 1.0]])
+    edges = np.array([[0, 2], [1, 2], [2, 3]])
+    w = np.ones(3)
+    assert binary_cut(unary, edges, w, 0.0).tolist() == [0, 0, 1, 0]
+    assert binary_cut(unary, edges, w, 1.0).tolist() == [0, 0, 0, 0]
+
+
+def test_superpixel_graph_boundaries_and_aggregates():
+    labels = np.array([[0, 0, 1], [0, 0, 1], [2, 2, 2]])
+    rgb = np.zeros((3, 3, 3), np.uint8)
+    rgb[:, 2] = 255
+    prob = np.zeros((4, 3, 3), np.float32)
+    prob[3] = 1.0
+    prob[:, 2, :] = np.nan  # unknown cells count as uniform
+    dsm = np.arange(9, dtype=float).reshape(3, 3)
+    g = superpixel_graph(labels, rgb, prob, dsm)
+    pairs = {tuple(e): b for e, b in zip(g.edges.tolist(), g.boundary, strict=True)}
+    assert pairs == {(0, 1): 2, (0, 2): 2, (1, 2): 1}
+    assert g.count.tolist() == [4, 2, 3]
+    assert g.class_sum[0].tolist() == [0, 0, 0, 4] and g.class_sum[2].tolist() == [0.75] * 4
+    assert g.height_median.tolist() == [2.0, 3.5, 7.0]
+    assert g.colour_distance[0] > 50  # black against white in Lab
+
+
+def test_quickshift_tiles_keep_super_pixels_connected_and_on_edges():
+    rgb = np.zeros((120, 150, 3), np.uint8)
+    rgb[:, 70:] = (200, 40, 40)
+    labels = quickshift_superpixels(rgb, tile=64)
+    assert labels.min() == 0 and len(np.unique(labels)) == labels.max() + 1
+    crossing = np.intersect1d(np.unique(labels[:, :70]), np.unique(labels[:, 70:]))
+    assert len(crossing) == 0  # no super-pixel straddles the colour edge
+
+
+def test_ransac_recovers_a_plane_despite_outliers():
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(0, 10, (2, 400))
+    z = 0.3 * x - 0.2 * y + 5 + rng.normal(0, 0.02, 400)
+    z[:60] += rng.uniform(1, 4, 60)  # a tree
+    plane = ransac_plane(np.column_stack([x, y, z]))
+    assert plane_heights(plane, 2.0, 3.0) == pytest.approx(0.3 * 2 - 0.2 * 3 + 5, abs=0.02)
+    wall = np.column_stack([x, np.full(400, 1.0), 10 * y])  # vertical: not a roof
+    assert ransac_plane(wall) is None
+
+
+def test_prototypes_group_hypotheses_of_one_plane():
+    rng = np.random.default_rng(0)
+    pts, planes = [], []
+    for k in range(6):  # six super-pixels: three on each side of a ridge
+        x, y = rng.uniform(0, 4, (2, 50)) + [[k * 4], [0]]
+        slope = 0.5 if k < 3 else -0.5
+        pts.append(np.column_stack([x, y, slope * y + 3]))
+        planes.append(_plane(0, slope, 3) + rng.normal(0, 1e-3, 4))
+    adjacency = {(a, b) for a in range(6) for b in range(6) if abs(a - b) == 1}
+    S = hypothesis_similarity(np.array(planes), pts, np.arange(6), adjacency)
+    exemplars, assignment = cluster_prototypes(S, -0.25)
+    assert len(exemplars) == 2
+    assert len(set(assignment[:3])) == 1 and len(set(assignment[3:])) == 1
+
+
+def test_split_buildings_cuts_a_thin_bridge_and_drops_small_ones():
+    labels = np.arange(40 * 40).reshape(40, 40)  # one super-pixel per cell
+    building = np.zeros(40 * 40, bool)
+    mask = np.zeros((40, 40), bool)
+    mask[5:15, 5:15] = mask[5:15, 25:35] = True
+    mask[9, 15:25] = True  # a one-cell bridge
+    mask[30:32, 30:32] = True  # 4 cells: too small
+    building[labels[mask]] = True
+    owner = split_buildings(building, labels, gsd=0.5, opening_m=1.0, min_area_m2=5.0)
+    ids = owner[labels]
+    assert len(np.unique(ids[ids > 0])) == 2
+    assert ids[10, 10] != ids[10, 30] and ids[31, 31] == 0
+
+
+def test_extruded_roofs_are_closed_with_the_volume_of_their_planes():
+    A, B = box(0, 0, 10, 5), box(0, 5, 10, 10)
+    v, t = extrude_faces([A, B], [_plane(0, 0.5, 3), _plane(0, -0.5, 8)], 0.0)
+    assert is_watertight(v, t)
+    assert _volume(v, t) == pytest.approx(50 * 4.25 * 2)  # mean height 4.25 on each half
+    C, D = box(0, 5, 5, 10), box(5, 5, 10, 10)  # a T-junction and steps
+    v, t = extrude_faces([A, C, D], [_plane(0, 0, 3), _plane(0, 0, 5), _plane(0, 0, 4)], 0.0)
+    assert is_watertight(v, t) and _volume(v, t) == pytest.approx(150 + 125 + 100)
+    v, t = extrude_faces([A, B], [_plane(0.3, 0, 3), _plane(-0.3, 0, 6)], 0.0)  # crossing
+    assert is_watertight(v, t)
+    court = Polygon([(0, 0), (20, 0), (20, 20), (0, 20)], [[(5, 5), (5, 15), (15, 15), (15, 5)]])
+    v, t = extrude_faces([court], [_plane(0, 0, 5)], 0.0)
+    assert is_watertight(v, t) and _volume(v, t) == pytest.approx(300 * 5)
+
+
+def test_face_polygons_from_a_checkerboard_corner_stay_manifold():
+    faces = np.zeros((8, 8), int)
+    faces[1:4, 1:4] = 1
+    faces[4:7, 4:7] = 1  # touches the first square only at a corner
+    faces[1:4, 4:7] = 2
+    assert not (untangle_diagonals(faces) != faces).sum() == 0
+    grid = Grid(0.0, 8.0, 1.0, 8, 8)
+    polys, labels = face_polygons(faces, grid, tolerance=0.1, min_face_m2=1.0)
+    planes = {1: _plane(0, 0, 4), 2: _plane(0.2, 0, 5)}
+    v, t = extrude_faces(polys, [planes[k] for k in labels], 0.0)
+    assert is_watertight(v, t)
+
+
+@pytest.mark.parametrize(
+    "planes, outline_z, expect",
+    [
+        ([_plane(0, 0, 5)], [5, 5, 5, 5], "flat"),
+        ([_plane(0, 0, 5), _plane(0, 0, 9)], [5, 5, 9, 9], "multi-level"),
+        ([_plane(0, 0.3, 5)], [5, 5, 8, 8], "shed"),
+        ([_plane(0, 0.5, 5), _plane(0, -0.5, 15)], [5, 5, 10, 10, 5, 5], "gable"),
+        (
+            [_plane(0, 0.5, 5), _plane(0, -0.5, 15), _plane(0.5, 0, 5), _plane(-0.5, 0, 15)],
+            [5, 5, 5, 5],
+            "pyramid",
+        ),
+        (
+            [_plane(0, 0.5, 5), _plane(0, -0.5, 15), _plane(0.5, 0, 5), _plane(-0.5, 0, 19)],
+            [5, 5, 5, 5],
+            "hipped",
+        ),
+    ],
+)
+def test_roof_types(planes, outline_z, expect):
+    planes = np.array(planes)
+    areas = np.full(len(planes), 10.0)
+    heights = np.array([plane_heights(p, 10.0, 10.0) for p in planes])
+    assert roof_type(planes, areas, heights, np.array(outline_z, float)) == expect
