@@ -3,6 +3,9 @@
 Each measurement runs in a fresh child process, so that its peak resident memory
 is its own (``os.wait4``). Medians over ``--repeat`` runs; this machine is noisy.
 
+Measured: sample generation (tiny, small), workbench compare, fusion of small, the
+super-pixel path on small, and the 50 AHN3 building clouds (benchmarks/ahn3.py).
+
 Usage: python benchmarks/run.py [--presets tiny small] [--repeat 3] [--out bench_out]
 """
 
@@ -115,6 +118,119 @@ def bench_fusion(scene: Path, repeat: int, work: Path) -> dict:
     }
 
 
+COMPARE_CHILD = r"""
+import json, sys, time
+from pathlib import Path
+from data_samples.truth_run import truth_model_run
+from workbench.compare import compare_runs
+from workbench.truth import load_scene_truth
+scene, work = Path(sys.argv[1]), Path(sys.argv[2])
+runs = [truth_model_run(scene, work / "truth_run")] + [Path(p) for p in sys.argv[3:]]
+t = time.perf_counter()
+truth = load_scene_truth(scene)
+doc = compare_runs(runs, truth, work / "report", overwrite=True)
+wall = time.perf_counter() - t
+g = doc["truth"]["grid"]
+print(json.dumps({"wall_s": wall, "cells": g["width"] * g["height"], "runs": len(runs),
+                  "buildings": len(doc["per_building"]["truth_run"]),
+                  "report_mb": (work / "report" / "report.html").stat().st_size / 1e6}))
+"""
+
+
+def bench_compare(scene: Path, extra_runs: list[Path], repeat: int, work: Path) -> dict:
+    runs = []
+    for i in range(repeat):
+        folder = work / f"compare_{scene.name}_{len(extra_runs)}_{i}"
+        res, wall, rss = run_child(COMPARE_CHILD, str(scene), str(folder), *map(str, extra_runs))
+        runs.append((res, rss))
+    res = runs[0][0]
+    wall = statistics.median(r[0]["wall_s"] for r in runs)
+    return {
+        "scene": scene.name,
+        "runs": res["runs"],
+        "buildings": res["buildings"],
+        "cells": res["cells"],
+        "wall_median_s": wall,
+        "s_per_run_per_mcell": wall / res["runs"] / (res["cells"] / 1e6),
+        "peak_memory_mib": max(r[1] for r in runs),
+        "report_mb": res["report_mb"],
+    }
+
+
+def print_compare(c: dict) -> None:
+    print(
+        f"\nworkbench compare on {c['scene']} ({c['runs']} runs, {c['buildings']} buildings, "
+        f"{c['cells'] / 1e6:.2f} M cells), median: {c['wall_median_s']:.1f} s, "
+        f"{c['s_per_run_per_mcell']:.1f} s per run per M cells, peak memory "
+        f"{c['peak_memory_mib']:.0f} MiB, report {c['report_mb']:.1f} MB"
+    )
+
+
+SUPERPIXEL_CHILD = r"""
+import json, sys
+from pathlib import Path
+from modeling.cli_superpixel import run_superpixel
+from modeling.superpixel_model import SuperpixelOptions
+from workbench.evaluate import evaluate
+from workbench.runs import load_run
+from workbench.truth import load_scene_truth
+fusion, scene, out = (Path(a) for a in sys.argv[1:4])
+r = run_superpixel(fusion, out, SuperpixelOptions(), truth=scene, overwrite=True)
+m = evaluate(load_run(out), load_scene_truth(scene)).metrics
+table1 = {k: v["overall_accuracy"] for k, v in r["classification_table"].items()}
+print(json.dumps({"stages": r["stages"], "grid": r["input"]["grid"], "counts": r["counts"],
+                  "table1": table1,
+                  "metrics": {k: m[k] for k in ("footprint_2d", "height", "buildings", "roofs",
+                                                 "complexity", "surface") if k in m}}))
+"""
+
+
+def bench_superpixel(fusion: Path, scene: Path, repeat: int, work: Path) -> dict:
+    runs = [
+        run_child(SUPERPIXEL_CHILD, str(fusion), str(scene), str(work / f"superpixel_{i}"))
+        for i in range(repeat)
+    ]
+    res = runs[0][0]
+    stages = {
+        k: statistics.median(r[0]["stages"][k]["wall_s"] for r in runs) for k in res["stages"]
+    }
+    total = statistics.median(sum(s["wall_s"] for s in r[0]["stages"].values()) for r in runs)
+    mpx = res["grid"]["width"] * res["grid"]["height"] / 1e6
+    return {
+        "repeat": repeat,
+        "stage_median_s": stages,
+        "total_median_s": total,
+        "s_per_mpx": total / mpx,
+        "peak_memory_mib": max(r[2] for r in runs),
+        "counts": res["counts"],
+        "table1": res["table1"],
+        "metrics": res["metrics"],
+    }
+
+
+def print_superpixel(sp: dict) -> None:
+    print(f"\nworkbench model superpixel on small, median of {sp['repeat']}:")
+    for stage, sec in sp["stage_median_s"].items():
+        print(f"  {stage:<18}{sec:>8.2f} s")
+    m, c, t = sp["metrics"], sp["counts"], sp["table1"]
+    print(
+        f"  total {sp['total_median_s']:.1f} s = {sp['s_per_mpx']:.1f} s per ortho megapixel; "
+        f"peak memory {sp['peak_memory_mib']:.0f} MiB"
+    )
+    print(
+        f"  Table 1 overall accuracy: pixel {t['pixel']:.3f}, super-pixel {t['superpixel']:.3f}, "
+        f"CRF {t['crf']:.3f}; footprint 2D quality {m['footprint_2d']['quality']:.3f}; "
+        f"height RMSE {m['height']['rmse_m']:.2f} m (MAE {m['height']['mae_m']:.2f})"
+    )
+    print(
+        f"  roof plane angle median {m['roofs']['plane_angle_median_deg']:.1f} deg; building "
+        f"height error median {m['buildings']['height_error_pct_median']:.1f} %; roof types "
+        f"{m['buildings'].get('roof_type_accuracy', 0):.2f}; {c['watertight']} of "
+        f"{c['buildings']} watertight; {m['complexity']['faces_per_building_median']:.0f} "
+        f"triangles per building (median)"
+    )
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--presets", nargs="+", default=["tiny", "small"])
@@ -164,6 +280,10 @@ def main() -> int:
                 f"{q['coverage']['nadir_overlap_x']:.0%}; training labels "
                 f"{q['training_label_fraction']:.1%}"
             )
+        for preset in args.presets:
+            c = bench_compare(Path(tmp) / f"{preset}_0", [], args.repeat, Path(tmp))
+            results[f"compare_{preset}"] = c
+            print_compare(c)
         if "small" in args.presets and args.fusion_repeat > 0:
             scene = Path(tmp) / "small_0"
             f = bench_fusion(scene, args.fusion_repeat, Path(tmp))
@@ -198,6 +318,17 @@ def main() -> int:
                 f"  classes: overall {c['overall_accuracy']:.3f} ({per}); ortho MAE "
                 f"{mae:.1f} (mean fusion {mae_mean:.1f})"
             )
+            sp = bench_superpixel(Path(tmp) / "fusion_0", scene, args.repeat, Path(tmp))
+            results["superpixel_small"] = sp
+            print_superpixel(sp)
+            c = bench_compare(
+                scene, [Path(tmp) / "fusion_0", Path(tmp) / "superpixel_0"], 1, Path(tmp)
+            )
+            results["compare_small_with_fusion"] = c
+            print_compare(c)
+    print("\nAHN3 building clouds (benchmarks/ahn3.py):", flush=True)
+    ahn3 = [sys.executable, str(Path(__file__).with_name("ahn3.py")), "--out", str(args.out)]
+    subprocess.run(ahn3, check=False)
     (args.out / "bench.json").write_text(json.dumps(results, indent=1) + "\n")
     print(f"\nwrote {args.out / 'bench.json'}")
     return 0

@@ -26,6 +26,7 @@ from .buildings import split_buildings
 from .superpixel_model import (
     BuildingModel,
     SuperpixelOptions,
+    choose_omega_class,
     label_prototypes,
     model_building,
     observed_faces,
@@ -89,7 +90,16 @@ def run_superpixel(
         with timer.stage("aggregation"):
             graph = superpixel_graph(labels, rgb, prob, dsm)
         with timer.stage("class_crf"):
-            sp_class = refine_classes(graph, options.omega_class)
+            omega_choice = None
+            if options.all_building:
+                sp_class = np.where(np.isfinite(graph.height_median), BUILDING, 1)
+            else:
+                omega = options.omega_class
+                if omega is None:
+                    strokes = training_strokes(fusion_dir, grid)
+                    omega_choice = choose_omega_class(graph, labels, strokes)
+                    omega = omega_choice["omega"]
+                sp_class = refine_classes(graph, omega)
             crf_class = sp_class[labels].astype(np.uint8)
             sp_argmax = (graph.class_sum.argmax(axis=1) + 1)[labels].astype(np.uint8)
             no_data = ~(np.nan_to_num(prob).sum(axis=0) > 0)
@@ -172,10 +182,31 @@ def run_superpixel(
             "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd},
         }
         record["superpixels"] = graph.n
+        if omega_choice is not None:
+            record["omega_class_choice"] = omega_choice
         if truth is not None:
             record["classification_table"] = _table1(truth, grid, pixel_class, sp_argmax, crf_class)
         (tmp / "model.json").write_text(json.dumps(record, indent=1) + "\n")
     return record
+
+
+def training_strokes(fusion_dir: Path, grid: Grid) -> np.ndarray:
+    """The training labels of the scene a fusion run came from, on ``grid``."""
+    from workbench.scene import load_scene
+    from workbench.truth import sample_to_grid
+
+    record_path = Path(fusion_dir) / "fusion.json"
+    try:
+        scene_path = json.loads(record_path.read_text())["inputs"]["scene"]
+    except (OSError, KeyError, TypeError, json.JSONDecodeError):
+        raise InputError(
+            record_path, "inputs.scene", "--omega-class auto needs a fusion run of a scene"
+        ) from None
+    scene = load_scene(scene_path, check_files=False)
+    if scene.training_labels is None:
+        raise InputError(scene.scene_json, "training_labels", "--omega-class auto needs them")
+    data, src, _ = read_raster(scene.training_labels, field="training_labels")
+    return sample_to_grid(data, src, grid)[0].astype(np.int64)
 
 
 def _table1(truth_scene, grid, pixel, superpixel, crf) -> dict:
@@ -220,6 +251,12 @@ def _write(
         all_v.append(ground[0])
         all_t.append(ground[1] + offset)
         all_c.append(_vertex_colours(ground[0], rgb, grid))
+    if not all_v:  # no building and no ground: an empty but valid scene
+        all_v, all_t, all_c = (
+            [np.empty((0, 3))],
+            [np.empty((0, 3), np.int64)],
+            [np.empty((0, 3), np.uint8)],
+        )
     V, T, Cc = np.concatenate(all_v), np.concatenate(all_t), np.concatenate(all_c)
     write_ply(tmp / "scene.ply", V, T, vertex_colors=Cc)
     write_obj(tmp / "scene.obj", V, T, vertex_colors=Cc)

@@ -66,6 +66,7 @@ def cluster_prototypes(
         return np.array([0]), np.array([0])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
+        warnings.simplefilter("ignore", UserWarning)  # "equal similarities": one prototype
         ap = AffinityPropagation(
             affinity="precomputed",
             preference=preference,

@@ -33,7 +33,8 @@ class SuperpixelOptions:
     Attributes
     ----------
     sigma, tau, ratio : Quickshift kernel width and largest link, pixels; colour weight.
-    omega_class : weight of the class CRF's pairwise term (eq. 2; the paper: 3).
+    omega_class : weight of the class CRF's pairwise term (eq. 2; the paper: 3); None
+        chooses it on the scene's training strokes (:func:`choose_omega_class`).
     omega_roof : weight of the prototype CRF's pairwise term (the paper: 5).
     opening_m : radius of the opening that splits weakly touching buildings, metres.
     min_area_m2 : smallest building kept, square metres.
@@ -43,13 +44,16 @@ class SuperpixelOptions:
     truncation_m : point-to-plane distances are truncated here in the prototype unary, so
         that a tree over a roof does not decide its plane.
     simplify_m : tolerance of the roof polygons' simplification, metres.
+    all_building : every super-pixel with a height is building, whatever the classes say:
+        for clouds of one building (City3D's building instances), which hold no ground
+        to classify against.
     seed : RANSAC and affinity propagation seed.
     """
 
     sigma: float = 2.0
     tau: float = 8.0
     ratio: float = 1.0
-    omega_class: float = 3.0
+    omega_class: float | None = 3.0
     omega_roof: float = 5.0
     opening_m: float = 1.0
     min_area_m2: float = 20.0
@@ -58,6 +62,7 @@ class SuperpixelOptions:
     prototype_tolerance_m: float = 0.25
     truncation_m: float = 2.0
     simplify_m: float = 0.5
+    all_building: bool = False
     seed: int = 0
 
 
@@ -76,6 +81,36 @@ def refine_classes(graph: SuperpixelGraph, omega: float) -> np.ndarray:
     likelihood = graph.class_sum / np.maximum(graph.count, 1)[:, None]
     unary = -np.log(np.clip(likelihood, 1e-6, 1.0)) * graph.count[:, None]
     return alpha_expansion(unary, graph.edges, graph.pairwise, omega) + 1
+
+
+OMEGA_CANDIDATES = (0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 8.0, 12.0)
+
+
+def choose_omega_class(graph: SuperpixelGraph, labels: np.ndarray, strokes: np.ndarray) -> dict:
+    """Pick the class CRF's omega by its mean class accuracy on the training strokes.
+
+    Parameters
+    ----------
+    graph : SuperpixelGraph
+    labels : (H, W) int
+        Super-pixels.
+    strokes : (H, W) int
+        Training labels 1..4, 0 unlabelled.
+
+    Returns
+    -------
+    {"omega": best, "scores": {omega: mean class accuracy}}. The strokes also trained the
+    per-view forest, so the scores favour trusting it (small omega) a little.
+    """
+    from workbench.metrics import classification
+
+    scores = {}
+    for omega in OMEGA_CANDIDATES:
+        pred = refine_classes(graph, omega)[labels]
+        c = classification(np.where(strokes > 0, pred, 0), strokes)
+        scores[omega] = c.get("mean_class_accuracy", 0.0)
+    best = max(scores, key=lambda w: (scores[w], -abs(np.log(w / 3.0))))  # ties: nearest 3
+    return {"omega": best, "scores": scores}
 
 
 @dataclass
@@ -255,7 +290,8 @@ def model_building(
             continue
         part = np.where(parts == k, faces, 0)
         g = ground[part > 0]
-        base = float(np.nanmin(g)) if np.isfinite(g).any() else float(np.nanmin(ground))
+        g = g[np.isfinite(g)] if np.isfinite(g).any() else ground[np.isfinite(ground)]
+        base = float(g.min()) if len(g) else np.inf  # unknown: just under the roof
         model = None
         for tolerance in (options.simplify_m, 1e-3):
             model = _model_part(part, grid, planes, base, tolerance)
@@ -284,7 +320,7 @@ def _model_part(
         eave_z.append(z[on_outline])
     roof_z = np.concatenate(roof_z)
     eave_z = np.concatenate(eave_z)
-    base = min(ground, float(roof_z.min()) - 0.5)
+    base = min(ground, float(roof_z.min()) - 0.5)  # a floor under every roof vertex
     vertices, triangles = extrude_faces(polygons, face_planes, base)
     used = sorted(set(labels))
     areas, heights = [], []

@@ -1,4 +1,6 @@
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -19,3 +21,10 @@ def tiny_scene(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def tiny_meta(tiny_scene) -> dict:
     return json.loads((tiny_scene / "sample.json").read_text())
+
+
+def run_cli(*args) -> subprocess.CompletedProcess:
+    """Run ``workbench ARGS...`` in a fresh interpreter, capturing its output."""
+    return subprocess.run(
+        [sys.executable, "-m", "workbench.cli", *map(str, args)], capture_output=True, text=True
+    )

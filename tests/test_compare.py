@@ -10,13 +10,8 @@ import pytest
 import rasterio
 
 from data_samples.truth_run import truth_fusion_run, truth_model_run
+from tests.conftest import run_cli
 from workbench.raster import read_raster
-
-
-def _cli(*args):
-    return subprocess.run(
-        [sys.executable, "-m", "workbench.cli", *map(str, args)], capture_output=True, text=True
-    )
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +24,7 @@ def report(tiny_scene, tmp_path_factory):
         truth_fusion_run(tiny_scene, root / "raster"),
     ]
     out = root / "report"
-    proc = _cli("compare", *runs, "--truth", tiny_scene, "-o", out)
+    proc = run_cli("compare", *runs, "--truth", tiny_scene, "-o", out)
     assert proc.returncode == 0, proc.stderr
     return out, json.loads((out / "metrics.json").read_text()), proc.stdout
 
@@ -104,7 +99,7 @@ def test_loose_file_truth_scores_what_it_can(tiny_scene, tmp_path):
     run = truth_model_run(tiny_scene, tmp_path / "same")
     truth = tiny_scene / "truth"
     out = tmp_path / "report"
-    proc = _cli(
+    proc = run_cli(
         "compare", run, "--truth-dsm", truth / "dsm.tif",
         "--truth-footprints", truth / "footprints.geojson", "-o", out,
     )  # fmt: skip
@@ -146,7 +141,7 @@ def test_bad_input_is_one_line_and_writes_nothing(tiny_scene, tmp_path, case, ex
         with rasterio.open(run / "dsm.tif", "r+") as ds:
             ds.crs = "EPSG:32631"
     out = tmp_path / "report"
-    proc = _cli("compare", *args, "-o", out)
+    proc = run_cli("compare", *args, "-o", out)
     assert proc.returncode == 2
     assert expect in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
     assert not out.exists()
@@ -154,7 +149,7 @@ def test_bad_input_is_one_line_and_writes_nothing(tiny_scene, tmp_path, case, ex
 
 def test_existing_report_needs_overwrite(report, tiny_scene):
     out = report[0]
-    proc = _cli("compare", out.parent / "same", "--truth", tiny_scene, "-o", out)
+    proc = run_cli("compare", out.parent / "same", "--truth", tiny_scene, "-o", out)
     assert proc.returncode == 2 and "exists" in proc.stderr
 
 

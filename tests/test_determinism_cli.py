@@ -1,14 +1,13 @@
 """Same seed, same bytes; a different seed, a different city; the CLI's contracts."""
 
 import hashlib
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 from data_samples import generate as gen
 from data_samples.generate import generate_sample
+from tests.conftest import run_cli
 
 
 def _digests(folder: Path) -> dict:
@@ -34,17 +33,11 @@ def test_different_seed_gives_a_different_city(tiny_scene, tmp_path):
         assert a[name] != b[name], name
 
 
-def _cli(*args):
-    return subprocess.run(
-        [sys.executable, "-m", "workbench.cli", *map(str, args)], capture_output=True, text=True
-    )
-
-
 def test_existing_output_is_refused_without_overwrite(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "keep.txt").write_text("mine")
-    proc = _cli("sample", out)
+    proc = run_cli("sample", out)
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == [
         f"workbench: error: {out}: output exists (pass --overwrite to replace it)"
@@ -63,16 +56,16 @@ def test_failure_leaves_no_output(tmp_path, monkeypatch):
 
 
 def test_cli_unexpected_error_is_one_line(tmp_path):
-    proc = _cli("sample", tmp_path / "x", "--calibration-error", "-1")
+    proc = run_cli("sample", tmp_path / "x", "--calibration-error", "-1")
     assert proc.returncode == 2
     assert len(proc.stderr.strip().splitlines()) == 1
     assert "--calibration-error" in proc.stderr
 
 
 def test_cli_help_lists_commands_and_units():
-    proc = _cli("--help")
+    proc = run_cli("--help")
     assert proc.returncode == 0
     for cmd in ("sample", "validate", "import-colmap", "demo"):
         assert cmd in proc.stdout
-    proc = _cli("sample", "--help")
+    proc = run_cli("sample", "--help")
     assert "pixels" in proc.stdout and "metres" in proc.stdout

@@ -1,8 +1,6 @@
 """`workbench fusion` end to end on the tiny city, scored against its truth."""
 
 import json
-import subprocess
-import sys
 
 import laspy
 import numpy as np
@@ -10,7 +8,7 @@ import pytest
 import rasterio
 
 from fusion.points import ASPRS_TO_CLASS, read_points
-from tests.conftest import SHARED_DATA
+from tests.conftest import SHARED_DATA, run_cli
 from workbench.errors import InputError
 from workbench.raster import read_raster
 from workbench.scene import load_scene
@@ -28,17 +26,11 @@ PRODUCTS = (
 )
 
 
-def _cli(*args):
-    return subprocess.run(
-        [sys.executable, "-m", "workbench.cli", *map(str, args)], capture_output=True, text=True
-    )
-
-
 @pytest.fixture(scope="module")
 def fused(tiny_scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("fusion") / "out"
     clf = out.parent / "forest.joblib"
-    proc = _cli("fusion", tiny_scene, "-o", out, "--truth", tiny_scene, "--save-classifier", clf)
+    proc = run_cli("fusion", tiny_scene, "-o", out, "--truth", tiny_scene, "--save-classifier", clf)
     assert proc.returncode == 0, proc.stderr
     return out, json.loads((out / "fusion.json").read_text()), clf
 
@@ -100,7 +92,7 @@ def test_record_has_stages_and_throughput(fused):
 
 def test_saved_classifier_is_reused(fused, tiny_scene, tmp_path):
     _, record, clf = fused
-    proc = _cli(
+    proc = run_cli(
         "fusion", tiny_scene, "-o", tmp_path / "again", "--classifier", clf, "--truth", tiny_scene
     )
     assert proc.returncode == 0, proc.stderr
@@ -114,7 +106,7 @@ def test_saved_classifier_is_reused(fused, tiny_scene, tmp_path):
 def test_bad_classifier_file_is_one_line(tiny_scene, tmp_path):
     bad = tmp_path / "bad.joblib"
     bad.write_bytes(b"not a pickle")
-    proc = _cli("fusion", tiny_scene, "-o", tmp_path / "o", "--classifier", bad)
+    proc = run_cli("fusion", tiny_scene, "-o", tmp_path / "o", "--classifier", bad)
     assert proc.returncode == 2
     assert len(proc.stderr.strip().splitlines()) == 1 and "bad.joblib" in proc.stderr
     assert not (tmp_path / "o").exists()
@@ -128,14 +120,14 @@ def test_scene_without_depth_or_dsm_is_refused(tiny_scene, tmp_path):
     (tmp_path / "scene.json").write_text(
         json.dumps(doc | {"footprints": None, "training_labels": None, "truth": None})
     )
-    proc = _cli("fusion", tmp_path, "-o", tmp_path / "o")
+    proc = run_cli("fusion", tmp_path, "-o", tmp_path / "o")
     assert proc.returncode == 2
     assert "no view has a depth map, and no DSM or point cloud is given" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
 
 
 def test_too_fine_a_grid_is_refused_before_allocating(tiny_scene, tmp_path):
-    proc = _cli("fusion", tiny_scene, "-o", tmp_path / "o", "--gsd", "0.0005")
+    proc = run_cli("fusion", tiny_scene, "-o", tmp_path / "o", "--gsd", "0.0005")
     assert proc.returncode == 2
     assert "--gsd 0.0005" in proc.stderr and "GiB" in proc.stderr
     assert not (tmp_path / "o").exists()
@@ -150,7 +142,7 @@ needs_shared = pytest.mark.skipif(not AUTZEN.exists(), reason="../shared/data is
 
 @needs_shared
 def test_autzen_keeps_its_crs_and_feet(tmp_path):
-    proc = _cli("fusion", "--points", AUTZEN, "-o", tmp_path / "a")
+    proc = run_cli("fusion", "--points", AUTZEN, "-o", tmp_path / "a")
     assert proc.returncode == 0, proc.stderr
     record = json.loads((tmp_path / "a" / "fusion.json").read_text())
     assert record["inputs"]["units_per_metre"] == pytest.approx(3.28084, rel=1e-4)
@@ -175,7 +167,7 @@ def test_autzen_keeps_its_crs_and_feet(tmp_path):
 
 @needs_shared
 def test_ahn3_ply_in_its_local_frame(tmp_path):
-    proc = _cli("fusion", "--points", AHN3 / "9.ply", "-o", tmp_path / "b")
+    proc = run_cli("fusion", "--points", AHN3 / "9.ply", "-o", tmp_path / "b")
     assert proc.returncode == 0, proc.stderr
     dsm, _, crs = read_raster(tmp_path / "b" / "dsm.tif")
     assert crs is None
@@ -190,7 +182,7 @@ def test_point_cloud_errors_are_one_line(tmp_path):
         (["--points", tmp_path / "missing.laz"], "point cloud not found"),
         (["--points", tmp_path / "bad.las"], "not a readable LAS/LAZ file"),
     ):
-        proc = _cli("fusion", *args, "-o", tmp_path / "o")
+        proc = run_cli("fusion", *args, "-o", tmp_path / "o")
         assert proc.returncode == 2, proc.stderr
         assert words in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
 
@@ -203,7 +195,7 @@ def test_las_without_crs_needs_one(tmp_path):
     with pytest.raises(InputError, match="pass --crs"):
         read_points(tmp_path / "nocrs.las")
     assert read_points(tmp_path / "nocrs.las", "EPSG:28992").crs.to_epsg() == 28992
-    proc = _cli(
+    proc = run_cli(
         "fusion",
         "--points",
         tmp_path / "nocrs.las",
@@ -232,7 +224,7 @@ def test_true_orthophoto_from_a_dsm(tiny_scene, tmp_path):
         truth=None,
     )
     (tmp_path / "scene.json").write_text(json.dumps(doc))
-    proc = _cli("fusion", tmp_path, "-o", tmp_path / "o", "--truth", tiny_scene)
+    proc = run_cli("fusion", tmp_path, "-o", tmp_path / "o", "--truth", tiny_scene)
     assert proc.returncode == 0, proc.stderr
     record = json.loads((tmp_path / "o" / "fusion.json").read_text())
     assert record["mode"].startswith("true orthophoto")
@@ -299,7 +291,9 @@ def test_raster_prior_is_reported_and_optional(fused, tiny_scene, tmp_path):
     q = record["quality"]
     assert "raster forest" not in record["class_source"]  # the paper's method by default
     assert q["classification_raster_forest_alone"]["overall_accuracy"] > 0.5
-    proc = _cli("fusion", tiny_scene, "-o", tmp_path / "p", "--truth", tiny_scene, "--raster-prior")
+    proc = run_cli(
+        "fusion", tiny_scene, "-o", tmp_path / "p", "--truth", tiny_scene, "--raster-prior"
+    )
     assert proc.returncode == 0, proc.stderr
     with_prior = json.loads((tmp_path / "p" / "fusion.json").read_text())
     assert "--raster-prior" in with_prior["class_source"]
@@ -313,7 +307,7 @@ def test_raster_prior_is_reported_and_optional(fused, tiny_scene, tmp_path):
 def test_point_cloud_scored_against_a_scene_truth(tiny_scene, tmp_path):
     """The truth mesh's vertices as a cloud, fused and scored on the scene's grid."""
     bounds = load_scene(tiny_scene).bounds
-    proc = _cli(
+    proc = run_cli(
         "fusion",
         "--points",
         tiny_scene / "truth" / "mesh.ply",

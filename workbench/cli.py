@@ -30,6 +30,10 @@ def _positive_float(text: str) -> float:
     return v
 
 
+def _omega(text: str) -> float | None:
+    return None if text == "auto" else _positive_float(text)
+
+
 def _non_negative_int(text: str) -> int:
     try:
         v = int(text)
@@ -200,9 +204,10 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("-o", "--out", type=Path, required=True, metavar="OUT", help="output folder")
     q.add_argument(
         "--omega-class",
-        type=_positive_float,
+        type=_omega,
         default=3.0,
-        help="weight of the class CRF's pairwise term (default 3)",
+        help="weight of the class CRF's pairwise term (default 3), or auto: the best of "
+        "0.25-12 on the scene's training strokes",
     )
     q.add_argument(
         "--omega-roof",
@@ -242,6 +247,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SCENE",
         help="record the paper's Table 1 rows (pixel, super-pixel, CRF) against "
         "SCENE/truth in model.json",
+    )
+    q.add_argument(
+        "--all-building",
+        action="store_true",
+        help="every cell with a height is building (clouds of single buildings, such as "
+        "City3D's building instances, have no ground to classify against)",
     )
     q.add_argument("--seed", type=_non_negative_int, default=0, help="random seed (default 0)")
     q.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
@@ -283,9 +294,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "demo",
         help="run the main job on the tiny sample city",
-        description="Generate the tiny sample city, fuse its views, score the runs against "
-        "the truth with `compare` and write the report. The modeling paths join this command "
-        "as they land.",
+        description="Generate the tiny sample city, fuse its views, model its buildings with "
+        "the super-pixel path (PLY and OBJ), score both runs against the truth with `compare` "
+        "and write the report. The voxel path joins this command when it lands.",
     )
     p.add_argument("-o", "--out", type=Path, default=Path("demo_out"), help="output folder")
     p.add_argument("--seed", type=_non_negative_int, default=0, help="random seed (default 0)")
@@ -407,6 +418,7 @@ def cmd_model_superpixel(args) -> int:
         omega_roof=args.omega_roof,
         min_area_m2=args.min_area,
         simplify_m=args.simplify,
+        all_building=args.all_building,
         seed=args.seed,
     )
     record = run_superpixel(
@@ -468,6 +480,8 @@ def cmd_demo(args) -> int:
 
     from data_samples.generate import generate_sample
     from fusion.cli_fusion import run_fusion
+    from modeling.cli_superpixel import run_superpixel
+    from modeling.superpixel_model import SuperpixelOptions
 
     from .compare import compare_runs, summary
     from .scene import load_scene
@@ -479,7 +493,7 @@ def cmd_demo(args) -> int:
     if args.out.exists() and not args.overwrite and any(args.out.iterdir()):
         raise WorkbenchError(f"{args.out}: output exists (pass --overwrite to replace it)")
     args.out.mkdir(parents=True, exist_ok=True)
-    print(f"1/3 generating the tiny sample city (seed {args.seed}) ...", flush=True)
+    print(f"1/4 generating the tiny sample city (seed {args.seed}) ...", flush=True)
     meta = generate_sample(scene_dir, "tiny", args.seed, overwrite=True)
     scene = load_scene(scene_dir)
     c = meta["counts"]
@@ -491,7 +505,7 @@ def cmd_demo(args) -> int:
     print(
         f"    calibration error of the written poses: {meta['calibration_error_px_rms']:.2f} px RMS"
     )
-    print("2/3 fusing the views into ortho, DSM/DTM/nDSM and classes ...", flush=True)
+    print("2/4 fusing the views into ortho, DSM/DTM/nDSM and classes ...", flush=True)
     record = run_fusion(
         SimpleNamespace(
             scene=scene_dir,
@@ -514,15 +528,30 @@ def cmd_demo(args) -> int:
         f"{q['dsm_mean_fusion']['rmse_m']:.2f} m (median {q['dsm']['rmse_m']:.2f} m), ortho MAE "
         f"{q['ortho_mae_mean_fusion']['mean']:.1f} (median {q['ortho_mae']['mean']:.1f})"
     )
-    print("3/3 scoring the runs against the truth ...", flush=True)
+    print("3/4 super-pixel modeling: Quickshift, class CRF, roof prototypes, LOD2 ...", flush=True)
+    superpixel_dir = args.out / "superpixel"
+    sp = run_superpixel(
+        fusion_dir, superpixel_dir, SuperpixelOptions(seed=args.seed), truth=scene_dir,
+        overwrite=True,
+    )  # fmt: skip
+    c = sp["counts"]
+    t1 = sp["classification_table"]
+    print(
+        f"    {c['buildings']} buildings, {c['faces']} triangles, {c['watertight']} watertight, "
+        f"{sum(s['wall_s'] for s in sp['stages'].values()):.1f} s; overall accuracy pixel "
+        f"{t1['pixel']['overall_accuracy']:.3f}, super-pixel "
+        f"{t1['superpixel']['overall_accuracy']:.3f}, CRF {t1['crf']['overall_accuracy']:.3f}"
+    )
+    print("4/4 scoring the runs against the truth ...", flush=True)
     truth = load_scene_truth(scene_dir)
-    doc = compare_runs([fusion_dir], truth, report_dir, names=["fusion"], overwrite=True)
+    doc = compare_runs(
+        [fusion_dir, superpixel_dir], truth, report_dir, names=["fusion", "superpixel"],
+        overwrite=True,
+    )  # fmt: skip
     print()
     print(summary(doc))
-    print(
-        "\n    the modeling paths (workbench model superpixel / voxel) join this demo and "
-        "its report as they land"
-    )
+    print("\n    the voxel path (workbench model voxel) joins this demo when it lands")
+    print(f"  models:         {superpixel_dir / 'scene.obj'}, {superpixel_dir / 'buildings'}/")
     print(f"  scene preview:  {scene_dir / 'preview.png'}")
     print(f"  fusion preview: {fusion_dir / 'preview.png'}")
     print(f"  report:         {report_dir / 'report.html'}")

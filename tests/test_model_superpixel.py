@@ -1,0 +1,140 @@
+"""`workbench model superpixel` end to end, scored by the shared metrics."""
+
+import json
+import shutil
+
+import numpy as np
+import open3d as o3d
+import pytest
+import rasterio
+
+from data_samples.truth_run import truth_fusion_run
+from modeling.roof_types import ROOF_TYPES
+from tests.conftest import SHARED_DATA, run_cli
+from workbench.raster import read_raster
+
+
+@pytest.fixture(scope="module")
+def modelled(tiny_scene, tmp_path_factory):
+    """The path on perfect rasters (the truth's), so that its own errors show alone."""
+    root = tmp_path_factory.mktemp("superpixel")
+    fusion = truth_fusion_run(tiny_scene, root / "fusion")
+    out = root / "model"
+    proc = run_cli("model", "superpixel", fusion, "-o", out, "--truth", tiny_scene)
+    assert proc.returncode == 0, proc.stderr
+    report = root / "report"
+    proc = run_cli("compare", out, "--truth", tiny_scene, "-o", report)
+    assert proc.returncode == 0, proc.stderr
+    metrics = json.loads((report / "metrics.json").read_text())
+    return fusion, out, json.loads((out / "model.json").read_text()), metrics["runs"]["model"]
+
+
+def test_models_match_the_truth_on_perfect_rasters(modelled):
+    m = modelled[3]
+    assert m["complexity"]["watertight_fraction"] == 1.0
+    assert m["footprint_2d"]["quality"] > 0.88  # roofs under trees are not seen
+    objects = m["footprint_2d"]["objects"]
+    assert objects["found"] == objects["truth_buildings"]
+    assert m["roofs"]["plane_angle_median_deg"] < 1.0
+    assert m["buildings"]["height_error_pct_median"] < 1.0
+    assert m["surface"]["hausdorff_mean_m"] < 0.6
+
+
+def test_table1_rows_and_crf_keeps_the_accuracy(modelled):
+    table = modelled[2]["classification_table"]
+    assert table["pixel"]["overall_accuracy"] == 1.0
+    assert table["crf"]["overall_accuracy"] >= table["superpixel"]["overall_accuracy"] - 0.005
+
+
+def test_outputs_are_complete_and_readable(modelled):
+    fusion, out, record, _ = modelled
+    for b in record["buildings"]:
+        mesh = o3d.io.read_triangle_mesh(str(out / "buildings" / f"{b['id']}.obj"))
+        assert len(mesh.triangles) == b["faces"]
+        assert (out / "buildings" / f"{b['id']}.ply").exists()
+        assert b["roof_type"] in ROOF_TYPES
+        assert b["base_z"] < b["eave_z"] <= b["ridge_z"]
+        assert b["footprint"]["type"] in ("Polygon", "MultiPolygon")
+        assert all(abs(np.linalg.norm(p["normal"]) - 1) < 1e-3 for p in b["roof_planes"])
+    scene = o3d.io.read_triangle_mesh(str(out / "scene.ply"))
+    assert len(scene.triangles) > sum(b["faces"] for b in record["buildings"])  # + terrain
+    assert (out / "scene.obj").exists() and (out / "buildings" / "materials.mtl").exists()
+    cls, grid, crs = read_raster(out / "class.tif")
+    _, fgrid, fcrs = read_raster(fusion / "dsm.tif")
+    assert grid == fgrid and crs == fcrs and set(np.unique(cls)) <= {0, 1, 2, 3, 4}
+    assert (out / "preview.png").exists()
+    assert set(record["stages"]) >= {"superpixels", "class_crf", "prototypes", "roof_modeling"}
+
+
+@pytest.mark.parametrize("case", ["missing", "grid", "crs"])
+def test_bad_fusion_folder_is_one_line(modelled, tmp_path, case):
+    fusion = tmp_path / "fusion"
+    shutil.copytree(modelled[0], fusion)
+    if case == "missing":
+        (fusion / "dtm.tif").unlink()
+        expect = "dtm.tif"
+    else:
+        with rasterio.open(fusion / "dsm.tif", "r+") as ds:
+            if case == "grid":
+                ds.transform = ds.transform @ ds.transform.translation(1, 0)
+            else:
+                ds.crs = "EPSG:32631"
+        expect = f"dsm.tif: {'transform' if case == 'grid' else 'crs'}"
+    out = tmp_path / "out"
+    proc = run_cli("model", "superpixel", fusion, "-o", out)
+    assert proc.returncode == 2 and expect in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_no_building_pixels_give_an_empty_valid_model(modelled, tmp_path):
+    fusion = tmp_path / "fusion"
+    shutil.copytree(modelled[0], fusion)
+    with rasterio.open(fusion / "class_prob.tif", "r+") as ds:
+        prob = ds.read()
+        prob[:] = 0
+        prob[0] = 1  # everything ground
+        ds.write(prob)
+    out = tmp_path / "out"
+    proc = run_cli("model", "superpixel", fusion, "-o", out)
+    assert proc.returncode == 0, proc.stderr
+    assert "empty" in proc.stdout
+    record = json.loads((out / "model.json").read_text())
+    assert record["buildings"] == [] and (out / "scene.ply").exists()
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "ahn3_buildings").is_dir(), reason="no ../shared/data")
+def test_ahn3_clouds_give_closed_models_near_their_points(tmp_path):
+    rms = []
+    for name in ("1.ply", "12.ply", "20.ply"):
+        cloud = SHARED_DATA / "ahn3_buildings" / name
+        fusion, out = tmp_path / f"{name}_f", tmp_path / f"{name}_m"
+        assert run_cli("fusion", "--points", cloud, "-o", fusion).returncode == 0
+        proc = run_cli("model", "superpixel", fusion, "-o", out, "--all-building", "--min-area", 5)
+        assert proc.returncode == 0, proc.stderr
+        record = json.loads((out / "model.json").read_text())
+        assert record["buildings"] and all(b["watertight"] for b in record["buildings"])
+        mesh = o3d.t.geometry.TriangleMesh.from_legacy(
+            o3d.io.read_triangle_mesh(str(out / "scene.ply"))
+        )
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(mesh)
+        points = np.asarray(o3d.io.read_point_cloud(str(cloud)).points, np.float32)
+        d = scene.compute_distance(o3d.core.Tensor(points)).numpy()
+        rms.append(float(np.sqrt(np.mean(d**2))))
+    # a model that missed its roof would be metres off: the roofs are 3-13 m high
+    assert max(rms) < 1.5 and np.median(rms) < 0.8, rms
+
+
+def test_omega_auto_is_chosen_on_the_training_strokes(modelled, tiny_scene, tmp_path):
+    fusion = tmp_path / "fusion"
+    shutil.copytree(modelled[0], fusion)
+    out = tmp_path / "out"
+    proc = run_cli("model", "superpixel", fusion, "-o", out, "--omega-class", "auto")
+    assert proc.returncode == 2 and "fusion.json: inputs.scene" in proc.stderr
+    record = json.loads((fusion / "fusion.json").read_text())
+    record["inputs"] = {"scene": str(tiny_scene / "scene.json")}
+    (fusion / "fusion.json").write_text(json.dumps(record))
+    proc = run_cli("model", "superpixel", fusion, "-o", out, "--omega-class", "auto")
+    assert proc.returncode == 0, proc.stderr
+    choice = json.loads((out / "model.json").read_text())["omega_class_choice"]
+    assert choice["scores"][str(choice["omega"])] == max(choice["scores"].values())
