@@ -27,7 +27,7 @@ import open3d as o3d
 from fusion.cli_fusion import run_fusion
 from modeling.cli_superpixel import run_superpixel
 from modeling.superpixel_model import SuperpixelOptions
-from workbench.meshes import read_mesh
+from workbench.meshes import concatenate_meshes, read_mesh
 from workbench.raycast import raycasting_scene, unsigned_distance
 
 CITY3D = {"rms_m": 0.258, "triangles": 113, "seconds": 1.4}
@@ -52,9 +52,7 @@ def model_cloud(cloud: Path, work: Path) -> dict:
     meshes = [read_mesh(model_dir / b["mesh"]) for b in record["buildings"]]
     if not meshes:
         return {"cloud": cloud.name, "seconds": seconds, "buildings": 0}
-    offsets = np.cumsum([0] + [len(v) for v, _ in meshes])[:-1]
-    V = np.concatenate([v for v, _ in meshes])
-    T = np.concatenate([t + o for (_, t), o in zip(meshes, offsets, strict=True)])
+    V, T, _ = concatenate_meshes(meshes)
     d = unsigned_distance(raycasting_scene(V, T), points)
     return {
         "cloud": cloud.name,

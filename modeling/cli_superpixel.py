@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,7 @@ from workbench import metrics
 from workbench.atomic import atomic_output_dir
 from workbench.errors import InputError
 from workbench.imageio import write_rgb
-from workbench.meshes import raster_mesh
+from workbench.meshes import concatenate_meshes, raster_mesh
 from workbench.meshio import write_mtl, write_obj, write_ply
 from workbench.pictures import colorize_classes, contact_sheet
 from workbench.progress import progress
@@ -116,8 +117,6 @@ def run_superpixel(
         models: list[tuple[int, BuildingModel]] = []
         prototype_raster = np.zeros(labels.shape, np.int32)
         hyp_s = proto_s = crf_s = mesh_s = 0.0
-        import time
-
         for b in progress(range(1, int(owner.max()) + 1), "modeling buildings"):
             members = np.flatnonzero(owner == b)
             t0 = time.perf_counter()
@@ -225,8 +224,7 @@ def _write(
 ) -> dict:
     (tmp / "buildings").mkdir()
     materials = {"wall": (170, 170, 170)}
-    buildings, all_v, all_t, all_c = [], [], [], []
-    offset = 0
+    buildings, parts, colours = [], [], []
     for b, m in models:
         colors = _vertex_colours(m.vertices, rgb, grid)
         bid = str(b)
@@ -241,23 +239,15 @@ def _write(
             mtllib="materials.mtl",
         )
         buildings.append({"id": bid, "mesh": f"buildings/{bid}.ply", **m.record})
-        all_v.append(m.vertices)
-        all_t.append(m.triangles + offset)
-        all_c.append(colors)
-        offset += len(m.vertices)
+        parts.append((m.vertices, m.triangles))
+        colours.append(colors)
     write_mtl(tmp / "buildings" / "materials.mtl", materials)
     ground = raster_mesh(dtm, grid, step=max(1, round(2.0 / grid.gsd)))
     if ground is not None:
-        all_v.append(ground[0])
-        all_t.append(ground[1] + offset)
-        all_c.append(_vertex_colours(ground[0], rgb, grid))
-    if not all_v:  # no building and no ground: an empty but valid scene
-        all_v, all_t, all_c = (
-            [np.empty((0, 3))],
-            [np.empty((0, 3), np.int64)],
-            [np.empty((0, 3), np.uint8)],
-        )
-    V, T, Cc = np.concatenate(all_v), np.concatenate(all_t), np.concatenate(all_c)
+        parts.append(ground)
+        colours.append(_vertex_colours(ground[0], rgb, grid))
+    V, T, _ = concatenate_meshes(parts)  # empty, but valid, without buildings and ground
+    Cc = np.concatenate(colours) if colours else np.empty((0, 3), np.uint8)
     write_ply(tmp / "scene.ply", V, T, vertex_colors=Cc)
     write_obj(tmp / "scene.obj", V, T, vertex_colors=Cc)
     write_raster(tmp / "class.tif", crf_class, grid, crs, nodata=0)
@@ -296,10 +286,7 @@ def _preview(path, rgb, labels, classes, prototypes, models, grid, dtm) -> None:
         (proto, "roof prototypes"),
     ]
     if models:
-        V = np.concatenate([m.vertices for _, m in models])
-        offs = np.cumsum([0] + [len(m.vertices) for _, m in models])[:-1]
-        T = np.concatenate([m.triangles + o for (_, m), o in zip(models, offs, strict=True)])
-        z = V[:, 2]
-        cam = viewpoints(grid.bounds, (float(np.nanmin(dtm)), float(z.max())))["south-west"]
+        V, T, _ = concatenate_meshes([(m.vertices, m.triangles) for _, m in models])
+        cam = viewpoints(grid.bounds, (float(np.nanmin(dtm)), float(V[:, 2].max())))["south-west"]
         row.append((render_mesh(V, T, cam, np.full((len(T), 3), 205, np.uint8)), "models"))
     write_rgb(path, contact_sheet([row], height=360))

@@ -10,6 +10,7 @@ edge has exactly two triangles.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import rasterio.features
 import shapely
@@ -69,8 +70,6 @@ def face_polygons(
 def merge_small_regions(faces: np.ndarray, min_cells: int) -> np.ndarray:
     """Give every 4-connected region of one face label smaller than ``min_cells`` the
     label of the neighbouring face it shares most cell edges with (0 stays 0)."""
-    import cv2
-
     out = faces.copy()
     for label in np.unique(faces[faces > 0]):
         n, comp, stats, _ = cv2.connectedComponentsWithStats(

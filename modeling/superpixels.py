@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from skimage.segmentation import quickshift
 
@@ -63,8 +64,6 @@ def quickshift_superpixels(
 
 def split_disconnected(labels: np.ndarray) -> np.ndarray:
     """Relabel so that every label is one 4-connected region, labels 0..N-1."""
-    import cv2
-
     out = np.full(labels.shape, -1, np.int64)
     n = 0
     # connected components of "same label as the neighbour": label each label's pixels

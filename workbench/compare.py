@@ -13,7 +13,7 @@ from .atomic import atomic_output_dir
 from .errors import InputError, WorkbenchError
 from .evaluate import Evaluation, EvaluationOptions, evaluate, stacked_meshes
 from .imageio import write_rgb
-from .meshes import raster_mesh
+from .meshes import concatenate_meshes, raster_mesh
 from .pictures import colorize_classes, colorize_error, colorize_height
 from .render import render_mesh, viewpoints
 from .report import report_html, summary_text
@@ -171,8 +171,7 @@ def _renders(
         if ground is not None:  # the same pale ground under every model
             colors = np.full((len(triangles), 3), 200, np.uint8) if colors is None else colors
             pale = np.full((len(ground[1]), 3), 235, np.uint8)
-            triangles = np.concatenate([triangles, ground[1] + len(vertices)])
-            vertices = np.concatenate([vertices, ground[0]])
+            vertices, triangles, _ = concatenate_meshes([(vertices, triangles), ground])
             colors = np.concatenate([colors, pale])
         return render_mesh(vertices, triangles, cam, colors)
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from . import metrics
 from .errors import InputError
-from .meshes import is_watertight, sample_surface, triangle_areas
+from .meshes import concatenate_meshes, is_watertight, sample_surface, triangle_areas
 from .raster import read_raster
 from .raycast import raycasting_scene, unsigned_distance
 from .runs import Run
@@ -113,16 +113,7 @@ def run_layers(run: Run, truth: Truth, options: EvaluationOptions) -> RunLayers:
 
 def stacked_meshes(run: Run) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """All building meshes of a model run as one, with each triangle's 1-based owner."""
-    offsets = np.cumsum([0] + [len(b.vertices) for b in run.buildings])
-    vertices = np.concatenate([b.vertices for b in run.buildings] or [np.empty((0, 3))])
-    triangles = np.concatenate(
-        [b.triangles + o for b, o in zip(run.buildings, offsets, strict=False)]
-        or [np.empty((0, 3), np.int64)]
-    )
-    owner = np.repeat(
-        np.arange(1, len(run.buildings) + 1), [len(b.triangles) for b in run.buildings]
-    )
-    return vertices, triangles, owner
+    return concatenate_meshes([(b.vertices, b.triangles) for b in run.buildings])
 
 
 def building_regions(mask: np.ndarray, min_cells: float) -> np.ndarray:

@@ -31,6 +31,35 @@ def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.triangles, np.int64)
 
 
+def concatenate_meshes(
+    meshes: list[tuple[np.ndarray, np.ndarray]],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Many meshes as one.
+
+    Parameters
+    ----------
+    meshes : list of (vertices (V_i, 3), triangles (T_i, 3))
+
+    Returns
+    -------
+    vertices : (sum V_i, 3) float64
+    triangles : (sum T_i, 3) int64, re-indexed
+    owner : (sum T_i,) int64, the 1-based index of the mesh each triangle came from
+    """
+    if not meshes:
+        return np.empty((0, 3)), np.empty((0, 3), np.int64), np.empty(0, np.int64)
+    offsets = np.cumsum([0] + [len(v) for v, _ in meshes])[:-1]
+    vertices = np.concatenate([np.asarray(v, np.float64).reshape(-1, 3) for v, _ in meshes])
+    triangles = np.concatenate(
+        [
+            np.asarray(t, np.int64).reshape(-1, 3) + o
+            for (_, t), o in zip(meshes, offsets, strict=True)
+        ]
+    )
+    owner = np.repeat(np.arange(1, len(meshes) + 1), [len(t) for _, t in meshes])
+    return vertices, triangles, owner
+
+
 def triangle_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(T,) area of each triangle, square metres."""
     a, b, c = (vertices[triangles[:, i]] for i in range(3))
