@@ -43,7 +43,8 @@ class SuperpixelOptions:
         joins another's prototype when that explains its points to about this distance.
     truncation_m : point-to-plane distances are truncated here in the prototype unary, so
         that a tree over a roof does not decide its plane.
-    simplify_m : tolerance of the roof polygons' simplification, metres.
+    simplify_m : tolerance of the roof polygons' simplification, metres (None: two cells,
+        which removes the cell staircase and little more).
     all_building : every super-pixel with a height is building, whatever the classes say:
         for clouds of one building (City3D's building instances), which hold no ground
         to classify against.
@@ -61,7 +62,7 @@ class SuperpixelOptions:
     ransac_iterations: int = 200
     prototype_tolerance_m: float = 0.25
     truncation_m: float = 2.0
-    simplify_m: float = 0.5
+    simplify_m: float | None = None
     all_building: bool = False
     seed: int = 0
 
@@ -293,7 +294,8 @@ def model_building(
         g = g[np.isfinite(g)] if np.isfinite(g).any() else ground[np.isfinite(ground)]
         base = float(g.min()) if len(g) else np.inf  # unknown: just under the roof
         model = None
-        for tolerance in (options.simplify_m, 1e-3):
+        simplify = options.simplify_m if options.simplify_m is not None else 2 * grid.gsd
+        for tolerance in (simplify, 1e-3):
             model = _model_part(part, grid, planes, base, tolerance)
             if model is not None and model.record["watertight"]:
                 break

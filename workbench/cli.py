@@ -237,9 +237,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument(
         "--simplify",
         type=_positive_float,
-        default=0.5,
+        default=None,
         metavar="METRES",
-        help="tolerance of the roof polygon simplification (default 0.5)",
+        help="tolerance of the roof polygon simplification (default: two cells)",
     )
     q.add_argument(
         "--truth",
