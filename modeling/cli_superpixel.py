@@ -114,16 +114,19 @@ def run_superpixel(
         adjacency = {(int(a), int(b)) for a, b in graph.edges} | {
             (int(b), int(a)) for a, b in graph.edges
         }
+        neighbours: dict[int, list[int]] = {}
+        for a, b in adjacency:
+            neighbours.setdefault(a, []).append(b)
         models: list[tuple[int, BuildingModel]] = []
         prototype_raster = np.zeros(labels.shape, np.int32)
         hyp_s = proto_s = crf_s = mesh_s = 0.0
         for b in progress(range(1, int(owner.max()) + 1), "modeling buildings"):
             members = np.flatnonzero(owner == b)
             t0 = time.perf_counter()
-            hyps = plane_hypotheses(members, pts, options)
+            hyps = plane_hypotheses(members, pts, neighbours, options)
             t1 = time.perf_counter()
             if hyps:
-                protos = roof_prototypes(hyps, pts, adjacency, options)
+                protos = roof_prototypes(hyps, adjacency, options)
             else:  # no plane anywhere: one flat roof at the median height
                 z = np.nanmedian(graph.height_median[members])
                 protos = np.array([[0.0, 0.0, 1.0, -z]]) if np.isfinite(z) else np.empty((0, 4))

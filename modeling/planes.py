@@ -6,7 +6,6 @@ A plane is (n, d) with unit normal n (n_z > 0) and n . X + d = 0, world metres.
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 
 
 def plane_heights(plane: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -25,31 +24,39 @@ def ransac_plane(
     threshold: float = 0.15,
     iterations: int = 200,
     max_tilt_deg: float = 80.0,
+    seed: int = 0,
 ) -> np.ndarray | None:
-    """The plane with most inliers among ``points`` (N, 3), by Open3D's RANSAC, refined
-    by total least squares (the inliers' principal axes) on its inliers.
+    """The plane with most inliers among ``points`` (N, 3) by RANSAC, refined by total
+    least squares (the inliers' principal axes).
+
+    All ``iterations`` samples of three points are drawn and scored at once, and ties go
+    to the first: the result depends on ``seed`` alone. (Open3D's ``segment_plane`` scores
+    its samples in parallel and, on the small point sets of super-pixels, breaks ties by
+    thread timing, so its planes change from run to run.)
 
     Returns (4,) plane with n_z > 0, or None for fewer than 6 points or a plane steeper
     than ``max_tilt_deg`` (a wall or a tree, not a roof).
     """
     if len(points) < 6:
         return None
-    centre = points.mean(axis=0)  # Open3D fits in float32-friendly local coordinates
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points - centre))
-    model, inliers = pcd.segment_plane(threshold, 3, iterations)
-    plane = np.asarray(model, np.float64)
-    inl = points[np.asarray(inliers, dtype=np.int64)] - centre
-    if len(inl) >= 3:
-        mean = inl.mean(axis=0)
-        normal = np.linalg.svd(inl - mean, full_matrices=False)[2][-1]
-        plane = np.r_[normal, -normal @ mean]
-    n = np.linalg.norm(plane[:3])
-    if not np.isfinite(plane).all() or n == 0:
+    local = points - points.mean(axis=0)
+    rng = np.random.default_rng(seed)
+    a, b, c = (local[rng.integers(0, len(local), iterations)] for _ in range(3))
+    normals = np.cross(b - a, c - a)
+    length = np.linalg.norm(normals, axis=1)
+    ok = length > 1e-12
+    if not ok.any():
         return None
-    plane = plane / n
-    if plane[2] < 0:
-        plane = -plane
-    if plane[2] < np.cos(np.radians(max_tilt_deg)):
+    normals = normals[ok] / length[ok, None]
+    offsets = -np.sum(normals * a[ok], axis=1)
+    inlier = np.abs(local @ normals.T + offsets) < threshold  # (N, samples)
+    inl = local[inlier[:, np.argmax(inlier.sum(axis=0))]]
+    if len(inl) < 3:
         return None
-    plane[3] -= plane[:3] @ centre  # back to world coordinates
-    return plane
+    mean = inl.mean(axis=0)
+    normal = np.linalg.svd(inl - mean, full_matrices=False)[2][-1]
+    if normal[2] < 0:
+        normal = -normal
+    if normal[2] < np.cos(np.radians(max_tilt_deg)):
+        return None
+    return np.r_[normal, -normal @ (mean + points.mean(axis=0))]

@@ -8,8 +8,6 @@ import numpy as np
 from sklearn.cluster import AffinityPropagation
 from sklearn.exceptions import ConvergenceWarning
 
-from .planes import point_plane_distances
-
 
 def hypothesis_similarity(
     planes: np.ndarray,
@@ -28,17 +26,21 @@ def hypothesis_similarity(
     planes : (K, 4)
         Hypotheses.
     points : list of (N_i, 3)
-        Points of the super-pixel each hypothesis came from.
+        Points each hypothesis was fitted to.
     owner : (K,) int
         Super-pixel of each hypothesis.
     adjacency : set of (a, b) super-pixel pairs, both orders.
     """
     K = len(planes)
     S = np.full((K, K), np.nan)
+    index = {int(o): k for k, o in enumerate(owner)}
+    near = np.eye(K, dtype=bool)
+    for a, b in adjacency:
+        if a in index and b in index:
+            near[index[a], index[b]] = True
     for i in range(K):
-        for k in range(K):
-            if i == k or (owner[i], owner[k]) in adjacency:
-                S[i, k] = -float(np.mean(point_plane_distances(planes[k], points[i])))
+        d = np.abs(points[i] @ planes[:, :3].T + planes[:, 3])  # (N_i, K)
+        S[i, near[i]] = -d[:, near[i]].mean(axis=0)
     floor = np.nanmin(S) - 100.0 if np.isfinite(S).any() else -100.0
     return np.where(np.isnan(S), floor, S)
 

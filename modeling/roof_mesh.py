@@ -22,6 +22,7 @@ from workbench.raster import Grid
 from .planes import plane_heights
 
 _EPS = 1e-7  # metres, on coordinates
+_CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)  # 4-neighbourhood
 _Z_EPS = 0.02  # metres: heights this close at a vertex are one level (one vertex)
 
 
@@ -76,18 +77,28 @@ def merge_small_regions(faces: np.ndarray, min_cells: int) -> np.ndarray:
             (faces == label).astype(np.uint8), connectivity=4
         )
         for k in np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] < min_cells) + 1:
-            region = comp == k
-            ring = (
-                cv2.dilate(
-                    region.astype(np.uint8), np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)
-                )
-                > 0
-            )
-            around = out[ring & ~region]
-            around = around[(around > 0) & (around != label)]
-            if len(around):
-                out[region] = np.bincount(around).argmax()
+            _absorb(out, comp == k)
     return out
+
+
+def merge_smallest_face(faces: np.ndarray) -> np.ndarray:
+    """Give the cells of the smallest face label to the face it shares most cell edges
+    with."""
+    labels, counts = np.unique(faces[faces > 0], return_counts=True)
+    out = faces.copy()
+    _absorb(out, faces == labels[np.argmin(counts)])
+    return out
+
+
+def _absorb(faces: np.ndarray, region: np.ndarray) -> None:
+    """Relabel ``region`` (one label) in place with the other face label most common
+    among its 4-neighbours, if it has any."""
+    label = faces[region][0]
+    ring = cv2.dilate(region.astype(np.uint8), _CROSS) > 0
+    around = faces[ring & ~region]
+    around = around[(around > 0) & (around != label)]
+    if len(around):
+        faces[region] = np.bincount(around).argmax()
 
 
 def untangle_diagonals(faces: np.ndarray) -> np.ndarray:

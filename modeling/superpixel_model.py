@@ -22,7 +22,7 @@ from .aggregate import SuperpixelGraph
 from .crf import alpha_expansion
 from .planes import plane_heights, point_plane_distances, ransac_plane
 from .prototypes import cluster_prototypes, hypothesis_similarity
-from .roof_mesh import extrude_faces, face_polygons, untangle_diagonals
+from .roof_mesh import extrude_faces, face_polygons, merge_smallest_face, untangle_diagonals
 from .roof_types import roof_type
 
 
@@ -39,6 +39,8 @@ class SuperpixelOptions:
     opening_m : radius of the opening that splits weakly touching buildings, metres.
     min_area_m2 : smallest building kept, square metres.
     ransac_threshold_m, ransac_iterations : RANSAC inlier distance and iterations.
+    min_plane_points : a super-pixel with fewer heights borrows its neighbours' for its
+        hypothesis.
     prototype_tolerance_m : affinity propagation's preference is minus this: a hypothesis
         joins another's prototype when that explains its points to about this distance.
     truncation_m : point-to-plane distances are truncated here in the prototype unary, so
@@ -60,6 +62,7 @@ class SuperpixelOptions:
     min_area_m2: float = 20.0
     ransac_threshold_m: float = 0.15
     ransac_iterations: int = 200
+    min_plane_points: int = 6
     prototype_tolerance_m: float = 0.25
     truncation_m: float = 2.0
     simplify_m: float | None = None
@@ -141,38 +144,75 @@ def superpixel_points(labels: np.ndarray, dsm: np.ndarray, grid: Grid) -> Superp
 
 
 def plane_hypotheses(
-    members: np.ndarray, pts: SuperpixelPoints, options: SuperpixelOptions
-) -> dict[int, np.ndarray]:
+    members: np.ndarray,
+    pts: SuperpixelPoints,
+    adjacency: dict[int, list[int]],
+    options: SuperpixelOptions,
+) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """A RANSAC plane for each super-pixel of a building (section 5.1).
 
-    Returns {super-pixel: plane (4,)} for those with enough points and a roof-like plane.
-    """
-    import open3d as o3d
+    Super-pixels with at least ``min_plane_points`` heights get a plane of their own. One
+    with fewer, none of whose neighbours has a plane, borrows its neighbours' heights,
+    ring by ring (two rings at most): on coarse rasters, such as LiDAR at its point
+    spacing, whole roof sides are made of such super-pixels and would otherwise get no
+    hypothesis at all.
 
-    o3d.utility.random.seed(options.seed)
+    Parameters
+    ----------
+    adjacency : {super-pixel: adjacent super-pixels}
+
+    Returns
+    -------
+    {super-pixel: (plane (4,), the points it was fitted to (N, 3))} for the super-pixels
+    with enough points and a roof-like plane.
+    """
+    inside = set(int(i) for i in members)
     out = {}
-    for i in members:
-        plane = ransac_plane(pts.of(i), options.ransac_threshold_m, options.ransac_iterations)
+
+    def fit(i: int, group: set[int]) -> None:
+        points = np.concatenate([pts.of(j) for j in sorted(group)])
+        plane = ransac_plane(
+            points, options.ransac_threshold_m, options.ransac_iterations, seed=options.seed
+        )
         if plane is not None:
-            out[int(i)] = plane
+            out[i] = (plane, points)
+
+    small = []
+    for i in map(int, members):
+        if len(pts.of(i)) >= options.min_plane_points:
+            fit(i, {i})
+        else:
+            small.append(i)
+    own = set(out)
+    for i in small:
+        if any(k in own for k in adjacency.get(i, ())):
+            continue  # a neighbour's plane can stand for it
+        group, ring = {i}, {i}
+        for _ in range(2):
+            ring = {k for j in ring for k in adjacency.get(j, ()) if k in inside} - group
+            group |= ring
+            if sum(len(pts.of(j)) for j in group) >= options.min_plane_points:
+                break
+        fit(i, group)
     return out
 
 
 def roof_prototypes(
-    hypotheses: dict[int, np.ndarray],
-    pts: SuperpixelPoints,
+    hypotheses: dict[int, tuple[np.ndarray, np.ndarray]],
     adjacency: set[tuple[int, int]],
     options: SuperpixelOptions,
 ) -> np.ndarray:
-    """Cluster the hypotheses into prototypes by affinity propagation (section 5.2).
+    """Cluster the hypotheses (from :func:`plane_hypotheses`) into prototypes by affinity
+    propagation (section 5.2).
 
     Returns
     -------
     (P, 4) prototype planes.
     """
     owners = np.array(list(hypotheses))
-    planes = np.array([hypotheses[i] for i in owners])
-    S = hypothesis_similarity(planes, [pts.of(i) for i in owners], owners, adjacency)
+    planes = np.array([hypotheses[i][0] for i in owners])
+    support = [hypotheses[i][1] for i in owners]
+    S = hypothesis_similarity(planes, support, owners, adjacency)
     exemplars, _ = cluster_prototypes(S, -options.prototype_tolerance_m, options.seed)
     return planes[exemplars]
 
@@ -214,7 +254,9 @@ def refit_planes(
     out = prototypes.copy()
     for k in np.unique(assignment):
         p = np.concatenate([pts.of(i) for i in members[assignment == k]] or [np.empty((0, 3))])
-        plane = ransac_plane(p, options.ransac_threshold_m, options.ransac_iterations)
+        plane = ransac_plane(
+            p, options.ransac_threshold_m, options.ransac_iterations, seed=options.seed
+        )
         if plane is not None:
             out[k] = plane
     return out
@@ -293,15 +335,38 @@ def model_building(
         g = ground[part > 0]
         g = g[np.isfinite(g)] if np.isfinite(g).any() else ground[np.isfinite(ground)]
         base = float(g.min()) if len(g) else np.inf  # unknown: just under the roof
-        model = None
         simplify = options.simplify_m if options.simplify_m is not None else 2 * grid.gsd
-        for tolerance in (simplify, 1e-3):
-            model = _model_part(part, grid, planes, base, tolerance)
-            if model is not None and model.record["watertight"]:
+        merged = 0
+        while True:
+            model = _closed_model(part, grid, planes, base, simplify)
+            closed = model is not None and model.record["watertight"]
+            if closed or len(np.unique(part[part > 0])) == 1:
                 break
+            # faces meeting at a vertex can leave two parts of the roof touching along a
+            # vertical line there (not a manifold): give up the smallest face and retry
+            part = merge_smallest_face(part)
+            merged += 1
         if model is not None:
+            model.record["faces_merged_for_closure"] = merged
             out.append(model)
     return out
+
+
+def _closed_model(
+    faces: np.ndarray, grid: Grid, planes: np.ndarray, ground: float, simplify: float
+) -> BuildingModel | None:
+    """The part simplified by ``simplify``, else unsimplified when that is not closed (or
+    the triangulation fails); None when neither gives a model."""
+    fallback = None
+    for tolerance in (simplify, 1e-3):
+        try:
+            model = _model_part(faces, grid, planes, ground, tolerance)
+        except shapely.errors.GEOSException:  # a degenerate polygon after simplification
+            continue
+        if model is not None and model.record["watertight"]:
+            return model
+        fallback = fallback or model
+    return fallback
 
 
 def _model_part(

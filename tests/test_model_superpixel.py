@@ -138,3 +138,12 @@ def test_omega_auto_is_chosen_on_the_training_strokes(modelled, tiny_scene, tmp_
     assert proc.returncode == 0, proc.stderr
     choice = json.loads((out / "model.json").read_text())["omega_class_choice"]
     assert choice["scores"][str(choice["omega"])] == max(choice["scores"].values())
+
+
+def test_same_seed_same_meshes(modelled, tmp_path):
+    out = tmp_path / "again"
+    assert run_cli("model", "superpixel", modelled[0], "-o", out).returncode == 0
+    first = sorted((modelled[1] / "buildings").glob("*.ply"))
+    assert first and [p.read_bytes() for p in first] == [
+        (out / "buildings" / p.name).read_bytes() for p in first
+    ]
