@@ -84,6 +84,9 @@ def run_superpixel(
             rgb = np.moveaxis(r["ortho"], 0, -1)
             dsm, dtm = r["dsm"][0].astype(np.float64), r["dtm"][0].astype(np.float64)
             prob, pixel_class = r["class_prob"], r["class"][0]
+            edge_reach_m = options.edge_reach_m
+            if edge_reach_m is None:
+                edge_reach_m = 0.0 if _fusion_mode(fusion_dir) == "point cloud" else 1.0
         with timer.stage("superpixels"):
             labels = quickshift_superpixels(
                 rgb, options.sigma, options.tau, options.ratio, seed=options.seed
@@ -143,7 +146,8 @@ def run_superpixel(
             sp_face[members] = assign + 1
             r0, r1, c0, c1 = boxes[b]
             crop = np.where(cell_building[r0:r1, c0:c1] == b, sp_face[labels[r0:r1, c0:c1]], 0)
-            crop = observed_faces(crop, np.isfinite(dsm[r0:r1, c0:c1]))
+            reach = int(round(edge_reach_m / grid.gsd))
+            crop = observed_faces(crop, np.isfinite(dsm[r0:r1, c0:c1]), reach)
             crop_grid = Grid(
                 grid.xmin + c0 * grid.gsd,
                 grid.ymax - r0 * grid.gsd,
@@ -183,12 +187,21 @@ def run_superpixel(
             "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd},
         }
         record["superpixels"] = graph.n
+        record["parameters"]["edge_reach_m"] = edge_reach_m
         if omega_choice is not None:
             record["omega_class_choice"] = omega_choice
         if truth is not None:
             record["classification_table"] = _table1(truth, grid, pixel_class, sp_argmax, crf_class)
         (tmp / "model.json").write_text(json.dumps(record, indent=1) + "\n")
     return record
+
+
+def _fusion_mode(fusion_dir: Path) -> str | None:
+    """How the fusion run was made ("depth maps", "point cloud", ...), if it says."""
+    try:
+        return json.loads((Path(fusion_dir) / "fusion.json").read_text()).get("mode")
+    except (OSError, json.JSONDecodeError, AttributeError):
+        return None
 
 
 def building_boxes(cell_building: np.ndarray, n: int) -> np.ndarray:

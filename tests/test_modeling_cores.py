@@ -13,6 +13,7 @@ from modeling.planes import plane_heights, ransac_plane
 from modeling.prototypes import cluster_prototypes, hypothesis_similarity
 from modeling.roof_mesh import extrude_faces, face_polygons, untangle_diagonals
 from modeling.roof_types import roof_type
+from modeling.superpixel_model import observed_faces
 from modeling.superpixels import quickshift_superpixels
 from workbench.meshes import is_watertight
 from workbench.raster import Grid
@@ -179,3 +180,15 @@ def test_roof_types(planes, outline_z, expect):
     areas = np.full(len(planes), 10.0)
     heights = np.array([plane_heights(p, 10.0, 10.0) for p in planes])
     assert roof_type(planes, areas, heights, np.array(outline_z, float)) == expect
+
+
+def test_unseen_edge_cells_stay_within_reach_and_when_enclosed():
+    faces = np.zeros((7, 12), int)
+    faces[1:6, 1:11] = 1
+    observed = np.zeros_like(faces, bool)
+    observed[1:6, 1:6] = True  # the east part of the super-pixels was never seen
+    observed[3, 3] = False  # a hole in the roof, enclosed
+    kept = observed_faces(faces, observed, reach=2)
+    assert kept[3, 3] == 1
+    assert (kept[1:6, 6:8] == 1).all() and (kept[1:6, 8:] == 0).all()
+    assert (observed_faces(faces, observed, reach=0)[1:6, 6:] == 0).all()

@@ -30,6 +30,16 @@ def _positive_float(text: str) -> float:
     return v
 
 
+def _non_negative_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not v >= 0:
+        raise argparse.ArgumentTypeError(f"expected a non-negative number, got {text}")
+    return v
+
+
 def _omega(text: str) -> float | None:
     return None if text == "auto" else _positive_float(text)
 
@@ -249,6 +259,14 @@ def build_parser() -> argparse.ArgumentParser:
         "SCENE/truth in model.json",
     )
     q.add_argument(
+        "--edge-reach",
+        type=_non_negative_float,
+        default=None,
+        metavar="METRES",
+        help="unseen cells of a building this close to its seen cells stay in it (default: "
+        "1 for fused views, whose occlusions leave building edges unseen; 0 for clouds)",
+    )
+    q.add_argument(
         "--all-building",
         action="store_true",
         help="every cell with a height is building (clouds of single buildings, such as "
@@ -419,6 +437,7 @@ def cmd_model_superpixel(args) -> int:
         min_area_m2=args.min_area,
         simplify_m=args.simplify,
         all_building=args.all_building,
+        edge_reach_m=args.edge_reach,
         seed=args.seed,
     )
     record = run_superpixel(
