@@ -114,12 +114,10 @@ def run_superpixel(
                 sp_class == BUILDING, labels, grid.gsd, options.opening_m, options.min_area_m2
             )
             pts = superpixel_points(labels, dsm, grid)
-        adjacency = {(int(a), int(b)) for a, b in graph.edges} | {
-            (int(b), int(a)) for a, b in graph.edges
-        }
         neighbours: dict[int, list[int]] = {}
-        for a, b in adjacency:
+        for a, b in graph.edges.tolist():
             neighbours.setdefault(a, []).append(b)
+            neighbours.setdefault(b, []).append(a)
         models: list[tuple[str, BuildingModel]] = []
         prototype_raster = np.zeros(labels.shape, np.int32)
         hyp_s = proto_s = crf_s = mesh_s = 0.0
@@ -132,7 +130,7 @@ def run_superpixel(
             hyps = plane_hypotheses(members, pts, neighbours, options)
             t1 = time.perf_counter()
             if hyps:
-                protos = roof_prototypes(hyps, adjacency, options)
+                protos = roof_prototypes(hyps, neighbours, options)
             else:  # no plane anywhere: one flat roof at the median height
                 z = np.nanmedian(graph.height_median[members])
                 protos = np.array([[0.0, 0.0, 1.0, -z]]) if np.isfinite(z) else np.empty((0, 4))

@@ -14,9 +14,11 @@ def plane_heights(plane: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray
     return -(nx * x + ny * y + d) / nz
 
 
-def point_plane_distances(plane: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(N,) unsigned distances of ``points`` (N, 3) to ``plane`` (4,)."""
-    return np.abs(points @ plane[:3] + plane[3])
+def point_plane_distances(planes: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Unsigned distances of ``points`` (N, 3) to ``planes``: (N,) for one plane (4,),
+    (N, P) for several (P, 4)."""
+    planes = np.asarray(planes)
+    return np.abs(points @ planes[..., :3].T + planes[..., 3])
 
 
 def ransac_plane(

@@ -8,12 +8,14 @@ import numpy as np
 from sklearn.cluster import AffinityPropagation
 from sklearn.exceptions import ConvergenceWarning
 
+from .planes import point_plane_distances
+
 
 def hypothesis_similarity(
     planes: np.ndarray,
     points: list[np.ndarray],
     owner: np.ndarray,
-    adjacency: set[tuple[int, int]],
+    adjacency: dict[int, list[int]],
 ) -> np.ndarray:
     """Sparse similarity of plane hypotheses for affinity propagation.
 
@@ -29,17 +31,18 @@ def hypothesis_similarity(
         Points each hypothesis was fitted to.
     owner : (K,) int
         Super-pixel of each hypothesis.
-    adjacency : set of (a, b) super-pixel pairs, both orders.
+    adjacency : {super-pixel: adjacent super-pixels}
     """
     K = len(planes)
     S = np.full((K, K), np.nan)
     index = {int(o): k for k, o in enumerate(owner)}
     near = np.eye(K, dtype=bool)
-    for a, b in adjacency:
-        if a in index and b in index:
-            near[index[a], index[b]] = True
+    for a, i in index.items():
+        for b in adjacency.get(a, ()):
+            if b in index:
+                near[i, index[b]] = True
     for i in range(K):
-        d = np.abs(points[i] @ planes[:, :3].T + planes[:, 3])  # (N_i, K)
+        d = point_plane_distances(planes, points[i])  # (N_i, K)
         S[i, near[i]] = -d[:, near[i]].mean(axis=0)
     floor = np.nanmin(S) - 100.0 if np.isfinite(S).any() else -100.0
     return np.where(np.isnan(S), floor, S)

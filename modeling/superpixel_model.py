@@ -204,7 +204,7 @@ def plane_hypotheses(
 
 def roof_prototypes(
     hypotheses: dict[int, tuple[np.ndarray, np.ndarray]],
-    adjacency: set[tuple[int, int]],
+    adjacency: dict[int, list[int]],
     options: SuperpixelOptions,
 ) -> np.ndarray:
     """Cluster the hypotheses (from :func:`plane_hypotheses`) into prototypes by affinity
@@ -240,10 +240,8 @@ def label_prototypes(
     """
     unary = np.zeros((len(members), len(prototypes)))
     for row, i in enumerate(members):
-        p = pts.of(i)
-        if len(p):
-            d = np.stack([point_plane_distances(pl, p) for pl in prototypes], axis=1)
-            unary[row] = np.minimum(d, options.truncation_m).sum(axis=0)
+        d = point_plane_distances(prototypes, pts.of(i))  # (N_i, P)
+        unary[row] = np.minimum(d, options.truncation_m).sum(axis=0)
     index = np.full(graph.n, -1)
     index[members] = np.arange(len(members))
     e = graph.edges
@@ -321,8 +319,9 @@ def model_building(
     to its face's plane, walls go down to the ground, and the mesh is closed.
 
     Each 4-connected part of the building becomes one model (parts below
-    ``min_area_m2`` are dropped); a part whose simplified mesh is not closed is rebuilt
-    from its unsimplified cell outlines.
+    ``min_area_m2`` are dropped). A part whose simplified mesh is not closed is rebuilt
+    from its unsimplified cell outlines; if that is not closed either, its smallest face
+    gives way to a neighbour until it is (counted in ``faces_merged_for_closure``).
 
     Parameters
     ----------

@@ -107,7 +107,7 @@ def test_prototypes_group_hypotheses_of_one_plane():
         slope = 0.5 if k < 3 else -0.5
         pts.append(np.column_stack([x, y, slope * y + 3]))
         planes.append(_plane(0, slope, 3) + rng.normal(0, 1e-3, 4))
-    adjacency = {(a, b) for a in range(6) for b in range(6) if abs(a - b) == 1}
+    adjacency = {a: [b for b in range(6) if abs(a - b) == 1] for a in range(6)}
     S = hypothesis_similarity(np.array(planes), pts, np.arange(6), adjacency)
     exemplars, assignment = cluster_prototypes(S, -0.25)
     assert len(exemplars) == 2

@@ -269,11 +269,12 @@ def surface_metrics(run: Run, truth: Truth, options: EvaluationOptions) -> tuple
             min(options.max_samples, max(1000, triangle_areas(v, t).sum() * options.samples_per_m2))
         )
         samples.append(sample_surface(v, t, n, rng)[0])
-    d_model = unsigned_distance(raycasting_scene(*true), samples[0])
+    true_scene = raycasting_scene(*true)
+    d_model = unsigned_distance(true_scene, samples[0])
     d_true = unsigned_distance(raycasting_scene(*model), samples[1])
     out = metrics.surface_distances(samples[0], d_model, samples[1], d_true)
     centres = model[0][model[1]].mean(axis=1)
-    return out, unsigned_distance(raycasting_scene(*true), centres)
+    return out, unsigned_distance(true_scene, centres)
 
 
 def texture_costs(run: Run) -> dict:
