@@ -4,7 +4,8 @@ Each measurement runs in a fresh child process, so that its peak resident memory
 is its own (``os.wait4``). Medians over ``--repeat`` runs; this machine is noisy.
 
 Measured: sample generation (tiny, small), workbench compare, fusion of small, the
-super-pixel path on small, and the 50 AHN3 building clouds (benchmarks/ahn3.py).
+super-pixel and voxel paths on small (with the voxel paper's robustness experiment), and
+the 50 AHN3 building clouds (benchmarks/ahn3.py).
 
 Usage: python benchmarks/run.py [--presets tiny small] [--repeat 3] [--out bench_out]
 """
@@ -231,6 +232,109 @@ def print_superpixel(sp: dict) -> None:
     )
 
 
+VOXEL_CHILD = r"""
+import json, sys
+from pathlib import Path
+from modeling.cli_voxel import run_voxel
+from modeling.voxel_model import VoxelOptions
+from workbench.evaluate import evaluate
+from workbench.runs import load_run
+from workbench.truth import load_scene_truth
+scene, fusion, out = (Path(a) for a in sys.argv[1:4])
+r = run_voxel(scene, out, VoxelOptions(), fusion_dir=fusion, overwrite=True)
+truth = load_scene_truth(scene)
+ev = evaluate(load_run(out), truth)
+m = ev.metrics
+rows = [{k: b.get(k) for k in ("roof_type_true", "height_error_pct")} for b in ev.buildings]
+print(json.dumps({"stages": r["stages"], "counts": r["counts"], "texture": r["texture"],
+                  "seconds_per_building": r["seconds_per_building"], "ground": r["ground"],
+                  "rows": rows,
+                  "metrics": {k: m[k] for k in ("footprint_2d", "volume_3d", "height",
+                                                 "buildings", "complexity", "surface",
+                                                 "texture") if k in m}}))
+"""
+
+ROBUSTNESS_CHILD = r"""
+import json, sys
+from pathlib import Path
+from modeling.cli_voxel import build_proxies, read_inputs
+from modeling.voxel_model import VoxelOptions
+from modeling.voxel_robustness import robustness_experiment
+scene, fusion = Path(sys.argv[1]), Path(sys.argv[2])
+options = VoxelOptions()
+inputs = read_inputs(scene, options, fusion_dir=fusion)
+proxies = build_proxies(inputs, options)
+print(json.dumps(robustness_experiment(proxies, inputs.cameras, inputs.images, options)))
+"""
+
+
+def bench_voxel(scene: Path, fusion: Path, repeat: int, work: Path) -> dict:
+    runs = [
+        run_child(VOXEL_CHILD, str(scene), str(fusion), str(work / f"voxel_{i}"))
+        for i in range(repeat)
+    ]
+    res = runs[0][0]
+    stages = {
+        k: statistics.median(r[0]["stages"][k]["wall_s"] for r in runs) for k in res["stages"]
+    }
+    robust, _, _ = run_child(ROBUSTNESS_CHILD, str(scene), str(fusion))
+    return {
+        "repeat": repeat,
+        "stage_median_s": stages,
+        "s_per_building_median": statistics.median(r[0]["seconds_per_building"] for r in runs),
+        "process_wall_median_s": statistics.median(r[1] for r in runs),
+        "peak_memory_mib": max(r[2] for r in runs),
+        "counts": res["counts"],
+        "texture": res["texture"],
+        "ground": res["ground"],
+        "metrics": res["metrics"],
+        "height_error_pct_by_truth_roof": _by_roof(res["rows"]),
+        "robustness": robust,
+    }
+
+
+def _by_roof(rows: list[dict]) -> dict:
+    """Median |height error| per true roof type, from the per-building rows."""
+    groups: dict[str, list[float]] = {}
+    for row in rows:
+        if row.get("height_error_pct") is not None and row.get("roof_type_true"):
+            groups.setdefault(row["roof_type_true"], []).append(abs(row["height_error_pct"]))
+    return {k: {"median_abs_pct": statistics.median(v), "n": len(v)} for k, v in groups.items()}
+
+
+def print_voxel(v: dict) -> None:
+    print(f"\nworkbench model voxel on small (r = 1 m, S = 4), median of {v['repeat']}:")
+    for stage, sec in v["stage_median_s"].items():
+        print(f"  {stage:<18}{sec:>8.2f} s")
+    c, m, t = v["counts"], v["metrics"], v["texture"]
+    print(
+        f"  {v['s_per_building_median']:.2f} s per building ({c['buildings']} buildings); "
+        f"peak memory {v['peak_memory_mib']:.0f} MiB"
+    )
+    print(
+        f"  building height error median {m['buildings']['height_error_pct_median']:.1f} %; "
+        f"footprint 2D quality {m['footprint_2d']['quality']:.3f}; volume 3D quality "
+        f"{m['volume_3d']['quality']:.3f}; {c['watertight']} of {c['buildings']} watertight"
+    )
+    by = ", ".join(
+        f"{k} {g['median_abs_pct']:.1f} % (n={g['n']})"
+        for k, g in sorted(v["height_error_pct_by_truth_roof"].items())
+    )
+    print(f"  height error by true roof type: {by}")
+    print(
+        f"  seam cost: graph cut {t['seam_cost']:.2f}, projective {t['seam_cost_projective']:.2f}"
+        f" (ratio {t['seam_cost'] / t['seam_cost_projective']:.2f}); ground "
+        f"{v['ground']['seam_cost']:.2f} vs {v['ground']['seam_cost_projective']:.2f}"
+    )
+    rb = v["robustness"]
+    print(f"  robustness (Fig. 14), height noise +/- {rb['height_noise_m']:.1f} m:")
+    for name, case in rb["cases"].items():
+        print(
+            f"    {name:<12} graph cut {case['seam_cost']:.2f}, projective "
+            f"{case['seam_cost_projective']:.2f}, ratio {case['ratio']:.2f}"
+        )
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--presets", nargs="+", default=["tiny", "small"])
@@ -321,8 +425,14 @@ def main() -> int:
             sp = bench_superpixel(Path(tmp) / "fusion_0", scene, args.repeat, Path(tmp))
             results["superpixel_small"] = sp
             print_superpixel(sp)
+            vx = bench_voxel(scene, Path(tmp) / "fusion_0", args.repeat, Path(tmp))
+            results["voxel_small"] = vx
+            print_voxel(vx)
             c = bench_compare(
-                scene, [Path(tmp) / "fusion_0", Path(tmp) / "superpixel_0"], 1, Path(tmp)
+                scene,
+                [Path(tmp) / "fusion_0", Path(tmp) / "superpixel_0", Path(tmp) / "voxel_0"],
+                1,
+                Path(tmp),
             )
             results["compare_small_with_fusion"] = c
             print_compare(c)

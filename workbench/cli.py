@@ -44,6 +44,16 @@ def _omega(text: str) -> float | None:
     return None if text == "auto" else _positive_float(text)
 
 
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {value}")
+    return value
+
+
 def _non_negative_int(text: str) -> int:
     try:
         v = int(text)
@@ -276,6 +286,99 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     q.set_defaults(func=cmd_model_superpixel)
 
+    q = paths.add_parser(
+        "voxel",
+        help="photo-consistency voxel proxies from GIS footprints, graph-cut texture atlases",
+        description="The voxel path (Garcia-Dorado, Demir & Aliaga 2013) on a scene's images: "
+        "each footprint's over-estimated extrusion is voxelised, carved to the heights its "
+        "views agree on, clustered into roof levels and meshed; surface graph cuts stitch the "
+        "views into one texture atlas per building, and a ground cut with the proxies masked "
+        "out textures the ground. Writes buildings/<id>.obj|.mtl|.png|.ply, ground.obj, "
+        "scene.obj|.ply, model.json, preview.png.",
+    )
+    q.add_argument("scene", type=Path, metavar="SCENE", help="scene folder (scene.json)")
+    q.add_argument("-o", "--out", type=Path, required=True, metavar="OUT", help="output folder")
+    q.add_argument(
+        "--footprints",
+        type=Path,
+        metavar="FILE",
+        help="GeoJSON footprints with a height property (default: the scene's footprints)",
+    )
+    q.add_argument(
+        "--fusion",
+        type=Path,
+        metavar="FUSION_DIR",
+        help="a fusion run: its DTM is the ground, its building mask the footprints when "
+        "there are none (default: a flat ground plane)",
+    )
+    q.add_argument(
+        "--voxel",
+        type=_positive_float,
+        default=1.0,
+        metavar="METRES",
+        help="voxel size r (default 1)",
+    )
+    q.add_argument(
+        "--subdivisions",
+        type=_positive_int,
+        default=4,
+        metavar="S",
+        help="texels per voxel side on the surface graph (default 4)",
+    )
+    q.add_argument(
+        "--cluster-error",
+        type=_positive_float,
+        default=0.3,
+        metavar="CE",
+        help="k-means stops when one more cluster lowers the error by less than this (default 0.3)",
+    )
+    q.add_argument(
+        "--overlap",
+        type=_positive_float,
+        default=4.0,
+        metavar="METRES",
+        help="width of the band where a graph cut may move a seam (default 4)",
+    )
+    q.add_argument(
+        "--ring",
+        type=_positive_float,
+        default=4.0,
+        metavar="METRES",
+        help="width of the building-ground ring cut (default 4)",
+    )
+    q.add_argument(
+        "--grow",
+        type=_non_negative_float,
+        default=2.0,
+        metavar="METRES",
+        help="grow the GIS footprints by this much before voxelising (default 2)",
+    )
+    q.add_argument(
+        "--consistency",
+        choices=("lab", "hs"),
+        default="lab",
+        help="colour of the photo-consistency: CIE Lab (default, measured better on the "
+        "sample city) or the paper's HSL hue and saturation",
+    )
+    q.add_argument(
+        "--default-height",
+        type=_positive_float,
+        default=35.0,
+        metavar="METRES",
+        help="height of footprints without one (the paper's zonal default, 35)",
+    )
+    q.add_argument(
+        "--ground-z",
+        type=float,
+        default=None,
+        metavar="METRES",
+        help="height of the flat ground plane without --fusion or a scene DTM (default: "
+        "from the depth maps of the most downward-looking views)",
+    )
+    q.add_argument("--seed", type=_non_negative_int, default=0, help="random seed (default 0)")
+    q.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
+    q.set_defaults(func=cmd_model_voxel)
+
     p = sub.add_parser(
         "compare",
         help="score runs against the same truth: metrics.json and report.html",
@@ -313,8 +416,8 @@ def build_parser() -> argparse.ArgumentParser:
         "demo",
         help="run the main job on the tiny sample city",
         description="Generate the tiny sample city, fuse its views, model its buildings with "
-        "the super-pixel path (PLY and OBJ), score both runs against the truth with `compare` "
-        "and write the report. The voxel path joins this command when it lands.",
+        "the super-pixel path and with the voxel path (PLY and OBJ), score the three runs "
+        "against the truth with `compare` and write the report.",
     )
     p.add_argument("-o", "--out", type=Path, default=Path("demo_out"), help="output folder")
     p.add_argument("--seed", type=_non_negative_int, default=0, help="random seed (default 0)")
@@ -459,6 +562,50 @@ def cmd_model_superpixel(args) -> int:
     return 0
 
 
+def cmd_model_voxel(args) -> int:
+    from modeling.cli_voxel import run_voxel
+    from modeling.voxel_model import VoxelOptions
+
+    options = VoxelOptions(
+        voxel_m=args.voxel,
+        subdivisions=args.subdivisions,
+        cluster_error=args.cluster_error,
+        overlap_m=args.overlap,
+        ring_m=args.ring,
+        grow_m=args.grow,
+        consistency=args.consistency,
+        seed=args.seed,
+    )
+    record = run_voxel(
+        args.scene,
+        args.out,
+        options,
+        footprints=args.footprints,
+        fusion_dir=args.fusion,
+        ground_z=args.ground_z,
+        default_height=args.default_height,
+        overwrite=args.overwrite,
+    )
+    print(voxel_summary(record, args.out))
+    return 0
+
+
+def voxel_summary(record: dict, out: Path) -> str:
+    """Two lines on a voxel run: counts, time, seam costs."""
+    c, t = record["counts"], record["texture"]
+    seams = ""
+    if t.get("seam_cost") is not None:
+        seams = (
+            f"; seam cost {t['seam_cost']:.2f} (graph cut) vs "
+            f"{t['seam_cost_projective']:.2f} (projective)"
+        )
+    return (
+        f"wrote {out}: {c['buildings']} buildings of {c['footprints']} footprints "
+        f"({c['skipped']} skipped), {c['faces']} triangles, {c['watertight']} watertight, "
+        f"{record['seconds_per_building']:.2f} s per building{seams}"
+    )
+
+
 def cmd_compare(args) -> int:
     from .compare import check_truth_args, compare_runs, summary
     from .evaluate import EvaluationOptions
@@ -500,7 +647,9 @@ def cmd_demo(args) -> int:
     from data_samples.generate import generate_sample
     from fusion.cli_fusion import run_fusion
     from modeling.cli_superpixel import run_superpixel
+    from modeling.cli_voxel import run_voxel
     from modeling.superpixel_model import SuperpixelOptions
+    from modeling.voxel_model import VoxelOptions
 
     from .compare import compare_runs, summary
     from .scene import load_scene
@@ -512,7 +661,7 @@ def cmd_demo(args) -> int:
     if args.out.exists() and not args.overwrite and any(args.out.iterdir()):
         raise WorkbenchError(f"{args.out}: output exists (pass --overwrite to replace it)")
     args.out.mkdir(parents=True, exist_ok=True)
-    print(f"1/4 generating the tiny sample city (seed {args.seed}) ...", flush=True)
+    print(f"1/5 generating the tiny sample city (seed {args.seed}) ...", flush=True)
     meta = generate_sample(scene_dir, "tiny", args.seed, overwrite=True)
     scene = load_scene(scene_dir)
     c = meta["counts"]
@@ -524,7 +673,7 @@ def cmd_demo(args) -> int:
     print(
         f"    calibration error of the written poses: {meta['calibration_error_px_rms']:.2f} px RMS"
     )
-    print("2/4 fusing the views into ortho, DSM/DTM/nDSM and classes ...", flush=True)
+    print("2/5 fusing the views into ortho, DSM/DTM/nDSM and classes ...", flush=True)
     record = run_fusion(
         SimpleNamespace(
             scene=scene_dir,
@@ -547,7 +696,7 @@ def cmd_demo(args) -> int:
         f"{q['dsm_mean_fusion']['rmse_m']:.2f} m (median {q['dsm']['rmse_m']:.2f} m), ortho MAE "
         f"{q['ortho_mae_mean_fusion']['mean']:.1f} (median {q['ortho_mae']['mean']:.1f})"
     )
-    print("3/4 super-pixel modeling: Quickshift, class CRF, roof prototypes, LOD2 ...", flush=True)
+    print("3/5 super-pixel modeling: Quickshift, class CRF, roof prototypes, LOD2 ...", flush=True)
     superpixel_dir = args.out / "superpixel"
     sp = run_superpixel(
         fusion_dir, superpixel_dir, SuperpixelOptions(seed=args.seed), truth=scene_dir,
@@ -561,18 +710,26 @@ def cmd_demo(args) -> int:
         f"{t1['pixel']['overall_accuracy']:.3f}, super-pixel "
         f"{t1['superpixel']['overall_accuracy']:.3f}, CRF {t1['crf']['overall_accuracy']:.3f}"
     )
-    print("4/4 scoring the runs against the truth ...", flush=True)
+    print(
+        "4/5 voxel modeling: photo-consistency proxies, surface graph cut textures ...", flush=True
+    )
+    voxel_dir = args.out / "voxel"
+    vx = run_voxel(
+        scene_dir, voxel_dir, VoxelOptions(seed=args.seed), fusion_dir=fusion_dir, overwrite=True
+    )
+    print("    " + voxel_summary(vx, voxel_dir))
+    print("5/5 scoring the runs against the truth ...", flush=True)
     truth = load_scene_truth(scene_dir)
     doc = compare_runs(
-        [fusion_dir, superpixel_dir], truth, report_dir, names=["fusion", "superpixel"],
-        overwrite=True,
+        [fusion_dir, superpixel_dir, voxel_dir], truth, report_dir,
+        names=["fusion", "superpixel", "voxel"], overwrite=True,
     )  # fmt: skip
     print()
     print(summary(doc))
-    print("\n    the voxel path (workbench model voxel) joins this demo when it lands")
-    print(f"  models:         {superpixel_dir / 'scene.obj'}, {superpixel_dir / 'buildings'}/")
+    print(f"  models:         {superpixel_dir / 'scene.obj'}, {voxel_dir / 'scene.obj'} (textured)")
     print(f"  scene preview:  {scene_dir / 'preview.png'}")
     print(f"  fusion preview: {fusion_dir / 'preview.png'}")
+    print(f"  voxel preview:  {voxel_dir / 'preview.png'}")
     print(f"  report:         {report_dir / 'report.html'}")
     print(f"demo finished in {time.perf_counter() - t0:.1f} s")
     return 0

@@ -124,8 +124,9 @@ def write_obj(
     triangles: np.ndarray,
     *,
     vertex_colors: np.ndarray | None = None,
-    material: str | None = None,
+    material: str | list[tuple[str, int]] | None = None,
     mtllib: str | None = None,
+    uvs: np.ndarray | None = None,
 ) -> None:
     """Write a triangle mesh as Wavefront OBJ (world metres, millimetre precision).
 
@@ -136,8 +137,12 @@ def write_obj(
         Counter-clockwise seen from outside.
     vertex_colors : (V, 3) uint8, optional
         Written as the widely read ``v x y z r g b`` extension (0-1).
-    material, mtllib : str, optional
-        ``usemtl`` name and the ``.mtl`` file (relative to the OBJ) that defines it.
+    material : str or list of (str, int), optional
+        ``usemtl`` name of all triangles, or of consecutive runs of that many triangles.
+    mtllib : str, optional
+        The ``.mtl`` file (relative to the OBJ) that defines the materials.
+    uvs : (T, 3, 2) float, optional
+        Texture coordinates (u right, v up, 0-1) of every triangle corner.
     """
     lines = ["# city-workbench"]
     if mtllib:
@@ -150,18 +155,41 @@ def write_obj(
             f"v {x:.3f} {y:.3f} {z:.3f} {r:.3f} {g:.3f} {b:.3f}"
             for (x, y, z), (r, g, b) in zip(vertices, c, strict=True)
         ]
-    if material:
-        lines.append(f"usemtl {material}")
-    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in triangles]
+    if uvs is not None:
+        lines += [f"vt {u:.6f} {v:.6f}" for u, v in np.asarray(uvs).reshape(-1, 2)]
+    if uvs is None:
+        faces = [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in triangles]
+    else:
+        faces = [
+            f"f {a + 1}/{3 * i + 1} {b + 1}/{3 * i + 2} {c + 1}/{3 * i + 3}"
+            for i, (a, b, c) in enumerate(triangles)
+        ]
+    runs = (
+        [(material, len(faces))] if isinstance(material, str) else material or [(None, len(faces))]
+    )
+    start = 0
+    for name, count in runs:
+        if name:
+            lines.append(f"usemtl {name}")
+        lines += faces[start : start + count]
+        start += count
     with open(path, "w") as f:
         f.write("\n".join(lines) + "\n")
 
 
-def write_mtl(path: str | os.PathLike, materials: dict[str, tuple[int, int, int]]) -> None:
-    """Write an ``.mtl`` of plain diffuse colours ``{name: (r, g, b) 0-255}``."""
+def write_mtl(
+    path: str | os.PathLike,
+    materials: dict[str, tuple[int, int, int]],
+    textures: dict[str, str] | None = None,
+) -> None:
+    """Write an ``.mtl`` of plain diffuse colours ``{name: (r, g, b) 0-255}``; a name
+    in ``textures`` also gets that image (path relative to the .mtl) as ``map_Kd``."""
     lines = ["# city-workbench"]
     for name, rgb in materials.items():
         r, g, b = (v / 255.0 for v in rgb)
-        lines += [f"newmtl {name}", f"Kd {r:.3f} {g:.3f} {b:.3f}", "Ka 0 0 0", "Ks 0 0 0", ""]
+        lines += [f"newmtl {name}", f"Kd {r:.3f} {g:.3f} {b:.3f}", "Ka 0 0 0", "Ks 0 0 0"]
+        if textures and name in textures:
+            lines.append(f"map_Kd {textures[name]}")
+        lines.append("")
     with open(path, "w") as f:
         f.write("\n".join(lines))

@@ -51,12 +51,16 @@ class Hits:
         Hit points (NaN for a miss).
     normals : (N, 3) float64
         Unit face normals turned to face the ray origin.
+    bary : (N, 2) float64
+        Barycentric coordinates (u, v) of the hit in its triangle: the hit is
+        ``(1 - u - v) a + u b + v c`` for corners a, b, c.
     """
 
     t: np.ndarray
     tri: np.ndarray
     points: np.ndarray
     normals: np.ndarray
+    bary: np.ndarray
 
 
 def cast(scene: o3d.t.geometry.RaycastingScene, origins: np.ndarray, dirs: np.ndarray) -> Hits:
@@ -67,6 +71,7 @@ def cast(scene: o3d.t.geometry.RaycastingScene, origins: np.ndarray, dirs: np.nd
     t = np.empty(n, np.float64)
     tri = np.empty(n, np.int64)
     nrm = np.empty((n, 3), np.float64)
+    bary = np.empty((n, 2), np.float64)
     for s in range(0, n, _CHUNK):
         e = min(n, s + _CHUNK)
         rays = np.hstack([origins[s:e], dirs[s:e]]).astype(np.float32)
@@ -76,17 +81,22 @@ def cast(scene: o3d.t.geometry.RaycastingScene, origins: np.ndarray, dirs: np.nd
         ids[~np.isfinite(t[s:e])] = -1
         tri[s:e] = ids
         nrm[s:e] = ans["primitive_normals"].numpy()
+        bary[s:e] = ans["primitive_uvs"].numpy()
     hit = np.isfinite(t)
     points = np.where(hit[:, None], origins + dirs * np.where(hit, t, 0)[:, None], np.nan)
     flip = np.sum(nrm * dirs, axis=1) > 0
     nrm[flip] *= -1
-    return Hits(t, tri, points, nrm)
+    return Hits(t, tri, points, nrm, bary)
 
 
 def occluded(
-    scene: o3d.t.geometry.RaycastingScene, origins: np.ndarray, dirs: np.ndarray
+    scene: o3d.t.geometry.RaycastingScene,
+    origins: np.ndarray,
+    dirs: np.ndarray,
+    tfar: float = np.inf,
 ) -> np.ndarray:
-    """(N,) bool: each ray from ``origins`` along ``dirs`` hits something.
+    """(N,) bool: each ray from ``origins`` along ``dirs`` hits something before ``tfar``
+    (in units of the direction's length: 1 tests the segment to ``origins + dirs``).
 
     ``origins`` and ``dirs`` are (N, 3) or (3,) and broadcast against each other.
     """
@@ -99,7 +109,7 @@ def occluded(
     for s in range(0, n, _CHUNK):
         e = min(n, s + _CHUNK)
         rays = np.hstack([origins[s:e], dirs[s:e]]).astype(np.float32)
-        out[s:e] = scene.test_occlusions(o3d.core.Tensor(rays)).numpy()
+        out[s:e] = scene.test_occlusions(o3d.core.Tensor(rays), tfar=tfar).numpy()
     return out
 
 

@@ -1,0 +1,467 @@
+"""Surface graph cuts (the voxel paper, section 5.1-5.2).
+
+The visible surface of a proxy is covered with texels of size r / S (the S x S sub-faces
+of every voxel face); each texel is a vertex of the surface graph, joined to the texels
+next to it on its face and across face borders. Every vertex takes the view that faces
+it best; runs of vertices with the same view are patches; patches are stitched into the
+largest one by minimum cuts of the seam cost of eq. 5 (PyMaxflow), one patch at a time.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import sparse
+from scipy.sparse import csgraph
+from scipy.spatial import cKDTree
+
+from workbench.camera import Camera
+from workbench.raycast import occluded
+
+from .crf import binary_cut
+from .view_images import ViewImages, rgb_to_lab
+
+_INF = 1e9
+_MISSING = 100.0  # Lab units: a seam through a vertex one of the two views cannot see
+_MIN_COS = 0.1  # views grazing a face more than this are no use to texture it
+
+
+@dataclass
+class Chart:
+    """A planar, connected set of proxy triangles and its texel grid.
+
+    Attributes
+    ----------
+    triangles : (T,) int
+        Indices into the mesh's triangles.
+    origin : (3,) float
+        World point of texel corner (0, 0), metres.
+    u, v, normal : (3,) float
+        Unit axes of texel columns and rows, and the outward normal.
+    shape : (rows, cols)
+    visible : bool
+        False for floors (faces looking down), which get no texels in the graph.
+    """
+
+    triangles: np.ndarray
+    origin: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    normal: np.ndarray
+    shape: tuple[int, int]
+    visible: bool
+
+
+@dataclass
+class SurfaceGraph:
+    """Vertices (texels) and edges of a surface graph.
+
+    Attributes
+    ----------
+    positions, normals : (V, 3) float
+        Texel centres (world metres) and their faces' outward unit normals.
+    chart, row, col : (V,) int
+        Chart of each texel and its place in the chart's grid.
+    edges : (E, 2) int
+        Adjacent texel pairs (within 1.5 texels: a face's 8-neighbours and the texels
+        across a fold).
+    charts : list of Chart
+    texel_m : float
+    """
+
+    positions: np.ndarray
+    normals: np.ndarray
+    chart: np.ndarray
+    row: np.ndarray
+    col: np.ndarray
+    edges: np.ndarray
+    charts: list[Chart]
+    texel_m: float
+
+
+def mesh_charts(
+    vertices: np.ndarray, triangles: np.ndarray, texel_m: float, u_hint: np.ndarray | None = None
+) -> list[Chart]:
+    """Group a proxy's triangles into planar connected charts with texel grids.
+
+    Parameters
+    ----------
+    vertices : (V, 3), triangles : (T, 3)
+    texel_m : float
+        Texel size, metres.
+    u_hint : (3,), optional
+        Horizontal direction of texel columns on roofs (the voxel grid's x axis).
+    """
+    p = vertices[triangles]
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    offset = np.einsum("ij,ij->i", n, p[:, 0])
+    key = np.column_stack([np.round(n, 3), np.round(offset, 3)])
+    _, group = np.unique(key, axis=0, return_inverse=True)
+    group = group.ravel()
+    # triangles sharing an edge and a plane are one chart
+    t = len(triangles)
+    e = np.sort(
+        np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1
+    )
+    tri_of = np.tile(np.arange(t), 3)
+    order = np.lexsort((e[:, 1], e[:, 0]))
+    e, tri_of = e[order], tri_of[order]
+    same = np.all(e[1:] == e[:-1], axis=1)
+    a, b = tri_of[:-1][same], tri_of[1:][same]
+    keep = group[a] == group[b]
+    adj = sparse.coo_matrix((np.ones(keep.sum()), (a[keep], b[keep])), shape=(t, t))
+    _, comp = csgraph.connected_components(adj, directed=False)
+    up = np.array([0.0, 0.0, 1.0])
+    hint = np.array([1.0, 0.0, 0.0]) if u_hint is None else np.asarray(u_hint, float)
+    charts = []
+    for c in np.unique(comp):
+        tris = np.flatnonzero(comp == c)
+        normal = n[tris[0]]
+        if abs(normal[2]) > 0.9:
+            u = hint - normal * (hint @ normal)
+        else:
+            u = np.cross(up, normal)
+        u /= np.linalg.norm(u)
+        v = np.cross(normal, u)
+        pts = p[tris].reshape(-1, 3)
+        a_, b_ = pts @ u, pts @ v
+        a0 = np.floor(a_.min() / texel_m) * texel_m
+        b0 = np.floor(b_.min() / texel_m) * texel_m
+        cols = max(1, int(np.ceil((a_.max() - a0) / texel_m - 1e-9)))
+        rows = max(1, int(np.ceil((b_.max() - b0) / texel_m - 1e-9)))
+        origin = a0 * u + b0 * v + normal * offset[tris[0]]
+        charts.append(Chart(tris, origin, u, v, normal, (rows, cols), normal[2] > -0.9))
+    return charts
+
+
+def chart_mask(
+    chart: Chart, vertices: np.ndarray, triangles: np.ndarray, texel_m: float
+) -> np.ndarray:
+    """(rows, cols) bool: texels whose centre lies in the chart's triangles (at least one)."""
+    rows, cols = chart.shape
+    mask = np.zeros((rows, cols), np.uint8)
+    q = vertices[triangles[chart.triangles]] - chart.origin
+    x = q @ chart.u / texel_m - 0.5
+    y = q @ chart.v / texel_m - 0.5
+    pts = np.round(np.stack([x, y], axis=-1) * 16).astype(np.int32)
+    cv2.fillPoly(mask, list(pts), 1, lineType=cv2.LINE_8, shift=4)
+    if not mask.any():
+        centre = np.clip(np.round([y.mean(), x.mean()]).astype(int), 0, [rows - 1, cols - 1])
+        mask[centre[0], centre[1]] = 1
+    return mask.astype(bool)
+
+
+def surface_graph(
+    vertices: np.ndarray, triangles: np.ndarray, texel_m: float, u_hint: np.ndarray | None = None
+) -> SurfaceGraph:
+    """The surface graph of a proxy mesh (section 5.1) on texels of ``texel_m`` metres."""
+    charts = mesh_charts(vertices, triangles, texel_m, u_hint)
+    pos, nrm, ch, rr, cc = [], [], [], [], []
+    for i, chart in enumerate(charts):
+        if not chart.visible:
+            continue
+        r, c = np.nonzero(chart_mask(chart, vertices, triangles, texel_m))
+        pos.append(
+            chart.origin
+            + np.outer((c + 0.5) * texel_m, chart.u)
+            + np.outer((r + 0.5) * texel_m, chart.v)
+        )
+        nrm.append(np.broadcast_to(chart.normal, (len(r), 3)))
+        ch.append(np.full(len(r), i))
+        rr.append(r)
+        cc.append(c)
+    if not pos:
+        z = np.zeros(0, np.int64)
+        return SurfaceGraph(
+            np.zeros((0, 3)), np.zeros((0, 3)), z, z, z, np.zeros((0, 2), np.int64), charts, texel_m
+        )
+    positions = np.concatenate(pos)
+    edges = cKDTree(positions).query_pairs(1.5 * texel_m, output_type="ndarray").astype(np.int64)
+    return SurfaceGraph(
+        positions, np.concatenate(nrm), np.concatenate(ch), np.concatenate(rr),
+        np.concatenate(cc), edges.reshape(-1, 2), charts, texel_m,
+    )  # fmt: skip
+
+
+@dataclass
+class ViewSamples:
+    """What every view sees of every graph vertex.
+
+    Attributes
+    ----------
+    visible : (V, K) bool
+        The view faces the vertex, has it in frame and nothing hides it.
+    facing : (V, K) float
+        Cosine between the vertex normal and the direction to the view.
+    lab : (V, K, 3) float32
+        CIE Lab colour (valid where visible).
+    rgb : (V, K, 3) uint8
+    """
+
+    visible: np.ndarray
+    facing: np.ndarray
+    lab: np.ndarray
+    rgb: np.ndarray
+
+
+def view_samples(
+    positions: np.ndarray,
+    normals: np.ndarray,
+    cameras: list[Camera],
+    images: ViewImages,
+    occluders=None,
+    views: list[int] | None = None,
+) -> ViewSamples:
+    """Visibility (ray casting against ``occluders``) and colour of every vertex in every
+    view, or in ``views`` only: then column j of the arrays is view ``views[j]``.
+
+    Parameters
+    ----------
+    positions, normals : (V, 3)
+    occluders : RaycastingScene, optional
+        Every proxy of the scene.
+    """
+    views = list(range(len(cameras))) if views is None else list(views)
+    v, n_views = len(positions), len(views)
+    visible = np.zeros((v, n_views), bool)
+    facing = np.zeros((v, n_views), np.float32)
+    lab = np.zeros((v, n_views, 3), np.float32)
+    rgb = np.zeros((v, n_views, 3), np.uint8)
+    lifted = positions + 0.05 * normals
+    for j, k in enumerate(views):
+        cam = cameras[k]
+        to_cam = cam.center - positions
+        dist = np.linalg.norm(to_cam, axis=1)
+        cos = np.einsum("ij,ij->i", to_cam, normals) / np.maximum(dist, 1e-9)
+        sel = np.flatnonzero(cos > _MIN_COS)
+        uv, depth = cam.project(positions[sel])
+        inside = (
+            (depth > 0)
+            & (uv[:, 0] >= 0)
+            & (uv[:, 1] >= 0)
+            & (uv[:, 0] <= cam.width - 1)
+            & (uv[:, 1] <= cam.height - 1)
+        )
+        sel, uv = sel[inside], uv[inside]
+        if occluders is not None and len(sel):
+            hidden = occluded(occluders, lifted[sel], cam.center - lifted[sel], tfar=1.0)
+            sel, uv = sel[~hidden], uv[~hidden]
+        if not len(sel):
+            continue
+        colours = images.rgb_samples(k, uv)
+        visible[sel, j] = True
+        facing[sel, j] = cos[sel]
+        rgb[sel, j] = np.clip(np.round(colours), 0, 255).astype(np.uint8)
+        lab[sel, j] = rgb_to_lab(colours)
+    return ViewSamples(visible, facing, lab, rgb)
+
+
+def best_views(
+    positions: np.ndarray, normals: np.ndarray, centres: np.ndarray, samples: ViewSamples
+) -> np.ndarray:
+    """k_a: among the views that see each vertex, the one maximising (g_k - q_a) . n_a
+    with g_k - q_a normalised (section 5.2). -1 where no view sees the vertex.
+
+    Normalised, because our cameras fly at one height: the plain dot product would tie
+    every view for every roof texel.
+
+    ``centres`` (K, 3) are the projection centres of the views of ``samples``' columns.
+    """
+    d = np.asarray(centres)[None, :, :] - positions[:, None, :]
+    d /= np.linalg.norm(d, axis=2, keepdims=True)
+    score = np.einsum("vkc,vc->vk", d, normals)
+    score = np.where(samples.visible, score, -np.inf)
+    best = np.argmax(score, axis=1)
+    best[~samples.visible.any(axis=1)] = -1
+    return best
+
+
+def patches(edges: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """(V,) patch id of every vertex: connected runs of one view (-1 where unlabelled)."""
+    v = len(labels)
+    same = (labels[edges[:, 0]] == labels[edges[:, 1]]) & (labels[edges[:, 0]] >= 0)
+    e = edges[same]
+    adj = sparse.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(v, v))
+    _, comp = csgraph.connected_components(adj, directed=False)
+    comp[labels < 0] = -1
+    return comp
+
+
+def seam_costs(
+    edges: np.ndarray, src: np.ndarray, dst: np.ndarray, samples: ViewSamples
+) -> np.ndarray:
+    """C(s, t) of eq. 5 for each edge (s, t) between views ``src`` and ``dst`` (each (E,)):
+    ||P1(s) - P2(s)|| + ||P1(t) - P2(t)|| in CIE Lab. A term a view cannot see costs
+    ``_MISSING``."""
+    total = np.zeros(len(edges))
+    for end in (0, 1):
+        x = edges[:, end]
+        ok = samples.visible[x, src] & samples.visible[x, dst]
+        d = np.linalg.norm(samples.lab[x, src] - samples.lab[x, dst], axis=1)
+        total += np.where(ok, d, _MISSING)
+    return total
+
+
+def seam_cost(edges: np.ndarray, labels: np.ndarray, samples: ViewSamples) -> tuple[float, int]:
+    """The texture's seam cost: mean over the edges whose two vertices take different
+    views of the mean Lab difference of those two views at the two vertices (eq. 5
+    halved), over the views that see them. Returns (cost, number of seam edges); the
+    cost is 0 without seams."""
+    a, b = labels[edges[:, 0]], labels[edges[:, 1]]
+    seam = (a != b) & (a >= 0) & (b >= 0)
+    if not seam.any():
+        return 0.0, 0
+    e = edges[seam]
+    src, dst = a[seam], b[seam]
+    diffs, counts = np.zeros(len(e)), np.zeros(len(e))
+    for end in (0, 1):
+        x = e[:, end]
+        ok = samples.visible[x, src] & samples.visible[x, dst]
+        diffs += np.where(ok, np.linalg.norm(samples.lab[x, src] - samples.lab[x, dst], axis=1), 0)
+        counts += ok
+    per_edge = np.where(counts > 0, diffs / np.maximum(counts, 1), np.nan)
+    return float(np.nanmean(per_edge)) if np.isfinite(per_edge).any() else float("nan"), int(
+        seam.sum()
+    )
+
+
+@dataclass
+class Stitching:
+    """Result of :func:`stitch_patches`.
+
+    Attributes
+    ----------
+    labels : (V,) int
+        View of every vertex after the cuts (-1 unseen).
+    patches_before, patches_after : int
+    cuts : int
+        Minimum cuts run.
+    """
+
+    labels: np.ndarray
+    patches_before: int
+    patches_after: int
+    cuts: int
+
+
+def stitch_patches(
+    graph_edges: np.ndarray,
+    positions: np.ndarray,
+    labels: np.ndarray,
+    samples: ViewSamples,
+    overlap_m: float,
+    min_patch: int = 16,
+) -> Stitching:
+    """Greedy surface graph cuts (section 5.2).
+
+    Starting from the largest patch, the largest patch next to the stitched vertices is
+    added, one at a time: stitched vertices within ``overlap_m`` of it that its view also
+    sees form the band where the seam may go; the other stitched vertices are tied to
+    the source, the new patch's to the sink, edges weigh C(s, t) of eq. 5 between each
+    vertex's current view and the new one, and a minimum cut decides which band vertices
+    change view.
+
+    Parameters
+    ----------
+    graph_edges : (E, 2) int
+    positions : (V, 3) float
+    labels : (V,) int
+        Initial view per vertex (-1 unseen).
+    samples : ViewSamples
+    overlap_m : float
+        Band width, metres.
+    min_patch : int
+        A patch smaller than this (vertices) takes the view most of its stitched
+        neighbours have, without a cut, when that view sees all of it.
+    """
+    initial, labels = labels, labels.copy()
+    patch = patches(graph_edges, labels)
+    _, patch = np.unique(patch, return_inverse=True)  # -1 first, then 0..n-1
+    patch = patch.ravel() - (1 if (labels < 0).any() else 0)
+    n_patch = int(patch.max()) + 1 if len(patch) else 0
+    sizes = np.bincount(patch[patch >= 0], minlength=n_patch)
+    done = np.zeros(len(labels), bool)
+    remaining = sizes > 0
+    cuts = 0
+    a, b = graph_edges[:, 0], graph_edges[:, 1]
+    while remaining.any():
+        touching = np.zeros(n_patch, bool)
+        front = done[a] & (patch[b] >= 0)
+        touching[patch[b][front]] = True
+        front = done[b] & (patch[a] >= 0)
+        touching[patch[a][front]] = True
+        candidates = remaining & touching
+        if not candidates.any():  # a new part of the surface: start from its largest patch
+            p = int(np.argmax(np.where(remaining, sizes, -1)))
+            done |= patch == p
+            remaining[p] = False
+            continue
+        p = int(np.argmax(np.where(candidates, sizes, -1)))
+        remaining[p] = False
+        members = patch == p
+        if sizes[p] < min_patch and _absorb(graph_edges, labels, done, members, samples):
+            done |= members
+            continue
+        k = int(labels[members][0])
+        lo = positions[members].min(axis=0) - overlap_m
+        hi = positions[members].max(axis=0) + overlap_m
+        close = np.flatnonzero(done & np.all((positions >= lo) & (positions <= hi), axis=1))
+        near = cKDTree(positions[members]).query(positions[close], distance_upper_bound=overlap_m)[
+            0
+        ]
+        band = np.zeros(len(labels), bool)
+        band[close[np.isfinite(near)]] = True
+        band &= samples.visible[:, k]
+        labels, changed = _cut(graph_edges, labels, done, members, band, k, samples)
+        cuts += 1
+        done |= members
+        patch[changed] = p
+    return Stitching(
+        labels, _count(patches(graph_edges, initial)), _count(patches(graph_edges, labels)), cuts
+    )
+
+
+def _count(patch: np.ndarray) -> int:
+    return int(len(np.unique(patch[patch >= 0])))
+
+
+def _absorb(edges, labels, done, members, samples) -> bool:
+    """Give a small patch its stitched neighbours' most common view, if it sees the patch."""
+    a, b = edges[:, 0], edges[:, 1]
+    outer = np.concatenate([labels[b[members[a] & done[b]]], labels[a[members[b] & done[a]]]])
+    if not len(outer):
+        return False
+    k = int(np.bincount(outer).argmax())
+    if not samples.visible[members, k].all():
+        return False
+    labels[members] = k
+    return True
+
+
+def _cut(edges, labels, done, members, band, k, samples):
+    """One min cut: band vertices keep their view (source side) or take view ``k`` (sink
+    side); other stitched vertices keep theirs, the new patch's take ``k``."""
+    nodes = np.flatnonzero(band | members)
+    # stitched vertices next to the band keep the seam honest at its edge
+    a, b = edges[:, 0], edges[:, 1]
+    rim = np.zeros(len(labels), bool)
+    rim[a[band[b] & done[a] & ~band[a]]] = True
+    rim[b[band[a] & done[b] & ~band[b]]] = True
+    nodes = np.union1d(nodes, np.flatnonzero(rim))
+    index = np.full(len(labels), -1)
+    index[nodes] = np.arange(len(nodes))
+    e = edges[(index[a] >= 0) & (index[b] >= 0)]
+    e = e[(band | members)[e[:, 0]] | (band | members)[e[:, 1]]]
+    src = np.where(done[e[:, 0]], labels[e[:, 0]], labels[e[:, 1]])  # the stitched end's view
+    weights = seam_costs(e, src, np.full(len(e), k), samples)
+    unary = np.zeros((len(nodes), 2))
+    unary[:, 1] = np.where(done[nodes] & ~band[nodes], _INF, 0.0)  # tied to the source
+    unary[:, 0] = np.where(members[nodes], _INF, 0.0)  # tied to the sink
+    side = binary_cut(unary, index[e], weights, 1.0)
+    changed = nodes[(side == 1) & band[nodes]]
+    labels = labels.copy()
+    labels[changed] = k
+    return labels, changed

@@ -1,0 +1,393 @@
+"""The voxel path per building: proxy (section 4), then surface graph cuts (section 5).
+
+Plain functions over the scene's cameras and images; the CLI layer
+(:mod:`modeling.cli_voxel`) reads the inputs and writes the run.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+from shapely.geometry import Polygon
+
+from workbench.camera import Camera
+from workbench.records import peak_memory_mb
+
+from .surface_graph import (
+    Stitching,
+    SurfaceGraph,
+    ViewSamples,
+    best_views,
+    seam_cost,
+    stitch_patches,
+    surface_graph,
+    view_samples,
+)
+from .texture_atlas import atlas
+from .view_images import ViewImages
+from .voxel_proxy import (
+    VoxelFrame,
+    cluster_heights,
+    column_minimum,
+    consensus_levels,
+    consistent_band,
+    ellipsoid_normals,
+    filter_levels,
+    height_weighted_variance,
+    occupancy,
+    proxy_mesh,
+    surface_normals,
+    variance_outliers,
+    voxel_variance,
+    voxelise,
+)
+
+
+@dataclass
+class VoxelOptions:
+    """Parameters of the voxel path (defaults from the paper where it gives them).
+
+    Attributes
+    ----------
+    voxel_m : float
+        Voxel size r, metres.
+    subdivisions : int
+        S: each voxel face carries S x S graph vertices (texels).
+    cluster_error : float
+        c_e of the height clustering.
+    overlap_m : float
+        Width of the band in which a patch may be cut into the stitched ones, metres.
+    ring_m : float
+        Width of the building-ground ring, metres.
+    grow_m : float
+        The GIS footprint is grown by this much before voxelising, metres.
+    height_weight : float
+        How much eq. 3 favours higher voxels (0 not at all).
+    outlier_sigma : float
+        Columns whose minimum variance lies this many standard deviations above the mean
+        are discarded.
+    min_height_m : float
+        Roof levels lower than this above the ground are ground.
+    normal_sigma : float
+        sigma_n of eq. 4, voxels.
+    simplify_m : float or None
+        Outline simplification of the proxy mesh, metres (default a quarter voxel).
+    seed : int
+    """
+
+    voxel_m: float = 1.0
+    subdivisions: int = 4
+    cluster_error: float = 0.3
+    overlap_m: float = 4.0
+    ring_m: float = 4.0
+    grow_m: float = 2.0
+    height_weight: float = 0.0
+    outlier_sigma: float = 2.0
+    min_height_m: float = 2.0
+    normal_sigma: float = 1.0
+    simplify_m: float | None = None
+    footprint_scale: float = 1.0
+    band_tolerance: float = 0.1
+    consistency: str = "lab"
+    keep_views: float = 1.0
+    min_view_fraction: float = 0.3
+    ground_gsd_m: float = 0.5
+    seed: int = 0
+
+
+@dataclass
+class Proxy:
+    """The volumetric proxy of one building.
+
+    Attributes
+    ----------
+    id : str
+    frame : VoxelFrame
+    columns : (nx, ny) bool
+        Columns of the grown footprint.
+    variance : (nx, ny, nz) float
+        m_i of eq. 3 (NaN outside the columns or where unseen).
+    min_height : (nx, ny) float
+        Height of each column's most consistent voxel above the ground, metres (NaN
+        outside or discarded).
+    clustered : (nx, ny) float
+        The same snapped to the cluster means (NaN for ground or discarded columns).
+    levels : (nx, ny) int
+        Filtered roof levels (0 empty); level l stands at ``level_heights[l - 1]``.
+    level_heights : (K,) float
+        Roof heights above ``frame.base_z``, metres.
+    exterior, normals : (nx, ny, nz) bool, (nx, ny, nz, 3) float
+        Exterior voxels and their eq. 4 normals (local axes).
+    vertices, triangles : mesh of the proxy, world metres
+    outline : Polygon or None
+    record : dict
+        What model.json says about it.
+    """
+
+    id: str
+    frame: VoxelFrame
+    columns: np.ndarray
+    variance: np.ndarray
+    min_height: np.ndarray
+    clustered: np.ndarray
+    levels: np.ndarray
+    level_heights: np.ndarray
+    exterior: np.ndarray
+    normals: np.ndarray
+    vertices: np.ndarray
+    triangles: np.ndarray
+    outline: Polygon | None
+    record: dict = field(default_factory=dict)
+
+    @property
+    def empty(self) -> bool:
+        return len(self.triangles) == 0
+
+    def exterior_voxels_world(self) -> tuple[np.ndarray, np.ndarray]:
+        """World centres (N, 3) and world unit normals (N, 3) of the exterior voxels."""
+        i, j, k = np.nonzero(self.exterior)
+        f = self.frame
+        local = np.column_stack([f.x0 + (i + 0.5) * f.r, f.y0 + (j + 0.5) * f.r])
+        centres = np.column_stack([f.to_world_xy(local), f.base_z + k * f.r])
+        n = self.normals[i, j, k]
+        world = np.column_stack([n[:, :2] @ f.axes, n[:, 2]])
+        return centres, world
+
+
+def building_proxy(
+    building_id: str,
+    footprint: Polygon,
+    height: float,
+    base_z: float,
+    cameras: list[Camera],
+    images: ViewImages,
+    options: VoxelOptions,
+    occluders=None,
+) -> Proxy:
+    """Section 4 for one building: voxels, photo-consistency, height clusters, mesh.
+
+    Parameters
+    ----------
+    footprint : Polygon
+        GIS footprint, world metres.
+    height : float
+        Over-estimated height above ``base_z``, metres.
+    base_z : float
+        Ground height under the building, metres.
+    occluders : RaycastingScene, optional
+        Initial proxies of the neighbouring buildings.
+    """
+    times = {}
+    t0 = time.perf_counter()
+    r = options.voxel_m
+    frame, columns = voxelise(footprint, height, base_z, r, options.grow_m)
+    nx, ny, nz = frame.shape
+    centres = frame.voxel_centres(columns)
+    normals = ellipsoid_normals(frame, columns)
+    times["voxelise"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    pc = voxel_variance(
+        centres.reshape(-1, 3),
+        normals.reshape(-1, 3),
+        r,
+        cameras,
+        images,
+        occluders,
+        options.footprint_scale,
+        options.keep_views,
+    )
+    # a variance from a few views is small by chance: voxels high above the building,
+    # which most views frame out, would win every column
+    enough = pc.views >= max(
+        3,
+        options.min_view_fraction * np.median(pc.views[pc.views > 0])
+        if (pc.views > 0).any()
+        else 3,
+    )
+    m = height_weighted_variance(
+        np.where(enough, pc.variance, np.nan).reshape(-1, nz),
+        np.arange(nz),
+        nz,
+        options.height_weight,
+    )
+    times["variance"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    layer, value = column_minimum(m)
+    discarded = variance_outliers(value, options.outlier_sigma)
+    lo, hi = consistent_band(m, layer, options.band_tolerance)
+    heights = (lo + hi) / 2.0 * r  # the middle of the consistent run: steadier than the minimum
+    variance = np.full((nx, ny, nz), np.nan)
+    variance[columns] = m
+    min_height = np.full((nx, ny), np.nan)
+    min_height[columns] = np.where(discarded, np.nan, layer * r)
+    clustered = np.full((nx, ny), np.nan)
+    levels = np.zeros((nx, ny), np.int64)
+    level_heights = np.zeros(0)
+    kept = np.flatnonzero(~discarded)
+    n_clusters = 0
+    if len(kept):
+        labels, _ = cluster_heights(heights[kept], options.cluster_error, seed=options.seed)
+        n_clusters = int(labels.max()) + 1
+        labels, layers = consensus_levels(lo[kept], hi[kept], labels, n_clusters, nz)
+        means = layers * r
+        roof = means >= options.min_height_m
+        rank = np.cumsum(roof) * roof  # 0 for ground levels, 1.. for roofs
+        level_heights = means[roof]
+        col_levels = np.zeros(len(heights), np.int64)
+        col_levels[kept] = rank[labels]
+        snapped = np.full(len(heights), np.nan)
+        snapped[kept] = np.where(roof[labels], means[labels], np.nan)
+        levels[columns] = col_levels
+        clustered[columns] = snapped
+        levels = filter_levels(levels, columns)
+    times["clustering"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    occ = occupancy(levels, level_heights, r, nz)
+    exterior, surf_normals = surface_normals(occ, options.normal_sigma)
+    tolerance = options.simplify_m if options.simplify_m is not None else r / 4
+    vertices, triangles, outline = proxy_mesh(frame, levels, level_heights, tolerance)
+    times["mesh"] = time.perf_counter() - t0
+
+    used = np.unique(levels[levels > 0])
+    record = {
+        "id": building_id,
+        "gis_height_m": round(float(height), 3),
+        "base_z": round(float(base_z), 3),
+        "roof_heights_m": [round(float(level_heights[u - 1]), 3) for u in used],
+        "height_clusters": n_clusters,
+        "voxels": int(columns.sum() * nz),
+        "voxel_grid": [nx, ny, nz],
+        "columns": int(columns.sum()),
+        "columns_discarded": int(discarded.sum()),
+        "proxy_columns": int((levels > 0).sum()),
+        "occluded_samples": pc.occluded_samples,
+        "faces": int(len(triangles)),
+        "times_s": {k: round(v, 3) for k, v in times.items()},
+        "peak_memory_mb": round(peak_memory_mb(), 1),
+    }
+    return Proxy(
+        building_id, frame, columns, variance, min_height, clustered, levels, level_heights,
+        exterior, surf_normals, vertices, triangles, outline, record,
+    )  # fmt: skip
+
+
+@dataclass
+class Texture:
+    """The surface graph cut texture of one building (section 5.2).
+
+    Attributes
+    ----------
+    graph : SurfaceGraph
+    samples : ViewSamples
+    projective : (V,) int
+        Each vertex's best view: naive projective texture mapping.
+    stitched : Stitching
+        After the graph cuts.
+    image : (H, W, 3) uint8
+        The atlas.
+    uvs : (T, 3, 2) float
+        Texture coordinates of the proxy's triangle corners.
+    record : dict
+    """
+
+    graph: SurfaceGraph
+    samples: ViewSamples
+    projective: np.ndarray
+    stitched: Stitching
+    image: np.ndarray
+    uvs: np.ndarray
+    record: dict
+
+    def colours(self, labels: np.ndarray | None = None) -> np.ndarray:
+        """(V, 3) uint8 texel colours under ``labels`` (default: the stitched views)."""
+        labels = self.stitched.labels if labels is None else labels
+        out = np.full((len(labels), 3), 128, np.uint8)
+        seen = labels >= 0
+        out[seen] = self.samples.rgb[np.flatnonzero(seen), labels[seen]]
+        return out
+
+
+def texture_building(
+    proxy: Proxy,
+    cameras: list[Camera],
+    images: ViewImages,
+    options: VoxelOptions,
+    occluders=None,
+    vertices: np.ndarray | None = None,
+    triangles: np.ndarray | None = None,
+) -> Texture:
+    """Surface graph, best views, greedy graph-cut stitching and atlas of one proxy
+    (or of ``vertices``/``triangles`` standing in for its mesh, e.g. a perturbed one).
+
+    Parameters
+    ----------
+    occluders : RaycastingScene, optional
+        All proxies of the scene, for visibility.
+    """
+    t0 = time.perf_counter()
+    V = proxy.vertices if vertices is None else vertices
+    T = proxy.triangles if triangles is None else triangles
+    texel = options.voxel_m / options.subdivisions
+    u_hint = np.array([*proxy.frame.axes[0], 0.0])
+    graph = surface_graph(V, T, texel, u_hint)
+    t_graph = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    samples = view_samples(graph.positions, graph.normals, cameras, images, occluders)
+    smooth = _voxel_normals_at(proxy, graph.positions, graph.normals)
+    projective = best_views(graph.positions, smooth, [c.center for c in cameras], samples)
+    t_views = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    stitched = stitch_patches(graph.edges, graph.positions, projective, samples, options.overlap_m)
+    t_cut = time.perf_counter() - t0
+    cost_cut, seams_cut = seam_cost(graph.edges, stitched.labels, samples)
+    cost_proj, seams_proj = seam_cost(graph.edges, projective, samples)
+
+    t0 = time.perf_counter()
+    tex = Texture(
+        graph, samples, projective, stitched, np.zeros((1, 1, 3), np.uint8), np.zeros((0, 3, 2)), {}
+    )
+    tex.image, tex.uvs = atlas(graph, tex.colours(), V, T)
+    t_atlas = time.perf_counter() - t0
+    used = np.unique(stitched.labels[stitched.labels >= 0])
+    tex.record = {
+        "graph_vertices": int(len(graph.positions)),
+        "graph_edges": int(len(graph.edges)),
+        "charts": len(graph.charts),
+        "unseen_vertices": int((projective < 0).sum()),
+        "patches_before": stitched.patches_before,
+        "patches_after": stitched.patches_after,
+        "cuts": stitched.cuts,
+        "views_used": int(len(used)),
+        "seam_cost": round(cost_cut, 4),
+        "seam_cost_projective": round(cost_proj, 4),
+        "seam_edges": seams_cut,
+        "seam_edges_projective": seams_proj,
+        "atlas_px": [int(tex.image.shape[1]), int(tex.image.shape[0])],
+        "times_s": {
+            "surface_graph": round(t_graph, 3),
+            "visibility": round(t_views, 3),
+            "graph_cuts": round(t_cut, 3),
+            "atlas": round(t_atlas, 3),
+        },
+    }
+    return tex
+
+
+def _voxel_normals_at(proxy: Proxy, positions: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """n_a: the eq. 4 normal of the exterior voxel nearest each graph vertex."""
+    centres, normals = proxy.exterior_voxels_world()
+    if not len(centres) or not len(positions):
+        return fallback
+    _, nearest = cKDTree(centres).query(positions)
+    n = normals[nearest]
+    bad = np.linalg.norm(n, axis=1) < 0.5
+    n[bad] = fallback[bad]
+    return n

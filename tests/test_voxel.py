@@ -1,0 +1,371 @@
+"""The voxel path: hand-computed cases for each step, then the command on the tiny city."""
+
+import json
+
+import numpy as np
+import open3d as o3d
+import pytest
+from shapely.geometry import Polygon, box
+
+from data_samples.truth_run import truth_fusion_run
+from modeling.surface_graph import (
+    ViewSamples,
+    patches,
+    seam_cost,
+    stitch_patches,
+    surface_graph,
+)
+from modeling.texture_atlas import atlas, pack_charts
+from modeling.view_images import footprint_sigma, hs_chroma
+from modeling.voxel_model import Proxy
+from modeling.voxel_proxy import (
+    VoxelFrame,
+    cluster_heights,
+    column_minimum,
+    consensus_levels,
+    consistent_band,
+    dominant_axes,
+    ellipsoid_normals,
+    filter_levels,
+    occupancy,
+    proxy_mesh,
+    sample_variance,
+    surface_normals,
+    variance_outliers,
+    voxelise,
+)
+from modeling.voxel_robustness import perturbed_mesh
+from workbench.meshes import is_watertight
+from workbench.meshio import write_obj
+
+from .conftest import run_cli
+
+
+def _volume(v, t):
+    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6)
+
+
+def test_footprint_sigma_is_opencvs_rule():
+    # OpenCV: sigma = 0.3 ((ksize - 1) / 2 - 1) + 0.8 for ksize = 2 s + 1
+    assert footprint_sigma(1) == pytest.approx(0.8)
+    assert footprint_sigma(3) == pytest.approx(1.4)
+
+
+def test_hs_chroma_drops_lightness_and_wraps_hue():
+    rgb = np.array([[[255, 0, 0], [128, 0, 0], [128, 128, 128], [255, 0, 8]]], np.uint8)
+    c = hs_chroma(rgb)[0]
+    np.testing.assert_allclose(c[0], [1, 0], atol=1e-6)  # pure red: S = 1, H = 0
+    np.testing.assert_allclose(c[1], c[0], atol=1e-6)  # darker red: same H and S
+    np.testing.assert_allclose(c[2], [0, 0], atol=1e-6)  # grey: no chroma
+    assert np.linalg.norm(c[3] - c[0]) < 0.05  # hue 358 degrees is next to 0
+
+
+def test_voxelise_aligns_with_the_footprint_and_grows_it():
+    angle = np.radians(30)
+    R = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    corners = np.array([[0, 0], [10, 0], [10, 6], [0, 6]]) @ R.T + [100, 200]
+    poly = Polygon(corners)
+    np.testing.assert_allclose(np.abs(dominant_axes(poly)[0]), np.abs(R[:, 0]), atol=1e-9)
+    frame, columns = voxelise(poly, 12.0, 5.0, 1.0, grow=0.0)
+    assert columns.sum() == 60  # 10 x 6 columns, centres inside
+    assert frame.shape[2] == 13  # layers 0..12 m above the ground
+    np.testing.assert_allclose(frame.layer_z()[[0, -1]], [5.0, 17.0])
+    _, grown = voxelise(poly, 12.0, 5.0, 1.0, grow=1.0)
+    assert grown.sum() == 12 * 8
+
+
+def test_ellipsoid_normals_point_up_on_top_and_out_at_the_sides():
+    frame = VoxelFrame(np.zeros(2), np.eye(2), 0.0, 0.0, 1.0, (10, 10, 10), 0.0)
+    columns = np.ones((10, 10), bool)
+    n = ellipsoid_normals(frame, columns).reshape(10, 10, 10, 3)
+    # voxel (4, 4, 9): x = y = -0.5, z = 9.5 around the floor centre; a = b = 5 sqrt(2), c = 10
+    expected = np.array([2 * -0.5 / 50, 2 * -0.5 / 50, 2 * 9.5 / 100])
+    np.testing.assert_allclose(n[4, 4, 9], expected / np.linalg.norm(expected))
+    assert n[0, 4, 0, 0] < -0.95  # west side, at the bottom: west
+    np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1.0)
+
+
+def test_sample_variance_by_hand():
+    s = np.full((2, 4, 1), np.nan, np.float32)
+    s[0, :3, 0] = [1.0, 2.0, 3.0]  # variance 2/3
+    s[1, :1, 0] = [5.0]  # one view: unknown
+    var, views = sample_variance(s)
+    np.testing.assert_allclose(var[0], 2 / 3, rtol=1e-6)
+    assert np.isnan(var[1]) and views.tolist() == [3, 1]
+    s2 = np.full((1, 5, 1), np.nan, np.float32)
+    s2[0, :, 0] = [1.0, 1.2, 0.8, 1.0, 9.0]  # a tree hides the voxel in one view
+    trimmed, _ = sample_variance(s2, keep=0.8)
+    np.testing.assert_allclose(trimmed[0], (0.04 + 0.04 + 0 + 0) / 4, rtol=1e-5)
+
+
+def test_column_minimum_band_and_outliers():
+    m = np.array(
+        [
+            [9.0, 5.0, 1.0, 1.05, 1.1, 7.0, 9.0],  # run 2-4 around the minimum at 2
+            [np.nan] * 7,
+            [0.5, 6.0, 6.0, 6.0, 6.0, 6.0, 6.0],  # ground
+        ]
+    )
+    layer, value = column_minimum(m)
+    assert layer.tolist() == [2, -1, 0]
+    assert np.isnan(value[1])
+    lo, hi = consistent_band(m, layer, tolerance=0.1)
+    assert (lo[0], hi[0]) == (2, 4) and (lo[2], hi[2]) == (0, 0)
+    out = variance_outliers(np.array([1.0, 1.1, 0.9, 1.0, 1.05, 0.95, 1.0, 1.0, 1.0, 50.0]))
+    assert out.tolist() == [False] * 9 + [True]
+
+
+def test_cluster_heights_raises_k_while_it_pays():
+    heights = np.r_[np.full(20, 3.0), np.full(20, 10.0), np.full(10, 10.4)]
+    labels, centres = cluster_heights(heights, cluster_error=0.3)
+    # error at k = 1: 611.7; k = 2 leaves 1.07 (the 0.4 m split); 2 -> 3 saves 1.07 < 0.3 x 611.7
+    assert len(centres) == 2
+    np.testing.assert_allclose(centres, [3.0, 10 + 0.4 / 3], atol=1e-6)
+    assert (labels[:20] == 0).all() and (labels[20:] == 1).all()
+    _, one = cluster_heights(np.full(10, 7.0))
+    assert one.tolist() == [7.0]
+
+
+def test_consensus_levels_take_the_layer_all_runs_share():
+    # a uniform roof at layer 5: interior runs are long, edge runs short
+    lo = np.array([5, 3, 2, 4, 0])
+    hi = np.array([5, 8, 9, 6, 0])
+    labels = np.array([0, 0, 0, 0, 1])
+    out, levels = consensus_levels(lo, hi, labels, 2, 10)
+    np.testing.assert_allclose(levels, [0.0, 5.0])
+    assert out.tolist() == [1, 1, 1, 1, 0]
+
+
+def test_filter_levels_closes_gaps_drops_islands_keeps_one_part():
+    levels = np.zeros((9, 9), int)
+    levels[1:6, 1:6] = 1
+    levels[3, 3] = 0  # a hole
+    levels[8, 8] = 1  # an island, and a part of its own
+    levels[2:5, 2:5][levels[2:5, 2:5] > 0] = 2
+    out = filter_levels(levels, np.ones((9, 9), bool))
+    assert out[3, 3] == 2  # the hole takes its neighbours' level
+    assert out[8, 8] == 0
+    assert (out[1:6, 1:6] > 0).all() and out[6:, :].sum() == 0
+
+
+def test_proxy_mesh_is_closed_with_the_volume_of_its_levels():
+    frame = VoxelFrame(
+        np.array([50.0, 20.0]), dominant_axes(box(0, 0, 2, 1)), 0.0, 0.0, 1.0, (8, 6, 12), 3.0
+    )
+    levels = np.zeros((8, 6), int)
+    levels[1:7, 1:5] = 1  # 24 columns at 4 m
+    levels[2:4, 2:4] = 2  # 4 of them at 9.5 m
+    v, t, outline = proxy_mesh(frame, levels, np.array([4.0, 9.5]), 0.0)
+    assert is_watertight(v, t)
+    assert _volume(v, t) == pytest.approx(20 * 4.0 + 4 * 9.5)
+    assert outline.area == pytest.approx(24.0)
+    assert v[:, 2].min() == pytest.approx(3.0) and v[:, 2].max() == pytest.approx(12.5)
+    assert len(t) < 60  # coplanar voxel faces merged, not 2 triangles per voxel face
+
+
+def test_surface_normals_of_a_box():
+    occ = occupancy(np.pad(np.ones((5, 5), int), 2), np.array([3.0]), 1.0, 6)
+    exterior, n = surface_normals(occ, sigma_n=0.7)
+    assert exterior[4, 4, 3] and not exterior[4, 4, 2]  # top layer is the surface
+    np.testing.assert_allclose(n[4, 4, 3], [0, 0, 1], atol=1e-6)
+    assert n[2, 4, 1, 0] < -0.9  # the west wall looks west
+
+
+def _two_view_strip(n=12):
+    """A strip of n texels seen by two views; they agree only on texels 4-7."""
+    positions = np.column_stack([np.arange(n) * 0.25, np.zeros(n), np.zeros(n)])
+    edges = np.column_stack([np.arange(n - 1), np.arange(1, n)])
+    lab = np.zeros((n, 2, 3), np.float32)
+    lab[:, 0, 0] = 50.0
+    lab[:, 1, 0] = 50.0 + np.where((np.arange(n) >= 4) & (np.arange(n) <= 7), 0.0, 20.0)
+    samples = ViewSamples(
+        np.ones((n, 2), bool), np.ones((n, 2), np.float32), lab, np.zeros((n, 2, 3), np.uint8)
+    )
+    return positions, edges, samples
+
+
+def test_seam_cost_by_hand():
+    _, edges, samples = _two_view_strip()
+    labels = np.array([0] * 10 + [1] * 2)  # seam between texels 9 and 10: 20 Lab apart
+    assert seam_cost(edges, labels, samples) == (20.0, 1)
+    labels = np.array([0] * 6 + [1] * 6)  # seam inside the agreeing run
+    assert seam_cost(edges, labels, samples) == (0.0, 1)
+    assert seam_cost(edges, np.zeros(12, int), samples) == (0.0, 0)
+
+
+def test_stitching_moves_the_seam_to_where_the_views_agree():
+    positions, edges, samples = _two_view_strip()
+    labels = np.array([0] * 10 + [1] * 2)  # view 1's patch is small: stitched second
+    out = stitch_patches(edges, positions, labels, samples, overlap_m=2.0, min_patch=1)
+    assert seam_cost(edges, out.labels, samples)[0] == 0.0
+    seam = np.flatnonzero(out.labels[:-1] != out.labels[1:])
+    assert len(seam) == 1 and 4 <= seam[0] <= 6
+    assert patches(edges, out.labels).max() == 1
+
+
+def test_surface_graph_and_atlas_on_a_box(tmp_path):
+    frame = VoxelFrame(np.zeros(2), np.eye(2), 0.0, 0.0, 1.0, (4, 4, 4), 0.0)
+    levels = np.zeros((4, 4), int)
+    levels[1:3, 1:3] = 1
+    v, t, _ = proxy_mesh(frame, levels, np.array([2.0]), 0.0)  # a 2 x 2 x 2 m box
+    g = surface_graph(v, t, 0.5, np.array([1.0, 0, 0]))
+    assert len(g.positions) == 5 * 16  # 4 walls and a roof of 4 x 4 texels; no floor
+    roof = g.normals[:, 2] > 0.9
+    np.testing.assert_allclose(g.positions[roof, 2], 2.0)
+    # texels across the roof edge are joined: every roof edge texel has a wall neighbour
+    wall = ~roof
+    cross = roof[g.edges[:, 0]] != roof[g.edges[:, 1]]
+    assert cross.sum() >= 4 * 4 and wall.sum() == 64
+    colours = np.zeros((len(g.positions), 3), np.uint8)
+    colours[roof] = (200, 10, 10)
+    colours[wall] = (10, 10, 200)
+    image, uvs = atlas(g, colours, v, t)
+    # the centre of every roof triangle maps to a red texel, of every wall triangle to blue
+    h, w = image.shape[:2]
+    centre_uv = uvs.mean(axis=1)
+    px = image[((1 - centre_uv[:, 1]) * h).astype(int), (centre_uv[:, 0] * w).astype(int)]
+    n = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    assert (px[n[:, 2] > 0.5] == (200, 10, 10)).all()
+    assert (px[np.abs(n[:, 2]) < 0.5] == (10, 10, 200)).all()
+    write_obj(tmp_path / "box.obj", v, t, uvs=uvs, material="m", mtllib="box.mtl")
+    mesh = o3d.io.read_triangle_mesh(str(tmp_path / "box.obj"))
+    assert len(mesh.triangle_uvs) == 3 * len(t)
+
+
+def test_pack_charts_do_not_overlap():
+    shapes = [(5, 7), (3, 3), (10, 2), (1, 1), (4, 9)]
+    offsets, (h, w) = pack_charts(shapes)
+    canvas = np.zeros((h, w), int)
+    for (r, c), (sh, sw) in zip(offsets, shapes, strict=True):
+        canvas[r : r + sh, c : c + sw] += 1
+    assert canvas.max() == 1 and canvas.sum() == sum(a * b for a, b in shapes)
+
+
+def test_perturbed_proxy_grows_and_shrinks():
+    frame = VoxelFrame(np.zeros(2), np.eye(2), 0.0, 0.0, 1.0, (10, 10, 20), 0.0)
+    levels = np.zeros((10, 10), int)
+    levels[2:8, 2:8] = 1
+    proxy = Proxy(
+        "1",
+        frame,
+        levels > 0,
+        None,
+        None,
+        None,
+        levels,
+        np.array([10.0]),
+        None,
+        None,
+        None,
+        None,
+        None,
+    )
+    rng = np.random.default_rng(0)
+    for scale in (1.1, 0.9):
+        v, t = perturbed_mesh(proxy, scale, 2.0, rng)
+        assert is_watertight(v, t)
+        area = _volume(v, t) / v[:, 2].max()
+        assert area == pytest.approx(36 * scale**2)
+        assert 8.0 <= v[:, 2].max() <= 12.0
+
+
+@pytest.fixture(scope="module")
+def voxel_run(tiny_scene, tmp_path_factory):
+    root = tmp_path_factory.mktemp("voxel")
+    fusion = truth_fusion_run(tiny_scene, root / "fusion")
+    out = root / "model"
+    proc = run_cli("model", "voxel", tiny_scene, "-o", out, "--fusion", fusion)
+    assert proc.returncode == 0, proc.stderr
+    report = root / "report"
+    proc = run_cli("compare", out, "--truth", tiny_scene, "-o", report)
+    assert proc.returncode == 0, proc.stderr
+    metrics = json.loads((report / "metrics.json").read_text())["runs"]["model"]
+    return out, json.loads((out / "model.json").read_text()), metrics
+
+
+def test_voxel_run_writes_closed_textured_models(voxel_run):
+    out, record, metrics = voxel_run
+    assert record["counts"]["buildings"] >= 5
+    for b in record["buildings"]:
+        bid = b["id"]
+        for suffix in (".obj", ".mtl", ".png", ".ply"):
+            assert (out / "buildings" / f"{bid}{suffix}").exists()
+        mesh = o3d.io.read_triangle_mesh(str(out / "buildings" / f"{bid}.obj"), True)
+        assert mesh.has_triangle_uvs() and mesh.has_textures()
+        assert b["watertight"]
+        assert b["patches_after"] <= b["patches_before"] + 2
+    for name in ("ground.obj", "ground.png", "scene.obj", "scene.ply", "preview.png"):
+        assert (out / name).exists()
+    assert metrics["complexity"]["watertight_fraction"] == 1.0
+
+
+def test_voxel_proxies_beat_the_gis_heights(voxel_run, tiny_scene):
+    """The proxies must be much closer to the true heights than the over-estimated GIS
+    heights they start from."""
+    _, record, metrics = voxel_run
+    truth = json.loads((tiny_scene / "truth" / "buildings.json").read_text())["buildings"]
+    gis_err, proxy_err = [], []
+    for b in record["buildings"]:
+        gis = Polygon(b["gis_footprint"]["coordinates"][0])
+        t = max(truth, key=lambda t: gis.intersection(Polygon(t["footprint"][0])).area)
+        true_h = t["ridge_z"] - t["base_z"]
+        gis_err.append(abs(b["gis_height_m"] - true_h) / true_h)
+        proxy_err.append(abs(max(b["roof_heights_m"]) - true_h) / true_h)
+    assert np.median(proxy_err) < 0.6 * np.median(gis_err)
+    objects = metrics["footprint_2d"]["objects"]
+    assert objects["found"] >= objects["truth_buildings"] - 1  # tiny's 20 views miss some walls
+
+
+def test_graph_cuts_lower_the_seam_cost(voxel_run):
+    _, record, metrics = voxel_run
+    t = metrics["texture"]
+    assert t["seam_cost"] < t["seam_cost_projective"]
+    lower = [b["seam_cost"] <= b["seam_cost_projective"] for b in record["buildings"]]
+    assert sum(lower) >= len(lower) - 1
+
+
+def test_bad_footprints_are_skipped_or_refused(tiny_scene, tmp_path):
+    fusion = truth_fusion_run(tiny_scene, tmp_path / "fusion")
+    doc = json.loads((tiny_scene / "footprints_gis.geojson").read_text())
+    keep = doc["features"][:1]
+    bowtie = {
+        "type": "Feature",
+        "id": "bowtie",
+        "properties": {"height": 10},
+        "geometry": {"type": "Polygon", "coordinates": [[[0, 0], [6, 6], [6, 0], [0, 3], [0, 0]]]},
+    }
+    far = {
+        "type": "Feature",
+        "id": "far",
+        "properties": {"height": 10},
+        "geometry": {
+            "type": "Polygon",
+            "coordinates": [[[5000, 5000], [5010, 5000], [5010, 5010], [5000, 5000]]],
+        },
+    }
+    path = tmp_path / "fp.geojson"
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": keep + [bowtie, far]}))
+    out = tmp_path / "model"
+    proc = run_cli(
+        "model", "voxel", tiny_scene, "-o", out, "--fusion", fusion, "--footprints", path
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "bowtie: self-intersecting" in proc.stderr and "far: outside the images" in proc.stderr
+    record = json.loads((out / "model.json").read_text())
+    assert record["counts"]["skipped"] == 2 and record["counts"]["buildings"] == 1
+    path.write_text("{ not json")
+    proc = run_cli(
+        "model",
+        "voxel",
+        tiny_scene,
+        "-o",
+        tmp_path / "bad",
+        "--footprints",
+        path,
+        "--fusion",
+        fusion,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0 and "fp.geojson" in proc.stderr
+    assert not (tmp_path / "bad").exists()
