@@ -246,9 +246,21 @@ truth = load_scene_truth(scene)
 ev = evaluate(load_run(out), truth)
 m = ev.metrics
 rows = [{k: b.get(k) for k in ("roof_type_true", "height_error_pct")} for b in ev.buildings]
+# the input as a model: the GIS footprints extruded to their over-estimated heights
+from modeling.cli_voxel import _prism, read_inputs
+from workbench.meshio import write_ply
+inputs = read_inputs(scene, VoxelOptions(), fusion_dir=fusion)
+gis = out.parent / (out.name + "_gis")
+(gis / "buildings").mkdir(parents=True, exist_ok=True)
+for f, base, h in inputs.buildings:
+    write_ply(gis / "buildings" / f"{f.id}.ply", *_prism(f.polygon, base, h))
+(gis / "model.json").write_text(json.dumps({"method": "gis", "buildings": [
+    {"id": f.id} for f, _, _ in inputs.buildings]}))
+g = evaluate(load_run(gis), truth).metrics
+gis_metrics = {"footprint_2d": g["footprint_2d"], "buildings": g["buildings"]}
 print(json.dumps({"stages": r["stages"], "counts": r["counts"], "texture": r["texture"],
                   "seconds_per_building": r["seconds_per_building"], "ground": r["ground"],
-                  "rows": rows,
+                  "rows": rows, "gis": gis_metrics,
                   "metrics": {k: m[k] for k in ("footprint_2d", "volume_3d", "height",
                                                  "buildings", "complexity", "surface",
                                                  "texture") if k in m}}))
@@ -289,6 +301,7 @@ def bench_voxel(scene: Path, fusion: Path, repeat: int, work: Path) -> dict:
         "ground": res["ground"],
         "metrics": res["metrics"],
         "height_error_pct_by_truth_roof": _by_roof(res["rows"]),
+        "gis_input": res["gis"],
         "robustness": robust,
     }
 
@@ -315,6 +328,12 @@ def print_voxel(v: dict) -> None:
         f"  building height error median {m['buildings']['height_error_pct_median']:.1f} %; "
         f"footprint 2D quality {m['footprint_2d']['quality']:.3f}; volume 3D quality "
         f"{m['volume_3d']['quality']:.3f}; {c['watertight']} of {c['buildings']} watertight"
+    )
+    g = v["gis_input"]
+    print(
+        f"  the GIS input extruded: height error median "
+        f"{g['buildings']['height_error_pct_median']:.1f} %, footprint 2D quality "
+        f"{g['footprint_2d']['quality']:.3f}"
     )
     by = ", ".join(
         f"{k} {g['median_abs_pct']:.1f} % (n={g['n']})"

@@ -203,7 +203,10 @@ def ring_cut(
     weights = seam_costs(e, np.zeros(len(e), int), np.ones(len(e), int), both)
     d = dist[ring]
     unary = np.zeros((len(rows), 2))
-    unary[:, 1] = np.where(d <= 1.5 * gsd, _INF, 0.0)  # next to the wall: building side
+    # the first row joins the footprint (the source): a seam right at the wall costs what
+    # the two colourings differ there, as any other edge of the graph
+    step = np.linalg.norm(both.lab[:, 0] - both.lab[:, 1], axis=1)
+    unary[:, 1] = np.where(d <= 1.5 * gsd, np.where(seen, 2 * step, 0.0), 0.0)
     unary[:, 0] = np.where((d > ring_m - 1.5 * gsd) | ~seen, _INF, 0.0)  # outer edge: ground
     side = binary_cut(unary, e, weights, 1.0)
     take = side == 0

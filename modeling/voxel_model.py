@@ -83,7 +83,7 @@ class VoxelOptions:
     cluster_error: float = 0.3
     overlap_m: float = 4.0
     ring_m: float = 4.0
-    grow_m: float = 2.0
+    grow_m: float = 1.5
     height_weight: float = 0.0
     outlier_sigma: float = 2.0
     min_height_m: float = 2.0
@@ -92,7 +92,7 @@ class VoxelOptions:
     footprint_scale: float = 1.0
     band_tolerance: float = 0.1
     consistency: str = "lab"
-    keep_views: float = 1.0
+    keep_views: float = 0.75
     min_view_fraction: float = 0.3
     ground_gsd_m: float = 0.5
     seed: int = 0
@@ -231,7 +231,15 @@ def building_proxy(
     kept = np.flatnonzero(~discarded)
     n_clusters = 0
     if len(kept):
-        labels, _ = cluster_heights(heights[kept], options.cluster_error, seed=options.seed)
+        # the ground is one group; k-means sorts the roofs (c_e then weighs roof levels
+        # against each other, not against the ground's far larger step)
+        on_roof = heights[kept] >= options.min_height_m
+        labels = np.zeros(len(kept), np.int64)
+        if on_roof.any():
+            roof_labels, _ = cluster_heights(
+                heights[kept][on_roof], options.cluster_error, seed=options.seed
+            )
+            labels[on_roof] = roof_labels + 1
         n_clusters = int(labels.max()) + 1
         labels, layers = consensus_levels(lo[kept], hi[kept], labels, n_clusters, nz)
         means = layers * r

@@ -349,9 +349,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument(
         "--grow",
         type=_non_negative_float,
-        default=2.0,
+        default=1.5,
         metavar="METRES",
-        help="grow the GIS footprints by this much before voxelising (default 2)",
+        help="grow the GIS footprints by this much before voxelising (default 1.5)",
     )
     q.add_argument(
         "--consistency",
