@@ -96,14 +96,18 @@ print(json.dumps({"read_s": time.perf_counter() - t, "values": n}))
 """
 
 
+def stage_medians(runs: list[tuple[dict, float, float]]) -> dict:
+    """Median wall time of every stage over child runs that report ``stages``."""
+    first = runs[0][0]["stages"]
+    return {k: statistics.median(r[0]["stages"][k]["wall_s"] for r in runs) for k in first}
+
+
 def bench_fusion(scene: Path, repeat: int, work: Path) -> dict:
     runs = [run_child(FUSION_CHILD, str(scene), str(work / f"fusion_{i}")) for i in range(repeat)]
     reads = [run_child(READ_CHILD, str(scene))[0]["read_s"] for _ in range(3)]
     res = runs[0][0]
     walls = [sum(st["wall_s"] for st in r[0]["stages"].values()) for r in runs]
-    stages = {
-        k: statistics.median(r[0]["stages"][k]["wall_s"] for r in runs) for k in res["stages"]
-    }
+    stages = stage_medians(runs)
     return {
         "repeat": repeat,
         "stage_median_s": stages,
@@ -192,9 +196,7 @@ def bench_superpixel(fusion: Path, scene: Path, repeat: int, work: Path) -> dict
         for i in range(repeat)
     ]
     res = runs[0][0]
-    stages = {
-        k: statistics.median(r[0]["stages"][k]["wall_s"] for r in runs) for k in res["stages"]
-    }
+    stages = stage_medians(runs)
     total = statistics.median(sum(s["wall_s"] for s in r[0]["stages"].values()) for r in runs)
     mpx = res["grid"]["width"] * res["grid"]["height"] / 1e6
     return {
@@ -286,9 +288,7 @@ def bench_voxel(scene: Path, fusion: Path, repeat: int, work: Path) -> dict:
         for i in range(repeat)
     ]
     res = runs[0][0]
-    stages = {
-        k: statistics.median(r[0]["stages"][k]["wall_s"] for r in runs) for k in res["stages"]
-    }
+    stages = stage_medians(runs)
     robust, _, _ = run_child(ROBUSTNESS_CHILD, str(scene), str(fusion))
     return {
         "repeat": repeat,

@@ -294,7 +294,7 @@ class Texture:
     graph : SurfaceGraph
     samples : ViewSamples
     projective : (V,) int
-        Each vertex's best view: naive projective texture mapping.
+        Naive projective texture mapping: every voxel face from its best view.
     stitched : Stitching
         After the graph cuts.
     image : (H, W, 3) uint8
@@ -349,11 +349,12 @@ def texture_building(
     t0 = time.perf_counter()
     samples = view_samples(graph.positions, graph.normals, cameras, images, occluders)
     smooth = _voxel_normals_at(proxy, graph.positions, graph.normals)
-    projective = best_views(graph.positions, smooth, [c.center for c in cameras], samples)
+    best = best_views(graph.positions, smooth, [c.center for c in cameras], samples)
+    projective = face_views(voxel_faces(proxy.frame, graph), best, samples)
     t_views = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    stitched = stitch_patches(graph.edges, graph.positions, projective, samples, options.overlap_m)
+    stitched = stitch_patches(graph.edges, graph.positions, best, samples, options.overlap_m)
     t_cut = time.perf_counter() - t0
     cost_cut, seams_cut = seam_cost(graph.edges, stitched.labels, samples)
     cost_proj, seams_proj = seam_cost(graph.edges, projective, samples)
@@ -387,6 +388,38 @@ def texture_building(
         },
     }
     return tex
+
+
+def voxel_faces(frame: VoxelFrame, graph: SurfaceGraph) -> np.ndarray:
+    """(V,) id of the voxel face each texel lies on (its chart and its voxel cell on it)."""
+    if not len(graph.positions):
+        return np.zeros(0, np.int64)
+    local = frame.to_local_xy(graph.positions[:, :2])
+    cell = np.floor((local - [frame.x0, frame.y0]) / frame.r).astype(np.int64)
+    layer = np.floor((graph.positions[:, 2] - frame.base_z) / frame.r).astype(np.int64)
+    roof = np.abs(graph.normals[:, 2]) > 0.9
+    n_local = graph.normals[:, :2] @ frame.axes.T
+    along = np.where(np.abs(n_local[:, 0]) > np.abs(n_local[:, 1]), cell[:, 1], cell[:, 0])
+    key = np.column_stack(
+        [graph.chart, np.where(roof, cell[:, 0], along), np.where(roof, cell[:, 1], layer)]
+    )
+    return np.unique(key, axis=0, return_inverse=True)[1].ravel()
+
+
+def face_views(faces: np.ndarray, best: np.ndarray, samples: ViewSamples) -> np.ndarray:
+    """Projective texture mapping: each voxel face takes the view most of its texels
+    rate best, where that view sees them (elsewhere a texel keeps its own best view)."""
+    out = best.copy()
+    seen = best >= 0
+    if not seen.any():
+        return out
+    k = samples.visible.shape[1]
+    votes = np.zeros((faces.max() + 1, k), np.int64)
+    np.add.at(votes, (faces[seen], best[seen]), 1)
+    choice = votes.argmax(axis=1)[faces]
+    ok = seen & samples.visible[np.arange(len(best)), choice]
+    out[ok] = choice[ok]
+    return out
 
 
 def _voxel_normals_at(proxy: Proxy, positions: np.ndarray, fallback: np.ndarray) -> np.ndarray:
