@@ -58,13 +58,7 @@ def run_voxel(
             inputs = read_inputs(
                 scene_dir, options, footprints, fusion_dir, ground_z, default_height
             )
-            scene, cameras, images, ground = (
-                inputs.scene,
-                inputs.cameras,
-                inputs.images,
-                inputs.ground,
-            )
-            skipped = inputs.skipped
+            cameras, images = inputs.cameras, inputs.images
         with timer.stage("proxies"):
             proxies = build_proxies(inputs, options)
             images.release_blurred()
@@ -78,8 +72,8 @@ def run_voxel(
         with timer.stage("ground"):
             gtex = None
             if proxies:
-                grid = _ground_grid(scene, proxies, options.ground_gsd_m)
-                gz = ground(grid)
+                grid = _ground_grid(inputs.scene, proxies, options.ground_gsd_m)
+                gz = inputs.ground(grid)
                 gtex = ground_cut(grid, gz, cameras, images, scene_rc, options.overlap_m)
                 rings = [
                     ring_cut(
@@ -96,11 +90,11 @@ def run_voxel(
                 "scene": str(Path(scene_dir).resolve()),
                 "footprints": inputs.footprint_source,
                 "fusion": str(Path(fusion_dir).resolve()) if fusion_dir else None,
-                "ground_model": ground.source,
-                "skipped": skipped,
+                "ground_model": inputs.ground.source,
+                "skipped": inputs.skipped,
             }
         )
-        record["counts"]["skipped"] = len(skipped)
+        record["counts"]["skipped"] = len(inputs.skipped)
         record["counts"]["footprints"] = inputs.footprint_count
         record["stages"] = timer.stages
         n = max(len(proxies), 1)

@@ -1,8 +1,9 @@
-"""The aerial images of a scene as the voxel path samples them: HSL chroma for
-photo-consistency (the voxel paper, eq. 2-3) and CIE Lab for seam costs (eq. 5).
+"""The aerial images of a scene as the voxel path samples them: colours for
+photo-consistency (HSL hue and saturation as the paper, or CIE Lab; eq. 2-3) and CIE Lab
+for seam costs (eq. 5).
 
-Images are read once and kept; Gaussian-blurred chroma images are made on demand, one
-per (view, window half-width), and kept while they fit in a memory budget.
+Images are read once and kept; Gaussian-blurred photo-consistency images are made on
+demand, one per (view, window half-width), and kept while they fit in a memory budget.
 """
 
 from __future__ import annotations
@@ -79,10 +80,12 @@ class ViewImages:
     ----------
     views : list of View
     budget_mb : float
-        Memory for blurred chroma images; the least recently used go first.
+        Memory for blurred images; the least recently used go first.
+    features : {"lab", "hs"}
+        Colours of the photo-consistency: CIE Lab / 100, or HSL's S (cos H, sin H).
     """
 
-    def __init__(self, views: list[View], budget_mb: float = 512.0, features: str = "hs"):
+    def __init__(self, views: list[View], budget_mb: float = 512.0, features: str = "lab"):
         self.views = views
         self._features = CONSISTENCY_FEATURES[features]
         self._rgb: dict[int, np.ndarray] = {}
@@ -96,8 +99,9 @@ class ViewImages:
             self._rgb[k] = self.views[k].read_image()
         return self._rgb[k]
 
-    def chroma(self, k: int, half_width: int) -> np.ndarray:
-        """(H, W, 2) chroma of view ``k`` averaged over the Gaussian window of eq. 2."""
+    def consistency_image(self, k: int, half_width: int) -> np.ndarray:
+        """(H, W, C) photo-consistency colours of view ``k`` averaged over the Gaussian
+        window of eq. 2 of half-width ``half_width`` pixels."""
         key = (k, half_width)
         if key in self._blurred:
             self._blurred.move_to_end(key)
@@ -118,13 +122,13 @@ class ViewImages:
         self._blurred.clear()
         self._bytes = 0
 
-    def chroma_samples(self, k: int, uv: np.ndarray, half_width: np.ndarray) -> np.ndarray:
-        """Gaussian-weighted chroma c_ik of eq. 2 at ``uv`` (N, 2), window half-widths
-        (N,) int pixels -> (N, 2) float32."""
+    def consistency_samples(self, k: int, uv: np.ndarray, half_width: np.ndarray) -> np.ndarray:
+        """Gaussian-weighted colours c_ik of eq. 2 at ``uv`` (N, 2), window half-widths
+        (N,) int pixels -> (N, C) float32."""
         out = None
         for s in np.unique(half_width):
             sel = half_width == s
-            samples = bilinear(self.chroma(k, int(s)), uv[sel])
+            samples = bilinear(self.consistency_image(k, int(s)), uv[sel])
             if out is None:
                 out = np.empty((len(uv), samples.shape[1]), np.float32)
             out[sel] = samples

@@ -75,6 +75,20 @@ class VoxelOptions:
         sigma_n of eq. 4, voxels.
     simplify_m : float or None
         Outline simplification of the proxy mesh, metres (default a quarter voxel).
+    footprint_scale : float
+        Scales the eq. 2 window (1: half the voxel's projected size).
+    band_tolerance : float
+        How far above a column's minimum a voxel still counts as consistent, as a fraction
+        of the spread up to the column's median (:func:`consistent_band`).
+    consistency : {"lab", "hs"}
+        Colours of the photo-consistency: CIE Lab, or the paper's HSL hue and saturation.
+    keep_views : float
+        Fraction of a voxel's samples its variance keeps (those nearest its median).
+    min_view_fraction : float
+        Voxels seen by fewer views than this fraction of the building's median (and than
+        3) are unknown.
+    ground_gsd_m : float
+        Texel size of the ground texture, metres.
     seed : int
     """
 

@@ -249,7 +249,7 @@ def voxel_variance(
             sel, uv, s = sel[~hidden], uv[~hidden], s[~hidden]
         if not len(sel):
             continue
-        c = images.chroma_samples(k, uv, s)
+        c = images.consistency_samples(k, uv, s)
         if samples is None:
             samples = np.full((n, len(cameras), c.shape[1]), np.nan, np.float32)
         samples[sel, k] = c

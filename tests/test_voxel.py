@@ -369,3 +369,25 @@ def test_bad_footprints_are_skipped_or_refused(tiny_scene, tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "fp.geojson" in proc.stderr
     assert not (tmp_path / "bad").exists()
+
+
+def test_without_footprints_the_fusion_building_mask_stands_in(tiny_scene, tmp_path):
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    for name in ("images", "depth"):
+        (scene / name).symlink_to(tiny_scene / name)
+    doc = json.loads((tiny_scene / "scene.json").read_text())
+    doc.pop("footprints")
+    doc.pop("training_labels")
+    doc.pop("truth")
+    (scene / "scene.json").write_text(json.dumps(doc))
+    out = tmp_path / "model"
+    proc = run_cli("model", "voxel", scene, "-o", out)
+    assert proc.returncode == 2 and "footprints" in proc.stderr and not out.exists()
+    fusion = truth_fusion_run(tiny_scene, tmp_path / "fusion")
+    proc = run_cli("model", "voxel", scene, "-o", out, "--fusion", fusion)
+    assert proc.returncode == 0, proc.stderr
+    record = json.loads((out / "model.json").read_text())
+    assert record["footprints"] == "fusion building mask"
+    truth = json.loads((tiny_scene / "truth" / "buildings.json").read_text())["buildings"]
+    assert record["counts"]["buildings"] >= len(truth) - 1
