@@ -9,6 +9,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import rasterio.features
 import shapely
@@ -464,23 +465,20 @@ def _preview(path: Path, proxies, textures, gtex) -> None:
         min(nz - 1, int(round(p.level_heights.max() / p.frame.r)) if len(p.level_heights) else 0),
     ]
     horiz_img = colorize_height(np.log10(horiz.T[::-1] + 1e-6))
-    before = colorize_height(p.min_height.T[::-1])
-    after = colorize_height(
-        np.where(p.levels > 0, np.concatenate([[np.nan], p.level_heights])[p.levels], np.nan).T[
-            ::-1
-        ]
-    )
+    top = float(np.nanmax(p.min_height)) if np.isfinite(p.min_height).any() else 1.0
+    before = _height_image(p.min_height, top)
+    after = _height_image(np.concatenate([[np.nan], p.level_heights])[p.levels], top)
     row1 = [
         (_upscale(var_img), f"building {p.id}: variance, vertical slice"),
         (_upscale(horiz_img), "variance at the roof"),
         (_upscale(before), "min-variance heights"),
         (_upscale(after), "after clustering"),
     ]
-    top_before = _top_labels(t, t.projective)
-    top_after = _top_labels(t, t.stitched.labels)
+    top_before = _top_labels(p, t, t.initial)
+    top_after = _top_labels(p, t, t.stitched.labels)
     render = render_textured(proxies, textures, gtex)
     row2 = [
-        (top_before, "roof patches: projective"),
+        (top_before, "roof views: best per texel"),
         (top_after, "after graph cuts"),
         (render, "textured proxies"),
     ]
@@ -490,26 +488,30 @@ def _preview(path: Path, proxies, textures, gtex) -> None:
 
 
 def _upscale(img: np.ndarray, size: int = 240) -> np.ndarray:
-    import cv2
-
     h, w = img.shape[:2]
     f = max(1, size // max(h, w))
     return cv2.resize(img, (w * f, h * f), interpolation=cv2.INTER_NEAREST)
 
 
-def _top_labels(tex: Texture, labels: np.ndarray) -> np.ndarray:
-    """Roof texels coloured by view, top-down."""
+def _height_image(z: np.ndarray, top: float) -> np.ndarray:
+    """A column height map (nx, ny) in turbo colours from 0 to ``top`` metres, north up."""
+    g = np.clip(np.nan_to_num(z.T[::-1], nan=0.0) / max(top, 1e-6) * 255, 0, 255)
+    rgb = cv2.cvtColor(cv2.applyColorMap(g.astype(np.uint8), cv2.COLORMAP_TURBO), cv2.COLOR_BGR2RGB)
+    rgb[~np.isfinite(z.T[::-1])] = 0
+    return rgb
+
+
+def _top_labels(proxy: Proxy, tex: Texture, labels: np.ndarray) -> np.ndarray:
+    """Roof texels coloured by view, top-down in the building's own frame."""
     g = tex.graph
     roof = (g.normals[:, 2] > 0.9) & (labels >= 0)
-    rng = np.random.default_rng(0)
-    palette = rng.integers(40, 255, (int(labels.max()) + 2, 3)).astype(np.uint8)
+    palette = np.random.default_rng(0).integers(40, 255, (int(labels.max()) + 2, 3))
     if not roof.any():
         return np.full((64, 64, 3), 255, np.uint8)
-    xy = g.positions[roof, :2]
-    lo = xy.min(axis=0)
-    ij = np.floor((xy - lo) / g.texel_m).astype(int)
+    local = proxy.frame.to_local_xy(g.positions[roof, :2])
+    ij = np.round((local - local.min(axis=0)) / g.texel_m).astype(int)  # texel centres
     img = np.full((ij[:, 1].max() + 1, ij[:, 0].max() + 1, 3), 255, np.uint8)
-    img[ij[:, 1].max() - ij[:, 1], ij[:, 0]] = palette[labels[roof]]
+    img[ij[:, 1].max() - ij[:, 1], ij[:, 0]] = palette[labels[roof]].astype(np.uint8)
     return _upscale(img, 240)
 
 

@@ -24,6 +24,7 @@ from .surface_graph import (
     seam_cost,
     seam_costs,
     stitch_patches,
+    texel_colours,
     view_samples,
 )
 from .view_images import ViewImages, rgb_to_lab
@@ -109,7 +110,7 @@ def ground_cut(
     stitched = stitch_patches(edges, positions, labels, samples, overlap_m, min_patch=64)
     cost_cut, _ = seam_cost(edges, stitched.labels, samples)
     cost_proj, _ = seam_cost(edges, labels, samples)
-    image = _texel_colours(stitched.labels, samples).reshape(grid.height, grid.width, 3)
+    image = texel_colours(stitched.labels, samples).reshape(grid.height, grid.width, 3)
     image = fill_unseen(image, stitched.labels.reshape(grid.shape))
     record = {
         "texels": [grid.width, grid.height],
@@ -124,13 +125,6 @@ def ground_cut(
     return GroundTexture(
         grid, z, image, stitched.labels.reshape(grid.shape), views, samples, record
     )
-
-
-def _texel_colours(labels: np.ndarray, samples: ViewSamples) -> np.ndarray:
-    out = np.zeros((len(labels), 3), np.uint8)
-    seen = labels >= 0
-    out[seen] = samples.rgb[np.flatnonzero(seen), labels[seen]]
-    return out
 
 
 def fill_unseen(image: np.ndarray, labels: np.ndarray) -> np.ndarray:

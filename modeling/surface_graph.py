@@ -259,6 +259,15 @@ def view_samples(
     return ViewSamples(visible, facing, lab, rgb)
 
 
+def texel_colours(labels: np.ndarray, samples: ViewSamples, fill: int = 128) -> np.ndarray:
+    """(V, 3) uint8 colour of every vertex in its view (``labels``), ``fill`` grey where
+    it has none."""
+    out = np.full((len(labels), 3), fill, np.uint8)
+    seen = labels >= 0
+    out[seen] = samples.rgb[np.flatnonzero(seen), labels[seen]]
+    return out
+
+
 def best_views(
     positions: np.ndarray, normals: np.ndarray, centres: np.ndarray, samples: ViewSamples
 ) -> np.ndarray:

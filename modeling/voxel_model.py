@@ -24,6 +24,7 @@ from .surface_graph import (
     seam_cost,
     stitch_patches,
     surface_graph,
+    texel_colours,
     view_samples,
 )
 from .texture_atlas import atlas
@@ -307,6 +308,8 @@ class Texture:
     ----------
     graph : SurfaceGraph
     samples : ViewSamples
+    initial : (V,) int
+        Each vertex's best view, where the stitching starts.
     projective : (V,) int
         Naive projective texture mapping: every voxel face from its best view.
     stitched : Stitching
@@ -320,6 +323,7 @@ class Texture:
 
     graph: SurfaceGraph
     samples: ViewSamples
+    initial: np.ndarray
     projective: np.ndarray
     stitched: Stitching
     image: np.ndarray
@@ -328,11 +332,7 @@ class Texture:
 
     def colours(self, labels: np.ndarray | None = None) -> np.ndarray:
         """(V, 3) uint8 texel colours under ``labels`` (default: the stitched views)."""
-        labels = self.stitched.labels if labels is None else labels
-        out = np.full((len(labels), 3), 128, np.uint8)
-        seen = labels >= 0
-        out[seen] = self.samples.rgb[np.flatnonzero(seen), labels[seen]]
-        return out
+        return texel_colours(self.stitched.labels if labels is None else labels, self.samples)
 
 
 def texture_building(
@@ -375,7 +375,14 @@ def texture_building(
 
     t0 = time.perf_counter()
     tex = Texture(
-        graph, samples, projective, stitched, np.zeros((1, 1, 3), np.uint8), np.zeros((0, 3, 2)), {}
+        graph,
+        samples,
+        best,
+        projective,
+        stitched,
+        np.zeros((1, 1, 3), np.uint8),
+        np.zeros((0, 3, 2)),
+        {},
     )
     tex.image, tex.uvs = atlas(graph, tex.colours(), V, T)
     t_atlas = time.perf_counter() - t0
