@@ -128,8 +128,6 @@ class Proxy:
     min_height : (nx, ny) float
         Height of each column's most consistent voxel above the ground, metres (NaN
         outside or discarded).
-    clustered : (nx, ny) float
-        The same snapped to the cluster means (NaN for ground or discarded columns).
     levels : (nx, ny) int
         Filtered roof levels (0 empty); level l stands at ``level_heights[l - 1]``.
     level_heights : (K,) float
@@ -147,7 +145,6 @@ class Proxy:
     columns: np.ndarray
     variance: np.ndarray
     min_height: np.ndarray
-    clustered: np.ndarray
     levels: np.ndarray
     level_heights: np.ndarray
     exterior: np.ndarray
@@ -217,14 +214,10 @@ def building_proxy(
     )
     # a variance from a few views is small by chance: voxels high above the building,
     # which most views frame out, would win every column
-    enough = pc.views >= max(
-        3,
-        options.min_view_fraction * np.median(pc.views[pc.views > 0])
-        if (pc.views > 0).any()
-        else 3,
-    )
+    seen = pc.views[pc.views > 0]
+    min_views = max(3.0, options.min_view_fraction * np.median(seen)) if len(seen) else 3.0
     m = height_weighted_variance(
-        np.where(enough, pc.variance, np.nan).reshape(-1, nz),
+        np.where(pc.views >= min_views, pc.variance, np.nan).reshape(-1, nz),
         np.arange(nz),
         nz,
         options.height_weight,
@@ -240,7 +233,6 @@ def building_proxy(
     variance[columns] = m
     min_height = np.full((nx, ny), np.nan)
     min_height[columns] = np.where(discarded, np.nan, layer * r)
-    clustered = np.full((nx, ny), np.nan)
     levels = np.zeros((nx, ny), np.int64)
     level_heights = np.zeros(0)
     kept = np.flatnonzero(~discarded)
@@ -263,10 +255,7 @@ def building_proxy(
         level_heights = means[roof]
         col_levels = np.zeros(len(heights), np.int64)
         col_levels[kept] = rank[labels]
-        snapped = np.full(len(heights), np.nan)
-        snapped[kept] = np.where(roof[labels], means[labels], np.nan)
         levels[columns] = col_levels
-        clustered[columns] = snapped
         levels = filter_levels(levels, columns)
     times["clustering"] = time.perf_counter() - t0
 
@@ -295,7 +284,7 @@ def building_proxy(
         "peak_memory_mb": round(peak_memory_mb(), 1),
     }
     return Proxy(
-        building_id, frame, columns, variance, min_height, clustered, levels, level_heights,
+        building_id, frame, columns, variance, min_height, levels, level_heights,
         exterior, surf_normals, vertices, triangles, outline, record,
     )  # fmt: skip
 

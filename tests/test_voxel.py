@@ -252,7 +252,6 @@ def test_perturbed_proxy_grows_and_shrinks():
         levels > 0,
         None,
         None,
-        None,
         levels,
         np.array([10.0]),
         None,
