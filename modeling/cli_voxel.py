@@ -20,7 +20,7 @@ from workbench.atomic import atomic_output_dir
 from workbench.errors import InputError
 from workbench.footprints import Footprint, read_footprints
 from workbench.imageio import write_rgb
-from workbench.meshes import concatenate_meshes, is_watertight, raster_mesh
+from workbench.meshes import concatenate_meshes, is_watertight
 from workbench.meshio import write_mtl, write_obj, write_ply
 from workbench.pictures import colorize_height, contact_sheet
 from workbench.progress import progress
@@ -30,7 +30,7 @@ from workbench.records import StageTimer, peak_memory_mb
 from workbench.render import viewpoints
 from workbench.scene import Scene, load_scene
 
-from .ground_texture import GroundTexture, ground_cut, ring_cut
+from .ground_texture import GroundTexture, ground_cut, ground_mesh, ring_cut
 from .roof_mesh import extrude_faces
 from .view_images import ViewImages
 from .voxel_model import Proxy, Texture, VoxelOptions, building_proxy, texture_building
@@ -389,14 +389,9 @@ def _write(tmp: Path, proxies, textures, gtex, options: VoxelOptions) -> dict:
     ground_record = None
     if gtex is not None:
         write_rgb(tmp / "ground.png", gtex.image)
-        gm = raster_mesh(gtex.z, gtex.grid, step=max(1, round(4.0 / gtex.grid.gsd)))
+        gm = ground_mesh(gtex)
         if gm is not None:
-            gv, gt = gm
-            xmin, ymin, xmax, ymax = gtex.grid.bounds
-            uv_v = np.column_stack(
-                [(gv[:, 0] - xmin) / (xmax - xmin), (gv[:, 1] - ymin) / (ymax - ymin)]
-            )
-            guv = uv_v[gt]
+            gv, gt, guv = gm
             write_mtl(tmp / "ground.mtl", {"ground": (255, 255, 255)}, {"ground": "ground.png"})
             write_obj(tmp / "ground.obj", gv, gt, material="ground", mtllib="ground.mtl", uvs=guv)
             r, c = gtex.grid.cell_index(gv[:, 0], gv[:, 1], clip=True)
@@ -523,14 +518,9 @@ def render_textured(
     parts = [
         (p.vertices, p.triangles, t.uvs, t.image) for p, t in zip(proxies, textures, strict=True)
     ]
-    if gtex is not None:
-        gm = raster_mesh(gtex.z, gtex.grid, step=max(1, round(4.0 / gtex.grid.gsd)))
-        if gm is not None:
-            xmin, ymin, xmax, ymax = gtex.grid.bounds
-            uv = np.column_stack(
-                [(gm[0][:, 0] - xmin) / (xmax - xmin), (gm[0][:, 1] - ymin) / (ymax - ymin)]
-            )
-            parts.append((gm[0], gm[1], uv[gm[1]], gtex.image))
+    gm = ground_mesh(gtex) if gtex is not None else None
+    if gm is not None:
+        parts.append((*gm, gtex.image))
     V, T, owner = concatenate_meshes([(v, t) for v, t, _, _ in parts])
     uvs = np.concatenate([u for _, _, u, _ in parts])
     xy = np.vstack([p.vertices[:, :2] for p in proxies])

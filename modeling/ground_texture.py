@@ -15,6 +15,7 @@ import numpy as np
 from scipy import ndimage
 
 from workbench.camera import Camera
+from workbench.meshes import raster_mesh
 from workbench.raster import Grid
 
 from .crf import binary_cut
@@ -125,6 +126,27 @@ def ground_cut(
     return GroundTexture(
         grid, z, image, stitched.labels.reshape(grid.shape), views, samples, record
     )
+
+
+def ground_mesh(
+    ground: GroundTexture, spacing_m: float = 4.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The textured ground: the ground heights in quads of about ``spacing_m`` metres.
+
+    Returns
+    -------
+    vertices : (V, 3), triangles : (T, 3), uvs : (T, 3, 2) into ``ground.image``
+    (u east, v north, 0-1); None when the grid is too small.
+    """
+    mesh = raster_mesh(ground.z, ground.grid, step=max(1, round(spacing_m / ground.grid.gsd)))
+    if mesh is None:
+        return None
+    vertices, triangles = mesh
+    xmin, ymin, xmax, ymax = ground.grid.bounds
+    uv = np.column_stack(
+        [(vertices[:, 0] - xmin) / (xmax - xmin), (vertices[:, 1] - ymin) / (ymax - ymin)]
+    )
+    return vertices, triangles, uv[triangles]
 
 
 def fill_unseen(image: np.ndarray, labels: np.ndarray) -> np.ndarray:

@@ -299,42 +299,45 @@ def patches(edges: np.ndarray, labels: np.ndarray) -> np.ndarray:
     return comp
 
 
+def _view_differences(
+    edges: np.ndarray, src: np.ndarray, dst: np.ndarray, samples: ViewSamples
+) -> tuple[np.ndarray, np.ndarray]:
+    """||P1(x) - P2(x)|| in CIE Lab at both ends x of each edge, views ``src`` and ``dst``
+    (each (E,)), and whether both views see x: two (E, 2) arrays."""
+    d = np.empty((len(edges), 2))
+    ok = np.empty((len(edges), 2), bool)
+    for end in (0, 1):
+        x = edges[:, end]
+        ok[:, end] = samples.visible[x, src] & samples.visible[x, dst]
+        d[:, end] = np.linalg.norm(samples.lab[x, src] - samples.lab[x, dst], axis=1)
+    return d, ok
+
+
 def seam_costs(
     edges: np.ndarray, src: np.ndarray, dst: np.ndarray, samples: ViewSamples
 ) -> np.ndarray:
     """C(s, t) of eq. 5 for each edge (s, t) between views ``src`` and ``dst`` (each (E,)):
     ||P1(s) - P2(s)|| + ||P1(t) - P2(t)|| in CIE Lab. A term a view cannot see costs
     ``_MISSING``."""
-    total = np.zeros(len(edges))
-    for end in (0, 1):
-        x = edges[:, end]
-        ok = samples.visible[x, src] & samples.visible[x, dst]
-        d = np.linalg.norm(samples.lab[x, src] - samples.lab[x, dst], axis=1)
-        total += np.where(ok, d, _MISSING)
-    return total
+    d, ok = _view_differences(edges, src, dst, samples)
+    return np.where(ok, d, _MISSING).sum(axis=1)
 
 
 def seam_cost(edges: np.ndarray, labels: np.ndarray, samples: ViewSamples) -> tuple[float, int]:
     """The texture's seam cost: mean over the edges whose two vertices take different
     views of the mean Lab difference of those two views at the two vertices (eq. 5
     halved), over the views that see them. Returns (cost, number of seam edges); the
-    cost is 0 without seams."""
+    cost is 0 without seams, NaN when no view pair sees a seam."""
     a, b = labels[edges[:, 0]], labels[edges[:, 1]]
     seam = (a != b) & (a >= 0) & (b >= 0)
     if not seam.any():
         return 0.0, 0
-    e = edges[seam]
-    src, dst = a[seam], b[seam]
-    diffs, counts = np.zeros(len(e)), np.zeros(len(e))
-    for end in (0, 1):
-        x = e[:, end]
-        ok = samples.visible[x, src] & samples.visible[x, dst]
-        diffs += np.where(ok, np.linalg.norm(samples.lab[x, src] - samples.lab[x, dst], axis=1), 0)
-        counts += ok
-    per_edge = np.where(counts > 0, diffs / np.maximum(counts, 1), np.nan)
-    return float(np.nanmean(per_edge)) if np.isfinite(per_edge).any() else float("nan"), int(
-        seam.sum()
-    )
+    d, ok = _view_differences(edges[seam], a[seam], b[seam], samples)
+    counts = ok.sum(axis=1)
+    if not counts.any():
+        return float("nan"), int(seam.sum())
+    per_edge = np.where(ok, d, 0.0).sum(axis=1)[counts > 0] / counts[counts > 0]
+    return float(per_edge.mean()), int(seam.sum())
 
 
 @dataclass

@@ -363,20 +363,10 @@ def texture_building(
     cost_proj, seams_proj = seam_cost(graph.edges, projective, samples)
 
     t0 = time.perf_counter()
-    tex = Texture(
-        graph,
-        samples,
-        best,
-        projective,
-        stitched,
-        np.zeros((1, 1, 3), np.uint8),
-        np.zeros((0, 3, 2)),
-        {},
-    )
-    tex.image, tex.uvs = atlas(graph, tex.colours(), V, T)
+    image, uvs = atlas(graph, texel_colours(stitched.labels, samples), V, T)
     t_atlas = time.perf_counter() - t0
     used = np.unique(stitched.labels[stitched.labels >= 0])
-    tex.record = {
+    record = {
         "graph_vertices": int(len(graph.positions)),
         "graph_edges": int(len(graph.edges)),
         "charts": len(graph.charts),
@@ -389,7 +379,7 @@ def texture_building(
         "seam_cost_projective": round(cost_proj, 4),
         "seam_edges": seams_cut,
         "seam_edges_projective": seams_proj,
-        "atlas_px": [int(tex.image.shape[1]), int(tex.image.shape[0])],
+        "atlas_px": [int(image.shape[1]), int(image.shape[0])],
         "times_s": {
             "surface_graph": round(t_graph, 3),
             "visibility": round(t_views, 3),
@@ -397,7 +387,7 @@ def texture_building(
             "atlas": round(t_atlas, 3),
         },
     }
-    return tex
+    return Texture(graph, samples, best, projective, stitched, image, uvs, record)
 
 
 def voxel_faces(frame: VoxelFrame, graph: SurfaceGraph) -> np.ndarray:
