@@ -18,6 +18,29 @@ from workbench.errors import InputError
 CLASSES = (1, 2, 3, 4)  # ground, grass, tree, building
 CLASS_NAMES = ("ground", "grass", "tree", "building")
 FORMAT = "city-workbench-forest"
+RAISED = (3, 4)  # the classes that stand above the terrain: tree, building
+
+
+def elevation_consistent(labels: np.ndarray, elevation: np.ndarray, split: float) -> np.ndarray:
+    """(N,) bool: whether each label agrees with the elevation of what it labels.
+
+    Trees and buildings stand above the terrain, ground and grass lie on it. A stroke
+    drawn on the ortho and projected into a view can land on the other kind of surface
+    (the ground seen past a crown's edge, an overhanging crown above a road); such
+    pixels teach the forest that dark ground is tree.
+
+    Parameters
+    ----------
+    labels : (N,) int
+        Class codes 1-4 (0 unlabelled, kept as it is).
+    elevation : (N,) float
+        Mean elevation above the DTM of each labelled pixel's patch, metres.
+    split : float
+        Height separating the terrain classes from the raised ones, metres.
+    """
+    raised = np.isin(labels, RAISED)
+    with np.errstate(invalid="ignore"):
+        return (labels == 0) | np.where(raised, elevation >= split, elevation < split)
 
 
 def train_forest(

@@ -28,6 +28,7 @@ import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from workbench.errors import InputError, WorkbenchError
@@ -37,20 +38,27 @@ from workbench.records import StageTimer
 from workbench.scene import Scene, View
 from workbench.truth import sample_to_grid
 
-from .classifier import CLASSES, load_classifier, predict_proba, train_forest
+from .classifier import (
+    CLASSES,
+    elevation_consistent,
+    load_classifier,
+    predict_proba,
+    train_forest,
+)
 from .dsm_depth import DsmSurface
 from .ground import dtm_from_dsm
 from .interpolate import push_pull_fill, small_holes
 from .observations import ViewObservations, lift_depth, observe
 from .raster_forest import classify_rasters, synthetic_raster_forest
 from .robust import group_count, group_mean, group_median, vector_median
-from .sigma_points import N_FEATURES, feature_cues, sigma_points
+from .sigma_points import MEAN_ELEVATION, N_FEATURES, feature_cues, sigma_points
 
 log = logging.getLogger(__name__)
 
 FEATURES = "sigma_points_lab_grad_elev_11x11_v1"
 HOLE_CELLS = 9  # holes up to this many cells are interpolated (and flagged -1 in count)
 FILLED = -1
+ELEVATION_MEDIAN = 5  # pixels, the median filter of the per-view elevation cue
 
 
 @dataclass
@@ -65,6 +73,7 @@ class FusionOptions:
     n_trees: int = 8
     max_depth: int = 14
     samples_per_class: int = 20000
+    label_split: float = 2.0  # trees and buildings above, ground and grass below, metres
     training_views: int = 16  # views the training samples are drawn from (spread evenly)
     projections: int = 8  # random directions of the vector median
     seed: int = 0
@@ -204,7 +213,9 @@ def _touches(box, tile) -> bool:
 def elevation_image(obs_pixels, xyz, shape, dtm: np.ndarray, grid: Grid) -> np.ndarray:
     """(H, W) elevation above the DTM of the surface each pixel sees, metres.
 
-    Pixels without a depth take the pyramid interpolation of their neighbours'.
+    Pixels without a depth take the pyramid interpolation of their neighbours'. A 5 x 5
+    median removes the isolated gross errors of dense matching: one of them in an
+    11 x 11 patch gives flat ground the elevation variance of a tree crown.
     """
     r, c = grid.cell_index(xyz[:, 0], xyz[:, 1], clip=True)
     elev = np.full(shape[0] * shape[1], np.nan)
@@ -213,7 +224,8 @@ def elevation_image(obs_pixels, xyz, shape, dtm: np.ndarray, grid: Grid) -> np.n
     valid = np.isfinite(elev)
     if not valid.any():
         return np.zeros(shape, np.float32)
-    return push_pull_fill(elev, valid).astype(np.float32)
+    filled = push_pull_fill(elev, valid).astype(np.float32)
+    return cv2.medianBlur(filled, ELEVATION_MEDIAN)
 
 
 def view_features(
@@ -325,9 +337,14 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
             forest, meta = load_classifier(opts.classifier, features=FEATURES)
             class_source = f"classifier file {opts.classifier}"
         elif scene.training_labels is not None:
-            forest, n_train = _train(views, scene.training_labels, dsm, dtm, grid, opts, surface)
+            forest, n_train, n_dropped = _train(
+                views, scene.training_labels, dsm, dtm, grid, opts, surface
+            )
             name = Path(scene.training_labels).name
-            class_source = f"forest trained on {n_train} pixels of {name} projected into the views"
+            class_source = (
+                f"forest trained on {n_train} pixels of {name} projected into the views "
+                f"({n_dropped} labelled pixels dropped: their elevation contradicts their class)"
+            )
     prob_sum = np.zeros((len(CLASSES),) + grid.shape, np.float32)
     ortho = np.zeros(grid.shape + (3,), np.uint8)
     ortho_mean = np.full(grid.shape + (3,), np.nan, np.float32)
@@ -457,7 +474,12 @@ def _train(views, labels_path, dsm, dtm, grid: Grid, opts: FusionOptions, surfac
 
     A stroke labels the top surface seen from above: a view pixel inherits its label
     only where the pixel's point lies on that surface (within the visibility
-    tolerance of the fused DSM), not on a facade or an edge's rounded depth.
+    tolerance of the fused DSM), not on a facade or an edge's rounded depth, and only
+    where the patch's elevation agrees with the class (:func:`elevation_consistent`).
+
+    Returns
+    -------
+    forest, number of training pixels, number of labelled pixels dropped by elevation
     """
     data, label_grid, _ = read_raster(labels_path, field="training_labels")
     labels = data[0]
@@ -466,7 +488,7 @@ def _train(views, labels_path, dsm, dtm, grid: Grid, opts: FusionOptions, surfac
     step = max(1, int(np.ceil(len(views) / opts.training_views)))
     views = views[::step]
     per_view = max(200, opts.samples_per_class // len(views))
-    X, y = [], []
+    X, y, n_dropped = [], [], 0
     for v in progress(views, "training samples"):
         rgb, depth = v.read_image(), v.read_depth()
         feats, pixels, xyz = view_features(v, rgb, depth, dtm, grid, opts.patch, surface)
@@ -478,6 +500,9 @@ def _train(views, labels_path, dsm, dtm, grid: Grid, opts: FusionOptions, surfac
         with np.errstate(invalid="ignore"):
             on_top = np.abs(xyz[:, 2] - dsm[gr, gc]) < opts.tolerance
         lab[~on_top] = 0
+        agree = elevation_consistent(lab, feats[pixels, MEAN_ELEVATION], opts.label_split)
+        n_dropped += int((~agree).sum())
+        lab[~agree] = 0
         if not (lab > 0).any():
             continue
         chosen = []
@@ -492,4 +517,4 @@ def _train(views, labels_path, dsm, dtm, grid: Grid, opts: FusionOptions, surfac
         raise InputError(labels_path, None, "no training label falls inside any view")
     X, y = np.concatenate(X), np.concatenate(y)
     forest = train_forest(X, y, n_trees=opts.n_trees, max_depth=opts.max_depth, seed=opts.seed)
-    return forest, len(y)
+    return forest, len(y), n_dropped

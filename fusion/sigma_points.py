@@ -14,6 +14,7 @@ import numpy as np
 
 N_CUES = 6
 N_FEATURES = N_CUES * (2 * N_CUES + 1)  # 78
+MEAN_ELEVATION = N_CUES - 1  # the attribute of the patch's mean elevation (point p0, last cue)
 
 
 def feature_cues(rgb: np.ndarray, elevation: np.ndarray) -> np.ndarray:

@@ -3,10 +3,12 @@
 import numpy as np
 import pytest
 
+from fusion.classifier import elevation_consistent
 from fusion.ground import dtm_from_dsm
 from fusion.interpolate import push_pull_fill, small_holes
 from fusion.observations import depth_jumps, observe
 from fusion.robust import group_count, group_mean, group_median, vector_median
+from fusion.scene_fusion import elevation_image
 from fusion.sigma_points import N_FEATURES, feature_cues, sigma_points
 from workbench.camera import Camera, look_at_rotation
 from workbench.raster import Grid
@@ -126,3 +128,24 @@ def test_empty_groups():
     assert group_mean(empty, np.zeros((0, 3)), 3).shape == (3, 3)
     assert np.isnan(group_median(empty, np.zeros(0), 3)).all()
     assert (vector_median(empty, np.zeros((0, 3), np.uint8), 3) == 0).all()
+
+
+def test_labels_whose_elevation_contradicts_their_class_are_dropped():
+    #                  ground grass tree tree building ground unlabelled
+    labels = np.array([1, 2, 3, 3, 4, 1, 0])
+    elevation = np.array([0.1, 1.9, 7.0, 0.3, 2.0, 9.0, 50.0])
+    keep = elevation_consistent(labels, elevation, split=2.0)
+    # the tree at 0.3 m is the ground past a crown's edge, the ground at 9 m a crown above it
+    np.testing.assert_array_equal(keep, [True, True, True, False, True, False, True])
+
+
+def test_elevation_cue_ignores_an_isolated_matching_error():
+    grid = Grid(xmin=0.0, ymax=10.0, gsd=1.0, width=10, height=10)
+    dtm = np.full(grid.shape, 5.0)
+    shape = (12, 12)
+    rows, cols = np.mgrid[0:12, 0:12]
+    pixels = (rows * 12 + cols).ravel()
+    xyz = np.column_stack([cols.ravel() * 0.8 + 0.1, 9.9 - rows.ravel() * 0.8, np.full(144, 5.2)])
+    xyz[6 * 12 + 6, 2] = 30.0  # one gross depth error in the middle of flat ground
+    elev = elevation_image(pixels, xyz, shape, dtm, grid)
+    np.testing.assert_allclose(elev, 0.2, atol=1e-5)

@@ -88,6 +88,7 @@ def test_record_has_stages_and_throughput(fused):
         assert record["stages"][stage]["peak_memory_mb"] > 0
     assert record["observations"] > 0 and record["observations_per_s"] > 0
     assert "forest trained on" in record["class_source"]
+    assert "labelled pixels dropped" in record["class_source"]
 
 
 def test_saved_classifier_is_reused(fused, tiny_scene, tmp_path):
