@@ -73,7 +73,7 @@ class FusionOptions:
     n_trees: int = 8
     max_depth: int = 14
     samples_per_class: int = 20000
-    label_split: float = 2.0  # trees and buildings above, ground and grass below, metres
+    label_split: float = 1.0  # trees and buildings above, ground and grass below, metres
     training_views: int = 16  # views the training samples are drawn from (spread evenly)
     projections: int = 8  # random directions of the vector median
     seed: int = 0
