@@ -19,12 +19,11 @@ import tempfile
 import time
 import traceback
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import open3d as o3d
 
-from fusion.cli_fusion import run_fusion
+from fusion.cli_fusion import fusion_arguments, run_fusion
 from modeling.cli_superpixel import run_superpixel
 from modeling.superpixel_model import SuperpixelOptions
 from workbench.meshes import concatenate_meshes, read_mesh
@@ -38,13 +37,7 @@ def model_cloud(cloud: Path, work: Path) -> dict:
     """Fuse and model one cloud; score the model against the cloud's points."""
     t0 = time.perf_counter()
     fusion_dir, model_dir = work / f"{cloud.stem}_fusion", work / f"{cloud.stem}_model"
-    run_fusion(
-        SimpleNamespace(
-            scene=None, points=cloud, out=fusion_dir, gsd=None, bounds=None, crs=None,
-            truth=None, classifier=None, save_classifier=None, raster_prior=False, seed=0,
-            overwrite=True,
-        )
-    )  # fmt: skip
+    run_fusion(fusion_arguments(points=cloud, out=fusion_dir, overwrite=True))
     options = SuperpixelOptions(all_building=True, min_area_m2=5.0)
     record = run_superpixel(fusion_dir, model_dir, options, overwrite=True)
     seconds = time.perf_counter() - t0

@@ -74,11 +74,8 @@ def bench_sample(preset: str, repeat: int, work: Path) -> dict:
 
 FUSION_CHILD = r"""
 import json, sys
-from types import SimpleNamespace
-from fusion.cli_fusion import run_fusion
-args = SimpleNamespace(scene=sys.argv[1], points=None, out=sys.argv[2], gsd=None, bounds=None,
-                       crs=None, truth=sys.argv[1], classifier=None, save_classifier=None,
-                       raster_prior=False, seed=0, overwrite=True)
+from fusion.cli_fusion import fusion_arguments, run_fusion
+args = fusion_arguments(scene=sys.argv[1], out=sys.argv[2], truth=sys.argv[1], overwrite=True)
 r = run_fusion(args)
 print(json.dumps({k: r[k] for k in ("stages", "observations", "observations_per_s",
                                     "classification_mpx_per_s", "quality", "grid")}))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -17,6 +18,20 @@ from .raster_forest import classify_rasters, synthetic_raster_forest
 from .scene_fusion import FEATURES, FusionOptions, fuse_views
 
 
+def fusion_arguments(**given) -> SimpleNamespace:
+    """The arguments of ``workbench fusion`` with the command line's defaults, for callers
+    that run it from Python (the demo, the benchmarks); ``given`` overrides them."""
+    defaults = dict(
+        scene=None, points=None, out=None, gsd=None, bounds=None, crs=None, truth=None,
+        classifier=None, save_classifier=None, raster_prior=False, label_split=1.0, seed=0,
+        overwrite=False,
+    )  # fmt: skip
+    unknown = set(given) - set(defaults)
+    if unknown:
+        raise TypeError(f"unknown fusion arguments: {sorted(unknown)}")
+    return SimpleNamespace(**{**defaults, **given})
+
+
 def run_fusion(args) -> dict:
     """Run fusion for parsed CLI arguments; return the fusion.json record."""
     t0 = time.perf_counter()
@@ -26,6 +41,7 @@ def run_fusion(args) -> dict:
         seed=args.seed,
         classifier=args.classifier,
         raster_prior=args.raster_prior,
+        label_split=args.label_split,
     )
     if args.points is not None:
         from .points import fuse_points

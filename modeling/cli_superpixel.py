@@ -318,6 +318,8 @@ def _preview(path, rgb, labels, classes, prototypes, models, grid, dtm) -> None:
     ]
     if models:
         V, T, _ = concatenate_meshes([(m.vertices, m.triangles) for _, m in models])
-        cam = viewpoints(grid.bounds, (float(np.nanmin(dtm)), float(V[:, 2].max())))["south-west"]
+        # a single-building cloud's DTM can be all NaN: its models' foot is the ground then
+        low = float(np.nanmin(dtm)) if np.isfinite(dtm).any() else float(V[:, 2].min())
+        cam = viewpoints(grid.bounds, (low, float(V[:, 2].max())))["south-west"]
         row.append((render_mesh(V, T, cam, np.full((len(T), 3), 205, np.uint8)), "models"))
     write_rgb(path, contact_sheet([row], height=360))

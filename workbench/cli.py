@@ -200,6 +200,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE",
         help="save the trained forest for another scene",
     )
+    p.add_argument(
+        "--label-split",
+        type=_non_negative_float,
+        default=1.0,
+        metavar="METRES",
+        help="training pixels labelled tree or building must stand at least this high above "
+        "the DTM, ground or grass below it; others are dropped (default 1)",
+    )
     p.add_argument("--seed", type=_non_negative_int, default=0, help="random seed (default 0)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     p.set_defaults(func=cmd_fusion)
@@ -642,10 +650,9 @@ def cmd_compare(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from types import SimpleNamespace
 
     from data_samples.generate import generate_sample
-    from fusion.cli_fusion import run_fusion
+    from fusion.cli_fusion import fusion_arguments, run_fusion
     from modeling.cli_superpixel import run_superpixel
     from modeling.cli_voxel import run_voxel
     from modeling.superpixel_model import SuperpixelOptions
@@ -675,19 +682,8 @@ def cmd_demo(args) -> int:
     )
     print("2/5 fusing the views into ortho, DSM/DTM/nDSM and classes ...", flush=True)
     record = run_fusion(
-        SimpleNamespace(
-            scene=scene_dir,
-            points=None,
-            out=fusion_dir,
-            gsd=None,
-            bounds=None,
-            crs=None,
-            truth=scene_dir,
-            classifier=None,
-            save_classifier=None,
-            raster_prior=False,
-            seed=args.seed,
-            overwrite=True,
+        fusion_arguments(
+            scene=scene_dir, out=fusion_dir, truth=scene_dir, seed=args.seed, overwrite=True
         )
     )
     q = record["quality"]
