@@ -28,3 +28,20 @@ def run_cli(*args) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", "workbench.cli", *map(str, args)], capture_output=True, text=True
     )
+
+
+def model_and_score(root: Path, truth: Path, *model_args) -> tuple[Path, dict, dict]:
+    """Run ``workbench model MODEL_ARGS... -o ROOT/model``, then ``workbench compare`` it
+    against ``truth``.
+
+    Returns
+    -------
+    the model folder, its model.json, and its metrics from the comparison
+    """
+    out, report = root / "model", root / "report"
+    proc = run_cli("model", *model_args, "-o", out)
+    assert proc.returncode == 0, proc.stderr
+    proc = run_cli("compare", out, "--truth", truth, "-o", report)
+    assert proc.returncode == 0, proc.stderr
+    metrics = json.loads((report / "metrics.json").read_text())["runs"]["model"]
+    return out, json.loads((out / "model.json").read_text()), metrics

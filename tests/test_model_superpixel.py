@@ -10,7 +10,7 @@ import rasterio
 
 from data_samples.truth_run import truth_fusion_run
 from modeling.roof_types import ROOF_TYPES
-from tests.conftest import SHARED_DATA, run_cli
+from tests.conftest import SHARED_DATA, model_and_score, run_cli
 from workbench.raster import read_raster
 
 
@@ -19,14 +19,10 @@ def modelled(tiny_scene, tmp_path_factory):
     """The path on perfect rasters (the truth's), so that its own errors show alone."""
     root = tmp_path_factory.mktemp("superpixel")
     fusion = truth_fusion_run(tiny_scene, root / "fusion")
-    out = root / "model"
-    proc = run_cli("model", "superpixel", fusion, "-o", out, "--truth", tiny_scene)
-    assert proc.returncode == 0, proc.stderr
-    report = root / "report"
-    proc = run_cli("compare", out, "--truth", tiny_scene, "-o", report)
-    assert proc.returncode == 0, proc.stderr
-    metrics = json.loads((report / "metrics.json").read_text())
-    return fusion, out, json.loads((out / "model.json").read_text()), metrics["runs"]["model"]
+    out, record, metrics = model_and_score(
+        root, tiny_scene, "superpixel", fusion, "--truth", tiny_scene
+    )
+    return fusion, out, record, metrics
 
 
 def test_models_match_the_truth_on_perfect_rasters(modelled):

@@ -38,7 +38,7 @@ from modeling.voxel_robustness import perturbed_mesh
 from workbench.meshes import is_watertight
 from workbench.meshio import write_obj
 
-from .conftest import run_cli
+from .conftest import model_and_score, run_cli
 
 
 def _volume(v, t):
@@ -273,14 +273,7 @@ def test_perturbed_proxy_grows_and_shrinks():
 def voxel_run(tiny_scene, tmp_path_factory):
     root = tmp_path_factory.mktemp("voxel")
     fusion = truth_fusion_run(tiny_scene, root / "fusion")
-    out = root / "model"
-    proc = run_cli("model", "voxel", tiny_scene, "-o", out, "--fusion", fusion)
-    assert proc.returncode == 0, proc.stderr
-    report = root / "report"
-    proc = run_cli("compare", out, "--truth", tiny_scene, "-o", report)
-    assert proc.returncode == 0, proc.stderr
-    metrics = json.loads((report / "metrics.json").read_text())["runs"]["model"]
-    return out, json.loads((out / "model.json").read_text()), metrics
+    return model_and_score(root, tiny_scene, "voxel", tiny_scene, "--fusion", fusion)
 
 
 def test_voxel_run_writes_closed_textured_models(voxel_run):
