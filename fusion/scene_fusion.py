@@ -7,8 +7,8 @@ a per-view random forest on Sigma Points features.
 
 Passes over the views (each reads a view's files once):
 
-1. heights: each view's surface (its depth map's triangles) sampled at the cell
-   centres by vertical rays, median over the views -> DSM; ground filter -> DTM, nDSM;
+1. heights: lift, keep the visible surface per cell, median -> DSM; ground filter ->
+   DTM, nDSM;
 2. training: Sigma Points of every view with the elevation cue from the DTM; the
    training strokes are projected into the views through their depth maps (so the
    forest learns from the same per-view features it will classify, facades of
@@ -52,7 +52,6 @@ from .observations import ViewObservations, lift_depth, observe
 from .raster_forest import classify_rasters, synthetic_raster_forest
 from .robust import group_count, group_mean, group_median, vector_median
 from .sigma_points import MEAN_ELEVATION, N_FEATURES, feature_cues, sigma_points
-from .view_surface import steep_ray_preferred, view_surface_heights
 
 log = logging.getLogger(__name__)
 
@@ -191,19 +190,17 @@ def preferred(cells: np.ndarray, reliable: np.ndarray, n_cells: int) -> np.ndarr
     return reliable | ~has_reliable[cells]
 
 
-def _view_boxes(views: list[View], grid: Grid) -> tuple[list[tuple], int]:
-    """(row0, col0, row1, col1) of the cells each view's depth map reaches, and the
-    number of depth pixels of all views."""
-    boxes, n_pixels = [], 0
+def _view_boxes(views: list[View], grid: Grid) -> list[tuple]:
+    """(row0, col0, row1, col1) of the cells each view's depth map reaches."""
+    boxes = []
     for v in views:
         _, xyz = lift_depth(v.camera, v.read_depth())
-        n_pixels += len(xyz)
         if len(xyz) == 0:
             boxes.append(None)
             continue
         r, c = grid.world_to_cell(xyz[:, 0], xyz[:, 1])
         boxes.append((r.min() - 1, c.min() - 1, r.max() + 1, c.max() + 1))
-    return boxes, n_pixels
+    return boxes
 
 
 def _touches(box, tile) -> bool:
@@ -291,27 +288,28 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
     with timer.stage("grid"):
         grid = default_grid(scene, opts)
         check_memory(grid, opts, len(views))
-        boxes, n_depth_pixels = _view_boxes(views, grid)
+        boxes = _view_boxes(views, grid)
     H, W = grid.shape
     tiles = list(_tiles(grid, opts.tile))
     dsm = np.full(grid.shape, np.nan, np.float32)
     dsm_mean = np.full(grid.shape, np.nan, np.float32)
     count = np.zeros(grid.shape, np.int32)
-    n_heights = 0
+    n_obs = 0
     with timer.stage("heights"):
         for tile in progress(tiles, "heights (tiles)"):
             r0, c0, h, w = tile
-            cells, z, sin_el = [], [], []
+            cells, z, rel = [], [], []
             for v, box in zip(views, boxes, strict=True):
                 if not _touches(box, tile):
                     continue
-                hits = view_surface_heights(v.camera, v.read_depth(), grid, tile)
-                for part, got in zip((cells, z, sin_el), hits, strict=True):
-                    part.append(got)
-            cells, z = _joined(cells, np.int64), _joined(z, np.float32)
-            use = steep_ray_preferred(cells, _joined(sin_el, np.float32), h * w)
-            cells, z = cells[use], z[use]
-            n_heights += len(z)
+                obs = observe(v.camera, v.read_depth(), grid, tolerance=opts.tolerance)
+                sel, local, reliable = _in_tile(obs, grid, tile)
+                cells.append(local)
+                z.append(obs.xyz[sel, 2].astype(np.float32))
+                rel.append(reliable)
+            cells, z, rel = _joined(cells, np.int64), _joined(z, np.float32), _joined(rel, bool)
+            cells, z = cells[rel], z[rel]
+            n_obs += len(z)
             dsm[r0 : r0 + h, c0 : c0 + w] = group_median(cells, z, h * w).reshape(h, w)
             dsm_mean[r0 : r0 + h, c0 : c0 + w] = group_mean(cells, z, h * w).reshape(h, w)
             count[r0 : r0 + h, c0 : c0 + w] = group_count(cells, h * w).reshape(h, w)
@@ -422,14 +420,12 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
     record = {
         "mode": mode,
         "views": {"used": len(views), "skipped_no_depth": len(skipped), "skipped_ids": skipped},
-        "observations": int(n_depth_pixels),
-        "fused_view_heights": int(n_heights),
+        "observations": int(n_obs),
         "class_source": class_source,
         "filled_small_holes": int(holes.sum()),
         "rejected_isolated_spikes": int(spikes.sum()),
         "stages": timer.stages,
-        # depth pixels turned into the DSM per second (the heights pass)
-        "observations_per_s": round(n_depth_pixels / max(timer.stages["heights"]["wall_s"], 1e-9)),
+        "observations_per_s": round(n_obs / max(timer.stages["heights"]["wall_s"], 1e-9)),
     }
     if forest is not None and timer.stages["classification"]["wall_s"] > 0:
         record["classification_mpx_per_s"] = round(
