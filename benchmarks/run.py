@@ -208,10 +208,15 @@ def bench_superpixel(fusion: Path, scene: Path, repeat: int, work: Path) -> dict
     }
 
 
+def print_stages(medians: dict) -> None:
+    """One line per stage: its median wall time in seconds."""
+    for stage, sec in medians.items():
+        print(f"  {stage:<18}{sec:>8.2f} s")
+
+
 def print_superpixel(sp: dict) -> None:
     print(f"\nworkbench model superpixel on small, median of {sp['repeat']}:")
-    for stage, sec in sp["stage_median_s"].items():
-        print(f"  {stage:<18}{sec:>8.2f} s")
+    print_stages(sp["stage_median_s"])
     m, c, t = sp["metrics"], sp["counts"], sp["table1"]
     print(
         f"  total {sp['total_median_s']:.1f} s = {sp['s_per_mpx']:.1f} s per ortho megapixel; "
@@ -314,8 +319,7 @@ def _by_roof(rows: list[dict]) -> dict:
 
 def print_voxel(v: dict) -> None:
     print(f"\nworkbench model voxel on small (r = 1 m, S = 4), median of {v['repeat']}:")
-    for stage, sec in v["stage_median_s"].items():
-        print(f"  {stage:<18}{sec:>8.2f} s")
+    print_stages(v["stage_median_s"])
     c, m, t = v["counts"], v["metrics"], v["texture"]
     print(
         f"  {v['s_per_building_median']:.2f} s per building ({c['buildings']} buildings); "
@@ -413,8 +417,7 @@ def main() -> int:
                 f"\nworkbench fusion on small ({g['width']} x {g['height']} cells at "
                 f"{g['gsd']} m), median of {f['repeat']}:"
             )
-            for stage, sec in f["stage_median_s"].items():
-                print(f"  {stage:<18}{sec:>8.2f} s")
+            print_stages(f["stage_median_s"])
             print(
                 f"  total {f['fusion_median_s']:.1f} s; reading every input once "
                 f"{f['read_inputs_once_median_s']:.1f} s; ratio {f['ratio_fusion_to_read']:.1f}"
