@@ -38,9 +38,11 @@ from .voxel_proxy import (
     ellipsoid_normals,
     filter_levels,
     height_weighted_variance,
+    highest_tied,
     occupancy,
     proxy_mesh,
     surface_normals,
+    upward_views,
     variance_outliers,
     voxel_variance,
     voxelise,
@@ -78,6 +80,9 @@ class VoxelOptions:
         Outline simplification of the proxy mesh, metres (default a quarter voxel).
     footprint_scale : float
         Scales the eq. 2 window (1: half the voxel's projected size).
+    tie_tolerance : float
+        How far above a column's minimum a higher voxel still ties with it, as a fraction
+        of the spread up to the column's median (:func:`highest_tied`).
     band_tolerance : float
         How far above a column's minimum a voxel still counts as consistent, as a fraction
         of the spread up to the column's median (:func:`consistent_band`).
@@ -105,6 +110,7 @@ class VoxelOptions:
     normal_sigma: float = 1.0
     simplify_m: float | None = None
     footprint_scale: float = 1.0
+    tie_tolerance: float = 0.05
     band_tolerance: float = 0.1
     consistency: str = "lab"
     keep_views: float = 0.75
@@ -216,6 +222,17 @@ def building_proxy(
     # which most views frame out, would win every column
     seen = pc.views[pc.views > 0]
     min_views = max(3.0, options.min_view_fraction * np.median(seen)) if len(seen) else 3.0
+    pc = upward_views(
+        pc,
+        centres.reshape(-1, 3),
+        min_views,
+        r,
+        cameras,
+        images,
+        occluders,
+        options.footprint_scale,
+        options.keep_views,
+    )
     m = height_weighted_variance(
         np.where(pc.views >= min_views, pc.variance, np.nan).reshape(-1, nz),
         np.arange(nz),
@@ -227,6 +244,8 @@ def building_proxy(
     t0 = time.perf_counter()
     layer, value = column_minimum(m)
     discarded = variance_outliers(value, options.outlier_sigma)
+    # the run around the highest tied voxel, measured from that voxel's m_i
+    layer = highest_tied(m, layer, options.tie_tolerance)
     lo, hi = consistent_band(m, layer, options.band_tolerance)
     heights = (lo + hi) / 2.0 * r  # the middle of the consistent run: steadier than the minimum
     variance = np.full((nx, ny, nz), np.nan)

@@ -259,6 +259,51 @@ def voxel_variance(
     return PhotoConsistency(variance, views, dropped)
 
 
+def upward_views(
+    pc: PhotoConsistency,
+    centres: np.ndarray,
+    min_views: float,
+    r: float,
+    cameras: list[Camera],
+    images: ViewImages,
+    occluders=None,
+    footprint_scale: float = 1.0,
+    keep: float = 1.0,
+) -> PhotoConsistency:
+    """Sample again, as if on a roof (normal straight up), the voxels that fewer than
+    ``min_views`` views face by their eq. 1 normal; keep whichever saw more views.
+
+    At a footprint's corners the half-ellipsoid's normal is near horizontal: only the
+    views on that side face it, and at the edge of the flown area there are none, so a
+    building there loses its corner columns. Up is what a roof voxel faces.
+
+    Parameters
+    ----------
+    pc : PhotoConsistency
+        :func:`voxel_variance` with the eq. 1 normals, for the N ``centres``.
+    centres : (N, 3)
+        World voxel centres, metres.
+    min_views : float
+        Fewer views than this leave a voxel unknown.
+
+    Returns
+    -------
+    PhotoConsistency
+        ``pc`` with those voxels replaced where the upward normal found more views.
+    """
+    few = np.flatnonzero(pc.views < min_views)
+    if not len(few):
+        return pc
+    up = np.zeros((len(few), 3))
+    up[:, 2] = 1.0
+    again = voxel_variance(centres[few], up, r, cameras, images, occluders, footprint_scale, keep)
+    better = again.views > pc.views[few]
+    variance, views = pc.variance.copy(), pc.views.copy()
+    variance[few[better]] = again.variance[better]
+    views[few[better]] = again.views[better]
+    return PhotoConsistency(variance, views, pc.occluded_samples + again.occluded_samples)
+
+
 def sample_variance(samples: np.ndarray, keep: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """The bracket of eq. 3 over the views, summed over colour channels, per voxel.
 
@@ -342,37 +387,71 @@ def column_minimum(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return layer, value
 
 
-def consistent_band(
-    m: np.ndarray, layer: np.ndarray, tolerance: float = 0.2
-) -> tuple[np.ndarray, np.ndarray]:
-    """Each column's run of near-minimal voxels around its minimum.
+def highest_tied(m: np.ndarray, layer: np.ndarray, tolerance: float = 0.05) -> np.ndarray:
+    """The highest voxel of each column about as consistent as its minimum: "given an
+    approximately tied variance, the vertically higher voxel is chosen" (section 4.2).
 
-    On a roof of uniform colour the voxels just above and below it are about as
-    consistent as the roof itself, and the minimum falls anywhere in that run; the run
-    reaches no further from the roof than the column's distance to the roof's edge
-    (beyond it, oblique views see past the edge). A voxel is near-minimal when its m_i
-    exceeds the column's minimum by less than ``tolerance`` times the spread between the
-    minimum and the column's median.
+    Below a roof of uniform colour, the voxels inside the building project onto the roof
+    in the steep views and onto one facade in the few oblique views that face them, and
+    can beat the roof; the roof is the top of what is consistent. A voxel ties when its
+    m_i exceeds the column's minimum by at most ``tolerance`` times the spread between
+    the minimum and the column's median (the measure of :func:`consistent_band`).
 
     Parameters
     ----------
     m : (M, nz) float
         m_i (NaN unknown).
     layer : (M,) int
-        Layer of each column's minimum (-1 none).
+        Layer of each column's minimum (-1 none), :func:`column_minimum`.
 
     Returns
     -------
-    lo, hi : (M,) int
-        First and last layer of the run (-1 for columns without a minimum).
+    (M,) int
+        Layer of the highest tied voxel (-1 where ``layer`` is).
     """
+    near = _near_minimum(m, layer, tolerance)
+    top = m.shape[1] - 1 - np.argmax(near[:, ::-1], axis=1)
+    return np.where(layer >= 0, top, layer)
+
+
+def _near_minimum(m: np.ndarray, layer: np.ndarray, tolerance: float) -> np.ndarray:
+    """(M, nz) bool: voxels whose m_i exceeds the column's minimum by at most
+    ``tolerance`` times the spread from the minimum to the column's median."""
     filled = np.where(np.isfinite(m), m, np.inf)
     m0 = filled[np.arange(len(m)), np.maximum(layer, 0)]
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         med = np.nanmedian(np.where(np.isfinite(m), m, np.nan), axis=1)
     spread = np.where(np.isfinite(med), np.maximum(med - m0, 0), 0.0)
-    near = filled <= (m0 + tolerance * spread)[:, None]
+    return filled <= (m0 + tolerance * spread)[:, None]
+
+
+def consistent_band(
+    m: np.ndarray, layer: np.ndarray, tolerance: float = 0.2
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each column's run of near-minimal voxels around a voxel of it (its minimum, or
+    the highest voxel tied with it, :func:`highest_tied`).
+
+    On a roof of uniform colour the voxels just above and below it are about as
+    consistent as the roof itself, and the minimum falls anywhere in that run; the run
+    reaches no further from the roof than the column's distance to the roof's edge
+    (beyond it, oblique views see past the edge). A voxel is near-minimal when its m_i
+    exceeds that voxel's m_i by at most ``tolerance`` times the spread between it and the
+    column's median.
+
+    Parameters
+    ----------
+    m : (M, nz) float
+        m_i (NaN unknown).
+    layer : (M,) int
+        Layer of the voxel each column's run is grown from (-1 none).
+
+    Returns
+    -------
+    lo, hi : (M,) int
+        First and last layer of the run (-1 for columns without a minimum).
+    """
+    near = _near_minimum(m, layer, tolerance)
     nz = m.shape[1]
     idx = np.arange(nz)[None, :]
     lo = np.where(~near & (idx < layer[:, None]), idx, -1).max(axis=1) + 1

@@ -27,14 +27,18 @@ from modeling.voxel_proxy import (
     dominant_axes,
     ellipsoid_normals,
     filter_levels,
+    highest_tied,
     occupancy,
     proxy_mesh,
     sample_variance,
     surface_normals,
+    upward_views,
     variance_outliers,
+    voxel_variance,
     voxelise,
 )
 from modeling.voxel_robustness import perturbed_mesh
+from workbench.camera import Camera, look_at_rotation
 from workbench.meshes import is_watertight
 from workbench.meshio import write_obj
 
@@ -114,6 +118,50 @@ def test_column_minimum_band_and_outliers():
     assert (lo[0], hi[0]) == (2, 4) and (lo[2], hi[2]) == (0, 0)
     out = variance_outliers(np.array([1.0, 1.1, 0.9, 1.0, 1.05, 0.95, 1.0, 1.0, 1.0, 50.0]))
     assert out.tolist() == [False] * 9 + [True]
+
+
+def test_highest_tied_prefers_the_roof_over_a_consistent_interior():
+    # layers 0-3 inside a building (one uniform facade: the minimum), 5-6 the roof just
+    # above the minimum, 7-11 air; row 0: median 2.575, ties within 0.05 x 2.475 of 0.1
+    air = [5.0] * 5
+    m = np.array(
+        [
+            [0.1, 0.1, 0.1, 0.12, 5.0, 0.14, 0.15, *air],
+            [0.1, 0.1, 0.1, 0.12, 5.0, 0.3, 0.3, *air],  # the "roof" is no tie
+            [np.nan] * 12,
+        ]
+    )
+    layer, _ = column_minimum(m)
+    assert layer.tolist() == [0, 0, -1]
+    assert highest_tied(m, layer, tolerance=0.05).tolist() == [6, 3, -1]
+    lo, hi = consistent_band(m, highest_tied(m, layer, 0.05), tolerance=0.1)
+    assert (lo[0], hi[0]) == (5, 6)
+
+
+class _UniformImages:
+    """Every view the same grey everywhere: every sample is consistent."""
+
+    def consistency_samples(self, k, uv, half_width):
+        return np.full((len(uv), 3), 50.0, np.float32)
+
+
+def test_upward_views_rescue_voxels_no_view_faces_by_their_normal():
+    # three cameras east of the voxels, looking down to the west: the voxel whose eq. 1
+    # normal points west (a footprint corner at the west edge of the flight) faces none
+    K = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]])
+    cams = []
+    for y in (-10.0, 0.0, 10.0):
+        C = np.array([40.0, y, 40.0])
+        R = look_at_rotation(-C)
+        cams.append(Camera(K, R, -R @ C, 101, 101))
+    centres = np.zeros((2, 3))
+    normals = np.array([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    pc = voxel_variance(centres, normals, 1.0, cams, _UniformImages())
+    assert pc.views.tolist() == [0, 3]
+    again = upward_views(pc, centres, 3, 1.0, cams, _UniformImages())
+    assert again.views.tolist() == [3, 3]
+    np.testing.assert_allclose(again.variance, [0.0, 0.0])
+    assert pc.views.tolist() == [0, 3]  # the input is not changed
 
 
 def test_cluster_heights_raises_k_while_it_pays():
