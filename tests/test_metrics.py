@@ -5,7 +5,7 @@ import open3d as o3d
 import pytest
 
 from workbench import metrics
-from workbench.meshes import is_watertight, sample_surface, triangle_areas
+from workbench.meshes import is_watertight, sample_surface, self_intersecting, triangle_areas
 from workbench.pictures import colorize_error
 from workbench.report import bar_chart_svg, summary_rows
 
@@ -109,6 +109,34 @@ def test_watertight_needs_closed_consistent_outward_faces():
     assert not is_watertight(v, t[:, ::-1])  # inside out
     t[0] = t[0, ::-1]
     assert not is_watertight(v, t)  # one face flipped
+
+
+def test_self_intersection_ignores_open3d_coplanar_false_positives():
+    # two floor triangles of a voxel proxy in world metres; in the proxy's frame they are
+    # (-3, -2) (0, -5) (-3, -5) and (-5, -5) (-4, -2) (-4, -5): apart, yet Open3D reports
+    # them (isl-org/Open3D#6462)
+    z = 38.100296020507812
+    v = np.array(
+        [
+            [2.4900633626774651, -85.321008772177208, z],
+            [1.7669272583710995, -89.501567846589225, z],
+            [0.038215773318276192, -87.049720257230035, z],
+            [-1.1142585500502715, -85.415155197657242, z],
+            [1.9138262009931908, -84.503726242390812, z],
+            [-0.53802138836599767, -86.232437727443639, z],
+        ]
+    )
+    t = np.array([[0, 1, 2], [3, 4, 5]])
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(t))
+    assert mesh.is_self_intersecting()  # the false positive this guards against
+    assert not self_intersecting(v, t)
+    crossing = v.copy()
+    crossing[3:] += crossing[:3].mean(axis=0) - crossing[3:].mean(axis=0)  # B onto A
+    assert self_intersecting(crossing, t)
+    tilted = v.copy()
+    tilted[3:, 2] += np.array([-1.0, 1.0, 0.0])
+    tilted[3:, :2] = crossing[3:, :2]  # B pierces A's plane inside A
+    assert self_intersecting(tilted, t)
 
 
 def test_surface_samples_are_on_the_mesh_and_spread_by_area():

@@ -6,6 +6,7 @@ import os
 
 import numpy as np
 import open3d as o3d
+from shapely.geometry import Polygon
 
 from .errors import InputError
 
@@ -92,12 +93,65 @@ def is_watertight(vertices: np.ndarray, triangles: np.ndarray) -> bool:
     """Closed 2-manifold without self-intersections, consistently oriented (Open3D)."""
     if not len(triangles):
         return False
-    mesh = o3d.geometry.TriangleMesh(
-        o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(triangles.astype(np.int32))
-    )
+    mesh = _o3d_mesh(vertices, triangles)
     return bool(
-        mesh.is_watertight() and _consistently_oriented(triangles) and _outward(vertices, triangles)
+        mesh.is_edge_manifold(allow_boundary_edges=False)
+        and mesh.is_vertex_manifold()
+        and not self_intersecting(vertices, triangles, mesh)
+        and _consistently_oriented(triangles)
+        and _outward(vertices, triangles)
     )
+
+
+def self_intersecting(
+    vertices: np.ndarray, triangles: np.ndarray, mesh: o3d.geometry.TriangleMesh | None = None
+) -> bool:
+    """Whether two triangles that share no vertex intersect (Open3D), with the pairs Open3D
+    reports in one plane checked again by their overlap in that plane.
+
+    Open3D reports disjoint coplanar triangles as intersecting when their coordinates are
+    large (isl-org/Open3D#6462: a proxy's floor in world metres); a coplanar pair intersects
+    only if it overlaps by an area.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float
+    triangles : (T, 3) int
+    """
+    mesh = mesh if mesh is not None else _o3d_mesh(vertices, triangles)
+    for a, b in np.asarray(mesh.get_self_intersecting_triangles()):
+        ta, tb = vertices[triangles[a]], vertices[triangles[b]]
+        if not _coplanar(ta, tb) or _overlap_area(ta, tb) > 0:
+            return True
+    return False
+
+
+def _o3d_mesh(vertices: np.ndarray, triangles: np.ndarray) -> o3d.geometry.TriangleMesh:
+    return o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(np.asarray(vertices, np.float64)),
+        o3d.utility.Vector3iVector(np.asarray(triangles).astype(np.int32)),
+    )
+
+
+def _coplanar(ta: np.ndarray, tb: np.ndarray, rel_tol: float = 1e-6) -> bool:
+    """Whether ``tb``'s corners lie in ``ta``'s plane, within ``rel_tol`` of their size."""
+    n = np.cross(ta[1] - ta[0], ta[2] - ta[0])
+    norm = float(np.linalg.norm(n))
+    if norm == 0.0:
+        return False
+    size = float(np.ptp(np.vstack([ta, tb]), axis=0).max())
+    return bool(np.all(np.abs((tb - ta[0]) @ (n / norm)) <= rel_tol * size))
+
+
+def _overlap_area(ta: np.ndarray, tb: np.ndarray) -> float:
+    """Area of the overlap of two coplanar triangles, in the plane of their largest
+    projection (relative to their size: 0 when they only touch)."""
+    drop = int(np.argmax(np.abs(np.cross(ta[1] - ta[0], ta[2] - ta[0]))))
+    keep = [i for i in range(3) if i != drop]
+    origin = ta[0, keep]
+    pa, pb = Polygon(ta[:, keep] - origin), Polygon(tb[:, keep] - origin)
+    area = pa.intersection(pb).area
+    return area if area > 1e-9 * max(pa.area, pb.area) else 0.0
 
 
 def _consistently_oriented(triangles: np.ndarray) -> bool:
