@@ -208,31 +208,18 @@ def building_proxy(
     times["voxelise"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    pc = voxel_variance(
-        centres.reshape(-1, 3),
-        normals.reshape(-1, 3),
-        r,
-        cameras,
-        images,
-        occluders,
-        options.footprint_scale,
-        options.keep_views,
-    )
+
+    def sample(c: np.ndarray, n: np.ndarray):
+        return voxel_variance(
+            c, n, r, cameras, images, occluders, options.footprint_scale, options.keep_views
+        )
+
+    pc = sample(centres.reshape(-1, 3), normals.reshape(-1, 3))
     # a variance from a few views is small by chance: voxels high above the building,
     # which most views frame out, would win every column
     seen = pc.views[pc.views > 0]
     min_views = max(3.0, options.min_view_fraction * np.median(seen)) if len(seen) else 3.0
-    pc = upward_views(
-        pc,
-        centres.reshape(-1, 3),
-        min_views,
-        r,
-        cameras,
-        images,
-        occluders,
-        options.footprint_scale,
-        options.keep_views,
-    )
+    pc = upward_views(pc, centres.reshape(-1, 3), min_views, sample)
     m = height_weighted_variance(
         np.where(pc.views >= min_views, pc.variance, np.nan).reshape(-1, nz),
         np.arange(nz),

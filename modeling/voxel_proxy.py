@@ -14,6 +14,7 @@ consistent voxel is in layer 0 is ground.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -263,12 +264,7 @@ def upward_views(
     pc: PhotoConsistency,
     centres: np.ndarray,
     min_views: float,
-    r: float,
-    cameras: list[Camera],
-    images: ViewImages,
-    occluders=None,
-    footprint_scale: float = 1.0,
-    keep: float = 1.0,
+    sample: Callable[[np.ndarray, np.ndarray], PhotoConsistency],
 ) -> PhotoConsistency:
     """Sample again, as if on a roof (normal straight up), the voxels that fewer than
     ``min_views`` views face by their eq. 1 normal; keep whichever saw more views.
@@ -285,6 +281,9 @@ def upward_views(
         World voxel centres, metres.
     min_views : float
         Fewer views than this leave a voxel unknown.
+    sample : callable
+        ``sample(centres, normals)``: :func:`voxel_variance` with the building's views,
+        occluders and window.
 
     Returns
     -------
@@ -296,7 +295,7 @@ def upward_views(
         return pc
     up = np.zeros((len(few), 3))
     up[:, 2] = 1.0
-    again = voxel_variance(centres[few], up, r, cameras, images, occluders, footprint_scale, keep)
+    again = sample(centres[few], up)
     better = again.views > pc.views[few]
     variance, views = pc.variance.copy(), pc.views.copy()
     variance[few[better]] = again.variance[better]

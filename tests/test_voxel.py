@@ -158,7 +158,9 @@ def test_upward_views_rescue_voxels_no_view_faces_by_their_normal():
     normals = np.array([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
     pc = voxel_variance(centres, normals, 1.0, cams, _UniformImages())
     assert pc.views.tolist() == [0, 3]
-    again = upward_views(pc, centres, 3, 1.0, cams, _UniformImages())
+    again = upward_views(
+        pc, centres, 3, lambda c, n: voxel_variance(c, n, 1.0, cams, _UniformImages())
+    )
     assert again.views.tolist() == [3, 3]
     np.testing.assert_allclose(again.variance, [0.0, 0.0])
     assert pc.views.tolist() == [0, 3]  # the input is not changed
