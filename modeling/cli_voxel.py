@@ -466,7 +466,7 @@ def _preview(path: Path, proxies, textures, gtex) -> None:
     row1 = [
         (_upscale(var_img), f"building {p.id}: variance, vertical slice"),
         (_upscale(horiz_img), "variance at the roof"),
-        (_upscale(before), "min-variance heights"),
+        (_upscale(before), "most consistent heights"),
         (_upscale(after), "after clustering"),
     ]
     top_before = _top_labels(p, t, t.initial)

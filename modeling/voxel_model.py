@@ -132,8 +132,8 @@ class Proxy:
     variance : (nx, ny, nz) float
         m_i of eq. 3 (NaN outside the columns or where unseen).
     min_height : (nx, ny) float
-        Height of each column's most consistent voxel above the ground, metres (NaN
-        outside or discarded).
+        Height above the ground of each column's most consistent voxel (the highest
+        tied with its minimum, :func:`highest_tied`), metres (NaN outside or discarded).
     levels : (nx, ny) int
         Filtered roof levels (0 empty); level l stands at ``level_heights[l - 1]``.
     level_heights : (K,) float

@@ -408,14 +408,14 @@ def highest_tied(m: np.ndarray, layer: np.ndarray, tolerance: float = 0.05) -> n
     (M,) int
         Layer of the highest tied voxel (-1 where ``layer`` is).
     """
-    near = _near_minimum(m, layer, tolerance)
+    near = _near_layer(m, layer, tolerance)
     top = m.shape[1] - 1 - np.argmax(near[:, ::-1], axis=1)
     return np.where(layer >= 0, top, layer)
 
 
-def _near_minimum(m: np.ndarray, layer: np.ndarray, tolerance: float) -> np.ndarray:
-    """(M, nz) bool: voxels whose m_i exceeds the column's minimum by at most
-    ``tolerance`` times the spread from the minimum to the column's median."""
+def _near_layer(m: np.ndarray, layer: np.ndarray, tolerance: float) -> np.ndarray:
+    """(M, nz) bool: voxels whose m_i exceeds that of the column's voxel at ``layer`` by
+    at most ``tolerance`` times the spread from it to the column's median."""
     filled = np.where(np.isfinite(m), m, np.inf)
     m0 = filled[np.arange(len(m)), np.maximum(layer, 0)]
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
@@ -450,7 +450,7 @@ def consistent_band(
     lo, hi : (M,) int
         First and last layer of the run (-1 for columns without a minimum).
     """
-    near = _near_minimum(m, layer, tolerance)
+    near = _near_layer(m, layer, tolerance)
     nz = m.shape[1]
     idx = np.arange(nz)[None, :]
     lo = np.where(~near & (idx < layer[:, None]), idx, -1).max(axis=1) + 1
