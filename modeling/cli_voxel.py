@@ -118,6 +118,7 @@ class VoxelInputs:
     skipped: list[dict]
     footprint_source: str
     footprint_count: int
+    fused_ndsm: tuple | None = None  # (ndsm, grid) of the fusion run, if any
 
 
 def read_inputs(
@@ -137,7 +138,10 @@ def read_inputs(
     items, source = _footprints(scene, footprints, fusion)
     ground = _ground_model(scene, fusion, ground_z)
     kept, skipped = _usable(items, cameras, ground, default_height)
-    return VoxelInputs(scene, cameras, images, ground, kept, skipped, source, len(items))
+    fused_ndsm = (fusion["ndsm"], fusion["grid"]) if fusion else None
+    return VoxelInputs(
+        scene, cameras, images, ground, kept, skipped, source, len(items), fused_ndsm
+    )
 
 
 def build_proxies(inputs: VoxelInputs, options: VoxelOptions) -> list[Proxy]:
@@ -149,8 +153,9 @@ def build_proxies(inputs: VoxelInputs, options: VoxelOptions) -> list[Proxy]:
     for f, base, h in progress(kept, "voxel proxies"):
         occluders = _neighbours(f, kept, prisms)
         p = building_proxy(
-            f.id, f.polygon, h, base, inputs.cameras, inputs.images, options, occluders
-        )
+            f.id, f.polygon, h, base, inputs.cameras, inputs.images, options, occluders,
+            inputs.fused_ndsm,
+        )  # fmt: skip
         p.record["height_source"] = f.properties.get("_height_source", "GIS")
         p.record["gis_footprint"] = mapping(f.polygon)
         if p.empty:

@@ -14,6 +14,7 @@ from scipy.spatial import cKDTree
 from shapely.geometry import Polygon
 
 from workbench.camera import Camera
+from workbench.raster import Grid
 from workbench.records import peak_memory_mb
 
 from .surface_graph import (
@@ -37,6 +38,7 @@ from .voxel_proxy import (
     consistent_band,
     ellipsoid_normals,
     filter_levels,
+    fused_ground_columns,
     height_weighted_variance,
     highest_tied,
     occupancy,
@@ -93,6 +95,9 @@ class VoxelOptions:
     min_view_fraction : float
         Voxels seen by fewer views than this fraction of the building's median (and than
         3) are unknown.
+    fusion_ground : bool
+        With a fusion run's nDSM, columns it puts below ``min_height_m`` are ground
+        (:func:`~modeling.voxel_proxy.fused_ground_columns`).
     ground_gsd_m : float
         Texel size of the ground texture, metres.
     seed : int
@@ -115,6 +120,7 @@ class VoxelOptions:
     consistency: str = "lab"
     keep_views: float = 0.75
     min_view_fraction: float = 0.3
+    fusion_ground: bool = True
     ground_gsd_m: float = 0.5
     seed: int = 0
 
@@ -184,6 +190,7 @@ def building_proxy(
     images: ViewImages,
     options: VoxelOptions,
     occluders=None,
+    fused_ndsm: tuple[np.ndarray, Grid] | None = None,
 ) -> Proxy:
     """Section 4 for one building: voxels, photo-consistency, height clusters, mesh.
 
@@ -197,6 +204,9 @@ def building_proxy(
         Ground height under the building, metres.
     occluders : RaycastingScene, optional
         Initial proxies of the neighbouring buildings.
+    fused_ndsm : (ndsm, grid), optional
+        A fusion run's nDSM (H, W) metres and its grid: where it says ground, a column is
+        ground (with ``options.fusion_ground``).
     """
     times = {}
     t0 = time.perf_counter()
@@ -231,6 +241,11 @@ def building_proxy(
     t0 = time.perf_counter()
     layer, value = column_minimum(m)
     discarded = variance_outliers(value, options.outlier_sigma)
+    on_fused_ground = np.zeros(len(value), bool)
+    if fused_ndsm is not None and options.fusion_ground:
+        ground = fused_ground_columns(frame, *fused_ndsm, options.min_height_m)
+        on_fused_ground = ground[columns] & ~discarded
+        discarded |= on_fused_ground
     # the run around the highest tied voxel, measured from that voxel's m_i
     layer = highest_tied(m, layer, options.tie_tolerance)
     lo, hi = consistent_band(m, layer, options.band_tolerance)
@@ -283,6 +298,7 @@ def building_proxy(
         "voxel_grid": [nx, ny, nz],
         "columns": int(columns.sum()),
         "columns_discarded": int(discarded.sum()),
+        "columns_on_fused_ground": int(on_fused_ground.sum()),
         "proxy_columns": int((levels > 0).sum()),
         "occluded_samples": pc.occluded_samples,
         "faces": int(len(triangles)),

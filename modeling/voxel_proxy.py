@@ -525,6 +525,44 @@ def variance_outliers(value: np.ndarray, n_sigma: float = 2.0) -> np.ndarray:
     return ~ok | (value > mu + n_sigma * sd)
 
 
+def fused_ground_columns(
+    frame: VoxelFrame, ndsm: np.ndarray, grid: Grid, min_height: float
+) -> np.ndarray:
+    """(nx, ny) bool: columns a fusion run's nDSM puts on the ground.
+
+    Beside a roof, the air above uniform paving is photo-consistent too: the steep views
+    see the same grey below it and the few oblique views that see the facade behind it
+    are dropped as outliers (``keep_views``), so eq. 3 keeps such columns at roof height.
+    The fused heights of the dense matching do not share that blind spot. A column is on
+    the ground when the median nDSM over its cells is below ``min_height``; columns the
+    fusion did not see (NaN, or outside its grid) are left to the photo-consistency.
+
+    Parameters
+    ----------
+    frame : VoxelFrame
+    ndsm : (H, W) float
+        Height above the ground, metres, NaN unknown, on ``grid``.
+    grid : Grid
+    min_height : float
+        Metres; lower columns are ground (the path's lowest roof level).
+    """
+    nx, ny, _ = frame.shape
+    k = max(1, int(round(frame.r / grid.gsd)))  # samples per column side, one per cell
+    offsets = ((np.arange(k) + 0.5) / k - 0.5) * frame.r
+    ox, oy = np.meshgrid(offsets, offsets, indexing="ij")
+    lx, ly = frame.column_local()
+    local = np.stack([lx[..., None] + ox.ravel(), ly[..., None] + oy.ravel()], axis=-1)
+    world = frame.to_world_xy(local.reshape(-1, 2))
+    row, col = grid.cell_index(world[:, 0], world[:, 1])
+    inside = grid.contains(row, col)
+    h = np.full(len(world), np.nan)
+    h[inside] = ndsm[row[inside], col[inside]]
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        median = np.nanmedian(h.reshape(nx, ny, k * k), axis=2)
+    return median < min_height
+
+
 def cluster_heights(
     heights: np.ndarray, cluster_error: float = 0.3, max_k: int = 6, seed: int = 0
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -27,6 +27,7 @@ from modeling.voxel_proxy import (
     dominant_axes,
     ellipsoid_normals,
     filter_levels,
+    fused_ground_columns,
     highest_tied,
     occupancy,
     proxy_mesh,
@@ -41,6 +42,7 @@ from modeling.voxel_robustness import perturbed_mesh
 from workbench.camera import Camera, look_at_rotation
 from workbench.meshes import is_watertight
 from workbench.meshio import write_obj
+from workbench.raster import Grid
 
 from .conftest import model_and_score, run_cli
 
@@ -77,6 +79,28 @@ def test_voxelise_aligns_with_the_footprint_and_grows_it():
     np.testing.assert_allclose(frame.layer_z()[[0, -1]], [5.0, 17.0])
     _, grown = voxelise(poly, 12.0, 5.0, 1.0, grow=1.0)
     assert grown.sum() == 12 * 8
+
+
+def test_fused_ground_columns_follow_the_ndsm_under_each_column():
+    """A 30-degree frame over a 0.25 m nDSM: a 4 m roof on the local strip x < 6 m,
+    paving beyond it; unseen cells and cells off the grid decide nothing."""
+    angle = np.radians(30)
+    R = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    poly = Polygon(np.array([[0, 0], [10, 0], [10, 6], [0, 6]]) @ R.T + [100, 200])
+    frame, columns = voxelise(poly, 12.0, 5.0, 1.0, grow=0.0)
+    grid = Grid(xmin=95.0, ymax=215.0, gsd=0.25, width=80, height=80)
+    rows, cols = np.mgrid[0 : grid.height, 0 : grid.width]
+    x, y = grid.xmin + (cols + 0.5) * grid.gsd, grid.ymax - (rows + 0.5) * grid.gsd
+    local_x = frame.to_local_xy(np.column_stack([x.ravel(), y.ravel()]))[:, 0].reshape(x.shape)
+    ndsm = np.where(local_x < frame.x0 + 6.0, 4.0, 0.3)
+    ground = fused_ground_columns(frame, ndsm, grid, min_height=2.0)
+    assert ground.shape == columns.shape
+    # 10 x 6 columns of 1 m from the frame's corner: the first 6 along x are the roof
+    assert not ground[:6].any() and ground[6:].all()
+    ndsm[:, :] = np.nan
+    assert not fused_ground_columns(frame, ndsm, grid, min_height=2.0).any()
+    off_grid = Grid(xmin=0.0, ymax=10.0, gsd=0.25, width=40, height=40)
+    assert not fused_ground_columns(frame, np.zeros((40, 40)), off_grid, 2.0).any()
 
 
 def test_ellipsoid_normals_point_up_on_top_and_out_at_the_sides():

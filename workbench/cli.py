@@ -316,8 +316,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--fusion",
         type=Path,
         metavar="FUSION_DIR",
-        help="a fusion run: its DTM is the ground, its building mask the footprints when "
-        "there are none (default: a flat ground plane)",
+        help="a fusion run: its DTM is the ground, its nDSM marks ground columns, its "
+        "building mask the footprints when there are none (default: a flat ground plane)",
+    )
+    q.add_argument(
+        "--no-fusion-ground",
+        dest="fusion_ground",
+        action="store_false",
+        help="keep the columns the --fusion nDSM puts on the ground: photo-consistency "
+        "alone decides the proxies' extent, as in the paper",
     )
     q.add_argument(
         "--voxel",
@@ -582,6 +589,7 @@ def cmd_model_voxel(args) -> int:
         ring_m=args.ring,
         grow_m=args.grow,
         consistency=args.consistency,
+        fusion_ground=args.fusion_ground,
         seed=args.seed,
     )
     record = run_voxel(
