@@ -418,9 +418,7 @@ def _near_layer(m: np.ndarray, layer: np.ndarray, tolerance: float) -> np.ndarra
     at most ``tolerance`` times the spread from it to the column's median."""
     filled = np.where(np.isfinite(m), m, np.inf)
     m0 = filled[np.arange(len(m)), np.maximum(layer, 0)]
-    with np.errstate(invalid="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        med = np.nanmedian(np.where(np.isfinite(m), m, np.nan), axis=1)
+    med = _nanmedian(np.where(np.isfinite(m), m, np.nan), axis=1)
     spread = np.where(np.isfinite(med), np.maximum(med - m0, 0), 0.0)
     return filled <= (m0 + tolerance * spread)[:, None]
 
@@ -557,10 +555,14 @@ def fused_ground_columns(
     inside = grid.contains(row, col)
     h = np.full(len(world), np.nan)
     h[inside] = ndsm[row[inside], col[inside]]
+    return _nanmedian(h.reshape(nx, ny, k * k), axis=2) < min_height
+
+
+def _nanmedian(a: np.ndarray, axis: int) -> np.ndarray:
+    """``np.nanmedian`` that gives NaN for all-NaN slices without warning about them."""
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        median = np.nanmedian(h.reshape(nx, ny, k * k), axis=2)
-    return median < min_height
+        return np.nanmedian(a, axis=axis)
 
 
 def cluster_heights(
