@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 from workbench.camera import Camera
 from workbench.raycast import occluded
 
-from .crf import binary_cut
+from .crf import pairwise_cut
 from .view_images import ViewImages, rgb_to_lab
 
 _INF = 1e9
@@ -340,6 +340,16 @@ def seam_cost(edges: np.ndarray, labels: np.ndarray, samples: ViewSamples) -> tu
     return float(per_edge.mean()), int(seam.sum())
 
 
+def view_facing(labels: np.ndarray, samples: ViewSamples) -> float:
+    """Mean cosine between each seen vertex's normal and the direction to its view
+    (``labels``): 1 when every texel is textured from straight in front. NaN when no
+    vertex has a view."""
+    seen = np.flatnonzero(labels >= 0)
+    if not len(seen):
+        return float("nan")
+    return float(samples.facing[seen, labels[seen]].mean())
+
+
 @dataclass
 class Stitching:
     """Result of :func:`stitch_patches`.
@@ -418,16 +428,8 @@ def stitch_patches(
             done |= members
             continue
         k = int(labels[members][0])
-        lo = positions[members].min(axis=0) - overlap_m
-        hi = positions[members].max(axis=0) + overlap_m
-        close = np.flatnonzero(done & np.all((positions >= lo) & (positions <= hi), axis=1))
-        near = cKDTree(positions[members]).query(positions[close], distance_upper_bound=overlap_m)[
-            0
-        ]
-        band = np.zeros(len(labels), bool)
-        band[close[np.isfinite(near)]] = True
-        band &= samples.visible[:, k]
-        labels, changed = _cut(graph_edges, labels, done, members, band, k, samples)
+        keep, free = _frontier(positions, labels, done, members, samples, k, overlap_m)
+        labels, changed = _cut(graph_edges, keep, done, members, free, k, samples)
         cuts += 1
         done |= members
         patch[changed] = p
@@ -453,27 +455,63 @@ def _absorb(edges, labels, done, members, samples) -> bool:
     return True
 
 
-def _cut(edges, labels, done, members, band, k, samples):
-    """One min cut: band vertices keep their view (source side) or take view ``k`` (sink
-    side); other stitched vertices keep theirs, the new patch's take ``k``."""
-    nodes = np.flatnonzero(band | members)
-    # stitched vertices next to the band keep the seam honest at its edge
+def _frontier(positions, labels, done, members, samples, k, overlap_m):
+    """The overlap band of a new patch (view ``k``) with the stitched vertices.
+
+    On the stitched side, the vertices within ``overlap_m`` of the patch that view ``k``
+    sees; on the patch's side, its vertices within ``overlap_m`` of a stitched vertex
+    whose view sees them too. Returns the view each vertex keeps if the cut leaves it
+    on the source side ((V,) int: its own, or for the patch's band vertices their nearest
+    stitched vertex's) and the band ((V,) bool).
+    """
+    lo = positions[members].min(axis=0) - overlap_m
+    hi = positions[members].max(axis=0) + overlap_m
+    close = np.flatnonzero(done & np.all((positions >= lo) & (positions <= hi), axis=1))
+    free = np.zeros(len(labels), bool)
+    keep = labels.copy()
+    if not len(close):
+        return keep, free
+    near = cKDTree(positions[members]).query(positions[close], distance_upper_bound=overlap_m)[0]
+    free[close[np.isfinite(near)]] = True
+    free &= samples.visible[:, k]
+    inside = np.flatnonzero(members)
+    d, nearest = cKDTree(positions[close]).query(positions[inside], distance_upper_bound=overlap_m)
+    inside, nearest = inside[np.isfinite(d)], nearest[np.isfinite(d)]
+    other = labels[close[nearest]]
+    sees = samples.visible[inside, other]
+    keep[inside[sees]] = other[sees]
+    free[inside[sees]] = True
+    return keep, free
+
+
+def _cut(edges, keep, done, members, free, k, samples):
+    """One min cut: band vertices (``free``) keep their view ``keep`` (source side) or
+    take view ``k`` (sink side); other stitched vertices keep theirs, the new patch's
+    take ``k``. Each edge pays C of eq. 5 between the views its two ends end up with."""
     a, b = edges[:, 0], edges[:, 1]
-    rim = np.zeros(len(labels), bool)
-    rim[a[band[b] & done[a] & ~band[a]]] = True
-    rim[b[band[a] & done[b] & ~band[b]]] = True
-    nodes = np.union1d(nodes, np.flatnonzero(rim))
-    index = np.full(len(labels), -1)
+    # vertices next to the band keep the seam honest at its edge
+    rim = np.zeros(len(keep), bool)
+    rim[a[free[b]]] = True
+    rim[b[free[a]]] = True
+    nodes = np.flatnonzero(free | members | (rim & done))
+    index = np.full(len(keep), -1)
     index[nodes] = np.arange(len(nodes))
     e = edges[(index[a] >= 0) & (index[b] >= 0)]
-    e = e[(band | members)[e[:, 0]] | (band | members)[e[:, 1]]]
-    src = np.where(done[e[:, 0]], labels[e[:, 0]], labels[e[:, 1]])  # the stitched end's view
-    weights = seam_costs(e, src, np.full(len(e), k), samples)
+    e = e[free[e[:, 0]] | free[e[:, 1]]]
+    s, t = keep[e[:, 0]], keep[e[:, 1]]
+    view_k = np.full(len(e), k)
+
+    def cost(u, v):
+        return np.where(u == v, 0.0, seam_costs(e, u, v, samples))
+
+    pair = np.column_stack([cost(s, t), cost(s, view_k), cost(view_k, t), np.zeros(len(e))])
     unary = np.zeros((len(nodes), 2))
-    unary[:, 1] = np.where(done[nodes] & ~band[nodes], _INF, 0.0)  # tied to the source
-    unary[:, 0] = np.where(members[nodes], _INF, 0.0)  # tied to the sink
-    side = binary_cut(unary, index[e], weights, 1.0)
-    changed = nodes[(side == 1) & band[nodes]]
-    labels = labels.copy()
-    labels[changed] = k
+    unary[:, 1] = np.where(done[nodes] & ~free[nodes], _INF, 0.0)  # tied to the source
+    unary[:, 0] = np.where(members[nodes] & ~free[nodes], _INF, 0.0)  # tied to the sink
+    side = pairwise_cut(unary, index[e], pair)
+    labels = np.where(members, k, keep)
+    src, snk = nodes[side == 0], nodes[side == 1]
+    labels[src] = keep[src]
+    labels[snk] = k
+    changed = snk[~members[snk]]
     return labels, changed

@@ -26,6 +26,7 @@ from .surface_graph import (
     stitch_patches,
     surface_graph,
     texel_colours,
+    view_facing,
     view_samples,
 )
 from .texture_atlas import atlas
@@ -401,6 +402,8 @@ def texture_building(
         "seam_cost_projective": round(cost_proj, 4),
         "seam_edges": seams_cut,
         "seam_edges_projective": seams_proj,
+        "view_facing": round(view_facing(stitched.labels, samples), 4),
+        "view_facing_projective": round(view_facing(projective, samples), 4),
         "atlas_px": [int(image.shape[1]), int(image.shape[0])],
         "times_s": {
             "surface_graph": round(t_graph, 3),

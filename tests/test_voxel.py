@@ -246,13 +246,15 @@ def test_surface_normals_of_a_box():
     assert n[2, 4, 1, 0] < -0.9  # the west wall looks west
 
 
-def _two_view_strip(n=12):
-    """A strip of n texels seen by two views; they agree only on texels 4-7."""
-    positions = np.column_stack([np.arange(n) * 0.25, np.zeros(n), np.zeros(n)])
-    edges = np.column_stack([np.arange(n - 1), np.arange(1, n)])
+def _two_view_strip(n=24, agree=(4, 7), offset=20.0):
+    """A strip of n texels 0.25 m apart seen by two views; they agree only on texels
+    ``agree[0]..agree[1]`` and differ by ``offset`` Lab units elsewhere."""
+    i = np.arange(n)
+    positions = np.column_stack([i * 0.25, np.zeros(n), np.zeros(n)])
+    edges = np.column_stack([i[:-1], i[1:]])
     lab = np.zeros((n, 2, 3), np.float32)
     lab[:, 0, 0] = 50.0
-    lab[:, 1, 0] = 50.0 + np.where((np.arange(n) >= 4) & (np.arange(n) <= 7), 0.0, 20.0)
+    lab[:, 1, 0] = 50.0 + np.where((i >= agree[0]) & (i <= agree[1]), 0.0, offset)
     samples = ViewSamples(
         np.ones((n, 2), bool), np.ones((n, 2), np.float32), lab, np.zeros((n, 2, 3), np.uint8)
     )
@@ -260,7 +262,7 @@ def _two_view_strip(n=12):
 
 
 def test_seam_cost_by_hand():
-    _, edges, samples = _two_view_strip()
+    _, edges, samples = _two_view_strip(12)
     labels = np.array([0] * 10 + [1] * 2)  # seam between texels 9 and 10: 20 Lab apart
     assert seam_cost(edges, labels, samples) == (20.0, 1)
     labels = np.array([0] * 6 + [1] * 6)  # seam inside the agreeing run
@@ -270,12 +272,29 @@ def test_seam_cost_by_hand():
 
 def test_stitching_moves_the_seam_to_where_the_views_agree():
     positions, edges, samples = _two_view_strip()
-    labels = np.array([0] * 10 + [1] * 2)  # view 1's patch is small: stitched second
+    labels = np.array([0] * 10 + [1] * 14)  # view 1's patch is stitched first
     out = stitch_patches(edges, positions, labels, samples, overlap_m=2.0, min_patch=1)
     assert seam_cost(edges, out.labels, samples)[0] == 0.0
     seam = np.flatnonzero(out.labels[:-1] != out.labels[1:])
     assert len(seam) == 1 and 4 <= seam[0] <= 6
+    assert out.labels[0] == 0 and out.labels[-1] == 1  # both ends outside the band
     assert patches(edges, out.labels).max() == 1
+
+
+def test_stitching_band_reaches_into_the_new_patch():
+    """The overlap band lies in both patches (Fig. 5g): a new patch that the stitched
+    view sees and that lies wholly in the band is cut away when every seam would cost;
+    where the stitched view cannot see its far end, the seam stays, at its cheapest."""
+    positions, edges, samples = _two_view_strip(24, agree=(-1, -1))
+    labels = np.array([0] * 20 + [1] * 4)
+    out = stitch_patches(edges, positions, labels, samples, overlap_m=2.0, min_patch=1)
+    assert (out.labels == 0).all()
+    samples.visible[22:, 0] = False
+    samples.lab[16, 1, 0] = 50.0  # the views agree at texels 16 and 17 only
+    samples.lab[17, 1, 0] = 50.0
+    out = stitch_patches(edges, positions, labels, samples, overlap_m=2.0, min_patch=1)
+    assert np.flatnonzero(out.labels[:-1] != out.labels[1:]).tolist() == [16]
+    assert seam_cost(edges, out.labels, samples)[0] == 0.0
 
 
 def test_surface_graph_and_atlas_on_a_box(tmp_path):
