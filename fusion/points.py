@@ -1,10 +1,11 @@
 """LiDAR point clouds (LAS/LAZ via laspy, PLY via Open3D) rasterised into the ortho products.
 
-DSM: the highest return per cell; ortho: the colour (or intensity) of that return;
-classes: the LAS classification of that return, ASPRS codes mapped to ours; DTM:
-the ground class where the file has one, the progressive morphological filter
-otherwise. Lengths are in the CRS's units (US survey feet stay feet); the ground
-filter's metric parameters are converted.
+DSM: the highest return per cell, read at the cell's centre on the triangulation of those
+returns (a return may lie half a cell from the centre it stands for); ortho: the colour
+(or intensity) of that return; classes: the LAS classification of that return, ASPRS
+codes mapped to ours; DTM: the ground class where the file has one, the progressive
+morphological filter otherwise. Lengths are in the CRS's units (US survey feet stay
+feet); the ground filter's metric parameters are converted.
 """
 
 from __future__ import annotations
@@ -126,6 +127,47 @@ def _top_per_cell(cells: np.ndarray, z: np.ndarray) -> np.ndarray:
     return order[last]
 
 
+def top_surface_at_centres(
+    xyz: np.ndarray, centres: np.ndarray, max_slope_deg: float = 70.0
+) -> np.ndarray:
+    """Heights at ``centres`` (M, 2) of the surface through the highest returns ``xyz``
+    (M, 3), one per cell, the i-th return lying in the cell of the i-th centre.
+
+    Each centre takes the height of the Delaunay triangle of the returns (scipy) that holds
+    it. A return sits anywhere in its cell: on a 40-degree roof, taking its height for the
+    centre's errs by up to 0.4 cell sizes. Where the triangle is steeper than
+    ``max_slope_deg`` (it spans a wall or a crown's edge) or no triangle holds the centre
+    (the hull's rim), the cell keeps its return's own height, so that edges stay sharp.
+
+    Returns
+    -------
+    (M,) float heights, in the units of ``xyz``.
+    """
+    from scipy.spatial import Delaunay, QhullError
+
+    z = xyz[:, 2].astype(np.float64)
+    if len(xyz) < 3:
+        return z
+    try:
+        tri = Delaunay(xyz[:, :2])
+    except QhullError:  # all returns on a line
+        return z
+    simplex = tri.find_simplex(centres)
+    inside = np.flatnonzero(simplex >= 0)
+    s = simplex[inside]
+    affine = tri.transform[s]
+    b = np.einsum("mij,mj->mi", affine[:, :2], centres[inside] - affine[:, 2])
+    weights = np.column_stack([b, 1.0 - b.sum(axis=1)])
+    corners = xyz[tri.simplices[s]]
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    gentle = np.abs(normal[:, 2]) >= np.cos(np.radians(max_slope_deg)) * np.linalg.norm(
+        normal, axis=1
+    )
+    out = z.copy()
+    out[inside[gentle]] = np.einsum("mk,mk->m", weights[gentle], corners[gentle, :, 2])
+    return out
+
+
 def fuse_points(path, opts: FusionOptions | None = None, *, crs: str | None = None):
     """Rasterise a point cloud into a :class:`FusionResult`.
 
@@ -166,8 +208,10 @@ def fuse_points(path, opts: FusionOptions | None = None, *, crs: str | None = No
         cells = r * grid.width + c
         n = grid.width * grid.height
         top = _top_per_cell(cells, xyz[:, 2])
+        rows, cols = np.divmod(cells[top], grid.width)
+        centres = np.column_stack([grid.xmin + (cols + 0.5) * gsd, grid.ymax - (rows + 0.5) * gsd])
         dsm = np.full(n, np.nan)
-        dsm[cells[top]] = xyz[top, 2]
+        dsm[cells[top]] = top_surface_at_centres(xyz[top], centres)
         dsm = dsm.reshape(grid.shape)
         count = np.bincount(cells, minlength=n).reshape(grid.shape)
         holes = small_holes(~np.isfinite(dsm), HOLE_CELLS)

@@ -37,7 +37,7 @@ from .superpixel_model import (
     roof_prototypes,
     superpixel_points,
 )
-from .superpixels import quickshift_superpixels
+from .superpixels import quickshift_superpixels, relief_image
 
 log = logging.getLogger(__name__)
 
@@ -88,8 +88,12 @@ def run_superpixel(
             if edge_reach_m is None:
                 edge_reach_m = 0.0 if _fusion_mode(fusion_dir) == "point cloud" else 1.0
         with timer.stage("superpixels"):
+            segment_on = options.segment_on or (
+                "relief" if _fusion_mode(fusion_dir) == "point cloud" else "ortho"
+            )
+            image = relief_image(dsm, grid.gsd) if segment_on == "relief" else rgb
             labels = quickshift_superpixels(
-                rgb, options.sigma, options.tau, options.ratio, seed=options.seed
+                image, options.sigma, options.tau, options.ratio, seed=options.seed
             )
         with timer.stage("aggregation"):
             graph = superpixel_graph(labels, rgb, prob, dsm)
@@ -111,7 +115,11 @@ def run_superpixel(
             sp_argmax[no_data] = 0
         with timer.stage("buildings"):
             owner = split_buildings(
-                sp_class == BUILDING, labels, grid.gsd, options.opening_m, options.min_area_m2
+                sp_class == BUILDING,
+                labels,
+                grid.gsd,
+                0.0 if options.all_building else options.opening_m,
+                options.min_area_m2,
             )
             pts = superpixel_points(labels, dsm, grid)
         neighbours: dict[int, list[int]] = {}
@@ -186,6 +194,7 @@ def run_superpixel(
         }
         record["superpixels"] = graph.n
         record["parameters"]["edge_reach_m"] = edge_reach_m
+        record["parameters"]["segment_on"] = segment_on
         if omega_choice is not None:
             record["omega_class_choice"] = omega_choice
         if truth is not None:

@@ -33,6 +33,9 @@ class SuperpixelOptions:
     Attributes
     ----------
     sigma, tau, ratio : Quickshift kernel width and largest link, pixels; colour weight.
+    segment_on : "ortho" (the paper) or "relief" (the DSM's normals,
+        :func:`~modeling.superpixels.relief_image`); None: the relief for point-cloud
+        fusions, whose ortho is one grey level or intensity per cell, the ortho otherwise.
     omega_class : weight of the class CRF's pairwise term (eq. 2; the paper: 3); None
         chooses it on the scene's training strokes (:func:`choose_omega_class`).
     omega_roof : weight of the prototype CRF's pairwise term (the paper: 5).
@@ -51,15 +54,16 @@ class SuperpixelOptions:
         the eaves from above.
     simplify_m : tolerance of the roof polygons' simplification, metres (None: two cells,
         which removes the cell staircase and little more).
-    all_building : every super-pixel with a height is building, whatever the classes say:
-        for clouds of one building (City3D's building instances), which hold no ground
-        to classify against.
+    all_building : every super-pixel with a height is building, whatever the classes say,
+        and no opening splits it: for clouds of one building (City3D's building
+        instances), which hold no ground to classify against.
     seed : RANSAC and affinity propagation seed.
     """
 
     sigma: float = 2.0
     tau: float = 8.0
     ratio: float = 1.0
+    segment_on: str | None = None
     omega_class: float | None = 3.0
     omega_roof: float = 5.0
     opening_m: float = 1.0

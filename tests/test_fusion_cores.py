@@ -7,6 +7,7 @@ from fusion.classifier import elevation_consistent
 from fusion.ground import dtm_from_dsm
 from fusion.interpolate import push_pull_fill, small_holes
 from fusion.observations import depth_jumps, observe
+from fusion.points import top_surface_at_centres
 from fusion.robust import group_count, group_mean, group_median, vector_median
 from fusion.scene_fusion import elevation_image
 from fusion.sigma_points import N_FEATURES, feature_cues, sigma_points
@@ -149,3 +150,25 @@ def test_elevation_cue_ignores_an_isolated_matching_error():
     xyz[6 * 12 + 6, 2] = 30.0  # one gross depth error in the middle of flat ground
     elev = elevation_image(pixels, xyz, shape, dtm, grid)
     np.testing.assert_allclose(elev, 0.2, atol=1e-5)
+
+
+def test_top_surface_is_read_at_the_cell_centres_and_keeps_walls_sharp():
+    """One return per 1 m cell, anywhere in it, on a 40-degree roof east of x = 6 and
+    flat ground 5 m lower west of it."""
+    rng = np.random.default_rng(3)
+    cx, cy = np.meshgrid(np.arange(12) + 0.5, np.arange(8) + 0.5)
+    centres = np.column_stack([cx.ravel(), cy.ravel()])
+    xy = centres + rng.uniform(-0.45, 0.45, centres.shape)
+    slope = np.tan(np.radians(40))
+
+    def surface(p):
+        return np.where(p[:, 0] < 6, 0.0, 5.0 + slope * (p[:, 0] - 6))
+
+    z = top_surface_at_centres(np.column_stack([xy, surface(xy)]), centres)
+    roof = (centres[:, 0] > 7) & (centres[:, 0] < 11)
+    inner = roof & (centres[:, 1] > 1) & (centres[:, 1] < 7)
+    np.testing.assert_allclose(z[inner], surface(centres)[inner], atol=1e-9)
+    assert np.abs(surface(xy)[inner] - surface(centres)[inner]).max() > 0.2  # not so
+    # beside the 5 m step the wall is not smeared into a ramp
+    np.testing.assert_allclose(z[centres[:, 0] == 5.5], 0.0)
+    assert z[centres[:, 0] == 6.5].min() >= 5.0

@@ -101,7 +101,7 @@ def test_no_building_pixels_give_an_empty_valid_model(modelled, tmp_path):
 @pytest.mark.skipif(not (SHARED_DATA / "ahn3_buildings").is_dir(), reason="no ../shared/data")
 def test_ahn3_clouds_give_closed_models_near_their_points(tmp_path):
     rms = []
-    for name in ("1.ply", "12.ply", "20.ply"):
+    for name in ("1.ply", "12.ply", "20.ply", "42.ply"):  # 42: 48 points, 4 m wide
         cloud = SHARED_DATA / "ahn3_buildings" / name
         fusion, out = tmp_path / f"{name}_f", tmp_path / f"{name}_m"
         assert run_cli("fusion", "--points", cloud, "-o", fusion).returncode == 0
@@ -109,6 +109,7 @@ def test_ahn3_clouds_give_closed_models_near_their_points(tmp_path):
         assert proc.returncode == 0, proc.stderr
         record = json.loads((out / "model.json").read_text())
         assert record["buildings"] and all(b["watertight"] for b in record["buildings"])
+        assert record["parameters"]["segment_on"] == "relief"
         mesh = o3d.t.geometry.TriangleMesh.from_legacy(
             o3d.io.read_triangle_mesh(str(out / "scene.ply"))
         )

@@ -14,7 +14,7 @@ from modeling.prototypes import cluster_prototypes, hypothesis_similarity
 from modeling.roof_mesh import extrude_faces, face_polygons, untangle_diagonals
 from modeling.roof_types import roof_type
 from modeling.superpixel_model import observed_faces
-from modeling.superpixels import quickshift_superpixels
+from modeling.superpixels import quickshift_superpixels, relief_image
 from workbench.meshes import is_watertight
 from workbench.raster import Grid
 
@@ -108,6 +108,24 @@ def test_quickshift_tiles_keep_super_pixels_connected_and_on_edges():
     assert labels.min() == 0 and len(np.unique(labels)) == labels.max() + 1
     crossing = np.intersect1d(np.unique(labels[:, :70]), np.unique(labels[:, 70:]))
     assert len(crossing) == 0  # no super-pixel straddles the colour edge
+
+
+def test_relief_super_pixels_split_a_grey_gable_at_its_ridge():
+    """A LiDAR-like ortho, one noisy grey level, over a 40-degree gable: the relief of the
+    DSM separates the two faces, the ortho cannot."""
+    rng = np.random.default_rng(0)
+    gsd = 0.5
+    col = np.arange(40) * gsd
+    dsm = np.tile(10.0 - np.tan(np.radians(40)) * np.abs(col - 9.75), (30, 1))
+    grey = rng.integers(90, 170, (30, 40)).astype(np.uint8)
+    rgb = np.repeat(grey[..., None], 3, axis=2)
+    image = relief_image(dsm, gsd)
+    np.testing.assert_allclose(image[5, 5], [100 * np.sin(np.radians(-40)), 0], atol=1e-9)
+    labels = quickshift_superpixels(image)
+    west, east = labels[:, 2:19], labels[:, 21:38]  # clear of the ridge cells
+    assert len(np.intersect1d(np.unique(west), np.unique(east))) == 0
+    assert len(np.unique(labels)) <= 8  # and each face is a few large super-pixels
+    assert len(np.unique(quickshift_superpixels(rgb))) > 50  # the grey noise shatters
 
 
 def test_ransac_recovers_a_plane_despite_outliers():

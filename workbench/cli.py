@@ -256,6 +256,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="Quickshift largest link distance, pixels (default 8)",
     )
     q.add_argument(
+        "--segment-on",
+        choices=("ortho", "relief"),
+        default=None,
+        help="what Quickshift segments: the ortho (the paper) or the DSM's surface normals "
+        "(default: the relief for point-cloud fusions, whose ortho is one grey level per "
+        "cell; the ortho otherwise)",
+    )
+    q.add_argument(
         "--min-area",
         type=_positive_float,
         default=20.0,
@@ -550,6 +558,7 @@ def cmd_model_superpixel(args) -> int:
     options = SuperpixelOptions(
         sigma=args.quickshift_sigma,
         tau=args.quickshift_tau,
+        segment_on=args.segment_on,
         omega_class=args.omega_class,
         omega_roof=args.omega_roof,
         min_area_m2=args.min_area,
