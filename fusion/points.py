@@ -208,8 +208,7 @@ def fuse_points(path, opts: FusionOptions | None = None, *, crs: str | None = No
         cells = r * grid.width + c
         n = grid.width * grid.height
         top = _top_per_cell(cells, xyz[:, 2])
-        rows, cols = np.divmod(cells[top], grid.width)
-        centres = np.column_stack([grid.xmin + (cols + 0.5) * gsd, grid.ymax - (rows + 0.5) * gsd])
+        centres = np.column_stack(grid.cell_center(*np.divmod(cells[top], grid.width)))
         dsm = np.full(n, np.nan)
         dsm[cells[top]] = top_surface_at_centres(xyz[top], centres)
         dsm = dsm.reshape(grid.shape)

@@ -85,9 +85,9 @@ def relief_image(dsm: np.ndarray, gsd: float, weight: float = RELIEF_LAB) -> np.
     """
     seen = np.isfinite(dsm)
     z = np.where(seen, dsm, np.nanmedian(dsm) if seen.any() else 0.0)
-    dz_dy, dz_dx = np.gradient(z, gsd)  # rows run south: dz/dy is minus dz/drow
-    norm = np.sqrt(1.0 + dz_dx**2 + dz_dy**2)
-    out = np.stack([-dz_dx / norm, dz_dy / norm], axis=-1) * weight
+    dz_drow, dz_dx = np.gradient(z, gsd)  # rows run south: dz/dy = -dz/drow
+    norm = np.sqrt(1.0 + dz_dx**2 + dz_drow**2)
+    out = np.stack([-dz_dx / norm, dz_drow / norm], axis=-1) * weight
     out[~seen] = 0.0
     return out
 

@@ -66,10 +66,16 @@ class Grid:
     def transform(self) -> Affine:
         return Affine(self.gsd, 0.0, self.xmin, 0.0, -self.gsd, self.ymax)
 
+    def cell_center(self, row: np.ndarray, col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World x and y of the centres of the cells (``row``, ``col``)."""
+        x = self.xmin + (np.asarray(col) + 0.5) * self.gsd
+        y = self.ymax - (np.asarray(row) + 0.5) * self.gsd
+        return x, y
+
     def cell_centers(self) -> tuple[np.ndarray, np.ndarray]:
         """World x and y of every cell centre, each of shape (height, width)."""
-        xs = self.xmin + (np.arange(self.width) + 0.5) * self.gsd
-        ys = self.ymax - (np.arange(self.height) + 0.5) * self.gsd
+        xs, _ = self.cell_center(0, np.arange(self.width))
+        _, ys = self.cell_center(np.arange(self.height), 0)
         return np.meshgrid(xs, ys)
 
     def world_to_cell(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
