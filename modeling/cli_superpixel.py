@@ -84,13 +84,12 @@ def run_superpixel(
             rgb = np.moveaxis(r["ortho"], 0, -1)
             dsm, dtm = r["dsm"][0].astype(np.float64), r["dtm"][0].astype(np.float64)
             prob, pixel_class = r["class_prob"], r["class"][0]
+            from_points = _fusion_mode(fusion_dir) == "point cloud"
             edge_reach_m = options.edge_reach_m
             if edge_reach_m is None:
-                edge_reach_m = 0.0 if _fusion_mode(fusion_dir) == "point cloud" else 1.0
+                edge_reach_m = 0.0 if from_points else 1.0
         with timer.stage("superpixels"):
-            segment_on = options.segment_on or (
-                "relief" if _fusion_mode(fusion_dir) == "point cloud" else "ortho"
-            )
+            segment_on = options.segment_on or ("relief" if from_points else "ortho")
             image = relief_image(dsm, grid.gsd) if segment_on == "relief" else rgb
             labels = quickshift_superpixels(
                 image, options.sigma, options.tau, options.ratio, seed=options.seed

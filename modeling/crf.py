@@ -102,7 +102,7 @@ def _expand(labels, alpha, unary, i, j, w) -> np.ndarray:
     move_cost[labels == alpha] = keep_cost[labels == alpha]  # already alpha: no choice
     ci, cj = labels[i], labels[j]
     # a Potts pair: both keep, i keeps and j moves, i moves and j keeps, both move
-    pair = np.column_stack([w * (ci != cj), w * (ci != alpha), w * (cj != alpha), 0 * w])
+    pair = np.column_stack([w * (ci != cj), w * (ci != alpha), w * (cj != alpha), np.zeros_like(w)])
     x = pairwise_cut(np.column_stack([keep_cost, move_cost]), np.column_stack([i, j]), pair)
     out = labels.copy()
     out[x == 1] = alpha

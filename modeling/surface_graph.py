@@ -508,10 +508,7 @@ def _cut(edges, keep, done, members, free, k, samples):
     unary = np.zeros((len(nodes), 2))
     unary[:, 1] = np.where(done[nodes] & ~free[nodes], _INF, 0.0)  # tied to the source
     unary[:, 0] = np.where(members[nodes] & ~free[nodes], _INF, 0.0)  # tied to the sink
-    side = pairwise_cut(unary, index[e], pair)
-    labels = np.where(members, k, keep)
-    src, snk = nodes[side == 0], nodes[side == 1]
-    labels[src] = keep[src]
-    labels[snk] = k
-    changed = snk[~members[snk]]
-    return labels, changed
+    to_k = nodes[pairwise_cut(unary, index[e], pair) == 1]  # every non-band member too
+    labels = keep.copy()
+    labels[to_k] = k
+    return labels, to_k[~members[to_k]]
