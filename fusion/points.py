@@ -113,10 +113,15 @@ def read_points(path: str | os.PathLike, crs: str | None = None) -> PointCloud:
 
 
 def default_gsd(xyz: np.ndarray) -> float:
-    """Cell size for a cloud: its mean point spacing on the ground, rounded up a little."""
+    """Cell size for a cloud: its mean point spacing over its bounding box, rounded.
+
+    Cells without a return of their own are read on the triangulation of their
+    neighbours' (:func:`top_surface_at_centres`), so the cell need not be coarser than the
+    spacing to be filled; a coarser one costs accuracy at every outline.
+    """
     span = np.ptp(xyz[:, :2], axis=0)
     spacing = float(np.sqrt(max(span[0] * span[1], 1e-9) / len(xyz)))
-    return float(np.round(spacing * 1.25, 2 if spacing < 1 else 1)) or spacing
+    return float(np.round(spacing, 2 if spacing < 1 else 1)) or spacing
 
 
 def _top_per_cell(cells: np.ndarray, z: np.ndarray) -> np.ndarray:

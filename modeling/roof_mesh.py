@@ -81,10 +81,12 @@ def merge_small_regions(faces: np.ndarray, min_cells: int) -> np.ndarray:
     return out
 
 
-def merge_smallest_face(faces: np.ndarray) -> np.ndarray:
-    """Give the cells of the smallest face label to the face it shares most cell edges
-    with."""
+def merge_smallest_face(faces: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
+    """Give the cells of the smallest face label (of those in ``among``, when any of them
+    is present) to the face it shares most cell edges with."""
     labels, counts = np.unique(faces[faces > 0], return_counts=True)
+    if among is not None and np.isin(labels, among).any():
+        labels, counts = labels[np.isin(labels, among)], counts[np.isin(labels, among)]
     out = faces.copy()
     _absorb(out, faces == labels[np.argmin(counts)])
     return out
@@ -169,11 +171,7 @@ def extrude_faces(
     rings = _split_crossings(rings, xy, roof)
     xy = np.asarray(xy)
     z_of = [roof(f, xy[:, 0], xy[:, 1]) for f in range(len(planes))]  # (F, V2)
-    owner = {}
-    for f, face in enumerate(rings):
-        for ring in face:
-            for a, b in zip(ring, np.roll(ring, -1), strict=True):
-                owner[(a, b)] = f
+    owner = _edge_owners(rings)
     lows, heights = _levels(rings, z_of, base_z, len(xy))
     verts: dict[tuple[int, int], int] = {}
 
@@ -186,11 +184,13 @@ def extrude_faces(
         return verts[(v, li)]
 
     tris = []
+    floor = _outline_polygons(rings, xy)
     for f, face in enumerate(rings):
         poly = Polygon(xy[face[0]], [xy[r] for r in face[1:]])
         for t in _triangulate(poly, xy):
             tris.append([vid(v, level(v, z_of[f][v])) for v in t])  # roof, up
-            tris.append([vid(v, 0) for v in t[::-1]])  # floor (the lowest level), down
+            if floor is None:
+                tris.append([vid(v, 0) for v in t[::-1]])  # floor under each face, down
         for ring in face:
             for a, b in zip(ring, np.roll(ring, -1), strict=True):
                 g = owner.get((b, a))
@@ -205,10 +205,56 @@ def extrude_faces(
                 chain_b = np.arange(low_b, high_b + 1)
                 for tri in _strip(chain_a, chain_b, heights[a], heights[b]):
                     tris.append([vid(a if side == 0 else b, li) for side, li in tri])
+    for poly in floor or []:
+        tris.extend([vid(v, 0) for v in t[::-1]] for t in _triangulate(poly, xy))
     vertices = np.zeros((len(verts), 3))
     for (v, li), i in verts.items():
         vertices[i] = (xy[v, 0], xy[v, 1], heights[v][li])
     return vertices, np.asarray(tris, np.int64).reshape(-1, 3)
+
+
+def _edge_owners(rings) -> dict[tuple[int, int], int]:
+    """The face of every directed ring edge (a, b); faces run counter-clockwise, so a
+    shared edge appears once each way and an outline edge once."""
+    owner = {}
+    for f, face in enumerate(rings):
+        for ring in face:
+            for a, b in zip(ring, np.roll(ring, -1), strict=True):
+                owner[(int(a), int(b))] = f
+    return owner
+
+
+def _outline_polygons(rings, xy: np.ndarray) -> list[Polygon] | None:
+    """The building's outline as polygons over the shared vertex table: the rings of
+    the face edges no other face runs back along. The floor is triangulated over these
+    alone, with no vertex inside, instead of once under every face: fewer triangles,
+    the same solid. None where the outline touches itself at a vertex (the walk would
+    be ambiguous); the floor then follows the faces."""
+    owner = _edge_owners(rings)
+    nxt: dict[int, int] = {}
+    for a, b in owner:
+        if (b, a) not in owner:
+            if a in nxt:
+                return None
+            nxt[a] = b
+    loops = []
+    while nxt:
+        start = next(iter(nxt))
+        loop = [start]
+        while (v := nxt.pop(loop[-1], None)) is not None and v != start:
+            loop.append(v)
+        if v != start or len(loop) < 3:
+            return None
+        loops.append(Polygon(xy[loop]))
+    shells = [p for p in loops if p.exterior.is_ccw]
+    holes = [p for p in loops if not p.exterior.is_ccw]
+    out = []
+    for shell in shells:
+        inner = [h.exterior for h in holes if shell.contains(h.representative_point())]
+        out.append(Polygon(shell.exterior, inner))
+    if sum(len(p.interiors) for p in out) != len(holes) or not all(p.is_valid for p in out):
+        return None
+    return out
 
 
 def _noded_rings(polygons: list[Polygon]) -> tuple[list[list[np.ndarray]], list]:
@@ -257,11 +303,7 @@ def _split_crossings(rings, xy: list, roof) -> list:
     height of face f."""
     while True:
         table = np.asarray(xy)
-        owner = {}
-        for f, face in enumerate(rings):
-            for ring in face:
-                for a, b in zip(ring, np.roll(ring, -1), strict=True):
-                    owner[(a, b)] = f
+        owner = _edge_owners(rings)
         found = None
         for (a, b), f in owner.items():
             g = owner.get((b, a))

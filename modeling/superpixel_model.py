@@ -15,7 +15,7 @@ import numpy as np
 import shapely
 from shapely.geometry import mapping
 
-from workbench.meshes import is_watertight
+from workbench.meshes import is_watertight, unpaired_edges
 from workbench.raster import Grid
 
 from .aggregate import SuperpixelGraph
@@ -52,8 +52,8 @@ class SuperpixelOptions:
         it stay in the building (:func:`observed_faces`), metres. None: 1 m for fused
         views, whose occlusions leave building edges unseen; 0 for point clouds, which see
         the eaves from above.
-    simplify_m : tolerance of the roof polygons' simplification, metres (None: two cells,
-        which removes the cell staircase and little more).
+    simplify_m : tolerance of the roof polygons' simplification, metres (None:
+        ``SIMPLIFY_CELLS`` cells, which removes the cell staircase and little more).
     all_building : every super-pixel with a height is building, whatever the classes say,
         and no opening splits it: for clouds of one building (City3D's building
         instances), which hold no ground to classify against.
@@ -96,6 +96,10 @@ def refine_classes(graph: SuperpixelGraph, omega: float) -> np.ndarray:
     return alpha_expansion(unary, graph.edges, graph.pairwise, omega) + 1
 
 
+# 2.25 cells: on the AHN3 clouds 2, 2.25, 2.5 and 3 cells give median RMS 0.226, 0.234,
+# 0.250 and 0.282 m with 122, 107, 103 and 95 triangles; on the synthetic city 2 and 2.25
+# give the same heights (RMSE 1.63 and 1.64 m) with 10 % fewer triangles
+SIMPLIFY_CELLS = 2.25
 OMEGA_CANDIDATES = (0.25, 0.5, 1.0, 2.0, 3.0, 5.0, 8.0, 12.0)
 
 
@@ -354,7 +358,9 @@ def model_building(
         g = ground[part > 0]
         g = g[np.isfinite(g)] if np.isfinite(g).any() else ground[np.isfinite(ground)]
         base = float(g.min()) if len(g) else np.inf  # unknown: just under the roof
-        simplify = options.simplify_m if options.simplify_m is not None else 2 * grid.gsd
+        simplify = (
+            options.simplify_m if options.simplify_m is not None else SIMPLIFY_CELLS * grid.gsd
+        )
         merged = 0
         while True:
             model = _closed_model(part, grid, planes, base, simplify)
@@ -362,13 +368,30 @@ def model_building(
             if closed or len(np.unique(part[part > 0])) == 1:
                 break
             # faces meeting at a vertex can leave two parts of the roof touching along a
-            # vertical line there (not a manifold): give up the smallest face and retry
-            part = merge_smallest_face(part)
+            # vertical line there (not a manifold): give up the smallest face there, retry
+            part = merge_smallest_face(part, _faces_at_open_edges(model, part, grid))
             merged += 1
         if model is not None:
             model.record["faces_merged_for_closure"] = merged
             out.append(model)
     return out
+
+
+def _faces_at_open_edges(
+    model: BuildingModel | None, faces: np.ndarray, grid: Grid
+) -> np.ndarray | None:
+    """Face labels of the cells within one cell of the ends of the model's unpaired
+    edges (None without a model, or when every edge is paired)."""
+    if model is None:
+        return None
+    ends = np.unique(unpaired_edges(model.triangles))
+    if not len(ends):
+        return None
+    row, col = grid.cell_index(*model.vertices[ends, :2].T, clip=True)
+    near = np.zeros(faces.shape, bool)
+    near[row, col] = True
+    near = cv2.dilate(near.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    return np.unique(faces[near & (faces > 0)])
 
 
 def _closed_model(

@@ -5,6 +5,7 @@ import itertools
 import numpy as np
 import pytest
 from shapely.geometry import Polygon, box
+from shapely.geometry.polygon import orient
 
 from modeling.aggregate import superpixel_graph
 from modeling.buildings import split_buildings
@@ -13,9 +14,9 @@ from modeling.planes import plane_heights, ransac_plane
 from modeling.prototypes import cluster_prototypes, hypothesis_similarity
 from modeling.roof_mesh import extrude_faces, face_polygons, untangle_diagonals
 from modeling.roof_types import roof_type
-from modeling.superpixel_model import observed_faces
+from modeling.superpixel_model import SuperpixelOptions, model_building, observed_faces
 from modeling.superpixels import quickshift_superpixels, relief_image
-from workbench.meshes import is_watertight
+from workbench.meshes import is_watertight, unpaired_edges
 from workbench.raster import Grid
 
 
@@ -181,6 +182,56 @@ def test_extruded_roofs_are_closed_with_the_volume_of_their_planes():
     court = Polygon([(0, 0), (20, 0), (20, 20), (0, 20)], [[(5, 5), (5, 15), (15, 15), (15, 5)]])
     v, t = extrude_faces([court], [_plane(0, 0, 5)], 0.0)
     assert is_watertight(v, t) and _volume(v, t) == pytest.approx(300 * 5)
+
+
+def _floor_triangles(v, t):
+    P = v[t]
+    n = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+    return P[n[:, 2] < 0]
+
+
+def test_floor_is_triangulated_over_the_outline_alone():
+    A, C, D = box(0, 0, 10, 5), box(0, 5, 5, 10), box(5, 5, 10, 10)
+    v, t = extrude_faces([A, C, D], [_plane(0, 0, 3), _plane(0, 0, 5), _plane(0, 0, 4)], 0.0)
+    floor = _floor_triangles(v, t)
+    # 7 outline vertices, (5, 5) inside: a 7-gon is 5 triangles, none touching (5, 5)
+    assert len(floor) == 5 and np.all(floor[..., 2] == 0)
+    assert not np.any(np.all(floor[..., :2] == (5, 5), axis=-1))
+    assert is_watertight(v, t) and _volume(v, t) == pytest.approx(150 + 125 + 100)
+    court = Polygon([(0, 0), (20, 0), (20, 20), (0, 20)], [[(5, 5), (5, 15), (15, 15), (15, 5)]])
+    left, right = (orient(court & box(x, 0, x + 10, 20)) for x in (0, 10))
+    v, t = extrude_faces([left, right], [_plane(0, 0, 5), _plane(0, 0, 6)], 0.0)
+    # outline: 6 outer and 6 inner vertices (the faces' seam ends on both rings)
+    assert len(_floor_triangles(v, t)) == 6 + 6 + 2 * 1 - 2
+    assert is_watertight(v, t) and _volume(v, t) == pytest.approx(150 * 5 + 150 * 6)
+    # two faces touching at a corner: the outline walk is ambiguous, the floor follows them
+    v, t = extrude_faces([box(0, 0, 5, 5), box(5, 5, 10, 10)], [_plane(0, 0, 3)] * 2, 0.0)
+    assert len(_floor_triangles(v, t)) == 4 and _volume(v, t) == pytest.approx(150)
+
+
+def test_unpaired_edges_of_open_and_doubled_meshes():
+    tetra = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
+    assert len(unpaired_edges(tetra)) == 0
+    # without its first face, the edges that walked back along that face are unpaired
+    assert {tuple(map(int, e)) for e in unpaired_edges(tetra[1:])} == {(2, 0), (1, 2), (0, 1)}
+    doubled = np.vstack([tetra, tetra[:1]])  # one triangle twice: its edges walked twice
+    assert len(unpaired_edges(doubled)) == 6
+
+
+def test_closure_gives_up_a_face_at_the_open_vertex_not_the_smallest_anywhere():
+    # high A and D, low B and C meet at (12, 12): their walls share one vertical edge
+    # there, four triangles on it; E, the smallest face, is far from it
+    faces = np.zeros((24, 24), int)
+    faces[2:12, 2:12], faces[2:12, 12:22] = 1, 2
+    faces[12:22, 2:12], faces[12:22, 12:22] = 3, 4
+    faces[4:7, 22:24] = 5
+    planes = np.array([_plane(0, 0, z) for z in (8, 5, 5, 8, 6.5)])
+    grid = Grid(0.0, 24.0, 1.0, 24, 24)
+    (model,) = model_building(
+        faces, grid, planes, np.zeros((24, 24)), SuperpixelOptions(simplify_m=0.01)
+    )
+    assert model.record["watertight"] and model.record["faces_merged_for_closure"] == 1
+    assert len(model.record["roof_planes"]) == 4  # E kept, one of A-D given up
 
 
 def test_face_polygons_from_a_checkerboard_corner_stay_manifold():

@@ -154,14 +154,32 @@ def _overlap_area(ta: np.ndarray, tb: np.ndarray) -> float:
     return area if area > 1e-9 * max(pa.area, pb.area) else 0.0
 
 
-def _consistently_oriented(triangles: np.ndarray) -> bool:
-    # neighbours walk their shared edge in opposite directions: every directed edge is
-    # unique and its reverse is present
+def unpaired_edges(triangles: np.ndarray) -> np.ndarray:
+    """Directed edges that break a closed, consistently oriented mesh: walked by more
+    than one triangle, or with no triangle walking them back.
+
+    Parameters
+    ----------
+    triangles : (T, 3) int
+
+    Returns
+    -------
+    (K, 2) int vertex pairs (empty for a closed, oriented 2-manifold's edges).
+    """
     e = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
+    if not len(e):
+        return e.reshape(0, 2)
     n = int(e.max()) + 1
     key = e[:, 0] * n + e[:, 1]
     rev = e[:, 1] * n + e[:, 0]
-    return len(np.unique(key)) == len(key) and bool(np.isin(rev, key).all())
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    bad = (counts[inverse.ravel()] > 1) | ~np.isin(rev, key)
+    return e[bad]
+
+
+def _consistently_oriented(triangles: np.ndarray) -> bool:
+    # neighbours walk their shared edge in opposite directions
+    return len(unpaired_edges(triangles)) == 0
 
 
 def _outward(vertices: np.ndarray, triangles: np.ndarray) -> bool:
