@@ -343,7 +343,8 @@ def print_voxel(v: dict) -> None:
     print(f"  height error by true roof type: {by}")
     print(
         f"  seam cost: graph cut {t['seam_cost']:.2f}, projective {t['seam_cost_projective']:.2f}"
-        f" (ratio {t['seam_cost'] / t['seam_cost_projective']:.2f}); ground "
+        f" (ratio {t['seam_cost'] / t['seam_cost_projective']:.2f}; greedy cuts alone "
+        f"{t['seam_cost_greedy']:.2f}); ground "
         f"{v['ground']['seam_cost']:.2f} vs {v['ground']['seam_cost_projective']:.2f}"
     )
     rb = v["robustness"]

@@ -413,10 +413,10 @@ def _write(tmp: Path, proxies, textures, gtex, options: VoxelOptions) -> dict:
     write_obj(tmp / "scene.obj", V, T, material=runs, mtllib="scene.mtl", uvs=uvs)
     write_ply(tmp / "scene.ply", V, T, vertex_colors=C)
     _preview(tmp / "preview.png", proxies, textures, gtex)
-    seam = [b["seam_cost"] for b in buildings if np.isfinite(b["seam_cost"])]
-    seam_p = [
-        b["seam_cost_projective"] for b in buildings if np.isfinite(b["seam_cost_projective"])
-    ]
+    seam, seam_p, seam_g = (
+        [b[key] for b in buildings if np.isfinite(b[key])]
+        for key in ("seam_cost", "seam_cost_projective", "seam_cost_greedy")
+    )
     return {
         "method": "voxel",
         "parameters": asdict(options),
@@ -425,6 +425,7 @@ def _write(tmp: Path, proxies, textures, gtex, options: VoxelOptions) -> dict:
         "texture": {
             "seam_cost": round(float(np.mean(seam)), 4) if seam else None,
             "seam_cost_projective": round(float(np.mean(seam_p)), 4) if seam_p else None,
+            "seam_cost_greedy": round(float(np.mean(seam_g)), 4) if seam_g else None,
         },
         "counts": {
             "buildings": len(buildings),

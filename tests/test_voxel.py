@@ -11,7 +11,9 @@ from data_samples.truth_run import truth_fusion_run
 from modeling.surface_graph import (
     ViewSamples,
     patches,
+    refine_seams,
     seam_cost,
+    seam_costs,
     stitch_patches,
     surface_graph,
 )
@@ -279,6 +281,43 @@ def test_stitching_moves_the_seam_to_where_the_views_agree():
     assert len(seam) == 1 and 4 <= seam[0] <= 6
     assert out.labels[0] == 0 and out.labels[-1] == 1  # both ends outside the band
     assert patches(edges, out.labels).max() == 1
+
+
+def test_refinement_moves_a_seam_the_greedy_band_cannot_reach():
+    # view 0 faces the left end, view 1 the right one; they agree only on texels 4-7,
+    # 8 texels (2 m) from where the greedy cuts left the seam
+    _, edges, samples = _two_view_strip(24)
+    i = np.arange(24)
+    samples.facing[:, 0] = np.where(i >= 8, 0.2, 1.0)
+    samples.facing[:, 1] = np.where(i < 4, 0.2, 1.0)
+    samples.visible[22:, 0] = False
+    labels = np.array([0] * 16 + [1] * 6 + [-1] * 2)
+    out = refine_seams(edges, labels, samples, facing_weight=10.0)
+    seam = np.flatnonzero(out[:-1] != out[1:])
+    assert seam_cost(edges, out, samples)[0] == 0.0 and 4 <= seam[0] <= 6
+    assert out[0] == 0 and np.all(out[8:22] == 1) and np.all(out[22:] == -1)
+
+
+def test_refinement_never_raises_its_energy_and_keeps_views_that_see():
+    rng = np.random.default_rng(3)
+    n, k = 60, 4
+    edges = np.array([(a, b) for a in range(n) for b in (a + 1, a + 10) if b < n])
+    visible = rng.random((n, k)) < 0.7
+    visible[np.arange(n), rng.integers(0, k, n)] = True
+    lab = rng.normal(50, 5, (n, k, 3)).astype(np.float32)
+    facing = rng.random((n, k)).astype(np.float32)
+    samples = ViewSamples(visible, facing, lab, np.zeros((n, k, 3), np.uint8))
+    labels = np.array([rng.choice(np.flatnonzero(v)) for v in visible])
+
+    def energy(x):
+        a, b = x[edges[:, 0]], x[edges[:, 1]]
+        seam = a != b
+        pair = seam_costs(edges[seam], a[seam], b[seam], samples).sum()
+        return 5.0 * (1 - facing[np.arange(n), x]).sum() + pair
+
+    out = refine_seams(edges, labels, samples, facing_weight=5.0)
+    assert visible[np.arange(n), out].all()
+    assert energy(out) < energy(labels)
 
 
 def test_stitching_band_reaches_into_the_new_patch():

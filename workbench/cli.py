@@ -363,6 +363,22 @@ def build_parser() -> argparse.ArgumentParser:
         help="width of the band where a graph cut may move a seam (default 4)",
     )
     q.add_argument(
+        "--refine-sweeps",
+        type=_non_negative_int,
+        default=2,
+        metavar="N",
+        help="passes of expansion moves over the whole surface after the greedy cuts "
+        "(default 2; 0: the paper's greedy cuts alone)",
+    )
+    q.add_argument(
+        "--facing-weight",
+        type=_non_negative_float,
+        default=10.0,
+        metavar="LAB",
+        help="what the refinement charges for a worse-facing view, Lab units per unit "
+        "cosine (default 10)",
+    )
+    q.add_argument(
         "--ring",
         type=_positive_float,
         default=4.0,
@@ -595,6 +611,8 @@ def cmd_model_voxel(args) -> int:
         subdivisions=args.subdivisions,
         cluster_error=args.cluster_error,
         overlap_m=args.overlap,
+        refine_sweeps=args.refine_sweeps,
+        facing_weight=args.facing_weight,
         ring_m=args.ring,
         grow_m=args.grow,
         consistency=args.consistency,
