@@ -85,8 +85,9 @@ def merge_smallest_face(faces: np.ndarray, among: np.ndarray | None = None) -> n
     """Give the cells of the smallest face label (of those in ``among``, when any of them
     is present) to the face it shares most cell edges with."""
     labels, counts = np.unique(faces[faces > 0], return_counts=True)
-    if among is not None and np.isin(labels, among).any():
-        labels, counts = labels[np.isin(labels, among)], counts[np.isin(labels, among)]
+    pick = np.isin(labels, among) if among is not None else np.zeros(len(labels), bool)
+    if pick.any():
+        labels, counts = labels[pick], counts[pick]
     out = faces.copy()
     _absorb(out, faces == labels[np.argmin(counts)])
     return out

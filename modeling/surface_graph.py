@@ -479,49 +479,45 @@ def refine_seams(
     """
     labels = labels.copy()
     seen = labels >= 0
-    s, t = graph_edges[:, 0], graph_edges[:, 1]
     rows = np.arange(len(labels))
 
     def data(view) -> np.ndarray:
         return facing_weight * (1.0 - samples.facing[rows, view])
 
-    def seams(edges: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        out = np.zeros(len(edges))
-        differ = (a != b) & (a >= 0) & (b >= 0)
-        if differ.any():
-            out[differ] = seam_costs(edges[differ], a[differ], b[differ], samples)
-        return out
-
-    current = seams(graph_edges, labels[s], labels[t])
+    d_now = data(np.maximum(labels, 0))
     for _ in range(sweeps):
         improved = False
         for alpha in np.unique(labels[seen]):
             movable = seen & samples.visible[:, alpha] & (labels != alpha)
-            near = movable[s] | movable[t]  # the other edges keep their cost
             if not movable.any():
                 continue
-            d0 = data(np.maximum(labels, 0))
-            unary = np.column_stack([d0, np.where(movable, data(alpha), _INF)])
-            edges, ls, lt = graph_edges[near], labels[s[near]], labels[t[near]]
-            ends = np.full(len(edges), alpha)
-            pair = np.column_stack(
-                [
-                    current[near],
-                    seams(edges, ls, ends),
-                    seams(edges, ends, lt),
-                    np.zeros(len(edges)),
-                ]
-            )
+            # edges with no end that may move keep their cost and play no part
+            edges = graph_edges[movable[graph_edges[:, 0]] | movable[graph_edges[:, 1]]]
+            unary = np.column_stack([d_now, np.where(movable, data(alpha), _INF)])
+            pair = _move_costs(edges, labels, alpha, samples)
             x = pairwise_cut(unary, edges, pair)
             taken = pair[np.arange(len(edges)), 2 * x[edges[:, 0]] + x[edges[:, 1]]]
-            gain = np.sum((unary[:, 1] - d0)[x == 1]) + np.sum(taken - current[near])
+            gain = np.sum((unary[:, 1] - d_now)[x == 1]) + np.sum(taken - pair[:, 0])
             if gain < -1e-9:
                 labels = np.where(x == 1, alpha, labels)
-                current[near] = taken
+                d_now = np.where(x == 1, unary[:, 1], d_now)
                 improved = True
         if not improved:
             break
     return labels
+
+
+def _move_costs(edges: np.ndarray, labels: np.ndarray, k: int, samples) -> np.ndarray:
+    """(E, 4) C of eq. 5 of each edge for an expansion move to view ``k``: both ends keep
+    their views (E00), the second end takes ``k`` (E01), the first does (E10), both do
+    (E11, no seam). Equal views and unseen ends (-1) cost nothing."""
+    ends = (labels[edges[:, 0]], labels[edges[:, 1]], np.full(len(edges), k))
+    out = np.zeros((len(edges), 4))
+    for col, (u, v) in enumerate(((0, 1), (0, 2), (2, 1))):
+        a, b = ends[u], ends[v]
+        differ = (a != b) & (a >= 0) & (b >= 0)
+        out[differ, col] = seam_costs(edges[differ], a[differ], b[differ], samples)
+    return out
 
 
 def count_patches(graph_edges: np.ndarray, labels: np.ndarray) -> int:
@@ -586,13 +582,7 @@ def _cut(edges, keep, done, members, free, k, samples):
     index[nodes] = np.arange(len(nodes))
     e = edges[(index[a] >= 0) & (index[b] >= 0)]
     e = e[free[e[:, 0]] | free[e[:, 1]]]
-    s, t = keep[e[:, 0]], keep[e[:, 1]]
-    view_k = np.full(len(e), k)
-
-    def cost(u, v):
-        return np.where(u == v, 0.0, seam_costs(e, u, v, samples))
-
-    pair = np.column_stack([cost(s, t), cost(s, view_k), cost(view_k, t), np.zeros(len(e))])
+    pair = _move_costs(e, keep, k, samples)
     unary = np.zeros((len(nodes), 2))
     unary[:, 1] = np.where(done[nodes] & ~free[nodes], _INF, 0.0)  # tied to the source
     unary[:, 0] = np.where(members[nodes] & ~free[nodes], _INF, 0.0)  # tied to the sink
