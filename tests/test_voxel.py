@@ -448,6 +448,7 @@ def test_graph_cuts_lower_the_seam_cost(voxel_run):
     _, record, metrics = voxel_run
     t = metrics["texture"]
     assert t["seam_cost"] < t["seam_cost_projective"]
+    assert t["seam_cost_greedy"] < t["seam_cost_projective"]  # the paper's cuts alone
     lower = [b["seam_cost"] <= b["seam_cost_projective"] for b in record["buildings"]]
     assert sum(lower) >= len(lower) - 1
 

@@ -278,11 +278,12 @@ def surface_metrics(run: Run, truth: Truth, options: EvaluationOptions) -> tuple
 
 
 def texture_costs(run: Run) -> dict:
-    """``texture.seam_cost`` and ``seam_cost_projective``: the run's own figures, else the
-    mean over its buildings."""
+    """``texture.seam_cost``, ``seam_cost_projective`` and ``seam_cost_greedy`` (the voxel
+    path's cuts before ``refine_seams``): the run's own figures, else the mean over its
+    buildings."""
     rec = run.record.get("texture", {})
     out = {}
-    for key in ("seam_cost", "seam_cost_projective"):
+    for key in ("seam_cost", "seam_cost_projective", "seam_cost_greedy"):
         if isinstance(rec, dict) and key in rec:
             out[key] = float(rec[key])
         else:

@@ -34,6 +34,7 @@ SUMMARY_ROWS = [
     ("watertight buildings", "complexity.watertight_fraction", "{:.0%}", 1),
     ("texture seam cost, graph cut", "texture.seam_cost", "{:.2f}", -1),
     ("texture seam cost, projective", "texture.seam_cost_projective", "{:.2f}", -1),
+    ("texture seam cost, greedy cuts", "texture.seam_cost_greedy", "{:.2f}", -1),
     ("DSM RMSE, all cells (m)", "dsm.rmse_m", "{:.2f}", -1),
     ("DSM median |error| (m)", "dsm.median_abs_m", "{:.3f}", -1),
     ("DSM valid cells", "dsm.valid_fraction", "{:.1%}", 1),
