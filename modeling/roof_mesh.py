@@ -185,7 +185,7 @@ def extrude_faces(
         return verts[(v, li)]
 
     tris = []
-    floor = _outline_polygons(rings, xy)
+    floor = _outline_polygons(owner, xy)
     for f, face in enumerate(rings):
         poly = Polygon(xy[face[0]], [xy[r] for r in face[1:]])
         for t in _triangulate(poly, xy):
@@ -225,13 +225,12 @@ def _edge_owners(rings) -> dict[tuple[int, int], int]:
     return owner
 
 
-def _outline_polygons(rings, xy: np.ndarray) -> list[Polygon] | None:
+def _outline_polygons(owner: dict, xy: np.ndarray) -> list[Polygon] | None:
     """The building's outline as polygons over the shared vertex table: the rings of
-    the face edges no other face runs back along. The floor is triangulated over these
-    alone, with no vertex inside, instead of once under every face: fewer triangles,
-    the same solid. None where the outline touches itself at a vertex (the walk would
-    be ambiguous); the floor then follows the faces."""
-    owner = _edge_owners(rings)
+    the face edges (``owner``, :func:`_edge_owners`) no other face runs back along.
+    The floor is triangulated over these alone, with no vertex inside, instead of once
+    under every face: fewer triangles, the same solid. None where the outline touches
+    itself at a vertex (the walk would be ambiguous); the floor then follows the faces."""
     nxt: dict[int, int] = {}
     for a, b in owner:
         if (b, a) not in owner:
