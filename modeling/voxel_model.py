@@ -390,8 +390,8 @@ def texture_building(
 
     t0 = time.perf_counter()
     stitched = stitch_patches(graph.edges, graph.positions, best, samples, options.overlap_m)
-    cost_greedy, _ = seam_cost(graph.edges, stitched.labels, samples)
     t_cut = time.perf_counter() - t0
+    cost_greedy, _ = seam_cost(graph.edges, stitched.labels, samples)
     t0 = time.perf_counter()
     if options.refine_sweeps > 0:
         refined = refine_seams(
