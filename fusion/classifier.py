@@ -43,6 +43,43 @@ def elevation_consistent(labels: np.ndarray, elevation: np.ndarray, split: float
         return (labels == 0) | np.where(raised, elevation >= split, elevation < split)
 
 
+def elevation_prior(
+    class_prob: np.ndarray, ndsm: np.ndarray, split: float, *, damping: float = 0.01
+) -> np.ndarray:
+    """Class probabilities with the classes the fused nDSM contradicts damped.
+
+    Where the surface lies on the terrain (nDSM below ``split / 2``) it is no tree and
+    no building; where it stands well above it (more than ``split + 2`` metres, beyond
+    the spill of roof edges onto the street) it is neither ground nor grass. Without
+    this, a shadowed road that no stroke labelled goes to whichever dark class the
+    forest's random splits favour (tree with one seed, ground with another). The
+    damping is soft: a class every view is sure of survives it.
+
+    Parameters
+    ----------
+    class_prob : (4, H, W) float
+        Probabilities of ground, grass, tree, building; NaN where unseen.
+    ndsm : (H, W) float
+        Fused height above the DTM, metres; NaN unknown (left as it is).
+    split : float
+        Height separating the terrain classes from the raised ones, metres.
+    damping : float
+        Factor on a contradicted class's probability.
+
+    Returns
+    -------
+    (4, H, W) float32 probabilities, renormalised.
+    """
+    out = np.array(class_prob, dtype=np.float32, copy=True)
+    raised = np.isin(np.arange(1, len(out) + 1), RAISED)
+    with np.errstate(invalid="ignore"):
+        low, high = ndsm < split / 2, ndsm > split + 2.0
+    out[raised] *= np.where(low, damping, 1.0)
+    out[~raised] *= np.where(high, damping, 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return out / out.sum(axis=0, keepdims=True)
+
+
 def train_forest(
     X: np.ndarray,
     y: np.ndarray,

@@ -4,7 +4,9 @@ Each pixel with a depth becomes a world point (camera ray scaled by the z-depth)
 lands in one cell of the ortho grid. Within one view, a cell keeps only the points
 of the surface nearest to the camera: points more than a tolerance behind the
 nearest point of the same cell belong to a hidden surface (seen through a
-mis-registered edge, or a facade below a roof edge) and are dropped.
+mis-registered edge, or a facade below a roof edge) and are dropped. Only points
+of non-steep surfaces set that nearest depth: a facade rising from a cell is nearer
+to an oblique camera than the ground in front of it, yet hides none of it.
 """
 
 from __future__ import annotations
@@ -34,7 +36,8 @@ class ViewObservations:
     visible : (N,) bool
         Kept by the per-cell visibility test.
     normal_z : (N,) float32
-        |z| of the surface normal estimated from the depth map (1 level, 0 vertical).
+        z of the surface normal estimated from the depth map, the normal turned toward
+        the camera (1 level and facing up, 0 vertical, negative facing down).
     """
 
     pixels: np.ndarray
@@ -48,18 +51,20 @@ class ViewObservations:
 
     @property
     def top_surface(self) -> np.ndarray:
-        """(N,) bool: visible, away from depth jumps, not on a steep surface (facades)."""
+        """(N,) bool: visible, away from depth jumps, on a surface facing up (not a
+        facade, not the underside of a crown seen by an oblique view)."""
         return self.visible & ~self.near_jump & (self.normal_z > STEEP_NORMAL_Z)
 
 
-STEEP_NORMAL_Z = 0.26  # cos(75 deg): facades out, 70 deg mansard slopes in
+STEEP_NORMAL_Z = 0.26  # cos(75 deg): facades and undersides out, 70 deg mansard slopes in
 
 
 def normal_z_image(camera: Camera, depth: np.ndarray, *, step: int = 3, sigma: float = 1.5):
-    """(H, W) |z| of surface normals from a depth map, NaN where unknown.
+    """(H, W) z of surface normals from a depth map, NaN where unknown.
 
     The depth is smoothed first (dense-matching noise is as large as a pixel's
-    footprint) and differentiated over ``step`` pixels.
+    footprint) and differentiated over ``step`` pixels. Each normal is turned toward
+    the camera, so a surface the view sees from below has a negative z.
     """
     import cv2
 
@@ -78,8 +83,10 @@ def normal_z_image(camera: Camera, depth: np.ndarray, *, step: int = 3, sigma: f
     dx[:, step:-step] = P[:, 2 * step :] - P[:, : -2 * step]
     dy[step:-step] = P[2 * step :] - P[: -2 * step]
     n = np.cross(dx, dy)
+    away = np.sum(n * P, axis=-1) > 0
+    n[away] *= -1
     with np.errstate(invalid="ignore", divide="ignore"):
-        nz = np.abs(n[..., 2]) / np.linalg.norm(n, axis=-1)
+        nz = n[..., 2] / np.linalg.norm(n, axis=-1)
     return nz.astype(np.float32)
 
 
@@ -116,6 +123,24 @@ def lift_depth(camera: Camera, depth: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return pixels, xyz
 
 
+def nearest_depth(cells: np.ndarray, depth: np.ndarray, top: np.ndarray, n_cells: int):
+    """(N,) the nearest depth of each observation's cell, over the ``top`` (non-steep)
+    observations of the cell, or over all of them in a cell with none.
+
+    Parameters
+    ----------
+    cells : (N,) int64 flat cell indices
+    depth : (N,) float z-depths, metres
+    top : (N,) bool
+    n_cells : int
+    """
+    nearest_top = np.full(n_cells, np.inf, np.float32)
+    np.minimum.at(nearest_top, cells[top], depth[top])
+    nearest_any = np.full(n_cells, np.inf, np.float32)
+    np.minimum.at(nearest_any, cells, depth)
+    return np.where(np.isfinite(nearest_top), nearest_top, nearest_any)[cells]
+
+
 def observe(
     camera: Camera, depth: np.ndarray, grid: Grid, *, tolerance: float = 1.0
 ) -> ViewObservations:
@@ -138,9 +163,9 @@ def observe(
     pixels, xyz = pixels[inside], xyz[inside]
     cells = row[inside] * grid.width + col[inside]
     d = depth.ravel()[pixels]
-    nearest = np.full(grid.width * grid.height, np.inf, np.float32)
-    np.minimum.at(nearest, cells, d)
-    visible = d <= nearest[cells] + tolerance
     nz = np.nan_to_num(normal_z_image(camera, depth).ravel()[pixels], nan=1.0)
+    visible = (
+        d <= nearest_depth(cells, d, nz > STEEP_NORMAL_Z, grid.width * grid.height) + tolerance
+    )
     near_jump = depth_jumps(depth).ravel()[pixels]
     return ViewObservations(pixels, cells, xyz, d, visible, nz, near_jump)

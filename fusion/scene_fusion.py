@@ -41,6 +41,7 @@ from workbench.truth import sample_to_grid
 from .classifier import (
     CLASSES,
     elevation_consistent,
+    elevation_prior,
     load_classifier,
     predict_proba,
     train_forest,
@@ -399,6 +400,12 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
         with np.errstate(invalid="ignore", divide="ignore"):
             class_prob = prob_sum / prob_sum.sum(axis=0, keepdims=True)
         class_prob[:, ~seen] = np.nan
+        if forest is not None:
+            class_prob = elevation_prior(class_prob, ndsm, opts.label_split)
+            class_source += (
+                f"; tree and building damped below {opts.label_split / 2:g} m nDSM, ground "
+                f"and grass above {opts.label_split + 2:g} m"
+            )
         ortho = _fill_small_rgb(ortho, seen, holes)
         raster_prob = None
         if forest is None or opts.raster_prior:

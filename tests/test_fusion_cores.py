@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from fusion.classifier import elevation_consistent
+from fusion.classifier import elevation_consistent, elevation_prior
 from fusion.ground import dtm_from_dsm
 from fusion.interpolate import push_pull_fill, small_holes
-from fusion.observations import depth_jumps, observe
+from fusion.observations import depth_jumps, nearest_depth, normal_z_image, observe
 from fusion.points import top_surface_at_centres
 from fusion.robust import group_count, group_mean, group_median, vector_median
 from fusion.scene_fusion import elevation_image
@@ -138,6 +138,62 @@ def test_labels_whose_elevation_contradicts_their_class_are_dropped():
     keep = elevation_consistent(labels, elevation, split=2.0)
     # the tree at 0.3 m is the ground past a crown's edge, the ground at 9 m a crown above it
     np.testing.assert_array_equal(keep, [True, True, True, False, True, False, True])
+
+
+def test_elevation_prior_damps_the_classes_the_ndsm_contradicts():
+    # four cells: a road called tree at 0.1 m, a roof called grass at 8 m, an
+    # undecided cell at 2 m, and an unseen one
+    p = np.array(
+        [
+            [0.30, 0.10, 0.25, np.nan],  # ground
+            [0.10, 0.60, 0.25, np.nan],  # grass
+            [0.60, 0.10, 0.25, np.nan],  # tree
+            [0.00, 0.20, 0.25, np.nan],  # building
+        ]
+    )[:, None, :]
+    ndsm = np.array([[0.1, 8.0, 2.0, np.nan]])
+    q = elevation_prior(p, ndsm, split=1.0, damping=0.01)
+    low = np.array([0.30, 0.10, 0.006, 0.0])
+    np.testing.assert_allclose(q[:, 0, 0], low / low.sum(), rtol=1e-6)
+    high = np.array([0.001, 0.006, 0.10, 0.20])
+    np.testing.assert_allclose(q[:, 0, 1], high / high.sum(), rtol=1e-6)
+    np.testing.assert_allclose(q[:, 0, 2], 0.25)  # between 0.5 and 3 m: nothing damped
+    assert np.isnan(q[:, 0, 3]).all()
+    assert np.argmax(q[:, 0, 0]) == 0 and np.argmax(q[:, 0, 1]) == 3
+
+
+def test_normals_face_the_camera_and_undersides_are_negative():
+    # an oblique camera looking north and 45 degrees down sees a floor 20 m below it from
+    # above; one looking 45 degrees up sees a ceiling 20 m above it from below
+    R = look_at_rotation([0, 1, -1])
+    K = np.array([[200.0, 0, 31.5], [0, 200.0, 31.5], [0, 0, 1]])
+    cam = Camera(K, R, -R @ np.zeros(3), 64, 64)
+    v, u = np.mgrid[0:64, 0:64]
+    _, dirs = cam.pixel_rays(np.column_stack([u.ravel(), v.ravel()]).astype(float))
+    zc = (dirs @ R.T)[:, 2]  # z-depth per unit ray length
+    floor = (-20.0 / dirs[:, 2]) * zc  # the plane z = -20 seen from above
+    nz = normal_z_image(cam, floor.reshape(64, 64).astype(np.float32))
+    np.testing.assert_allclose(nz[10:-10, 10:-10], 1.0, atol=1e-3)
+    R_up = look_at_rotation([0, 1, 1])  # looking north-up at a ceiling z = +20
+    cam_up = Camera(K, R_up, -R_up @ np.zeros(3), 64, 64)
+    _, dirs = cam_up.pixel_rays(np.column_stack([u.ravel(), v.ravel()]).astype(float))
+    ceiling = (20.0 / dirs[:, 2]) * (dirs @ R_up.T)[:, 2]
+    nz = normal_z_image(cam_up, ceiling.reshape(64, 64).astype(np.float32))
+    np.testing.assert_allclose(nz[10:-10, 10:-10], -1.0, atol=1e-3)
+
+
+def test_a_facade_does_not_hide_the_ground_in_front_of_it():
+    """One cell holds the foot of a facade and the ground in front of it; an oblique
+    view sees the facade nearer than the ground, yet both are visible."""
+    cells = np.array([0, 0, 0, 1, 1])
+    depth = np.array([10.0, 11.0, 13.0, 20.0, 22.0])
+    top = np.array([False, False, True, True, True])  # facade, facade, ground | roof, pit
+    nearest = nearest_depth(cells, depth, top, 2)
+    np.testing.assert_array_equal(nearest, [13.0, 13.0, 13.0, 20.0, 20.0])
+    visible = depth <= nearest + 1.0
+    np.testing.assert_array_equal(visible, [True, True, True, True, False])
+    # a cell with only steep points keeps its nearest one
+    np.testing.assert_array_equal(nearest_depth(cells[:2], depth[:2], top[:2], 1), [10.0, 10.0])
 
 
 def test_elevation_cue_ignores_an_isolated_matching_error():
