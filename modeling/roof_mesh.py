@@ -57,7 +57,7 @@ def face_polygons(
         labels.append(int(value))
     if not polys:
         return [], []
-    simple = shapely.coverage_simplify(np.array(polys, dtype=object), tolerance)
+    simple = shapely.coverage_simplify(vertex_matched(polys, grid.gsd * 1e-3), tolerance)
     parts, out_labels = [], []
     for p, lab in zip(simple, labels, strict=True):
         p = shapely.make_valid(p) if not p.is_valid else p
@@ -66,6 +66,20 @@ def face_polygons(
                 parts.append(part)
                 out_labels.append(lab)
     return [orient(_fill_small_holes(p, parts, 4 * grid.gsd**2), 1.0) for p in parts], out_labels
+
+
+def vertex_matched(polys: list[Polygon], tolerance: float) -> np.ndarray:
+    """The polygons with every vertex of the others that lies on one of their edges
+    inserted into that edge (GEOS snapping), as an object array.
+
+    Polygonising a label raster leaves no vertex on a straight edge where two other
+    faces meet it (a T-junction). GEOS's coverage simplification needs the shared
+    edges to match vertex for vertex; without it, a building with one such junction was
+    left unsimplified (a staircase of 1,464 triangles instead of 186) or not closed.
+    """
+    rings = [r for p in polys for r in (p.exterior, *p.interiors)]
+    vertices = shapely.MultiPoint(np.concatenate([np.asarray(r.coords) for r in rings]))
+    return np.array([shapely.snap(p, vertices, tolerance) for p in polys], dtype=object)
 
 
 def merge_small_regions(faces: np.ndarray, min_cells: int) -> np.ndarray:

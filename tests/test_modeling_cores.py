@@ -4,7 +4,9 @@ import itertools
 
 import numpy as np
 import pytest
-from shapely.geometry import Polygon, box
+import rasterio.features
+import shapely
+from shapely.geometry import Polygon, box, shape
 from shapely.geometry.polygon import orient
 
 from modeling.aggregate import superpixel_graph
@@ -12,7 +14,7 @@ from modeling.buildings import split_buildings
 from modeling.crf import alpha_expansion, binary_cut, crf_energy, pairwise_cut
 from modeling.planes import plane_heights, ransac_plane
 from modeling.prototypes import cluster_prototypes, hypothesis_similarity
-from modeling.roof_mesh import extrude_faces, face_polygons, untangle_diagonals
+from modeling.roof_mesh import extrude_faces, face_polygons, untangle_diagonals, vertex_matched
 from modeling.roof_types import roof_type
 from modeling.superpixel_model import SuperpixelOptions, model_building, observed_faces
 from modeling.superpixels import quickshift_superpixels, relief_image
@@ -232,6 +234,36 @@ def test_closure_gives_up_a_face_at_the_open_vertex_not_the_smallest_anywhere():
     )
     assert model.record["watertight"] and model.record["faces_merged_for_closure"] == 1
     assert len(model.record["roof_planes"]) == 4  # E kept, one of A-D given up
+
+
+def test_a_t_junction_is_vertex_matched_and_the_faces_simplify():
+    """Face 1 runs the full height of the west side; faces 2 and 3 meet on its east
+    edge, where polygonising leaves face 1 no vertex. The outline is a 1-cell zigzag
+    that a 1.5-cell tolerance removes."""
+    faces = np.zeros((24, 24), int)
+    faces[2:22, 2:10] = 1
+    faces[2:12, 10:22] = 2
+    faces[12:22, 10:22] = 3
+    faces[2:22:2, 1] = 1  # teeth on the west and east sides
+    faces[3:12:2, 22] = 2
+    faces[13:22:2, 22] = 3
+    grid = Grid(0.0, 24.0, 1.0, 24, 24)
+    shapes = list(rasterio.features.shapes(faces.astype(np.int32), mask=faces > 0))
+    raw, raw_labels = [shape(g) for g, _ in shapes], [int(k) for _, k in shapes]
+    assert not shapely.coverage_is_valid(np.array(raw, dtype=object))
+    assert shapely.coverage_is_valid(vertex_matched(raw, 1e-3))
+    polys, labels = face_polygons(faces, grid, tolerance=1.5, min_face_m2=0.5)
+    assert sorted(labels) == [1, 2, 3]
+    assert sum(len(p.exterior.coords) for p in polys) <= 20  # from 89 (23 + 23 + 43)
+    (face1,) = [p for p, k in zip(polys, labels, strict=True) if k == 1]
+    assert (10.0, 12.0) in list(face1.exterior.coords)  # the T vertex
+    planes = {1: _plane(0, 0.3, 4), 2: _plane(-0.3, 0, 9), 3: _plane(0, 0, 6)}
+    v, t = extrude_faces(polys, [planes[k] for k in labels], 0.0)
+    assert is_watertight(v, t)
+    # simplified without the matching, face 1 loses the T vertex and the solid opens there
+    unmatched = shapely.coverage_simplify(np.array(raw, dtype=object), 1.5)
+    v, t = extrude_faces(list(unmatched), [planes[k] for k in raw_labels], 0.0)
+    assert not is_watertight(v, t)
 
 
 def test_face_polygons_from_a_checkerboard_corner_stay_manifold():
