@@ -4,8 +4,9 @@ Each measurement runs in a fresh child process, so that its peak resident memory
 is its own (``os.wait4``). Medians over ``--repeat`` runs; this machine is noisy.
 
 Measured: sample generation (tiny, small), workbench compare, fusion of small, the
-super-pixel and voxel paths on small (with the voxel paper's robustness experiment), and
-the 50 AHN3 building clouds (benchmarks/ahn3.py).
+super-pixel and voxel paths on small (with the voxel paper's robustness experiment), what
+a noise-free sensor would score on small's height metrics (benchmarks/height_floor.py),
+and the 50 AHN3 building clouds (benchmarks/ahn3.py).
 
 Usage: python benchmarks/run.py [--presets tiny small] [--repeat 3] [--out bench_out]
 """
@@ -21,6 +22,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+from height_floor import height_floor
 
 CHILD = r"""
 import json, sys
@@ -225,7 +228,8 @@ def print_superpixel(sp: dict) -> None:
     print(
         f"  Table 1 overall accuracy: pixel {t['pixel']:.3f}, super-pixel {t['superpixel']:.3f}, "
         f"CRF {t['crf']:.3f}; footprint 2D quality {m['footprint_2d']['quality']:.3f}; "
-        f"height RMSE {m['height']['rmse_m']:.2f} m (MAE {m['height']['mae_m']:.2f})"
+        f"height RMSE {m['height']['rmse_m']:.2f} m (MAE {m['height']['mae_m']:.2f}, "
+        f"off walls {m['height']['rmse_off_jumps_m']:.2f} m)"
     )
     print(
         f"  roof plane angle median {m['roofs']['plane_angle_median_deg']:.1f} deg; building "
@@ -432,8 +436,18 @@ def main() -> int:
             print(
                 f"  DSM RMSE {q['dsm']['rmse_m']:.2f} m (mean fusion "
                 f"{q['dsm_mean_fusion']['rmse_m']:.2f}), median |e| "
-                f"{q['dsm']['median_abs_m']:.3f} m, valid {q['dsm']['valid_fraction']:.1%}; "
+                f"{q['dsm']['median_abs_m']:.3f} m, valid {q['dsm']['valid_fraction']:.1%}, "
+                f"off height jumps {q['dsm']['rmse_off_jumps_m']:.2f} m; "
                 f"DTM RMSE {q['dtm']['rmse_m']:.2f} m"
+            )
+            floor = height_floor(scene)
+            results["height_floor_small"] = floor
+            fm, walls = floor["median_of_returns"], floor["walls_displaced"]
+            print(
+                f"  what a noise-free sensor scores (benchmarks/height_floor.py): the median "
+                f"of {floor['returns_per_cell']} returns per cell, DSM RMSE "
+                f"{fm['dsm_rmse_m']:.2f} m; a perfect model with walls 5 cm off, height RMSE "
+                f"on buildings {walls['0.05']['building_rmse_m']:.2f} m"
             )
             c = q["classification"]
             per = ", ".join(f"{k} {v:.3f}" for k, v in c["per_class_accuracy"].items())

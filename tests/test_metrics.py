@@ -65,6 +65,33 @@ def test_volume_3d_by_hand():
     assert same["completeness"] == same["correctness"] == same["quality"] == 1.0
 
 
+def test_height_jumps_flag_both_sides_of_a_wall_not_a_steep_roof():
+    t = np.zeros((6, 8))
+    t[:, 4:] = 5.0  # a 5 m wall between columns 3 and 4
+    t[:, 6:] += np.array([0.0, 0.9])  # a 0.9 m step per cell: a steep roof, no wall
+    j = metrics.height_jumps(t)
+    assert j[:, 3:5].all() and not j[:, :3].any() and not j[:, 5:].any()
+    b = np.full((5, 5), np.nan)
+    b[1:4, 1:4] = 7.0  # a building surface, unknown off the building
+    jb = metrics.height_jumps(b)
+    assert jb[1:4, 1:4].sum() == 8 and not jb[2, 2] and not jb[0].any()
+
+
+def test_height_errors_by_hand_and_off_the_jumps():
+    t = np.zeros((4, 6))
+    t[:, 3:] = 10.0  # columns 2 and 3 are on the wall
+    model = t.copy()
+    model[:, 2] = 10.0  # the wall one cell too far west: 4 cells 10 m off
+    model[0, 0] += 0.5  # and one cell 0.5 m off away from the wall
+    model[3, 5] = np.nan
+    e = metrics.height_errors(model, t)
+    assert e["valid_fraction"] == pytest.approx(23 / 24)
+    assert e["rmse_m"] == pytest.approx(np.sqrt((4 * 100 + 0.25) / 23))
+    assert e["median_abs_m"] == 0.0
+    assert e["jump_fraction"] == pytest.approx(8 / 23)
+    assert e["rmse_off_jumps_m"] == pytest.approx(np.sqrt(0.25 / 15))
+
+
 def test_building_heights_and_percent_errors():
     ids = np.array([[1, 1, 2, 0]])
     ground = np.array([[100.0, 100.0, 50.0, 0.0]])

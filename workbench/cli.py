@@ -555,8 +555,10 @@ def cmd_fusion(args) -> int:
     if q:
         d, c = q.get("dsm", {}), q.get("classification", {})
         if d.get("rmse_m") is not None:
+            off = d.get("rmse_off_jumps_m")
+            off = f" ({off:.3f} m off height jumps)" if off is not None else ""
             print(
-                f"  DSM RMSE {d['rmse_m']:.3f} m, median |e| {d['median_abs_m']:.3f} m, "
+                f"  DSM RMSE {d['rmse_m']:.3f} m{off}, median |e| {d['median_abs_m']:.3f} m, "
                 f"valid {d['valid_fraction']:.1%}"
             )
         if c.get("overall_accuracy") is not None:

@@ -20,6 +20,8 @@ from .raycast import raycasting_scene, unsigned_distance
 from .runs import Run
 from .truth import Truth, sample_to_grid, top_down
 
+DSM_KEYS = ("rmse_m", "rmse_off_jumps_m", "median_abs_m", "valid_fraction")
+
 
 @dataclass
 class EvaluationOptions:
@@ -174,7 +176,7 @@ def evaluate(run: Run, truth: Truth, options: EvaluationOptions | None = None) -
     if run.kind == "fusion":
         if truth.dsm is not None:
             d = metrics.height_errors(layers.dsm, truth.dsm)
-            m["dsm"] = {k: d[k] for k in ("rmse_m", "median_abs_m", "valid_fraction") if k in d}
+            m["dsm"] = {k: d[k] for k in DSM_KEYS if k in d}
         if layers.ortho is not None and truth.ortho is not None:
             both = (layers.ortho.sum(-1) > 0) & np.isfinite(layers.dsm)
             o = metrics.colour_mae(layers.ortho, truth.ortho, both)
