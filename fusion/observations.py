@@ -83,10 +83,9 @@ def normal_z_image(camera: Camera, depth: np.ndarray, *, step: int = 3, sigma: f
     dx[:, step:-step] = P[:, 2 * step :] - P[:, : -2 * step]
     dy[step:-step] = P[2 * step :] - P[: -2 * step]
     n = np.cross(dx, dy)
-    away = np.sum(n * P, axis=-1) > 0
-    n[away] *= -1
+    toward = -np.sign(np.einsum("ijk,ijk->ij", n, P))  # the camera is at P = 0
     with np.errstate(invalid="ignore", divide="ignore"):
-        nz = n[..., 2] / np.linalg.norm(n, axis=-1)
+        nz = toward * n[..., 2] / np.linalg.norm(n, axis=-1)
     return nz.astype(np.float32)
 
 
@@ -134,11 +133,13 @@ def nearest_depth(cells: np.ndarray, depth: np.ndarray, top: np.ndarray, n_cells
     top : (N,) bool
     n_cells : int
     """
-    nearest_top = np.full(n_cells, np.inf, np.float32)
-    np.minimum.at(nearest_top, cells[top], depth[top])
-    nearest_any = np.full(n_cells, np.inf, np.float32)
-    np.minimum.at(nearest_any, cells, depth)
-    return np.where(np.isfinite(nearest_top), nearest_top, nearest_any)[cells]
+    # one pass: steep points count only in cells without a top point
+    offset = np.float32(2 * (float(depth.max()) + 1.0)) if len(depth) else np.float32(1.0)
+    key = np.where(top, depth, depth + offset).astype(np.float32)
+    nearest = np.full(n_cells, np.inf, np.float32)
+    np.minimum.at(nearest, cells, key)
+    nearest = np.where(nearest >= offset, nearest - offset, nearest)
+    return nearest[cells]
 
 
 def observe(
