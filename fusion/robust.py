@@ -41,6 +41,46 @@ def group_median(cells: np.ndarray, values: np.ndarray, n_cells: int) -> np.ndar
     return out
 
 
+def group_weighted_median(
+    cells: np.ndarray, values: np.ndarray, weights: np.ndarray, n_cells: int
+) -> np.ndarray:
+    """(n_cells,) weighted median of scalar ``values`` per cell, NaN for empty cells.
+
+    The value at which the cell's cumulative weight (in value order) reaches half its
+    total; where it reaches exactly half, the mean of that value and the next. With
+    equal weights this is :func:`group_median`.
+
+    Parameters
+    ----------
+    cells : (N,) int
+    values : (N,) float
+    weights : (N,) float, positive
+    n_cells : int
+    """
+    out = np.full(n_cells, np.nan)
+    if len(cells) == 0:
+        return out
+    order = _order_by_cell_then_value(cells, values)
+    c, v = cells[order], values[order].astype(np.float64)
+    w = weights[order].astype(np.float64)
+    count = np.bincount(c, minlength=n_cells)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    cum = np.cumsum(w)
+    before = np.concatenate([[0.0], cum])[start]  # total weight of the earlier cells
+    within = cum - before[c]
+    half = 0.5 * np.bincount(c, w, minlength=n_cells)[c]
+    tol = 1e-9 * half
+    reached = within >= half - tol
+    first = reached.copy()
+    first[1:] &= ~(reached[:-1] & (c[1:] == c[:-1]))  # the first that reaches, per cell
+    idx = np.flatnonzero(first)
+    tie = np.abs(within[idx] - half[idx]) <= tol[idx]
+    nxt = np.minimum(idx + 1, len(c) - 1)
+    tie &= (idx + 1 < len(c)) & (c[nxt] == c[idx])
+    out[c[idx]] = np.where(tie, 0.5 * (v[idx] + v[nxt]), v[idx])
+    return out
+
+
 def _order_by_cell_then_value(cells: np.ndarray, values: np.ndarray) -> np.ndarray:
     """Indices sorting by cell, then value: one float64 sort key, faster than lexsort."""
     v = values.astype(np.float64)

@@ -1,20 +1,22 @@
 """Fusion of many calibrated views into ortho colour, height and class rasters.
 
 Kluckner & Bischof (2010), sections 3 and 4: each view's depth map lifts its pixels
-into the ortho grid; per cell the height is the median of the observations, the
-colour the vector median, the class the accumulated and normalised probabilities of
-a per-view random forest on Sigma Points features.
+into the ortho grid; per cell the height is the median of the observations (weighted
+by the inverse variance of their heights: not in the paper), the colour the vector
+median, the class the accumulated and normalised probabilities of a per-view random
+forest on Sigma Points features.
 
 Passes over the views (each reads a view's files once):
 
-1. heights: lift, keep the visible surface per cell, median -> DSM; ground filter ->
-   DTM, nDSM;
+1. heights: lift, keep the visible surface per cell, weighted median -> DSM; ground
+   filter -> DTM, nDSM;
 2. training: Sigma Points of every view with the elevation cue from the DTM; the
    training strokes are projected into the views through their depth maps (so the
    forest learns from the same per-view features it will classify, facades of
    oblique views included);
 3. classification and colour: per view, class probabilities of its pixels; per cell,
-   accumulated probabilities and the vector median colour.
+   accumulated probabilities and the vector median colour; the classes the nDSM
+   contradicts damped.
 
 The ortho grid is processed in tiles: a pass keeps only the current tile's
 observations, so memory follows the tile size, not the area.
@@ -51,7 +53,7 @@ from .ground import dtm_from_dsm
 from .interpolate import push_pull_fill, small_holes
 from .observations import ViewObservations, lift_depth, observe
 from .raster_forest import classify_rasters, synthetic_raster_forest
-from .robust import group_count, group_mean, group_median, vector_median
+from .robust import group_count, group_mean, group_weighted_median, vector_median
 from .sigma_points import MEAN_ELEVATION, N_FEATURES, feature_cues, sigma_points
 
 log = logging.getLogger(__name__)
@@ -299,7 +301,7 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
     with timer.stage("heights"):
         for tile in progress(tiles, "heights (tiles)"):
             r0, c0, h, w = tile
-            cells, z, rel = [], [], []
+            cells, z, weight, rel = [], [], [], []
             for v, box in zip(views, boxes, strict=True):
                 if not _touches(box, tile):
                     continue
@@ -307,11 +309,15 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
                 sel, local, reliable = _in_tile(obs, grid, tile)
                 cells.append(local)
                 z.append(obs.xyz[sel, 2].astype(np.float32))
+                weight.append(obs.height_weight[sel])
                 rel.append(reliable)
             cells, z, rel = _joined(cells, np.int64), _joined(z, np.float32), _joined(rel, bool)
-            cells, z = cells[rel], z[rel]
+            weight = _joined(weight, np.float32)
+            cells, z, weight = cells[rel], z[rel], weight[rel]
             n_obs += len(z)
-            dsm[r0 : r0 + h, c0 : c0 + w] = group_median(cells, z, h * w).reshape(h, w)
+            dsm[r0 : r0 + h, c0 : c0 + w] = group_weighted_median(cells, z, weight, h * w).reshape(
+                h, w
+            )
             dsm_mean[r0 : r0 + h, c0 : c0 + w] = group_mean(cells, z, h * w).reshape(h, w)
             count[r0 : r0 + h, c0 : c0 + w] = group_count(cells, h * w).reshape(h, w)
     with timer.stage("ground"):

@@ -6,9 +6,21 @@ import pytest
 from fusion.classifier import elevation_consistent, elevation_prior
 from fusion.ground import dtm_from_dsm
 from fusion.interpolate import push_pull_fill, small_holes
-from fusion.observations import depth_jumps, nearest_depth, normal_z_image, observe
+from fusion.observations import (
+    depth_jumps,
+    height_weights,
+    nearest_depth,
+    normal_z_image,
+    observe,
+)
 from fusion.points import top_surface_at_centres
-from fusion.robust import group_count, group_mean, group_median, vector_median
+from fusion.robust import (
+    group_count,
+    group_mean,
+    group_median,
+    group_weighted_median,
+    vector_median,
+)
 from fusion.scene_fusion import elevation_image
 from fusion.sigma_points import N_FEATURES, feature_cues, sigma_points
 from workbench.camera import Camera, look_at_rotation
@@ -23,6 +35,28 @@ def test_group_median_and_mean():
     assert np.isnan(med[1]) and np.isnan(med[4])
     np.testing.assert_allclose(group_mean(cells, vals, 5)[[0, 2, 3]], [106 / 3, 2.5, 7.0])
     np.testing.assert_array_equal(group_count(cells, 5), [3, 0, 4, 1, 0])
+
+
+def test_group_weighted_median_by_hand_and_with_equal_weights():
+    cells = np.array([0, 0, 0, 2, 2, 2, 2, 3])
+    vals = np.array([5.0, 1.0, 100.0, 4.0, 1.0, 3.0, 2.0, 7.0])
+    # cell 0: 1 (w 1), 5 (w 1), 100 (w 3): half of 5 is reached at 100
+    # cell 2: 1, 2, 3, 4 with w 3, 1, 1, 1: half of 6 reached exactly at 1 -> (1 + 2) / 2
+    w = np.array([1.0, 1.0, 3.0, 1.0, 3.0, 1.0, 1.0, 2.0])
+    med = group_weighted_median(cells, vals, w, 5)
+    np.testing.assert_array_equal(med[[0, 2, 3]], [100.0, 1.5, 7.0])
+    assert np.isnan(med[1]) and np.isnan(med[4])
+    rng = np.random.default_rng(1)
+    c, v = rng.integers(0, 40, 2000), rng.normal(size=2000).round(1)  # many ties
+    np.testing.assert_array_equal(
+        group_weighted_median(c, v, np.ones(2000), 45), group_median(c, v, 45)
+    )
+
+
+def test_height_weights_are_the_squared_cosine_from_the_vertical():
+    center = np.array([0.0, 0.0, 100.0])
+    xyz = np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [0.0, 100.0 * 3**0.5, 0.0]])
+    np.testing.assert_allclose(height_weights(center, xyz), [1.0, 0.5, 0.25], rtol=1e-6)
 
 
 def test_vector_median_rejects_outliers_and_returns_an_observed_colour():
