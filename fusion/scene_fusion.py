@@ -2,9 +2,9 @@
 
 Kluckner & Bischof (2010), sections 3 and 4: each view's depth map lifts its pixels
 into the ortho grid; per cell the height is the median of the observations (weighted
-by the inverse variance of their heights: not in the paper), the colour the vector
-median, the class the accumulated and normalised probabilities of a per-view random
-forest on Sigma Points features.
+toward steep rays: not in the paper), the colour the vector median, the class the
+accumulated and normalised probabilities of a per-view random forest on Sigma Points
+features.
 
 Passes over the views (each reads a view's files once):
 
