@@ -91,6 +91,9 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", type=Path, help="also write the figures here")
     args = ap.parse_args()
+    mesh = args.scene / "truth" / "mesh.ply"
+    if not mesh.exists():
+        raise SystemExit(f"height_floor: {mesh}: missing (a sample scene's true mesh)")
     f = height_floor(args.scene, args.returns, args.seed)
     m = f["median_of_returns"]
     print(
