@@ -64,12 +64,20 @@ class ViewObservations:
 STEEP_NORMAL_Z = 0.26  # cos(75 deg): facades and undersides out, 70 deg mansard slopes in
 
 
-def normal_z_image(camera: Camera, depth: np.ndarray, *, step: int = 3, sigma: float = 1.5):
+def normal_z_image(
+    camera: Camera,
+    depth: np.ndarray,
+    *,
+    step: int = 3,
+    sigma: float = 1.5,
+    rays: np.ndarray | None = None,
+):
     """(H, W) z of surface normals from a depth map, NaN where unknown.
 
     The depth is smoothed first (dense-matching noise is as large as a pixel's
     footprint) and differentiated over ``step`` pixels. Each normal is turned toward
-    the camera, so a surface the view sees from below has a negative z.
+    the camera, so a surface the view sees from below has a negative z. ``rays``: as
+    for :func:`lift_depth`.
     """
     import cv2
 
@@ -80,9 +88,9 @@ def normal_z_image(camera: Camera, depth: np.ndarray, *, step: int = 3, sigma: f
     den = cv2.GaussianBlur(valid, (0, 0), sigma)
     with np.errstate(invalid="ignore", divide="ignore"):
         smooth = np.where(valid > 0, num / den, np.nan)
-    v, u = np.mgrid[0:H, 0:W]
-    _, dirs = camera.pixel_rays(np.column_stack([u.ravel(), v.ravel()]).astype(np.float64))
-    P = dirs.reshape(H, W, 3) * smooth[..., None]  # relative to the camera centre
+    if rays is None:
+        _, rays = camera.pixel_grid_rays()
+    P = rays.reshape(H, W, 3) * smooth[..., None]  # relative to the camera centre
     dx = np.full_like(P, np.nan)
     dy = np.full_like(P, np.nan)
     dx[:, step:-step] = P[:, 2 * step :] - P[:, : -2 * step]
@@ -134,8 +142,13 @@ def height_weights(center: np.ndarray, xyz: np.ndarray) -> np.ndarray:
     return cos2.astype(np.float32)
 
 
-def lift_depth(camera: Camera, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def lift_depth(
+    camera: Camera, depth: np.ndarray, rays: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """World points of every pixel with a depth.
+
+    ``rays``, the (H*W, 3) directions of :meth:`Camera.pixel_grid_rays`, spares
+    computing them again for a caller that has them.
 
     Returns
     -------
@@ -143,9 +156,12 @@ def lift_depth(camera: Camera, depth: np.ndarray) -> tuple[np.ndarray, np.ndarra
     """
     valid = np.isfinite(depth) & (depth > 0)
     pixels = np.flatnonzero(valid)
-    v, u = np.divmod(pixels, depth.shape[1])
-    origin, dirs = camera.pixel_rays(np.column_stack([u, v]).astype(np.float64))
-    xyz = origin + dirs * depth.ravel()[pixels, None].astype(np.float64)
+    if rays is None:
+        v, u = np.divmod(pixels, depth.shape[1])
+        _, dirs = camera.pixel_rays(np.column_stack([u, v]).astype(np.float64))
+    else:
+        dirs = rays[pixels]
+    xyz = camera.center + dirs * depth.ravel()[pixels, None].astype(np.float64)
     return pixels, xyz
 
 
@@ -185,13 +201,14 @@ def observe(
         Depth band behind the nearest point of a cell that still counts as the same
         surface, metres (absorbs depth noise and slanted surfaces).
     """
-    pixels, xyz = lift_depth(camera, depth)
+    _, rays = camera.pixel_grid_rays()
+    pixels, xyz = lift_depth(camera, depth, rays)
     row, col = grid.cell_index(xyz[:, 0], xyz[:, 1])
     inside = grid.contains(row, col)
     pixels, xyz = pixels[inside], xyz[inside]
     cells = row[inside] * grid.width + col[inside]
     d = depth.ravel()[pixels]
-    nz = np.nan_to_num(normal_z_image(camera, depth).ravel()[pixels], nan=1.0)
+    nz = np.nan_to_num(normal_z_image(camera, depth, rays=rays).ravel()[pixels], nan=1.0)
     visible = (
         d <= nearest_depth(cells, d, nz > STEEP_NORMAL_Z, grid.width * grid.height) + tolerance
     )
