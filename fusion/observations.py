@@ -90,16 +90,21 @@ def normal_z_image(
         smooth = np.where(valid > 0, num / den, np.nan)
     if rays is None:
         _, rays = camera.pixel_grid_rays()
-    P = rays.reshape(H, W, 3) * smooth[..., None]  # relative to the camera centre
-    dx = np.full_like(P, np.nan)
-    dy = np.full_like(P, np.nan)
-    dx[:, step:-step] = P[:, 2 * step :] - P[:, : -2 * step]
-    dy[step:-step] = P[2 * step :] - P[: -2 * step]
-    n = np.cross(dx, dy)
-    toward = -np.sign(np.einsum("ijk,ijk->ij", n, P))  # the camera is at P = 0
+    # points relative to the camera centre, in float32: half the memory traffic, and
+    # millimetres over the few hundred metres of an aerial view
+    P = rays.reshape(H, W, 3).astype(np.float32) * smooth[..., None]
+    s = step
+    dx = P[s:-s, 2 * s :] - P[s:-s, : -2 * s]  # the interior, where both differences exist
+    dy = P[2 * s :, s:-s] - P[: -2 * s, s:-s]
+    nx = dx[..., 1] * dy[..., 2] - dx[..., 2] * dy[..., 1]
+    ny = dx[..., 2] * dy[..., 0] - dx[..., 0] * dy[..., 2]
+    n_z = dx[..., 0] * dy[..., 1] - dx[..., 1] * dy[..., 0]
+    c = P[s:-s, s:-s]
+    toward = -np.sign(nx * c[..., 0] + ny * c[..., 1] + n_z * c[..., 2])  # camera at P = 0
+    nz = np.full((H, W), np.nan, np.float32)
     with np.errstate(invalid="ignore", divide="ignore"):
-        nz = toward * n[..., 2] / np.linalg.norm(n, axis=-1)
-    return nz.astype(np.float32)
+        nz[s:-s, s:-s] = toward * n_z / np.sqrt(nx * nx + ny * ny + n_z * n_z)
+    return nz
 
 
 def depth_jumps(depth: np.ndarray, *, k: int = 3, rel: float = 0.03, jump: float = 1.0):
