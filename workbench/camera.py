@@ -117,8 +117,15 @@ class Camera:
 
         Returns the origin (3,) and directions (H*W, 3), as :meth:`pixel_rays`.
         """
-        u, v = np.meshgrid(np.arange(0, self.width, step), np.arange(0, self.height, step))
-        return self.pixel_rays(np.column_stack([u.ravel(), v.ravel()]))
+        u = np.arange(0, self.width, step, dtype=np.float64)
+        v = np.arange(0, self.height, step, dtype=np.float64)
+        if self.has_distortion:
+            uu, vv = np.meshgrid(u, v)
+            return self.pixel_rays(np.column_stack([uu.ravel(), vv.ravel()]))
+        # without distortion a ray is linear in (u, v): a sum of a row and a column term
+        M = self.R.T @ np.linalg.inv(self.K)  # camera z of every direction stays 1
+        dirs = (v[:, None, None] * M[:, 1] + M[:, 2]) + u[None, :, None] * M[:, 0]
+        return self.center, dirs.reshape(-1, 3)
 
     def to_dict(self) -> dict:
         """The camera as the fields of a scene.json view."""
