@@ -321,7 +321,7 @@ def _by_roof(rows: list[dict]) -> dict:
     return {k: {"median_abs_pct": statistics.median(v), "n": len(v)} for k, v in groups.items()}
 
 
-def print_voxel(v: dict) -> None:
+def print_voxel(v: dict, floor: dict | None = None) -> None:
     print(f"\nworkbench model voxel on small (r = 1 m, S = 4), median of {v['repeat']}:")
     print_stages(v["stage_median_s"])
     c, m, t = v["counts"], v["metrics"], v["texture"]
@@ -345,6 +345,11 @@ def print_voxel(v: dict) -> None:
         for k, g in sorted(v["height_error_pct_by_truth_roof"].items())
     )
     print(f"  height error by true roof type: {by}")
+    for p in (floor or {}).get("voxel_proxies", []):
+        print(
+            f"  perfect proxies (true column heights, clustered with c_e {p['cluster_error']:g}):"
+            f" height error median {p['height_error_pct_median']:.1f} %"
+        )
     print(
         f"  seam cost: graph cut {t['seam_cost']:.2f}, projective {t['seam_cost_projective']:.2f}"
         f" (ratio {t['seam_cost'] / t['seam_cost_projective']:.2f}; greedy cuts alone "
@@ -449,6 +454,11 @@ def main() -> int:
                 f"{fm['dsm_rmse_m']:.2f} m; a perfect model with walls 5 cm off, height RMSE "
                 f"on buildings {walls['0.05']['building_rmse_m']:.2f} m"
             )
+            cells = floor["cells"]
+            print(
+                f"  cells whose true surface some view sees {cells['seen_by_a_view']:.1%}, "
+                f"that some depth map observes {cells['observed_by_a_depth_map']:.1%}"
+            )
             c = q["classification"]
             per = ", ".join(f"{k} {v:.3f}" for k, v in c["per_class_accuracy"].items())
             mae, mae_mean = q["ortho_mae"]["mean"], q["ortho_mae_mean_fusion"]["mean"]
@@ -461,7 +471,7 @@ def main() -> int:
             print_superpixel(sp)
             vx = bench_voxel(scene, Path(tmp) / "fusion_0", args.repeat, Path(tmp))
             results["voxel_small"] = vx
-            print_voxel(vx)
+            print_voxel(vx, floor)
             c = bench_compare(
                 scene,
                 [Path(tmp) / "fusion_0", Path(tmp) / "superpixel_0", Path(tmp) / "voxel_0"],

@@ -1,0 +1,58 @@
+"""The noise-free floors of benchmarks/height_floor.py: hand-made roofs and the tiny city."""
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from workbench.raster import Grid
+from workbench.truth import Truth
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from height_floor import height_floor, voxel_proxy_floor  # noqa: E402
+
+
+def _box(fid, x0, y0, x1, y1):
+    ring = [[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]]
+    geometry = {"type": "Polygon", "coordinates": [ring]}
+    return {"type": "Feature", "id": fid, "properties": {}, "geometry": geometry}
+
+
+def test_perfect_proxies_of_a_flat_and_a_gable_roof(tmp_path):
+    grid = Grid(0.0, 40.0, 0.25, 160, 160)
+    X, Y = grid.cell_centers()
+    ids = np.zeros(grid.shape, np.int64)
+    flat = (X > 2) & (X < 12) & (Y > 2) & (Y < 12)
+    gable = (X > 16) & (X < 36) & (Y > 10) & (Y < 22)
+    ids[flat], ids[gable] = 1, 2
+    dtm = np.full(grid.shape, 100.0)
+    above = np.zeros(grid.shape)
+    above[flat] = 7.0
+    above[gable] = 6.0 + 4.0 * (1 - np.abs(Y[gable] - 16.0) / 6.0)  # eaves 6 m, ridge 10 m
+    surface = np.where(ids > 0, dtm + above, np.nan)
+    truth = Truth(grid, None, dsm=dtm + above, dtm=dtm, building_ids=ids, building_surface=surface)
+    features = [_box("1", 2, 2, 12, 12), _box("2", 16, 10, 36, 22)]
+    path = tmp_path / "footprints.geojson"
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": features}))
+
+    # c_e = 1 keeps one cluster: every 1 m column of the gable snaps to the mean of the
+    # twelve column heights across it, 6 + 4 * (1 - 3 / 6) = 8 m; the flat roof is exact
+    one = voxel_proxy_floor(truth, path, 1.0, cluster_error=1.0)
+    ridge = np.percentile(above[gable], 99)
+    gable_error = 100 * (8.0 - ridge) / ridge
+    assert one["height_error_pct_median"] == pytest.approx(abs(gable_error) / 2, abs=1e-6)
+    # a small c_e splits the slope into levels, and the top level nears the ridge
+    many = voxel_proxy_floor(truth, path, 1.0, cluster_error=0.01)
+    assert many["height_error_pct_median"] < one["height_error_pct_median"] / 3
+
+
+def test_floors_of_the_tiny_city(tiny_scene):
+    f = height_floor(tiny_scene, returns=5)
+    assert f["walls_displaced"]["0"]["building_rmse_m"] == pytest.approx(0.0, abs=1e-3)
+    assert f["median_of_returns"]["dsm_rmse_off_jumps_m"] < 0.05
+    cells = f["cells"]
+    assert 0.85 < cells["observed_by_a_depth_map"] <= cells["seen_by_a_view"] <= 1.0
+    c_e = [p["cluster_error"] for p in f["voxel_proxies"]]
+    assert c_e == [0.3, 0.05]
