@@ -10,9 +10,9 @@ the true mesh with vertical rays and scores, with the metrics of ``workbench com
   building cells (as the models' height RMSE is scored);
 - the surface read at the cell centre displaced by ``d`` metres in a random direction
   (a perfect model whose walls are off by ``d``), over the true building cells;
-- the cells whose true surface point (at the cell centre) some view sees at all, and
-  those some view's depth map observes within 0.5 m: what the valid fraction of a fusion
-  can reach without inventing cells;
+- the cells whose true surface (at the centre or a quarter cell from it) some view sees
+  at all, and those some view's depth map observes within 0.5 m: what the valid
+  fraction of a fusion can reach without inventing cells;
 - the voxel path's height clustering (section 4.3 of the voxel paper) run on the true
   height of every 1 m column of the true footprints, each column snapped to its
   cluster's mean: the building height error of a perfect 2.5D proxy.
@@ -87,7 +87,7 @@ def cells_seen(scene_dir: Path, grid: Grid, scene, origin: np.ndarray, top: floa
             framed &= (uv[:, 0] >= 0) & (uv[:, 0] < cam.width)
             framed &= (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
         idx = np.flatnonzero(framed)
-        to_cam = -cam.R.T @ cam.t - points[idx]
+        to_cam = cam.center - points[idx]
         dist = np.linalg.norm(to_cam, axis=1)
         to_cam /= dist[:, None]
         # start a few centimetres off the surface, so that it does not hide itself
