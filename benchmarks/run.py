@@ -1,7 +1,8 @@
 """``make bench``: wall time, throughput and peak memory per stage.
 
-Each measurement runs in a fresh child process, so that its peak resident memory
-is its own (``os.wait4``). Medians over ``--repeat`` runs; this machine is noisy.
+Each measurement runs in a fresh child process, which reports its own peak resident
+memory (``peak_memory_mb``: the rusage of a child counts the size of the parent it was
+forked from). Medians over ``--repeat`` runs; this machine is noisy.
 
 Measured: sample generation (tiny, small), workbench compare, fusion of small, the
 super-pixel and voxel paths on small (with the voxel paper's robustness experiment), what
@@ -37,16 +38,21 @@ print(json.dumps({"timing": meta["timing"], "counts": meta["counts"],
 """
 
 
+_REPORT_PEAK = "\nfrom workbench.records import peak_memory_mb\nprint(peak_memory_mb())\n"
+
+
 def run_child(code: str, *args: str) -> tuple[dict, float, float]:
-    """Run ``code`` in a child Python; return its JSON output, wall seconds, peak RSS MiB."""
+    """Run ``code`` in a child Python; return its JSON output (its last line), wall
+    seconds, and its peak RSS in MiB."""
     t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE, text=True)
-    out = proc.stdout.read()
-    _, status, usage = os.wait4(proc.pid, 0)
+    proc = subprocess.run(
+        [sys.executable, "-c", code + _REPORT_PEAK, *args], stdout=subprocess.PIPE, text=True
+    )
     wall = time.perf_counter() - t0
-    if status != 0:
-        raise SystemExit(f"benchmark child failed ({status}): {' '.join(args)}")
-    return json.loads(out.strip().splitlines()[-1]), wall, usage.ru_maxrss / 1024.0
+    if proc.returncode != 0:
+        raise SystemExit(f"benchmark child failed ({proc.returncode}): {' '.join(args)}")
+    *_, result, peak = proc.stdout.strip().splitlines()
+    return json.loads(result), wall, float(peak)
 
 
 def bench_sample(preset: str, repeat: int, work: Path) -> dict:

@@ -9,7 +9,19 @@ import time
 
 
 def peak_memory_mb() -> float:
-    """Peak resident memory of this process so far, MiB."""
+    """Peak resident memory of this process so far, MiB.
+
+    On Linux the high-water mark of /proc/self/status: ``ru_maxrss`` survives the exec
+    of a forked child, so a process started by a large one would report its parent's
+    size as its own.
+    """
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return rss / (1024 * 1024) if sys.platform == "darwin" else rss / 1024
 
