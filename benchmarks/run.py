@@ -84,10 +84,12 @@ def bench_sample(preset: str, repeat: int, work: Path) -> dict:
 FUSION_CHILD = r"""
 import json, sys
 from fusion.cli_fusion import fusion_arguments, run_fusion
-args = fusion_arguments(scene=sys.argv[1], out=sys.argv[2], truth=sys.argv[1], overwrite=True)
+workers = int(sys.argv[3]) if len(sys.argv) > 3 else None
+args = fusion_arguments(scene=sys.argv[1], out=sys.argv[2], truth=sys.argv[1], overwrite=True,
+                        workers=workers)
 r = run_fusion(args)
 print(json.dumps({k: r[k] for k in ("stages", "observations", "observations_per_s",
-                                    "classification_mpx_per_s", "quality", "grid")}))
+                                    "classification_mpx_per_s", "quality", "grid", "workers")}))
 """
 
 READ_CHILD = r"""
@@ -114,8 +116,17 @@ def bench_fusion(scene: Path, repeat: int, work: Path) -> dict:
     res = runs[0][0]
     walls = [sum(st["wall_s"] for st in r[0]["stages"].values()) for r in runs]
     stages = stage_medians(runs)
+    # one view at a time, once: what the threads over the views buy on this machine
+    single, _, single_peak = run_child(FUSION_CHILD, str(scene), str(work / "fusion_w1"), "1")
     return {
         "repeat": repeat,
+        "workers": res["workers"],
+        "one_worker": {
+            "fusion_s": sum(st["wall_s"] for st in single["stages"].values()),
+            "observations_per_s": single["observations_per_s"],
+            "classification_mpx_per_s": single.get("classification_mpx_per_s"),
+            "peak_memory_mib": single_peak,
+        },
         "stage_median_s": stages,
         "fusion_median_s": statistics.median(walls),
         "read_inputs_once_median_s": statistics.median(reads),
@@ -438,10 +449,17 @@ def main() -> int:
                 f"  total {f['fusion_median_s']:.1f} s; reading every input once "
                 f"{f['read_inputs_once_median_s']:.1f} s; ratio {f['ratio_fusion_to_read']:.1f}"
             )
+            one = f["one_worker"]
             print(
                 f"  {f['observations_per_s'] / 1e6:.2f} M observations fused per second; "
-                f"classification {f['classification_mpx_per_s']:.2f} Mpx/s per view; "
-                f"peak memory {f['peak_memory_mib']:.0f} MiB"
+                f"classification {f['classification_mpx_per_s']:.2f} Mpx/s of view pixels; "
+                f"peak memory {f['peak_memory_mib']:.0f} MiB ({f['workers']} views at once)"
+            )
+            print(
+                f"  one view at a time (--workers 1, one run): {one['fusion_s']:.1f} s "
+                f"(x{one['fusion_s'] / f['fusion_median_s']:.2f}), "
+                f"{one['observations_per_s'] / 1e6:.2f} M observations/s, classification "
+                f"{one['classification_mpx_per_s']:.2f} Mpx/s, {one['peak_memory_mib']:.0f} MiB"
             )
             q = f["quality"]
             print(

@@ -24,7 +24,7 @@ def fusion_arguments(**given) -> SimpleNamespace:
     defaults = dict(
         scene=None, points=None, out=None, gsd=None, bounds=None, crs=None, truth=None,
         classifier=None, save_classifier=None, raster_prior=False, label_split=1.0, seed=0,
-        overwrite=False,
+        workers=None, overwrite=False,
     )  # fmt: skip
     unknown = set(given) - set(defaults)
     if unknown:
@@ -42,6 +42,7 @@ def run_fusion(args) -> dict:
         classifier=args.classifier,
         raster_prior=args.raster_prior,
         label_split=args.label_split,
+        workers=args.workers,
     )
     if args.points is not None:
         from .points import fuse_points

@@ -19,7 +19,10 @@ Passes over the views (each reads a view's files once):
    contradicts damped.
 
 The ortho grid is processed in tiles: a pass keeps only the current tile's
-observations, so memory follows the tile size, not the area.
+observations, so memory follows the tile size, not the area. Every pass works on
+several views at once in threads (NumPy and OpenCV release the GIL), as many as the
+cores and memory allow (:func:`view_workers`); results are gathered in view order, so
+the products do not depend on the number of workers.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ import cv2
 import numpy as np
 
 from workbench.errors import InputError, WorkbenchError
+from workbench.parallel import default_workers, ordered_map
 from workbench.progress import progress
 from workbench.raster import Grid, read_raster
 from workbench.records import StageTimer
@@ -62,6 +66,7 @@ FEATURES = "sigma_points_lab_grad_elev_11x11_v1"
 HOLE_CELLS = 9  # holes up to this many cells are interpolated (and flagged -1 in count)
 FILLED = -1
 ELEVATION_MEDIAN = 5  # pixels, the median filter of the per-view elevation cue
+FEATURE_BYTES_PER_PIXEL = 700  # peak of view_features, measured on small: 647
 
 
 @dataclass
@@ -83,6 +88,7 @@ class FusionOptions:
     classifier: str | os.PathLike | None = None
     raster_prior: bool = False  # multiply in the raster forest's probabilities (not the paper)
     max_memory_fraction: float = 0.5
+    workers: int | None = None  # threads over the views; None: every core this process has
 
 
 @dataclass
@@ -160,6 +166,21 @@ def check_memory(grid: Grid, opts: FusionOptions, n_views: int) -> None:
         )
 
 
+def view_workers(views: list[View], opts: FusionOptions) -> int:
+    """Views processed at once: ``opts.workers``, or as many as this process has cores
+    and as half the machine's memory holds.
+
+    A view's Sigma Points peak at about :data:`FEATURE_BYTES_PER_PIXEL` per pixel (the
+    patch moments and their Cholesky factors), and every worker holds one view's.
+    """
+    if opts.workers is not None:
+        return opts.workers
+    largest = max((v.camera.width * v.camera.height for v in views), default=0)
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    fit = int(opts.max_memory_fraction * total // max(largest * FEATURE_BYTES_PER_PIXEL, 1))
+    return max(1, min(default_workers(), fit))
+
+
 def _joined(parts: list, dtype, tail: tuple = ()) -> np.ndarray:
     """The views' arrays of one tile end to end (an empty array of ``dtype`` for none)."""
     return np.concatenate(parts) if parts else np.zeros((0, *tail), dtype)
@@ -193,17 +214,17 @@ def preferred(cells: np.ndarray, reliable: np.ndarray, n_cells: int) -> np.ndarr
     return reliable | ~has_reliable[cells]
 
 
-def _view_boxes(views: list[View], grid: Grid) -> list[tuple]:
+def _view_boxes(views: list[View], grid: Grid, workers: int = 1) -> list[tuple]:
     """(row0, col0, row1, col1) of the cells each view's depth map reaches."""
-    boxes = []
-    for v in views:
+
+    def box(v):
         _, xyz = lift_depth(v.camera, v.read_depth())
         if len(xyz) == 0:
-            boxes.append(None)
-            continue
+            return None
         r, c = grid.world_to_cell(xyz[:, 0], xyz[:, 1])
-        boxes.append((r.min() - 1, c.min() - 1, r.max() + 1, c.max() + 1))
-    return boxes
+        return (r.min() - 1, c.min() - 1, r.max() + 1, c.max() + 1)
+
+    return list(ordered_map(box, views, workers))
 
 
 def _touches(box, tile) -> bool:
@@ -291,7 +312,8 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
     with timer.stage("grid"):
         grid = default_grid(scene, opts)
         check_memory(grid, opts, len(views))
-        boxes = _view_boxes(views, grid)
+        workers = view_workers(views, opts)
+        boxes = _view_boxes(views, grid, workers)
     H, W = grid.shape
     tiles = list(_tiles(grid, opts.tile))
     dsm = np.full(grid.shape, np.nan, np.float32)
@@ -301,16 +323,15 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
     with timer.stage("heights"):
         for tile in progress(tiles, "heights (tiles)"):
             r0, c0, h, w = tile
-            cells, z, weight, rel = [], [], [], []
-            for v, box in zip(views, boxes, strict=True):
-                if not _touches(box, tile):
-                    continue
+
+            def tile_heights(v, tile=tile):
                 obs = observe(v.camera, v.read_depth(), grid, tolerance=opts.tolerance)
                 sel, local, reliable = _in_tile(obs, grid, tile)
-                cells.append(local)
-                z.append(obs.xyz[sel, 2].astype(np.float32))
-                weight.append(obs.height_weight[sel])
-                rel.append(reliable)
+                return local, obs.xyz[sel, 2].astype(np.float32), obs.height_weight[sel], reliable
+
+            touching = [v for v, box in zip(views, boxes, strict=True) if _touches(box, tile)]
+            parts = list(ordered_map(tile_heights, touching, workers))
+            cells, z, weight, rel = ([p[i] for p in parts] for i in range(4))
             cells, z, rel = _joined(cells, np.int64), _joined(z, np.float32), _joined(rel, bool)
             weight = _joined(weight, np.float32)
             cells, z, weight = cells[rel], z[rel], weight[rel]
@@ -358,32 +379,38 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
     with tempfile.TemporaryDirectory(prefix="fusion-") as cache:
         with timer.stage("classification"):
             n_px = 0
-            for i, v in enumerate(progress(views, "classifying views")):
-                if forest is None:
-                    break
+
+            def classify(v):
                 rgb, depth = v.read_image(), v.read_depth()
-                feats, pixels, xyz = view_features(v, rgb, depth, dtm, grid, opts.patch, surface)
+                feats, pixels, _ = view_features(v, rgb, depth, dtm, grid, opts.patch, surface)
                 probs = np.zeros((depth.size, len(CLASSES)), np.uint8)
-                probs[pixels] = np.round(predict_proba(forest, feats[pixels]) * 255).astype(
-                    np.uint8
-                )
-                n_px += len(pixels)
+                p = predict_proba(forest, feats[pixels])
+                probs[pixels] = np.round(p * 255).astype(np.uint8)
+                return probs, len(pixels)
+
+            classified = ordered_map(classify, views if forest is not None else [], workers)
+            for i, (probs, n) in enumerate(
+                progress(classified, "classifying views", total=len(views))
+            ):
+                n_px += n
                 np.save(Path(cache) / f"{i}.npy", probs)
         with timer.stage("colour_and_class"):
             for tile in progress(tiles, "colour and classes (tiles)"):
                 r0, c0, h, w = tile
-                cells, colours, probs, rel = [], [], [], []
-                for i, (v, box) in enumerate(zip(views, boxes, strict=True)):
-                    if not _touches(box, tile):
-                        continue
-                    depth = v.read_depth()
-                    obs = observe(v.camera, depth, grid, tolerance=opts.tolerance)
+
+                def tile_colours(i, tile=tile):
+                    v = views[i]
+                    obs = observe(v.camera, v.read_depth(), grid, tolerance=opts.tolerance)
                     sel, local, reliable = _in_tile(obs, grid, tile)
-                    cells.append(local)
-                    rel.append(reliable)
-                    colours.append(v.read_image().reshape(-1, 3)[obs.pixels[sel]])
-                    if forest is not None:
-                        probs.append(np.load(Path(cache) / f"{i}.npy")[obs.pixels[sel]])
+                    px = obs.pixels[sel]
+                    colour = v.read_image().reshape(-1, 3)[px]
+                    prob = np.load(Path(cache) / f"{i}.npy")[px] if forest is not None else None
+                    return local, reliable, colour, prob
+
+                touching = [i for i, box in enumerate(boxes) if _touches(box, tile)]
+                parts = list(ordered_map(tile_colours, touching, workers))
+                cells, rel, colours = ([p[k] for p in parts] for k in range(3))
+                probs = [p[3] for p in parts if p[3] is not None]
                 cells, colours = _joined(cells, np.int64), _joined(colours, np.uint8, (3,))
                 n = h * w
                 use = preferred(cells, _joined(rel, bool), n)
@@ -433,6 +460,7 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
     record = {
         "mode": mode,
         "views": {"used": len(views), "skipped_no_depth": len(skipped), "skipped_ids": skipped},
+        "workers": workers,
         "observations": int(n_obs),
         "class_source": class_source,
         "filled_small_holes": int(holes.sum()),
@@ -502,7 +530,10 @@ def _train(views, labels_path, dsm, dtm, grid: Grid, opts: FusionOptions, surfac
     views = views[::step]
     per_view = max(200, opts.samples_per_class // len(views))
     X, y, n_dropped = [], [], 0
-    for v in progress(views, "training samples"):
+
+    def labelled(v):
+        """The view's labelled pixels: their Sigma Points and labels, and the number of
+        labelled pixels dropped by elevation."""
         rgb, depth = v.read_image(), v.read_depth()
         feats, pixels, xyz = view_features(v, rgb, depth, dtm, grid, opts.patch, surface)
         r, c = label_grid.cell_index(xyz[:, 0], xyz[:, 1])
@@ -514,17 +545,25 @@ def _train(views, labels_path, dsm, dtm, grid: Grid, opts: FusionOptions, surfac
             on_top = np.abs(xyz[:, 2] - dsm[gr, gc]) < opts.tolerance
         lab[~on_top] = 0
         agree = elevation_consistent(lab, feats[pixels, MEAN_ELEVATION], opts.label_split)
-        n_dropped += int((~agree).sum())
         lab[~agree] = 0
-        if not (lab > 0).any():
+        keep = np.flatnonzero(lab > 0)
+        return feats[pixels[keep]], lab[keep], int((~agree).sum())
+
+    workers = view_workers(views, opts)
+    for feats, lab, dropped in progress(
+        ordered_map(labelled, views, workers), "training samples", total=len(views)
+    ):
+        n_dropped += dropped
+        if len(lab) == 0:
             continue
+        # drawn here, in view order, so that the draw does not depend on the workers
         chosen = []
         for k in CLASSES:
             idx = np.flatnonzero(lab == k)
             if len(idx):
                 chosen.append(rng.choice(idx, min(per_view, len(idx)), replace=False))
         chosen = np.concatenate(chosen)
-        X.append(feats[pixels[chosen]])
+        X.append(feats[chosen])
         y.append(lab[chosen])
     if not X:
         raise InputError(labels_path, None, "no training label falls inside any view")

@@ -66,9 +66,11 @@ def sigma_points(cues: np.ndarray, patch: int = 11, alpha: float | None = None) 
     for i in range(d):
         for j in range(i + 1):
             cov[i, j] = cv2.boxFilter(c[..., i] * c[..., j], **box) - mu[i] * mu[j]
+    del c  # a view's moments and factors are most of fusion's memory: free them early
     # a small ridge keeps flat patches (zero variance) positive definite
     ridge = 1e-6 * np.maximum(sum(cov[i, i] for i in range(d)) / d, 1e-4)
     chol = cholesky_images(cov, d, ridge)
+    del cov, ridge
     out = np.empty((H, W, 2 * d + 1, d), np.float32)
     for k in range(d):
         m = mu[k] + offset[k]

@@ -31,7 +31,10 @@ PRODUCTS = (
 def fused(tiny_scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("fusion") / "out"
     clf = out.parent / "forest.joblib"
-    proc = run_cli("fusion", tiny_scene, "-o", out, "--truth", tiny_scene, "--save-classifier", clf)
+    proc = run_cli(
+        "fusion", tiny_scene, "-o", out, "--truth", tiny_scene, "--save-classifier", clf,
+        "--workers", "3",
+    )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     return out, json.loads((out / "fusion.json").read_text()), clf
 
@@ -280,6 +283,19 @@ def test_tiles_give_the_same_rasters_as_one_tile(tiny_scene):
     np.testing.assert_array_equal(one.ortho, many.ortho)
     np.testing.assert_array_equal(one.count, many.count)
     np.testing.assert_array_equal(one.classes, many.classes)
+
+
+def test_workers_do_not_change_the_products(fused, tiny_scene, tmp_path):
+    out, record, _ = fused
+    assert record["workers"] == 3
+    one = tmp_path / "one"
+    proc = run_cli("fusion", tiny_scene, "-o", one, "--workers", "1")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((one / "fusion.json").read_text())["workers"] == 1
+    for name in ("dsm.tif", "ortho.tif", "class_prob.tif", "count.tif"):
+        a, _, _ = read_raster(out / name)
+        b, _, _ = read_raster(one / name)
+        np.testing.assert_array_equal(a, b, err_msg=name)
 
 
 def test_default_grid_without_scene_bounds_covers_what_the_views_see(tiny_scene):

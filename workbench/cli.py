@@ -208,6 +208,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="training pixels labelled tree or building must stand at least this high above "
         "the DTM, ground or grass below it; others are dropped (default 1)",
     )
+    p.add_argument(
+        "--workers",
+        type=_positive_int,
+        metavar="N",
+        help="views processed at once, in threads (default: every core; the products do "
+        "not depend on it)",
+    )
     p.add_argument("--seed", type=_non_negative_int, default=0, help="random seed (default 0)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     p.set_defaults(func=cmd_fusion)
