@@ -152,12 +152,17 @@ def default_grid(scene: Scene, opts: FusionOptions) -> Grid:
     return Grid.from_bounds(*bounds, gsd)
 
 
+def physical_memory() -> int:
+    """This machine's physical memory, bytes."""
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
 def check_memory(grid: Grid, opts: FusionOptions, n_views: int) -> None:
     """Refuse a grid whose rasters would not fit in memory, before allocating."""
     cells = grid.width * grid.height
     tile_cells = min(cells, opts.tile * opts.tile)
     need = cells * 48 + tile_cells * 8 * min(n_views, 64) * 4  # rasters + a tile's observations
-    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    total = physical_memory()
     if need > opts.max_memory_fraction * total:
         raise WorkbenchError(
             f"--gsd {grid.gsd:g}: a {grid.width} x {grid.height} grid needs about "
@@ -176,8 +181,9 @@ def view_workers(views: list[View], opts: FusionOptions) -> int:
     if opts.workers is not None:
         return opts.workers
     largest = max((v.camera.width * v.camera.height for v in views), default=0)
-    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    fit = int(opts.max_memory_fraction * total // max(largest * FEATURE_BYTES_PER_PIXEL, 1))
+    fit = int(
+        opts.max_memory_fraction * physical_memory() // max(largest * FEATURE_BYTES_PER_PIXEL, 1)
+    )
     return max(1, min(default_workers(), fit))
 
 
@@ -366,7 +372,7 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
             class_source = f"classifier file {opts.classifier}"
         elif scene.training_labels is not None:
             forest, n_train, n_dropped = _train(
-                views, scene.training_labels, dsm, dtm, grid, opts, surface
+                views, scene.training_labels, dsm, dtm, grid, opts, surface, workers
             )
             name = Path(scene.training_labels).name
             class_source = (
@@ -510,7 +516,7 @@ def _fill_small_rgb(ortho, seen, holes):
     return out
 
 
-def _train(views, labels_path, dsm, dtm, grid: Grid, opts: FusionOptions, surface=None):
+def _train(views, labels_path, dsm, dtm, grid: Grid, opts: FusionOptions, surface=None, workers=1):
     """Train the forest on the training strokes projected into the views.
 
     A stroke labels the top surface seen from above: a view pixel inherits its label
@@ -549,7 +555,6 @@ def _train(views, labels_path, dsm, dtm, grid: Grid, opts: FusionOptions, surfac
         keep = np.flatnonzero(lab > 0)
         return feats[pixels[keep]], lab[keep], int((~agree).sum())
 
-    workers = view_workers(views, opts)
     for feats, lab, dropped in progress(
         ordered_map(labelled, views, workers), "training samples", total=len(views)
     ):

@@ -298,6 +298,25 @@ def test_workers_do_not_change_the_products(fused, tiny_scene, tmp_path):
         np.testing.assert_array_equal(a, b, err_msg=name)
 
 
+def test_view_workers_follow_the_option_then_the_cores_and_the_memory(tiny_scene):
+    from fusion.scene_fusion import (
+        FEATURE_BYTES_PER_PIXEL,
+        FusionOptions,
+        physical_memory,
+        view_workers,
+    )
+    from workbench.parallel import default_workers
+
+    views = load_scene(tiny_scene).views
+    assert view_workers(views, FusionOptions(workers=3)) == 3
+    assert 1 <= view_workers(views, FusionOptions()) <= default_workers()
+    one_view = max(v.camera.width * v.camera.height for v in views) * FEATURE_BYTES_PER_PIXEL
+    for held in (1, 2):  # memory for 1.5 and 2.5 views' features: 1 and 2 workers at most
+        fraction = (held + 0.5) * one_view / physical_memory()
+        workers = view_workers(views, FusionOptions(max_memory_fraction=fraction))
+        assert workers == min(held, default_workers())
+
+
 def test_default_grid_without_scene_bounds_covers_what_the_views_see(tiny_scene):
     from fusion.observations import lift_depth
     from fusion.scene_fusion import FusionOptions, default_grid
