@@ -16,6 +16,7 @@ from workbench.errors import InputError
 from workbench.imageio import write_rgb
 from workbench.meshes import concatenate_meshes, raster_mesh
 from workbench.meshio import write_mtl, write_obj, write_ply
+from workbench.parallel import default_workers
 from workbench.pictures import colorize_classes, contact_sheet
 from workbench.progress import progress
 from workbench.raster import Grid, read_raster, write_raster
@@ -92,8 +93,9 @@ def run_superpixel(
             segment_on = options.segment_on or ("relief" if from_points else "ortho")
             image = relief_image(dsm, grid.gsd) if segment_on == "relief" else rgb
             labels = quickshift_superpixels(
-                image, options.sigma, options.tau, options.ratio, seed=options.seed
-            )
+                image, options.sigma, options.tau, options.ratio, seed=options.seed,
+                workers=options.workers or default_workers(),
+            )  # fmt: skip
         with timer.stage("aggregation"):
             graph = superpixel_graph(labels, rgb, prob, dsm)
         with timer.stage("class_crf"):

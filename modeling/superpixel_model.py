@@ -58,6 +58,8 @@ class SuperpixelOptions:
         and no opening splits it: for clouds of one building (City3D's building
         instances), which hold no ground to classify against.
     seed : RANSAC and affinity propagation seed.
+    workers : Quickshift tiles segmented at once, in threads; None: every core this process
+        has. The labels do not depend on it.
     """
 
     sigma: float = 2.0
@@ -77,6 +79,7 @@ class SuperpixelOptions:
     edge_reach_m: float | None = None
     all_building: bool = False
     seed: int = 0
+    workers: int | None = None
 
 
 def refine_classes(graph: SuperpixelGraph, omega: float) -> np.ndarray:

@@ -7,6 +7,8 @@ import cv2
 import numpy as np
 from skimage.segmentation import quickshift
 
+from workbench.parallel import ordered_map
+
 RELIEF_LAB = 100.0  # Lab units per unit of a normal's horizontal component
 
 
@@ -17,6 +19,7 @@ def quickshift_superpixels(
     ratio: float = 1.0,
     tile: int = 512,
     seed: int = 0,
+    workers: int = 1,
 ) -> np.ndarray:
     """Quickshift (scikit-image) in CIELab plus pixel position, tile by tile; or, for a
     float ``image`` (e.g. :func:`relief_image`), in its channels as they are.
@@ -37,6 +40,11 @@ def quickshift_superpixels(
         Weight of colour against position, in [0, 1].
     tile : int
         Tile size, pixels.
+    seed : int
+        Seed of Quickshift's tie-breaking noise (the same for every tile).
+    workers : int
+        Tiles segmented at once, in threads (scikit-image's Quickshift releases the GIL);
+        the labels do not depend on it.
 
     Returns
     -------
@@ -45,25 +53,32 @@ def quickshift_superpixels(
     H, W = image.shape[:2]
     lab = image.dtype == np.uint8
     margin = int(np.ceil(3 * tau))
+    tiles = [
+        (r0, c0, min(H, r0 + tile), min(W, c0 + tile))
+        for r0 in range(0, H, tile)
+        for c0 in range(0, W, tile)
+    ]
+
+    def segment(bounds):
+        r0, c0, r1, c1 = bounds
+        R0, C0 = max(0, r0 - margin), max(0, c0 - margin)
+        R1, C1 = min(H, r1 + margin), min(W, c1 + margin)
+        seg = quickshift(
+            image[R0:R1, C0:C1],
+            ratio=ratio,
+            kernel_size=sigma,
+            max_dist=tau,
+            convert2lab=lab,
+            rng=seed,
+        )
+        _, local = np.unique(seg[r0 - R0 : r1 - R0, c0 - C0 : c1 - C0], return_inverse=True)
+        return local.reshape(r1 - r0, c1 - c0)
+
     out = np.empty((H, W), np.int64)
     next_label = 0
-    for r0 in range(0, H, tile):
-        for c0 in range(0, W, tile):
-            r1, c1 = min(H, r0 + tile), min(W, c0 + tile)
-            R0, C0 = max(0, r0 - margin), max(0, c0 - margin)
-            R1, C1 = min(H, r1 + margin), min(W, c1 + margin)
-            seg = quickshift(
-                image[R0:R1, C0:C1],
-                ratio=ratio,
-                kernel_size=sigma,
-                max_dist=tau,
-                convert2lab=lab,
-                rng=seed,
-            )
-            core = seg[r0 - R0 : r1 - R0, c0 - C0 : c1 - C0]
-            _, local = np.unique(core, return_inverse=True)
-            out[r0:r1, c0:c1] = local.reshape(core.shape) + next_label
-            next_label += int(local.max()) + 1
+    for (r0, c0, r1, c1), local in zip(tiles, ordered_map(segment, tiles, workers), strict=True):
+        out[r0:r1, c0:c1] = local + next_label
+        next_label += int(local.max()) + 1
     return split_disconnected(out)
 
 

@@ -113,6 +113,16 @@ def test_quickshift_tiles_keep_super_pixels_connected_and_on_edges():
     assert len(crossing) == 0  # no super-pixel straddles the colour edge
 
 
+def test_quickshift_workers_do_not_change_the_labels():
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 255, (150, 170, 3)).astype(np.uint8)
+    rgb[:, 80:] //= 3
+    one = quickshift_superpixels(rgb, tile=48, workers=1)
+    three = quickshift_superpixels(rgb, tile=48, workers=3)
+    assert len(np.unique(one)) > 100  # 16 tiles of noise: many super-pixels to keep in order
+    np.testing.assert_array_equal(one, three)
+
+
 def test_relief_super_pixels_split_a_grey_gable_at_its_ridge():
     """A LiDAR-like ortho, one noisy grey level, over a 40-degree gable: the relief of the
     DSM separates the two faces, the ortho cannot."""

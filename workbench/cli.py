@@ -271,6 +271,13 @@ def build_parser() -> argparse.ArgumentParser:
         "cell; the ortho otherwise)",
     )
     q.add_argument(
+        "--workers",
+        type=_positive_int,
+        metavar="N",
+        help="Quickshift tiles segmented at once, in threads (default: every core; the "
+        "labels do not depend on it)",
+    )
+    q.add_argument(
         "--min-area",
         type=_positive_float,
         default=20.0,
@@ -591,6 +598,7 @@ def cmd_model_superpixel(args) -> int:
         all_building=args.all_building,
         edge_reach_m=args.edge_reach,
         seed=args.seed,
+        workers=args.workers,
     )
     record = run_superpixel(
         args.fusion, args.out, options, truth=args.truth, overwrite=args.overwrite
