@@ -92,9 +92,11 @@ def run_superpixel(
         with timer.stage("superpixels"):
             segment_on = options.segment_on or ("relief" if from_points else "ortho")
             image = relief_image(dsm, grid.gsd) if segment_on == "relief" else rgb
+            height_weight = options.height_weight if segment_on == "ortho" else 0.0
             labels = quickshift_superpixels(
                 image, options.sigma, options.tau, options.ratio, seed=options.seed,
-                workers=options.workers or default_workers(),
+                workers=options.workers or default_workers(), height=dsm,
+                height_weight=height_weight,
             )  # fmt: skip
         with timer.stage("aggregation"):
             graph = superpixel_graph(labels, rgb, prob, dsm)
@@ -196,6 +198,7 @@ def run_superpixel(
         record["superpixels"] = graph.n
         record["parameters"]["edge_reach_m"] = edge_reach_m
         record["parameters"]["segment_on"] = segment_on
+        record["parameters"]["height_weight"] = height_weight
         if omega_choice is not None:
             record["omega_class_choice"] = omega_choice
         if truth is not None:

@@ -24,6 +24,7 @@ from .planes import plane_heights, point_plane_distances, ransac_plane
 from .prototypes import cluster_prototypes, hypothesis_similarity
 from .roof_mesh import extrude_faces, face_polygons, merge_smallest_face, untangle_diagonals
 from .roof_types import roof_type
+from .superpixels import HEIGHT_LAB
 
 
 @dataclass
@@ -36,6 +37,9 @@ class SuperpixelOptions:
     segment_on : "ortho" (the paper) or "relief" (the DSM's normals,
         :func:`~modeling.superpixels.relief_image`); None: the relief for point-cloud
         fusions, whose ortho is one grey level or intensity per cell, the ortho otherwise.
+    height_weight : Lab units per metre of the DSM's height, segmented beside the ortho's
+        colour (:func:`~modeling.superpixels.colour_height_image`); 0: the colour alone,
+        as in the paper.
     omega_class : weight of the class CRF's pairwise term (eq. 2; the paper: 3); None
         chooses it on the scene's training strokes (:func:`choose_omega_class`).
     omega_roof : weight of the prototype CRF's pairwise term (the paper: 5).
@@ -66,6 +70,7 @@ class SuperpixelOptions:
     tau: float = 8.0
     ratio: float = 1.0
     segment_on: str | None = None
+    height_weight: float = HEIGHT_LAB
     omega_class: float | None = 3.0
     omega_roof: float = 5.0
     opening_m: float = 1.0
@@ -454,7 +459,14 @@ def _model_part(
             }
             for u, a in zip(used, areas, strict=True)
         ],
-        "roof_type": roof_type(planes[np.array(used) - 1], areas, heights, eave_z),
+        "roof_type": roof_type(
+            planes[np.array(used) - 1],
+            areas,
+            heights,
+            eave_z,
+            ridge_z=float(roof_z.max()),
+            centre=(outline.centroid.x, outline.centroid.y, np.sqrt(outline.area)),
+        ),
         "base_z": round(base, 3),
         "eave_z": round(float(eave_z.min() if len(eave_z) else roof_z.min()), 3),
         "ridge_z": round(float(roof_z.max()), 3),

@@ -1,15 +1,19 @@
-"""Quickshift super-pixels on the fused ortho (the super-pixel paper, section 4.1), or on
-the relief of the DSM where the ortho cannot tell roof faces apart (LiDAR)."""
+"""Quickshift super-pixels on the fused ortho (the super-pixel paper, section 4.1), with the
+DSM's height as a fourth channel so that they do not straddle a wall, or on the relief of
+the DSM where the ortho cannot tell roof faces apart (LiDAR)."""
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
+from scipy import ndimage
+from skimage.color import rgb2lab
 from skimage.segmentation import quickshift
 
 from workbench.parallel import ordered_map
 
 RELIEF_LAB = 100.0  # Lab units per unit of a normal's horizontal component
+HEIGHT_LAB = 10.0  # Lab units per metre of height, beside the ortho's colour
 
 
 def quickshift_superpixels(
@@ -20,9 +24,12 @@ def quickshift_superpixels(
     tile: int = 512,
     seed: int = 0,
     workers: int = 1,
+    height: np.ndarray | None = None,
+    height_weight: float = 0.0,
 ) -> np.ndarray:
-    """Quickshift (scikit-image) in CIELab plus pixel position, tile by tile; or, for a
-    float ``image`` (e.g. :func:`relief_image`), in its channels as they are.
+    """Quickshift (scikit-image) in CIELab plus pixel position, tile by tile, with
+    ``height_weight`` times ``height`` as a fourth channel when given; or, for a float
+    ``image`` (e.g. :func:`relief_image`), in its channels as they are.
 
     Large rasters are cut into tiles of ``tile`` pixels, each segmented with a margin of
     3 tau pixels so that its super-pixels see their whole neighbourhood; the tile keeps the
@@ -45,6 +52,11 @@ def quickshift_superpixels(
     workers : int
         Tiles segmented at once, in threads (scikit-image's Quickshift releases the GIL);
         the labels do not depend on it.
+    height : (H, W) float, optional
+        Heights beside an RGB ``image`` (the DSM), metres; NaN where unknown.
+    height_weight : float
+        Lab units per metre of ``height`` (:func:`colour_height_image`); 0 segments the
+        colour alone, as the paper does.
 
     Returns
     -------
@@ -63,12 +75,16 @@ def quickshift_superpixels(
         r0, c0, r1, c1 = bounds
         R0, C0 = max(0, r0 - margin), max(0, c0 - margin)
         R1, C1 = min(H, r1 + margin), min(W, c1 + margin)
+        window = image[R0:R1, C0:C1]
+        with_height = lab and height is not None and height_weight > 0
+        if with_height:
+            window = colour_height_image(window, height[R0:R1, C0:C1], height_weight)
         seg = quickshift(
-            image[R0:R1, C0:C1],
+            window,
             ratio=ratio,
             kernel_size=sigma,
             max_dist=tau,
-            convert2lab=lab,
+            convert2lab=lab and not with_height,
             rng=seed,
         )
         _, local = np.unique(seg[r0 - R0 : r1 - R0, c0 - C0 : c1 - C0], return_inverse=True)
@@ -80,6 +96,36 @@ def quickshift_superpixels(
         out[r0:r1, c0:c1] = local + next_label
         next_label += int(local.max()) + 1
     return split_disconnected(out)
+
+
+def colour_height_image(rgb: np.ndarray, height: np.ndarray, weight: float) -> np.ndarray:
+    """(H, W, 4) float: CIELab of ``rgb`` and ``weight`` times ``height``.
+
+    Colour alone lets a super-pixel run from a roof's edge onto the paving below where
+    the two look alike (shadow, grey on grey), and the class CRF can then only give the
+    whole of it one label. With the height beside the colour a wall's step is far apart
+    in Quickshift's space: at 10 Lab units per metre a 0.8 m step is already beyond its
+    tau of 8, while a 45-degree roof changes by 2.5 units from one 0.25 m cell to the next.
+    Unknown heights (the cells beside walls no view saw) take the nearest known one, so
+    that they join the side they are closest to.
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8
+    height : (H, W) float
+        Metres, NaN unknown.
+    weight : float
+        Lab units per metre.
+    """
+    seen = np.isfinite(height)
+    if not seen.any():
+        filled = np.zeros(height.shape)
+    elif seen.all():
+        filled = height
+    else:
+        nearest = ndimage.distance_transform_edt(~seen, return_distances=False, return_indices=True)
+        filled = height[tuple(nearest)]
+    return np.concatenate([rgb2lab(rgb), weight * filled[..., None]], axis=-1)
 
 
 def relief_image(dsm: np.ndarray, gsd: float, weight: float = RELIEF_LAB) -> np.ndarray:

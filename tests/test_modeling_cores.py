@@ -17,7 +17,7 @@ from modeling.prototypes import cluster_prototypes, hypothesis_similarity
 from modeling.roof_mesh import extrude_faces, face_polygons, untangle_diagonals, vertex_matched
 from modeling.roof_types import roof_type
 from modeling.superpixel_model import SuperpixelOptions, model_building, observed_faces
-from modeling.superpixels import quickshift_superpixels, relief_image
+from modeling.superpixels import colour_height_image, quickshift_superpixels, relief_image
 from workbench.meshes import is_watertight, unpaired_edges
 from workbench.raster import Grid
 
@@ -121,6 +121,26 @@ def test_quickshift_workers_do_not_change_the_labels():
     three = quickshift_superpixels(rgb, tile=48, workers=3)
     assert len(np.unique(one)) > 100  # 16 tiles of noise: many super-pixels to keep in order
     np.testing.assert_array_equal(one, three)
+
+
+def test_height_keeps_super_pixels_off_a_wall_the_colour_does_not_show():
+    """A grey roof 3 m above grey paving of nearly the same colour: with the height beside
+    the colour no super-pixel crosses the wall; with the colour alone some do."""
+    rng = np.random.default_rng(1)
+    rgb = np.clip(120 + rng.normal(0, 4, (60, 80, 3)), 0, 255).astype(np.uint8)
+    rgb[:, 40:] += 3  # the roof: 3 grey levels lighter, under Quickshift's tau
+    dsm = np.where(np.arange(80) < 40, 10.0, 13.0)[None, :].repeat(60, axis=0)
+    dsm[20:30, 38:42] = np.nan  # unseen beside the wall: each cell takes its nearest side
+
+    def straddling(labels):
+        return np.intersect1d(np.unique(labels[:, :40]), np.unique(labels[:, 40:]))
+
+    assert len(straddling(quickshift_superpixels(rgb))) > 0
+    labels = quickshift_superpixels(rgb, height=dsm, height_weight=10.0)
+    assert len(straddling(labels)) == 0
+    image = colour_height_image(rgb, dsm, 10.0)
+    assert image.shape == (60, 80, 4)
+    assert image[25, 39, 3] == 100.0 and image[25, 40, 3] == 130.0  # nearest known height
 
 
 def test_relief_super_pixels_split_a_grey_gable_at_its_ridge():
@@ -313,6 +333,41 @@ def test_roof_types(planes, outline_z, expect):
     areas = np.full(len(planes), 10.0)
     heights = np.array([plane_heights(p, 10.0, 10.0) for p in planes])
     assert roof_type(planes, areas, heights, np.array(outline_z, float)) == expect
+
+
+def test_roof_types_of_fitted_models():
+    """What a fitted model gives: plane mean heights half-way up, outline vertices up to
+    half a metre off the walls, a mansard's fourth steep face lost, an L's hips."""
+    t = np.tan(np.radians(40))  # a 10 x 6 m hipped roof, eaves at 5 m, ridge 5 + 3t
+    hipped = np.array(
+        [_plane(0, t, 5), _plane(0, -t, 5 + 6 * t), _plane(t, 0, 5), _plane(-t, 0, 5 + 10 * t)]
+    )
+    areas, heights = np.array([20.0, 20, 10, 10]), np.full(4, 5 + t)
+    off_walls = np.array([4.6, 4.75, 5.0, 4.58, 5.1, 4.9, 4.6, 5.0])
+    got = roof_type(hipped, areas, heights, off_walls, ridge_z=5 + 3 * t, centre=(5, 3, 7.7))
+    assert got == "hipped"
+    # the same planes over an L-shaped gable: its ends reach the ridge
+    gable_ends = np.array([5.0, 5.0, 5 + 3 * t, 5.0, 5.0, 5 + 3 * t, 5.0, 5.0])
+    assert roof_type(hipped, areas, heights, gable_ends, ridge_z=5 + 3 * t) == "gable"
+    # four hips meeting in one point: a pyramid over the centre, an L's hips elsewhere
+    pyramid = np.array(
+        [_plane(0, 0.5, 5), _plane(0, -0.5, 15), _plane(0.5, 0, 5), _plane(-0.5, 0, 15)]
+    )
+    level = np.full(4, 5.0)
+    assert (
+        roof_type(pyramid, np.full(4, 10.0), np.full(4, 7.0), level, 10.0, (10, 10, 20))
+        == "pyramid"
+    )
+    assert (
+        roof_type(pyramid, np.full(4, 10.0), np.full(4, 7.0), level, 10.0, (25, 10, 20)) == "hipped"
+    )
+    # a mansard: three 70-degree faces (the fourth under 8 % of the roof) under a flat top
+    s = np.tan(np.radians(70))
+    mansard = np.array(
+        [_plane(0, s, 5), _plane(s, 0, 5), _plane(-s, 0, 5 + 10 * s), _plane(0, 0, 8)]
+    )
+    got = roof_type(mansard, np.array([8.0, 6, 6, 40]), np.array([6.5, 6.5, 6.5, 8]), level, 8.0)
+    assert got == "mansard"
 
 
 def test_unseen_edge_cells_stay_within_reach_and_when_enclosed():

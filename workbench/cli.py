@@ -271,6 +271,15 @@ def build_parser() -> argparse.ArgumentParser:
         "cell; the ortho otherwise)",
     )
     q.add_argument(
+        "--height-weight",
+        type=_non_negative_float,
+        default=10.0,
+        metavar="LAB_PER_M",
+        help="Lab units per metre of the DSM's height segmented beside the ortho's colour, so "
+        "that super-pixels do not straddle walls (default 10; 0: the colour alone, as the "
+        "paper does; not used on the relief)",
+    )
+    q.add_argument(
         "--workers",
         type=_positive_int,
         metavar="N",
@@ -591,6 +600,7 @@ def cmd_model_superpixel(args) -> int:
         sigma=args.quickshift_sigma,
         tau=args.quickshift_tau,
         segment_on=args.segment_on,
+        height_weight=args.height_weight,
         omega_class=args.omega_class,
         omega_roof=args.omega_roof,
         min_area_m2=args.min_area,
