@@ -37,6 +37,7 @@ def test_models_match_the_truth_on_perfect_rasters(modelled):
 
 
 def test_table1_rows_and_crf_keeps_the_accuracy(modelled):
+    assert modelled[2]["parameters"]["height_weight"] == 10.0  # colour and height
     table = modelled[2]["classification_table"]
     assert table["pixel"]["overall_accuracy"] == 1.0
     assert table["crf"]["overall_accuracy"] >= table["superpixel"]["overall_accuracy"] - 0.005
@@ -110,6 +111,7 @@ def test_ahn3_clouds_give_closed_models_near_their_points(tmp_path):
         record = json.loads((out / "model.json").read_text())
         assert record["buildings"] and all(b["watertight"] for b in record["buildings"])
         assert record["parameters"]["segment_on"] == "relief"
+        assert record["parameters"]["height_weight"] == 0.0  # the relief holds the heights
         mesh = o3d.t.geometry.TriangleMesh.from_legacy(
             o3d.io.read_triangle_mesh(str(out / "scene.ply"))
         )
