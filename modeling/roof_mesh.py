@@ -19,6 +19,7 @@ from shapely.geometry.polygon import orient
 
 from workbench.raster import Grid
 
+from .outline_regularity import regularise_outline
 from .planes import plane_heights
 
 _EPS = 1e-7  # metres, on coordinates
@@ -27,7 +28,11 @@ _Z_EPS = 0.02  # metres: heights this close at a vertex are one level (one verte
 
 
 def face_polygons(
-    faces: np.ndarray, grid: Grid, tolerance: float, min_face_m2: float = 2.0
+    faces: np.ndarray,
+    grid: Grid,
+    tolerance: float,
+    min_face_m2: float = 2.0,
+    regularise_deg: float = 0.0,
 ) -> tuple[list[Polygon], list[int]]:
     """Polygons of the labelled faces, simplified together so that shared boundaries
     stay shared (a topology-preserving simplification of the coverage).
@@ -42,6 +47,10 @@ def face_polygons(
     min_face_m2 : float
         Connected face regions smaller than this join the neighbouring face they share
         most boundary with: slivers carry no plane worth a polygon.
+    regularise_deg : float
+        Outline sides this close to the building's dominant directions are put on them
+        (:func:`~modeling.outline_regularity.regularise_outline`, no vertex moving more
+        than twice ``tolerance``); 0 leaves the outline as simplified.
 
     Returns
     -------
@@ -65,6 +74,7 @@ def face_polygons(
             if isinstance(part, Polygon) and part.area > 1e-6:
                 parts.append(part)
                 out_labels.append(lab)
+    parts = regularise_outline(parts, regularise_deg, max_shift=2 * tolerance)
     return [orient(_fill_small_holes(p, parts, 4 * grid.gsd**2), 1.0) for p in parts], out_labels
 
 

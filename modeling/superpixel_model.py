@@ -58,6 +58,8 @@ class SuperpixelOptions:
         the eaves from above.
     simplify_m : tolerance of the roof polygons' simplification, metres (None:
         ``SIMPLIFY_CELLS`` cells, which removes the cell staircase and little more).
+    regularise_deg : outline sides this close to the building's dominant directions are
+        put on them (:mod:`~modeling.outline_regularity`); 0: as simplified.
     all_building : every super-pixel with a height is building, whatever the classes say,
         and no opening splits it: for clouds of one building (City3D's building
         instances), which hold no ground to classify against.
@@ -81,6 +83,7 @@ class SuperpixelOptions:
     prototype_tolerance_m: float = 0.25
     truncation_m: float = 2.0
     simplify_m: float | None = None
+    regularise_deg: float = 0.0
     edge_reach_m: float | None = None
     all_building: bool = False
     seed: int = 0
@@ -371,7 +374,7 @@ def model_building(
         )
         merged = 0
         while True:
-            model = _closed_model(part, grid, planes, base, simplify)
+            model = _closed_model(part, grid, planes, base, simplify, options.regularise_deg)
             closed = model is not None and model.record["watertight"]
             if closed or len(np.unique(part[part > 0])) == 1:
                 break
@@ -403,14 +406,19 @@ def _faces_at_open_edges(
 
 
 def _closed_model(
-    faces: np.ndarray, grid: Grid, planes: np.ndarray, ground: float, simplify: float
+    faces: np.ndarray,
+    grid: Grid,
+    planes: np.ndarray,
+    ground: float,
+    simplify: float,
+    regularise_deg: float = 0.0,
 ) -> BuildingModel | None:
-    """The part simplified by ``simplify``, else unsimplified when that is not closed (or
-    the triangulation fails); None when neither gives a model."""
+    """The part simplified by ``simplify`` (and regularised), else unsimplified when that
+    is not closed (or the triangulation fails); None when neither gives a model."""
     fallback = None
-    for tolerance in (simplify, 1e-3):
+    for tolerance, regular in ((simplify, regularise_deg), (1e-3, 0.0)):
         try:
-            model = _model_part(faces, grid, planes, ground, tolerance)
+            model = _model_part(faces, grid, planes, ground, tolerance, regular)
         except shapely.errors.GEOSException:  # a degenerate polygon after simplification
             continue
         if model is not None and model.record["watertight"]:
@@ -420,9 +428,14 @@ def _closed_model(
 
 
 def _model_part(
-    faces: np.ndarray, grid: Grid, planes: np.ndarray, ground: float, tolerance: float
+    faces: np.ndarray,
+    grid: Grid,
+    planes: np.ndarray,
+    ground: float,
+    tolerance: float,
+    regularise_deg: float = 0.0,
 ) -> BuildingModel | None:
-    polygons, labels = face_polygons(faces, grid, tolerance)
+    polygons, labels = face_polygons(faces, grid, tolerance, regularise_deg=regularise_deg)
     if not polygons:
         return None
     face_planes = [planes[k - 1] for k in labels]

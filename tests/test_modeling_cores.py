@@ -12,6 +12,7 @@ from shapely.geometry.polygon import orient
 from modeling.aggregate import superpixel_graph
 from modeling.buildings import split_buildings
 from modeling.crf import alpha_expansion, binary_cut, crf_energy, pairwise_cut
+from modeling.outline_regularity import regularise_outline
 from modeling.planes import plane_heights, ransac_plane
 from modeling.prototypes import cluster_prototypes, hypothesis_similarity
 from modeling.roof_mesh import extrude_faces, face_polygons, untangle_diagonals, vertex_matched
@@ -380,3 +381,70 @@ def test_unseen_edge_cells_stay_within_reach_and_when_enclosed():
     assert kept[3, 3] == 1
     assert (kept[1:6, 6:8] == 1).all() and (kept[1:6, 8:] == 0).all()
     assert (observed_faces(faces, observed, reach=0)[1:6, 6:] == 0).all()
+
+
+@pytest.mark.parametrize("rotation_deg", [0.0, 30.0])
+def test_regularised_outline_is_square_and_still_a_coverage(rotation_deg):
+    """Two faces of a 10 x 6 m house whose simplified outline wobbles and has a cut corner:
+    the outline comes out with right-angled corners on the house's axes, the faces still
+    share their boundary, and no vertex moves farther than allowed."""
+    c, s = np.cos(np.radians(rotation_deg)), np.sin(np.radians(rotation_deg))
+
+    def turned(xy):
+        xy = np.asarray(xy, float)
+        return Polygon(xy @ np.array([[c, s], [-s, c]]))
+
+    west = turned([(0, 0.1), (5, 0), (5, 6), (0.3, 6.05), (0, 5.7)])
+    east = turned([(5, 0), (10, -0.1), (10.05, 3), (10, 6), (5, 6)])
+    out = regularise_outline([west, east], tolerance_deg=10.0, max_shift=1.0)
+    assert shapely.coverage_is_valid(np.array(out, dtype=object))
+    outline = shapely.coverage_union_all(out).simplify(1e-6)
+    ring = np.asarray(outline.exterior.coords)
+    assert len(ring) == 5  # four corners: the cut corner is squared
+    d = np.diff(ring, axis=0)
+    angles = np.degrees(np.arctan2(d[:, 1], d[:, 0])) - rotation_deg
+    assert np.allclose((angles + 45) % 90 - 45, 0, atol=1.0)  # on the house's axes
+    cos = np.einsum("ij,ij->i", d, np.roll(d, 1, axis=0)) / np.prod(
+        [np.linalg.norm(d, axis=1), np.linalg.norm(np.roll(d, 1, axis=0), axis=1)], axis=0
+    )
+    assert np.allclose(cos, 0, atol=1e-9)  # right angles
+    assert outline.area == pytest.approx(60.0, abs=1.0)
+    still = regularise_outline([west, east], tolerance_deg=10.0, max_shift=1e-3)
+    for a, b in zip(still, [west, east], strict=True):
+        assert a.hausdorff_distance(b) <= 1e-3 + 1e-9
+
+
+def test_model_of_a_turned_gable_with_regularised_outline():
+    """A 20-degree turned 16 x 10 m gable polygonised from 0.25 m cells: with
+    --regularise its outline has four right-angled corners on the house's axes and the
+    mesh stays closed; without it the simplified staircase keeps more corners."""
+    gsd, n = 0.25, 96
+    grid = Grid(0.0, n * gsd, gsd, n, n)
+    x, y = grid.cell_centres() if hasattr(grid, "cell_centres") else np.meshgrid(
+        (np.arange(n) + 0.5) * gsd, n * gsd - (np.arange(n) + 0.5) * gsd
+    )  # fmt: skip
+    a = np.radians(20)
+    u = (x - 12) * np.cos(a) + (y - 12) * np.sin(a)  # along the ridge
+    v = -(x - 12) * np.sin(a) + (y - 12) * np.cos(a)
+    faces = np.where((np.abs(u) < 8) & (np.abs(v) < 5), np.where(v < 0, 1, 2), 0)
+    normal_s = np.array([-np.sin(a), np.cos(a)])  # the south face rises to the ridge
+    planes = []
+    for sign in (1, -1):
+        gx, gy = sign * 0.6 * normal_s
+        planes.append(_plane(gx, gy, 10 - gx * 12 - gy * 12))
+    ground = np.zeros((n, n))
+    corners = {}
+    for deg in (0.0, 10.0):
+        (model,) = model_building(
+            faces, grid, np.array(planes), ground, SuperpixelOptions(regularise_deg=deg)
+        )
+        assert model.record["watertight"]
+        outline = shape(model.record["footprint"]).simplify(1e-6)
+        ring = np.asarray(outline.exterior.coords)
+        corners[deg] = len(ring) - 1
+        if deg:
+            d = np.diff(ring, axis=0)
+            off = (np.degrees(np.arctan2(d[:, 1], d[:, 0])) - 20 + 45) % 90 - 45
+            assert np.allclose(off, 0, atol=1.0)
+            assert outline.area == pytest.approx(160, rel=0.03)
+    assert corners[10.0] == 4 < corners[0.0]

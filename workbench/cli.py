@@ -301,6 +301,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="tolerance of the roof polygon simplification (default: two cells)",
     )
     q.add_argument(
+        "--regularise",
+        type=_non_negative_float,
+        default=0.0,
+        metavar="DEG",
+        help="put outline sides this close to the building's dominant directions on them, and "
+        "square their corners (default 0: the outline as simplified)",
+    )
+    q.add_argument(
         "--truth",
         type=Path,
         metavar="SCENE",
@@ -605,6 +613,7 @@ def cmd_model_superpixel(args) -> int:
         omega_roof=args.omega_roof,
         min_area_m2=args.min_area,
         simplify_m=args.simplify,
+        regularise_deg=args.regularise,
         all_building=args.all_building,
         edge_reach_m=args.edge_reach,
         seed=args.seed,
