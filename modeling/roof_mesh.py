@@ -195,6 +195,7 @@ def extrude_faces(
     rings, xy = _noded_rings(polygons)
     rings = _split_crossings(rings, xy, roof)
     xy = np.asarray(xy)
+    keys = _vertex_keys(xy)
     z_of = [roof(f, xy[:, 0], xy[:, 1]) for f in range(len(planes))]  # (F, V2)
     owner = _edge_owners(rings)
     lows, heights = _levels(rings, z_of, base_z, len(xy))
@@ -212,7 +213,7 @@ def extrude_faces(
     floor = _outline_polygons(owner, xy)
     for f, face in enumerate(rings):
         poly = Polygon(xy[face[0]], [xy[r] for r in face[1:]])
-        for t in _triangulate(poly, xy):
+        for t in _triangulate(poly, keys):
             tris.append([vid(v, level(v, z_of[f][v])) for v in t])  # roof, up
             if floor is None:
                 tris.append([vid(v, 0) for v in t[::-1]])  # floor under each face, down
@@ -231,7 +232,7 @@ def extrude_faces(
                 for tri in _strip(chain_a, chain_b, heights[a], heights[b]):
                     tris.append([vid(a if side == 0 else b, li) for side, li in tri])
     for poly in floor or []:
-        tris.extend([vid(v, 0) for v in t[::-1]] for t in _triangulate(poly, xy))
+        tris.extend([vid(v, 0) for v in t[::-1]] for t in _triangulate(poly, keys))
     vertices = np.zeros((len(verts), 3))
     for (v, li), i in verts.items():
         vertices[i] = (xy[v, 0], xy[v, 1], heights[v][li])
@@ -324,30 +325,34 @@ def _insert_on_edges(ring: np.ndarray, table: np.ndarray) -> np.ndarray:
 def _split_crossings(rings, xy: list, roof) -> list:
     """Insert a vertex where two neighbouring faces' roofs cross along their shared
     edge, so that each wall piece has one face above the other. ``roof(f, x, y)`` is the
-    height of face f."""
-    while True:
-        table = np.asarray(xy)
-        owner = _edge_owners(rings)
-        found = None
-        for (a, b), f in owner.items():
-            g = owner.get((b, a))
-            if g is None or g < f:
-                continue
-            da = float(roof(f, *table[a]) - roof(g, *table[a]))
-            db = float(roof(f, *table[b]) - roof(g, *table[b]))
-            if (da > _Z_EPS and db < -_Z_EPS) or (da < -_Z_EPS and db > _Z_EPS):
-                found = (a, b, f, g, da / (da - db))
-                break
-        if found is None:
-            return rings
-        a, b, f, g, t = found
-        xy.append(tuple(table[a] + t * (table[b] - table[a])))
-        new = len(xy) - 1
-        for face_id, (u, v) in ((f, (a, b)), (g, (b, a))):
-            for i, ring in enumerate(rings[face_id]):
-                pos = np.flatnonzero((ring == u) & (np.roll(ring, -1) == v))
-                if len(pos):
-                    rings[face_id][i] = np.insert(ring, pos[0] + 1, new)
+    height of face f. Two planes differ linearly along an edge, so an edge crosses at most
+    once and one pass over the edges finds every crossing."""
+    table = np.asarray(xy)
+    owner = _edge_owners(rings)
+    split: dict[tuple[int, int], int] = {}
+    for (a, b), f in owner.items():
+        g = owner.get((b, a))
+        if g is None or g < f:
+            continue
+        da = float(roof(f, *table[a]) - roof(g, *table[a]))
+        db = float(roof(f, *table[b]) - roof(g, *table[b]))
+        if (da > _Z_EPS and db < -_Z_EPS) or (da < -_Z_EPS and db > _Z_EPS):
+            xy.append(tuple(table[a] + da / (da - db) * (table[b] - table[a])))
+            split[(a, b)] = split[(b, a)] = len(xy) - 1
+    if not split:
+        return rings
+    out = []
+    for face in rings:
+        new_face = []
+        for ring in face:
+            walked = []
+            for u, v in zip(ring, np.roll(ring, -1), strict=True):
+                walked.append(u)
+                if (int(u), int(v)) in split:
+                    walked.append(split[(int(u), int(v))])
+            new_face.append(np.asarray(walked, np.int64))
+        out.append(new_face)
+    return out
 
 
 def _levels(rings, z_of, base_z: float, n: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
@@ -397,14 +402,19 @@ def _strip(chain_p: np.ndarray, chain_q: np.ndarray, z_p: np.ndarray, z_q: np.nd
     return out
 
 
-def _triangulate(poly: Polygon, xy: np.ndarray) -> list[list[int]]:
+def _vertex_keys(xy: np.ndarray) -> dict[tuple[int, int], int]:
+    """Vertex id of every coordinate of the shared table, by its rounded key."""
+    keys = np.round(np.asarray(xy) / _EPS / 10).astype(np.int64)
+    return {(int(a), int(b)): i for i, (a, b) in enumerate(keys)}
+
+
+def _triangulate(poly: Polygon, keys: dict[tuple[int, int], int]) -> list[list[int]]:
     """Constrained Delaunay triangles of a polygon as counter-clockwise vertex-id triples
-    (no new vertices)."""
-    keys = {tuple(np.round(p / _EPS / 10).astype(np.int64)): i for i, p in enumerate(xy)}
+    (no new vertices); ``keys`` from :func:`_vertex_keys`."""
     out = []
     for tri in shapely.constrained_delaunay_triangles(poly).geoms:
         c = np.asarray(tri.exterior.coords)[:3]
-        ids = [keys[tuple(np.round(p / _EPS / 10).astype(np.int64))] for p in c]
+        ids = [keys[(int(a), int(b))] for a, b in np.round(c / _EPS / 10).astype(np.int64)]
         area = (c[1, 0] - c[0, 0]) * (c[2, 1] - c[0, 1]) - (c[2, 0] - c[0, 0]) * (c[1, 1] - c[0, 1])
         if abs(area) < 1e-12:
             continue
