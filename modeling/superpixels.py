@@ -65,6 +65,7 @@ def quickshift_superpixels(
     H, W = image.shape[:2]
     lab = image.dtype == np.uint8
     margin = int(np.ceil(3 * tau))
+    with_height = lab and height is not None and height_weight > 0
     tiles = [
         (r0, c0, min(H, r0 + tile), min(W, c0 + tile))
         for r0 in range(0, H, tile)
@@ -76,7 +77,6 @@ def quickshift_superpixels(
         R0, C0 = max(0, r0 - margin), max(0, c0 - margin)
         R1, C1 = min(H, r1 + margin), min(W, c1 + margin)
         window = image[R0:R1, C0:C1]
-        with_height = lab and height is not None and height_weight > 0
         if with_height:
             window = colour_height_image(window, height[R0:R1, C0:C1], height_weight)
         seg = quickshift(
