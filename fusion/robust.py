@@ -44,11 +44,20 @@ def group_median(cells: np.ndarray, values: np.ndarray, n_cells: int) -> np.ndar
 def group_weighted_median(
     cells: np.ndarray, values: np.ndarray, weights: np.ndarray, n_cells: int
 ) -> np.ndarray:
-    """(n_cells,) weighted median of scalar ``values`` per cell, NaN for empty cells.
+    """(n_cells,) weighted median of scalar ``values`` per cell, NaN for empty cells
+    (:func:`group_weighted_quantile` at 0.5). With equal weights this is
+    :func:`group_median`."""
+    return group_weighted_quantile(cells, values, weights, n_cells, 0.5)
 
-    The value at which the cell's cumulative weight (in value order) reaches half its
-    total; where it reaches exactly half, the mean of that value and the next. With
-    equal weights this is :func:`group_median`.
+
+def group_weighted_quantile(
+    cells: np.ndarray, values: np.ndarray, weights: np.ndarray, n_cells: int, q: float
+) -> np.ndarray:
+    """(n_cells,) weighted ``q`` quantile of scalar ``values`` per cell, NaN for empty
+    cells.
+
+    The value at which the cell's cumulative weight (in value order) reaches ``q`` of
+    its total; where it reaches exactly that, the mean of that value and the next.
 
     Parameters
     ----------
@@ -56,6 +65,8 @@ def group_weighted_median(
     values : (N,) float
     weights : (N,) float, positive
     n_cells : int
+    q : float
+        In (0, 1).
     """
     out = np.full(n_cells, np.nan)
     if len(cells) == 0:
@@ -68,13 +79,13 @@ def group_weighted_median(
     cum = np.cumsum(w)
     before = np.concatenate([[0.0], cum])[start]  # total weight of the earlier cells
     within = cum - before[c]
-    half = 0.5 * np.bincount(c, w, minlength=n_cells)[c]
-    tol = 1e-9 * half
-    reached = within >= half - tol
+    target = q * np.bincount(c, w, minlength=n_cells)[c]
+    tol = 1e-9 * target
+    reached = within >= target - tol
     first = reached.copy()
     first[1:] &= ~(reached[:-1] & (c[1:] == c[:-1]))  # the first that reaches, per cell
     idx = np.flatnonzero(first)
-    tie = np.abs(within[idx] - half[idx]) <= tol[idx]
+    tie = np.abs(within[idx] - target[idx]) <= tol[idx]
     nxt = np.minimum(idx + 1, len(c) - 1)
     tie &= (idx + 1 < len(c)) & (c[nxt] == c[idx])
     out[c[idx]] = np.where(tie, 0.5 * (v[idx] + v[nxt]), v[idx])

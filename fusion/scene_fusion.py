@@ -16,7 +16,8 @@ Passes over the views (each reads a view's files once):
    oblique views included);
 3. classification and colour: per view, class probabilities of its pixels; per cell,
    accumulated probabilities and the vector median colour; the classes the nDSM
-   contradicts damped.
+   contradicts damped; in and beside tree crowns, away from buildings, the DSM takes an
+   upper quantile of the heights instead of their median (:func:`crown_tops`).
 
 The ortho grid is processed in tiles: a pass keeps only the current tile's
 observations, so memory follows the tile size, not the area. Every pass works on
@@ -57,7 +58,13 @@ from .ground import dtm_from_dsm
 from .interpolate import push_pull_fill, small_holes
 from .observations import ViewObservations, lift_depth, observe
 from .raster_forest import classify_rasters, synthetic_raster_forest
-from .robust import group_count, group_mean, group_weighted_median, vector_median
+from .robust import (
+    group_count,
+    group_mean,
+    group_weighted_median,
+    group_weighted_quantile,
+    vector_median,
+)
 from .sigma_points import MEAN_ELEVATION, N_FEATURES, feature_cues, sigma_points
 
 log = logging.getLogger(__name__)
@@ -67,6 +74,9 @@ HOLE_CELLS = 9  # holes up to this many cells are interpolated (and flagged -1 i
 FILLED = -1
 ELEVATION_MEDIAN = 5  # pixels, the median filter of the per-view elevation cue
 FEATURE_BYTES_PER_PIXEL = 700  # peak of view_features, measured on small: 647
+CROWN_QUANTILE = 0.7  # of a crown cell's weighted heights (crown_tops)
+CROWN_REACH_M = 0.5  # cells this close to a tree cell are crown cells ...
+CROWN_CLEAR_M = 0.75  # ... unless this close to a building cell
 
 
 @dataclass
@@ -107,10 +117,13 @@ class FusionResult:
     @property
     def classes(self) -> np.ndarray:
         """(H, W) uint8 class codes 1-4, 0 where unseen."""
-        seen = np.isfinite(self.class_prob[0])
-        return np.where(seen, np.argmax(np.nan_to_num(self.class_prob), axis=0) + 1, 0).astype(
-            np.uint8
-        )
+        return class_codes(self.class_prob)
+
+
+def class_codes(class_prob: np.ndarray) -> np.ndarray:
+    """(H, W) uint8 class codes 1-4 of (4, H, W) probabilities (NaN unseen), 0 where unseen."""
+    seen = np.isfinite(class_prob[0])
+    return np.where(seen, np.argmax(np.nan_to_num(class_prob), axis=0) + 1, 0).astype(np.uint8)
 
 
 class DsmDepthView:
@@ -324,6 +337,7 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
     tiles = list(_tiles(grid, opts.tile))
     dsm = np.full(grid.shape, np.nan, np.float32)
     dsm_mean = np.full(grid.shape, np.nan, np.float32)
+    dsm_upper = np.full(grid.shape, np.nan, np.float32)  # CROWN_QUANTILE, for crown_tops
     count = np.zeros(grid.shape, np.int32)
     n_obs = 0
     with timer.stage("heights"):
@@ -411,15 +425,24 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
                     px = obs.pixels[sel]
                     colour = v.read_image().reshape(-1, 3)[px]
                     prob = np.load(Path(cache) / f"{i}.npy")[px] if forest is not None else None
-                    return local, reliable, colour, prob
+                    z = obs.xyz[sel, 2].astype(np.float32)
+                    return local, reliable, colour, z, obs.height_weight[sel], prob
 
                 touching = [i for i, box in enumerate(boxes) if _touches(box, tile)]
                 parts = list(ordered_map(tile_colours, touching, workers))
-                cells, rel, colours = ([p[k] for p in parts] for k in range(3))
-                probs = [p[3] for p in parts if p[3] is not None]
+                cells, rel, colours, z, weight = ([p[k] for p in parts] for k in range(5))
+                probs = [p[5] for p in parts if p[5] is not None]
                 cells, colours = _joined(cells, np.int64), _joined(colours, np.uint8, (3,))
+                rel, z, weight = (
+                    _joined(rel, bool),
+                    _joined(z, np.float32),
+                    _joined(weight, np.float32),
+                )
                 n = h * w
-                use = preferred(cells, _joined(rel, bool), n)
+                dsm_upper[r0 : r0 + h, c0 : c0 + w] = group_weighted_quantile(
+                    cells[rel], z[rel], weight[rel], n, CROWN_QUANTILE
+                ).reshape(h, w)  # the heights pass's observations, another quantile
+                use = preferred(cells, rel, n)
                 cells, colours = cells[use], colours[use]
                 probs = [np.concatenate(probs)[use]] if probs else []
                 ortho[r0 : r0 + h, c0 : c0 + w] = vector_median(
@@ -461,6 +484,11 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
                 "a forest trained on the synthetic city's rasters (nDSM, slope, "
                 "roughness, curvature, brightness, greenness): no training labels"
             )
+        crowns = np.zeros(grid.shape, bool)
+        if mode == "depth maps":
+            dsm_upper[spikes | isolated_spikes(dsm_upper, count)] = np.nan
+            dsm, crowns = crown_tops(dsm, dsm_upper, class_codes(class_prob), grid.gsd)
+            ndsm = (dsm - dtm).astype(np.float32)
         count16 = np.minimum(count, np.iinfo(np.int16).max).astype(np.int16)
         count16[holes] = FILLED
     record = {
@@ -471,6 +499,7 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
         "class_source": class_source,
         "filled_small_holes": int(holes.sum()),
         "rejected_isolated_spikes": int(spikes.sum()),
+        "crown_cells_raised": int(crowns.sum()),
         "stages": timer.stages,
         "observations_per_s": round(n_obs / max(timer.stages["heights"]["wall_s"], 1e-9)),
     }
@@ -480,6 +509,52 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
         )
     ablation = {"dsm_mean": dsm_mean, "ortho_mean": ortho_mean}
     return FusionResult(grid, ortho, dsm, dtm, ndsm, class_prob, count16, ablation, record, forest)
+
+
+def crown_tops(
+    dsm: np.ndarray,
+    upper: np.ndarray,
+    classes: np.ndarray,
+    gsd: float,
+    reach_m: float = CROWN_REACH_M,
+    clear_m: float = CROWN_CLEAR_M,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The DSM with the cells in and beside tree crowns raised to an upper quantile of
+    their heights.
+
+    A DSM is the top surface, but under a crown's edge the oblique views see the ground
+    beneath it: the weighted median of such a cell mixes crown and ground and reads
+    metres low, and the fused class there is often grass or ground too, which is why the
+    cells within ``reach_m`` of a tree cell count. Beside a wall it is the other way
+    round, the higher observations being the ones to distrust (facade and roof-edge
+    points spilling into the ground cell), so cells within ``clear_m`` of a building
+    keep their median. On ``small`` (seeds 0, 1, 2) the 0.7 quantile took the DSM RMSE
+    off the height jumps from 0.61, 0.64 and 0.68 m to 0.53 m on each.
+
+    Parameters
+    ----------
+    dsm : (H, W) float
+        Weighted medians, metres (NaN unknown).
+    upper : (H, W) float
+        The same observations' ``CROWN_QUANTILE`` weighted quantiles, metres.
+    classes : (H, W) int
+        Class codes (3 tree, 4 building).
+    gsd : float
+        Cell size, metres.
+
+    Returns
+    -------
+    dsm : (H, W) float32
+    raised : (H, W) bool, the cells that took the upper quantile
+    """
+
+    def near(mask: np.ndarray, metres: float) -> np.ndarray:
+        r = max(1, int(round(metres / gsd)))
+        return cv2.dilate(mask.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0
+
+    raised = near(classes == 3, reach_m) & ~near(classes == 4, clear_m)
+    raised &= np.isfinite(upper) & np.isfinite(dsm) & (upper > dsm)
+    return np.where(raised, upper, dsm).astype(np.float32), raised
 
 
 def isolated_spikes(

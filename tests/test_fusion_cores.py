@@ -19,9 +19,10 @@ from fusion.robust import (
     group_mean,
     group_median,
     group_weighted_median,
+    group_weighted_quantile,
     vector_median,
 )
-from fusion.scene_fusion import elevation_image
+from fusion.scene_fusion import crown_tops, elevation_image
 from fusion.sigma_points import N_FEATURES, feature_cues, sigma_points
 from workbench.camera import Camera, look_at_rotation
 from workbench.raster import Grid
@@ -51,6 +52,42 @@ def test_group_weighted_median_by_hand_and_with_equal_weights():
     np.testing.assert_array_equal(
         group_weighted_median(c, v, np.ones(2000), 45), group_median(c, v, 45)
     )
+
+
+def test_group_weighted_quantile_by_hand():
+    cells = np.array([0, 0, 0, 0, 2, 2])
+    vals = np.array([4.0, 1.0, 3.0, 2.0, 10.0, 20.0])
+    w = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 3.0])
+    # cell 0: 1, 2, 3, 4 of weight 1: 0.7 of 4 (2.8) is reached at 3; 0.5 exactly at 2
+    # cell 2: 10 (w 1), 20 (w 3): 0.2 of 4 is reached at 10, 0.7 at 20
+    q7 = group_weighted_quantile(cells, vals, w, 3, 0.7)
+    np.testing.assert_array_equal(q7[[0, 2]], [3.0, 20.0])
+    assert np.isnan(q7[1])
+    assert group_weighted_quantile(cells, vals, w, 3, 0.2)[2] == 10.0
+    np.testing.assert_array_equal(
+        group_weighted_quantile(cells, vals, w, 3, 0.5), group_weighted_median(cells, vals, w, 3)
+    )
+    assert group_weighted_quantile(cells, vals, w, 3, 0.5)[0] == 2.5  # the tie, as a median
+
+
+def test_crown_tops_raise_tree_edges_but_not_beside_buildings():
+    """A crown whose edge cells the fusion read low and called grass, and a building whose
+    ground cells beside its wall have high upper quantiles (facade points): only the
+    crown's cells, and those next to it, take the upper quantile."""
+    classes = np.full((12, 20), 2)
+    classes[3:8, 2:6] = 3  # tree
+    classes[3:8, 13:18] = 4  # building
+    dsm = np.where(classes >= 3, 8.0, 0.0)
+    dsm[3:8, 6] = 1.0  # the crown's east edge: ground under it mixed in, read low
+    upper = dsm + 0.2
+    upper[3:8, 6] = 7.5
+    upper[3:8, 12] = 6.0  # beside the wall: roof-edge points in the ground cells
+    out, raised = crown_tops(dsm, upper, classes, gsd=0.25)
+    np.testing.assert_array_equal(out[3:8, 6], 7.5)
+    np.testing.assert_array_equal(out[3:8, 12], 0.0)
+    np.testing.assert_allclose(out[3:8, 3], 8.2, rtol=1e-6)  # inside the crown too (float32)
+    assert not raised[:, 8:].any() and not raised[10:].any()  # more than 0.5 m from the tree
+    assert raised[3:8, 2:7].all()
 
 
 def test_height_weights_are_the_squared_cosine_from_the_vertical():

@@ -2,6 +2,7 @@
 
 import json
 
+import cv2
 import laspy
 import numpy as np
 import pytest
@@ -336,7 +337,7 @@ def test_default_grid_without_scene_bounds_covers_what_the_views_see(tiny_scene)
 
 
 def test_raster_prior_is_reported_and_optional(fused, tiny_scene, tmp_path):
-    _, record, _ = fused
+    out, record, _ = fused
     q = record["quality"]
     assert "raster forest" not in record["class_source"]  # the paper's method by default
     assert q["classification_raster_forest_alone"]["overall_accuracy"] > 0.5
@@ -349,8 +350,12 @@ def test_raster_prior_is_reported_and_optional(fused, tiny_scene, tmp_path):
     prob = read_raster(tmp_path / "p" / "class_prob.tif")[0]
     seen = np.isfinite(prob[0])
     np.testing.assert_allclose(prob[:, seen].sum(axis=0), 1.0, atol=1e-5)
-    # the same views and forest: the prior changes the classes, not the heights
-    assert with_prior["quality"]["dsm"] == q["dsm"]
+    # the same views and forest: the prior changes the classes, and the heights only where
+    # the classes make crown cells (crown_tops: within 0.5 m of a tree cell)
+    dsm, prior_dsm = (read_raster(d / "dsm.tif")[0][0] for d in (out, tmp_path / "p"))
+    trees = [read_raster(d / "class.tif")[0][0] == 3 for d in (out, tmp_path / "p")]
+    near = cv2.dilate((trees[0] | trees[1]).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    np.testing.assert_array_equal(dsm[~near], prior_dsm[~near])
 
 
 def test_point_cloud_scored_against_a_scene_truth(tiny_scene, tmp_path):
