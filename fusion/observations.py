@@ -1,6 +1,7 @@
 """Lifting a view's depth map into observations of ortho cells, with visibility.
 
-Each pixel with a depth becomes a world point (camera ray scaled by the z-depth) and
+Each pixel with a depth, less the isolated gross errors of matching
+(:func:`depth_outliers`), becomes a world point (camera ray scaled by the z-depth) and
 lands in one cell of the ortho grid. Within one view, a cell keeps only the points
 of the surface nearest to the camera: points more than a tolerance behind the
 nearest point of the same cell belong to a hidden surface (seen through a
@@ -87,7 +88,7 @@ def normal_z_image(
     num = cv2.GaussianBlur(d, (0, 0), sigma)
     den = cv2.GaussianBlur(valid, (0, 0), sigma)
     with np.errstate(invalid="ignore", divide="ignore"):
-        smooth = np.where(valid > 0, num / den, np.nan)
+        smooth = np.where(den > 0.05, num / den, np.nan)
     if rays is None:
         _, rays = camera.pixel_grid_rays()
     # points relative to the camera centre, in float32: half the memory traffic, and
@@ -107,13 +108,41 @@ def normal_z_image(
     return nz
 
 
+def depth_outliers(
+    depth: np.ndarray, *, rel: float = 0.03, jump: float = 1.0, support: int = 2
+) -> np.ndarray:
+    """(H, W) bool: gross matching errors, pixels with fewer than ``support`` of their
+    8 neighbours within ``max(jump, rel * depth)`` metres of their depth.
+
+    Such errors are isolated pixels tens of metres off. Left in, each one bends the
+    smoothed depth that :func:`normal_z_image` differentiates over a few pixels around
+    it, and with 2 % of them a facade's normals turn up and its points pass for a top
+    surface; each also reads as a jump (:func:`depth_jumps`) to its neighbours. A
+    surface's pixels, even at a roof's corner or a crown's rim, have neighbours on the
+    same surface; a median filter would shave those off.
+    """
+    d = np.asarray(depth, dtype=np.float32)
+    padded = np.pad(d, 1, constant_values=np.nan)
+    H, W = d.shape
+    thr = np.maximum(jump, rel * d)
+    near = np.zeros(d.shape, np.uint8)
+    with np.errstate(invalid="ignore"):
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                if dr or dc:
+                    nb = padded[1 + dr : 1 + dr + H, 1 + dc : 1 + dc + W]
+                    near += np.abs(nb - d) <= thr
+    return np.isfinite(d) & (near < support)
+
+
 def depth_jumps(depth: np.ndarray, *, k: int = 3, rel: float = 0.03, jump: float = 1.0):
     """(H, W) bool: pixels within ``k`` pixels of a depth discontinuity.
 
     Dense matching rounds depth edges into ramps whose points float between the two
     surfaces; a pixel is near a jump when the depths ``k`` pixels to either side (along
-    rows or columns) differ by more than ``max(jump, rel * depth)``. Steep roofs seen
-    from above change by far less.
+    rows or columns) differ by more than ``max(jump, rel * depth)``, or, where one side
+    is unknown, when the known side is more than half that from the pixel. Steep roofs
+    seen from above change by far less.
     """
     d = np.asarray(depth, dtype=np.float32)
     near = np.zeros(d.shape, bool)
@@ -121,7 +150,11 @@ def depth_jumps(depth: np.ndarray, *, k: int = 3, rel: float = 0.03, jump: float
         for axis in (0, 1):
             a = np.roll(d, k, axis=axis)
             b = np.roll(d, -k, axis=axis)
-            near |= np.abs(a - b) > np.maximum(jump, rel * d)
+            thr = np.maximum(jump, rel * d)
+            # beside a hole (an occlusion's, often) only one side is known: the pixel
+            # then stands for the middle of the ramp, half the jump from that side
+            one_sided = 2 * np.fmax(np.abs(d - a), np.abs(d - b))
+            near |= np.where(np.isfinite(a) & np.isfinite(b), np.abs(a - b), one_sided) > thr
     return near
 
 
@@ -206,6 +239,7 @@ def observe(
         Depth band behind the nearest point of a cell that still counts as the same
         surface, metres (absorbs depth noise and slanted surfaces).
     """
+    depth = np.where(depth_outliers(depth), np.float32(np.nan), depth)
     _, rays = camera.pixel_grid_rays()
     pixels, xyz = lift_depth(camera, depth, rays)
     row, col = grid.cell_index(xyz[:, 0], xyz[:, 1])

@@ -1,13 +1,13 @@
 """The fusion steps as plain functions, on hand-computed cases."""
 
 import numpy as np
-import pytest
 
 from fusion.classifier import elevation_consistent, elevation_prior
 from fusion.ground import dtm_from_dsm
 from fusion.interpolate import push_pull_fill, small_holes
 from fusion.observations import (
     depth_jumps,
+    depth_outliers,
     height_weights,
     nearest_depth,
     normal_z_image,
@@ -181,17 +181,60 @@ def test_depth_jumps_flag_edges_not_slopes():
     assert j[:, 17:23].all() and not j[:, 3:15].any() and not j[:, 25:37].any()
 
 
+def test_depth_jumps_beside_a_hole_use_the_known_side():
+    # a roof at 52 m, its rounded edge 1 m lower, then an occlusion hole and the ground
+    d = np.full((40, 40), 52.0, np.float32)
+    d[:, 20] = 53.0
+    d[:, 21:25] = np.nan
+    d[:, 25:] = 60.0
+    j = depth_jumps(d)
+    # 3 px right of the edge is unknown; 1 m from the roof is a ramp's middle of 2 m
+    assert j[5:35, 20].all()
+    assert not j[5:35, 3:20].any() and not j[5:35, 25:37].any()
+
+
+def test_depth_outliers_are_isolated_pixels_not_corners_or_rims():
+    d = np.full((30, 30), 100.0, np.float32)
+    d[5:15, 5:15] = 90.0  # a roof: its corner pixels have 3 neighbours on it
+    d[20, 20:22] = 95.0  # a 2-pixel bar (a pole, a branch): each has one neighbour
+    d[22:, 25:] = np.nan
+    spikes = [(2, 25), (10, 10), (21, 24), (25, 2)]  # the third beside the hole
+    for r, c in spikes:
+        d[r, c] *= 1.25
+    flagged = {tuple(map(int, rc)) for rc in np.argwhere(depth_outliers(d))}
+    assert flagged == set(spikes) | {(20, 20), (20, 21)}
+    assert not depth_outliers(d, support=1)[20, 20:22].any()
+
+
+def test_normals_stay_known_beside_a_dropped_pixel():
+    # removing a gross error must not leave unknown normals k pixels around it, which
+    # would count as facing up
+    R = look_at_rotation([0, 1, -1])
+    K = np.array([[200.0, 0, 31.5], [0, 200.0, 31.5], [0, 0, 1]])
+    cam = Camera(K, R, -R @ np.zeros(3), 64, 64)
+    v, u = np.mgrid[0:64, 0:64]
+    _, dirs = cam.pixel_rays(np.column_stack([u.ravel(), v.ravel()]).astype(float))
+    floor = ((-20.0 / dirs[:, 2]) * (dirs @ R.T)[:, 2]).reshape(64, 64).astype(np.float32)
+    floor[32, 32] = np.nan
+    nz = normal_z_image(cam, floor)
+    assert np.isfinite(nz[10:-10, 10:-10][np.isfinite(floor[10:-10, 10:-10])]).all()
+    np.testing.assert_allclose(nz[29:36, 29:36][np.isfinite(floor[29:36, 29:36])], 1, atol=1e-3)
+
+
 def test_observe_keeps_the_nearest_surface_of_a_cell():
     # a nadir camera 50 m above; two pixels see the same cell at different depths
     R = look_at_rotation([0, 0, -1])
     K = np.array([[100.0, 0, 2.0], [0, 100.0, 2.0], [0, 0, 1]])
     cam = Camera(K, R, -R @ np.array([0.0, 0.0, 50.0]), 5, 5)
     depth = np.full((5, 5), 50.0, np.float32)
-    depth[2, 2] = 40.0  # a roof point at z = 10 above the cell of the centre
+    depth[2:4, 2:4] = 40.0  # a roof at z = 10 above the cell of the centre
     grid = Grid.from_bounds(-1.25, -1.25, 1.25, 1.25, 2.5)  # one 2.5 m cell for all pixels
     obs = observe(cam, depth, grid, tolerance=1.0)
     assert len(obs.cells) == 25 and (obs.cells == 0).all()
-    assert obs.visible.sum() == 1 and obs.xyz[obs.visible][0, 2] == pytest.approx(10.0)
+    assert obs.visible.sum() == 4
+    np.testing.assert_allclose(obs.xyz[obs.visible][:, 2], 10.0, atol=1e-5)
+    depth[2, 2] = 40.0 * 0.75  # a gross matching error is no observation at all
+    assert len(observe(cam, depth, grid, tolerance=1.0).cells) == 24
 
 
 def test_empty_groups():
