@@ -4,10 +4,10 @@ Each pixel with a depth, less the isolated gross errors of matching
 (:func:`depth_outliers`), becomes a world point (camera ray scaled by the z-depth) and
 lands in one cell of the ortho grid. Within one view, a cell keeps only the points
 of the surface nearest to the camera: points more than a tolerance behind the
-nearest point of the same cell belong to a hidden surface (seen through a
-mis-registered edge, or a facade below a roof edge) and are dropped. Only points
-of non-steep surfaces set that nearest depth: a facade rising from a cell is nearer
-to an oblique camera than the ground in front of it, yet hides none of it.
+nearest point of the same cell (:func:`visibility_groups`) belong to a hidden surface
+(seen through a mis-registered edge, or a facade below a roof edge) and are dropped.
+Only points of non-steep surfaces set that nearest depth: a facade rising from a cell
+is nearer to an oblique camera than the ground in front of it, yet hides none of it.
 """
 
 from __future__ import annotations
@@ -76,9 +76,10 @@ def normal_z_image(
     """(H, W) z of surface normals from a depth map, NaN where unknown.
 
     The depth is smoothed first (dense-matching noise is as large as a pixel's
-    footprint) and differentiated over ``step`` pixels. Each normal is turned toward
-    the camera, so a surface the view sees from below has a negative z. ``rays``: as
-    for :func:`lift_depth`.
+    footprint) and differentiated over ``step`` pixels; a lone unknown pixel takes the
+    smoothed depth of its neighbours, so that the normals around it stay known. Each
+    normal is turned toward the camera, so a surface the view sees from below has a
+    negative z. ``rays``: as for :func:`lift_depth`.
     """
     import cv2
 
@@ -223,6 +224,37 @@ def nearest_depth(cells: np.ndarray, depth: np.ndarray, top: np.ndarray, n_cells
     return nearest[cells]
 
 
+def visibility_groups(
+    cells: np.ndarray, quarter: np.ndarray, top: np.ndarray, n_cells: int
+) -> tuple[np.ndarray, int]:
+    """The groups of one view's observations within which the nearest surface hides
+    what lies behind it: its cell, or its quarter of the cell where the view sees a
+    facade in the cell.
+
+    A cell at a wall's foot holds both the roof's edge and the ground before the wall,
+    and a view facing the wall sees both; judged per cell, the nearer roof hid that
+    ground and the roofs grew outward (small seed 0: 1,100 ground cells beside walls
+    took a roof's height, 563 roof cells the ground's; judged per quarter, 544 and
+    817). Elsewhere a quarter is too small: the ground under a crown's edge, seen past
+    it, would count as seen.
+
+    Parameters
+    ----------
+    cells : (N,) int64 flat cell indices
+    quarter : (N,) int quarter of the cell (0-3) each observation lies in
+    top : (N,) bool, observations of non-steep surfaces (the others: facades)
+    n_cells : int
+
+    Returns
+    -------
+    groups : (N,) int64 group index; n_groups : int
+    """
+    facade = np.bincount(cells[~top], minlength=n_cells) > 0
+    rank = np.cumsum(facade) - 1
+    groups = np.where(facade[cells], n_cells + 4 * rank[cells] + quarter, cells)
+    return groups.astype(np.int64), n_cells + 4 * int(facade.sum())
+
+
 def observe(
     camera: Camera, depth: np.ndarray, grid: Grid, *, tolerance: float = 1.0
 ) -> ViewObservations:
@@ -248,9 +280,14 @@ def observe(
     cells = row[inside] * grid.width + col[inside]
     d = depth.ravel()[pixels]
     nz = np.nan_to_num(normal_z_image(camera, depth, rays=rays).ravel()[pixels], nan=1.0)
-    visible = (
-        d <= nearest_depth(cells, d, nz > STEEP_NORMAL_Z, grid.width * grid.height) + tolerance
+    top = nz > STEEP_NORMAL_Z
+    fr, fc = Grid(grid.xmin, grid.ymax, grid.gsd / 2, 2 * grid.width, 2 * grid.height).cell_index(
+        xyz[:, 0], xyz[:, 1]
     )
+    groups, n_groups = visibility_groups(
+        cells, 2 * (fr % 2) + fc % 2, top, grid.width * grid.height
+    )
+    visible = d <= nearest_depth(groups, d, top, n_groups) + tolerance
     near_jump = depth_jumps(depth).ravel()[pixels]
     weight = height_weights(camera.center, xyz)
     return ViewObservations(pixels, cells, xyz, d, visible, nz, near_jump, weight)

@@ -12,6 +12,7 @@ from fusion.observations import (
     nearest_depth,
     normal_z_image,
     observe,
+    visibility_groups,
 )
 from fusion.points import top_surface_at_centres
 from fusion.robust import (
@@ -308,6 +309,24 @@ def test_a_facade_does_not_hide_the_ground_in_front_of_it():
     np.testing.assert_array_equal(visible, [True, True, True, True, False])
     # a cell with only steep points keeps its nearest one
     np.testing.assert_array_equal(nearest_depth(cells[:2], depth[:2], top[:2], 1), [10.0, 10.0])
+
+
+def test_at_a_walls_foot_the_roof_edge_does_not_hide_the_ground_before_the_wall():
+    """Cell 0 is a wall's foot: a view facing the wall sees the ground before it (quarter
+    0), the facade, and the roof's edge 8 m nearer (quarter 1). Cell 1 is a crown's
+    edge with no facade: the ground seen past the crown (quarter 0) stays hidden."""
+    cells = np.array([0, 0, 0, 0, 1, 1])
+    quarter = np.array([0, 0, 1, 1, 1, 0])
+    depth = np.array([30.0, 27.0, 22.0, 22.2, 24.0, 30.0])
+    top = np.array([True, False, True, True, True, True])  # ground, facade, roof, roof
+    groups, n = visibility_groups(cells, quarter, top, 2)
+    assert n == 2 + 4 and groups[4] == groups[5] == 1
+    assert len(set(groups[:4])) == 2 and groups[0] != groups[2] and groups[2] == groups[3]
+    visible = depth <= nearest_depth(groups, depth, top, n) + 1.0
+    np.testing.assert_array_equal(visible, [True, True, True, True, True, False])
+    # judged per cell, the roof's edge hid the ground
+    per_cell = depth <= nearest_depth(cells, depth, top, 2) + 1.0
+    assert not per_cell[0]
 
 
 def test_elevation_cue_ignores_an_isolated_matching_error():
