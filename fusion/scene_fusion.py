@@ -77,6 +77,7 @@ FEATURE_BYTES_PER_PIXEL = 700  # peak of view_features, measured on small: 647
 CROWN_QUANTILE = 0.7  # of a crown cell's weighted heights (crown_tops)
 CROWN_REACH_M = 0.5  # cells this close to a tree cell are crown cells ...
 CROWN_CLEAR_M = 0.75  # ... unless this close to a building cell
+BENEATH_TOP_M = 2.0  # a point this far below its cell's top surface saw under it
 
 
 @dataclass
@@ -231,6 +232,35 @@ def preferred(cells: np.ndarray, reliable: np.ndarray, n_cells: int) -> np.ndarr
     visible ones where it has no reliable one (cells beside depth edges)."""
     has_reliable = np.bincount(cells[reliable], minlength=n_cells) > 0
     return reliable | ~has_reliable[cells]
+
+
+def top_surface_votes(
+    cells: np.ndarray,
+    z: np.ndarray,
+    reliable: np.ndarray,
+    top: np.ndarray,
+    beneath_m: float = BENEATH_TOP_M,
+) -> np.ndarray:
+    """(N,) bool: the observations that give a cell its colour and class votes.
+
+    An orthophoto shows the top surface, yet under a crown's edge an oblique view sees
+    the ground beneath it and would vote grass for a crown cell. A cell's votes are its
+    reliable observations not more than ``beneath_m`` below its top surface, or, where
+    it has none, all of its visible ones (:func:`preferred`). On small seeds 0 and 1
+    the tree accuracy of the fused classes rose from 0.80 and 0.78 to 0.84 and 0.82
+    (1 m and 2 m scored alike).
+
+    Parameters
+    ----------
+    cells : (N,) int64 cell index of each observation
+    z : (N,) float heights, metres
+    reliable : (N,) bool
+    top : (n_cells,) float the cells' top surface (an upper quantile of their heights),
+        metres, NaN unknown (no limit)
+    beneath_m : float
+    """
+    limit = np.nan_to_num(top, nan=-np.inf)[cells] - beneath_m
+    return preferred(cells, reliable & (z >= limit), len(top))
 
 
 def _view_boxes(views: list[View], grid: Grid, workers: int = 1) -> list[tuple]:
@@ -428,15 +458,16 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
                     px = obs.pixels[sel]
                     colour = v.read_image().reshape(-1, 3)[px]
                     prob = np.load(Path(cache) / f"{i}.npy")[px] if forest is not None else None
-                    return local, reliable, colour, prob
+                    return local, reliable, colour, prob, obs.xyz[sel, 2]
 
                 touching = [i for i, box in enumerate(boxes) if _touches(box, tile)]
                 parts = list(ordered_map(tile_colours, touching, workers))
-                cells, rel, colours = ([p[k] for p in parts] for k in range(3))
+                cells, rel, colours, z = ([p[k] for p in parts] for k in (0, 1, 2, 4))
                 probs = [p[3] for p in parts if p[3] is not None]
                 cells, colours = _joined(cells, np.int64), _joined(colours, np.uint8, (3,))
                 n = h * w
-                use = preferred(cells, _joined(rel, bool), n)
+                top = dsm_upper[r0 : r0 + h, c0 : c0 + w].ravel()
+                use = top_surface_votes(cells, _joined(z, np.float32), _joined(rel, bool), top)
                 cells, colours = cells[use], colours[use]
                 probs = [np.concatenate(probs)[use]] if probs else []
                 ortho[r0 : r0 + h, c0 : c0 + w] = vector_median(

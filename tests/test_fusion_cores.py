@@ -23,7 +23,7 @@ from fusion.robust import (
     group_weighted_quantile,
     vector_median,
 )
-from fusion.scene_fusion import crown_tops, elevation_image
+from fusion.scene_fusion import crown_tops, elevation_image, top_surface_votes
 from fusion.sigma_points import N_FEATURES, feature_cues, sigma_points
 from workbench.camera import Camera, look_at_rotation
 from workbench.raster import Grid
@@ -327,6 +327,18 @@ def test_at_a_walls_foot_the_roof_edge_does_not_hide_the_ground_before_the_wall(
     # judged per cell, the roof's edge hid the ground
     per_cell = depth <= nearest_depth(cells, depth, top, 2) + 1.0
     assert not per_cell[0]
+
+
+def test_only_the_top_surface_votes_for_a_cells_colour_and_class():
+    """Cell 0: a crown at 9 m whose edge an oblique view sees past, to the ground at
+    0 m; cell 1: a roof 0.3 m rough; cell 2: only the ground beneath a crown and an
+    unreliable point, whose top is unknown; cell 3: only unreliable points."""
+    cells = np.array([0, 0, 0, 0, 1, 1, 2, 2, 3])
+    z = np.array([9.2, 8.6, 0.1, 0.0, 6.0, 6.3, 0.2, 5.0, 1.0])
+    reliable = np.array([1, 1, 1, 1, 1, 1, 1, 0, 0], bool)
+    top = np.array([9.0, 6.2, np.nan, 1.0])
+    votes = top_surface_votes(cells, z, reliable, top, beneath_m=2.0)
+    np.testing.assert_array_equal(votes, [1, 1, 0, 0, 1, 1, 1, 0, 1])
 
 
 def test_elevation_cue_ignores_an_isolated_matching_error():
