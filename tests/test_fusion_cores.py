@@ -207,15 +207,22 @@ def test_depth_outliers_are_isolated_pixels_not_corners_or_rims():
     assert not depth_outliers(d, support=1)[20, 20:22].any()
 
 
-def test_normals_stay_known_beside_a_dropped_pixel():
-    # removing a gross error must not leave unknown normals k pixels around it, which
-    # would count as facing up
+def _oblique_view_of_a_floor():
+    """A 64 x 64 camera at the origin looking north and 45 degrees down, and its z-depth
+    map of the plane z = -20."""
     R = look_at_rotation([0, 1, -1])
     K = np.array([[200.0, 0, 31.5], [0, 200.0, 31.5], [0, 0, 1]])
     cam = Camera(K, R, -R @ np.zeros(3), 64, 64)
     v, u = np.mgrid[0:64, 0:64]
     _, dirs = cam.pixel_rays(np.column_stack([u.ravel(), v.ravel()]).astype(float))
-    floor = ((-20.0 / dirs[:, 2]) * (dirs @ R.T)[:, 2]).reshape(64, 64).astype(np.float32)
+    zc = (dirs @ R.T)[:, 2]  # z-depth per unit ray length
+    return cam, ((-20.0 / dirs[:, 2]) * zc).reshape(64, 64).astype(np.float32)
+
+
+def test_normals_stay_known_beside_a_dropped_pixel():
+    # removing a gross error must not leave unknown normals k pixels around it, which
+    # would count as facing up
+    cam, floor = _oblique_view_of_a_floor()
     floor[32, 32] = np.nan
     nz = normal_z_image(cam, floor)
     assert np.isfinite(nz[10:-10, 10:-10][np.isfinite(floor[10:-10, 10:-10])]).all()
@@ -280,17 +287,12 @@ def test_elevation_prior_damps_the_classes_the_ndsm_contradicts():
 def test_normals_face_the_camera_and_undersides_are_negative():
     # an oblique camera looking north and 45 degrees down sees a floor 20 m below it from
     # above; one looking 45 degrees up sees a ceiling 20 m above it from below
-    R = look_at_rotation([0, 1, -1])
-    K = np.array([[200.0, 0, 31.5], [0, 200.0, 31.5], [0, 0, 1]])
-    cam = Camera(K, R, -R @ np.zeros(3), 64, 64)
-    v, u = np.mgrid[0:64, 0:64]
-    _, dirs = cam.pixel_rays(np.column_stack([u.ravel(), v.ravel()]).astype(float))
-    zc = (dirs @ R.T)[:, 2]  # z-depth per unit ray length
-    floor = (-20.0 / dirs[:, 2]) * zc  # the plane z = -20 seen from above
-    nz = normal_z_image(cam, floor.reshape(64, 64).astype(np.float32))
+    cam, floor = _oblique_view_of_a_floor()
+    nz = normal_z_image(cam, floor)
     np.testing.assert_allclose(nz[10:-10, 10:-10], 1.0, atol=1e-3)
     R_up = look_at_rotation([0, 1, 1])  # looking north-up at a ceiling z = +20
-    cam_up = Camera(K, R_up, -R_up @ np.zeros(3), 64, 64)
+    cam_up = Camera(cam.K, R_up, -R_up @ np.zeros(3), 64, 64)
+    v, u = np.mgrid[0:64, 0:64]
     _, dirs = cam_up.pixel_rays(np.column_stack([u.ravel(), v.ravel()]).astype(float))
     ceiling = (20.0 / dirs[:, 2]) * (dirs @ R_up.T)[:, 2]
     nz = normal_z_image(cam_up, ceiling.reshape(64, 64).astype(np.float32))
