@@ -148,10 +148,10 @@ def depth_jumps(depth: np.ndarray, *, k: int = 3, rel: float = 0.03, jump: float
     d = np.asarray(depth, dtype=np.float32)
     near = np.zeros(d.shape, bool)
     with np.errstate(invalid="ignore"):
+        thr = np.maximum(jump, rel * d)
         for axis in (0, 1):
             a = np.roll(d, k, axis=axis)
             b = np.roll(d, -k, axis=axis)
-            thr = np.maximum(jump, rel * d)
             # beside a hole (an occlusion's, often) only one side is known: the pixel
             # then stands for the middle of the ramp, half the jump from that side
             one_sided = 2 * np.fmax(np.abs(d - a), np.abs(d - b))
@@ -274,18 +274,17 @@ def observe(
     depth = np.where(depth_outliers(depth), np.float32(np.nan), depth)
     _, rays = camera.pixel_grid_rays()
     pixels, xyz = lift_depth(camera, depth, rays)
-    row, col = grid.cell_index(xyz[:, 0], xyz[:, 1])
-    inside = grid.contains(row, col)
-    pixels, xyz = pixels[inside], xyz[inside]
-    cells = row[inside] * grid.width + col[inside]
+    # indices of half cells: the cell is the index // 2, the quarter of it the index % 2
+    r, c = grid.world_to_cell(xyz[:, 0], xyz[:, 1])
+    hr, hc = np.floor(2 * r + 1).astype(np.int64), np.floor(2 * c + 1).astype(np.int64)
+    inside = grid.contains(hr // 2, hc // 2)
+    pixels, xyz, hr, hc = pixels[inside], xyz[inside], hr[inside], hc[inside]
+    cells = (hr // 2) * grid.width + hc // 2
     d = depth.ravel()[pixels]
     nz = np.nan_to_num(normal_z_image(camera, depth, rays=rays).ravel()[pixels], nan=1.0)
     top = nz > STEEP_NORMAL_Z
-    fr, fc = Grid(grid.xmin, grid.ymax, grid.gsd / 2, 2 * grid.width, 2 * grid.height).cell_index(
-        xyz[:, 0], xyz[:, 1]
-    )
     groups, n_groups = visibility_groups(
-        cells, 2 * (fr % 2) + fc % 2, top, grid.width * grid.height
+        cells, 2 * (hr % 2) + hc % 2, top, grid.width * grid.height
     )
     visible = d <= nearest_depth(groups, d, top, n_groups) + tolerance
     near_jump = depth_jumps(depth).ravel()[pixels]
