@@ -51,13 +51,13 @@ def group_weighted_median(
 
 
 def group_weighted_quantile(
-    cells: np.ndarray, values: np.ndarray, weights: np.ndarray, n_cells: int, q: float
+    cells: np.ndarray, values: np.ndarray, weights: np.ndarray, n_cells: int, q
 ) -> np.ndarray:
-    """(n_cells,) weighted ``q`` quantile of scalar ``values`` per cell, NaN for empty
-    cells.
+    """Weighted ``q`` quantile of scalar ``values`` per cell, NaN for empty cells.
 
     The value at which the cell's cumulative weight (in value order) reaches ``q`` of
     its total; where it reaches exactly that, the mean of that value and the next.
+    Several quantiles share one sort.
 
     Parameters
     ----------
@@ -65,12 +65,17 @@ def group_weighted_quantile(
     values : (N,) float
     weights : (N,) float, positive
     n_cells : int
-    q : float
+    q : float, or sequence of floats
         In (0, 1).
+
+    Returns
+    -------
+    (n_cells,) for one ``q``; (len(q), n_cells) for a sequence.
     """
-    out = np.full(n_cells, np.nan)
+    qs = np.atleast_1d(np.asarray(q, dtype=np.float64))
+    out = np.full((len(qs), n_cells), np.nan)
     if len(cells) == 0:
-        return out
+        return out if np.ndim(q) else out[0]
     order = _order_by_cell_then_value(cells, values)
     c, v = cells[order], values[order].astype(np.float64)
     w = weights[order].astype(np.float64)
@@ -79,17 +84,19 @@ def group_weighted_quantile(
     cum = np.cumsum(w)
     before = np.concatenate([[0.0], cum])[start]  # total weight of the earlier cells
     within = cum - before[c]
-    target = q * np.bincount(c, w, minlength=n_cells)[c]
-    tol = 1e-9 * target
-    reached = within >= target - tol
-    first = reached.copy()
-    first[1:] &= ~(reached[:-1] & (c[1:] == c[:-1]))  # the first that reaches, per cell
-    idx = np.flatnonzero(first)
-    tie = np.abs(within[idx] - target[idx]) <= tol[idx]
-    nxt = np.minimum(idx + 1, len(c) - 1)
-    tie &= (idx + 1 < len(c)) & (c[nxt] == c[idx])
-    out[c[idx]] = np.where(tie, 0.5 * (v[idx] + v[nxt]), v[idx])
-    return out
+    total = np.bincount(c, w, minlength=n_cells)[c]
+    same_as_next = np.r_[c[1:] == c[:-1], False]
+    for k, qk in enumerate(qs):
+        target = qk * total
+        tol = 1e-9 * target
+        reached = within >= target - tol
+        first = reached.copy()
+        first[1:] &= ~(reached[:-1] & same_as_next[:-1])  # the first that reaches, per cell
+        idx = np.flatnonzero(first)
+        tie = (np.abs(within[idx] - target[idx]) <= tol[idx]) & same_as_next[idx]
+        nxt = np.minimum(idx + 1, len(c) - 1)
+        out[k, c[idx]] = np.where(tie, 0.5 * (v[idx] + v[nxt]), v[idx])
+    return out if np.ndim(q) else out[0]
 
 
 def _order_by_cell_then_value(cells: np.ndarray, values: np.ndarray) -> np.ndarray:

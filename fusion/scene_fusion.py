@@ -61,7 +61,6 @@ from .raster_forest import classify_rasters, synthetic_raster_forest
 from .robust import (
     group_count,
     group_mean,
-    group_weighted_median,
     group_weighted_quantile,
     vector_median,
 )
@@ -386,13 +385,14 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
             weight = _joined(weight, np.float32)
             cells, z, weight = cells[rel], z[rel], weight[rel]
             n_obs += len(z)
-            dsm[r0 : r0 + h, c0 : c0 + w] = group_weighted_median(cells, z, weight, h * w).reshape(
-                h, w
-            )
+            # the median, and the upper quantile kept for crown_tops (which needs the
+            # classes first), from one sort
+            median, upper = group_weighted_quantile(
+                cells, z, weight, h * w, (0.5, CROWN_QUANTILE)
+            ).reshape(2, h, w)
+            dsm[r0 : r0 + h, c0 : c0 + w] = median
+            dsm_upper[r0 : r0 + h, c0 : c0 + w] = upper
             dsm_mean[r0 : r0 + h, c0 : c0 + w] = group_mean(cells, z, h * w).reshape(h, w)
-            dsm_upper[r0 : r0 + h, c0 : c0 + w] = group_weighted_quantile(
-                cells, z, weight, h * w, CROWN_QUANTILE
-            ).reshape(h, w)  # kept for crown_tops, which needs the classes first
             count[r0 : r0 + h, c0 : c0 + w] = group_count(cells, h * w).reshape(h, w)
     with timer.stage("ground"):
         if mode == "depth maps":

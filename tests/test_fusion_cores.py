@@ -69,6 +69,12 @@ def test_group_weighted_quantile_by_hand():
         group_weighted_quantile(cells, vals, w, 3, 0.5), group_weighted_median(cells, vals, w, 3)
     )
     assert group_weighted_quantile(cells, vals, w, 3, 0.5)[0] == 2.5  # the tie, as a median
+    # several quantiles from one sort: the same as one by one
+    both = group_weighted_quantile(cells, vals, w, 3, (0.5, 0.7))
+    assert both.shape == (2, 3)
+    np.testing.assert_array_equal(both[0][[0, 2]], [2.5, 20.0])
+    np.testing.assert_array_equal(both[1], q7)
+    assert group_weighted_quantile(cells[:0], vals[:0], w[:0], 3, (0.5, 0.7)).shape == (2, 3)
 
 
 def test_crown_tops_raise_tree_edges_but_not_beside_buildings():
