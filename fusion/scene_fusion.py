@@ -14,10 +14,14 @@ Passes over the views (each reads a view's files once):
    training strokes are projected into the views through their depth maps (so the
    forest learns from the same per-view features it will classify, facades of
    oblique views included);
-3. classification and colour: per view, class probabilities of its pixels; per cell,
-   accumulated probabilities and the vector median colour; the classes the nDSM
-   contradicts damped; in and beside tree crowns, away from buildings, the DSM takes an
-   upper quantile of the heights instead of their median (:func:`crown_tops`).
+3. classification and colour: per view, class probabilities of its pixels; where
+   enough of a cell's observations are tree to their views, and lie well above its
+   median, the DSM takes their height (:func:`~fusion.crowns.crown_sightings`: a
+   crown's rim, whose ground the oblique views see); per cell, accumulated
+   probabilities and the vector median colour of the top surface; the classes the
+   nDSM contradicts damped; in and beside the tree cells, away from buildings, the DSM
+   takes an upper quantile of the heights instead of their median
+   (:func:`~fusion.crowns.crown_tops`).
 
 The ortho grid is processed in tiles: a pass keeps only the current tile's
 observations, so memory follows the tile size, not the area. Every pass works on
@@ -53,6 +57,7 @@ from .classifier import (
     predict_proba,
     train_forest,
 )
+from .crowns import CROWN_QUANTILE, crown_sightings, crown_tops
 from .dsm_depth import DsmSurface
 from .ground import dtm_from_dsm
 from .interpolate import push_pull_fill, small_holes
@@ -73,9 +78,6 @@ HOLE_CELLS = 9  # holes up to this many cells are interpolated (and flagged -1 i
 FILLED = -1
 ELEVATION_MEDIAN = 5  # pixels, the median filter of the per-view elevation cue
 FEATURE_BYTES_PER_PIXEL = 700  # peak of view_features, measured on small: 647
-CROWN_QUANTILE = 0.7  # of a crown cell's weighted heights (crown_tops)
-CROWN_REACH_M = 0.5  # cells this close to a tree cell are crown cells ...
-CROWN_CLEAR_M = 0.75  # ... unless this close to a building cell
 BENEATH_TOP_M = 2.0  # a point this far below its cell's top surface saw under it
 
 
@@ -245,7 +247,8 @@ def top_surface_votes(
     An orthophoto shows the top surface, yet under a crown's edge an oblique view sees
     the ground beneath it and would vote grass for a crown cell. A cell's votes are its
     reliable observations not more than ``beneath_m`` below its top surface, or, where
-    it has none, all of its visible ones (:func:`preferred`). On small seeds 0, 1 and 2
+    it has none, all of its visible ones not below that (:func:`preferred`; the
+    top of a crown's rim is seen in steep points only). On small seeds 0, 1 and 2
     the tree accuracy of the fused classes rose from 0.80, 0.78 and 0.78 to 0.84, 0.82
     and 0.84 (1 m and 2 m scored alike).
 
@@ -254,12 +257,12 @@ def top_surface_votes(
     cells : (N,) int64 cell index of each observation
     z : (N,) float heights, metres
     reliable : (N,) bool
-    top : (n_cells,) float the cells' top surface (an upper quantile of their heights),
-        metres, NaN unknown (no limit)
+    top : (n_cells,) float the cells' top surface (an upper quantile of their heights,
+        or the crown the views see over them), metres, NaN unknown (no limit)
     beneath_m : float
     """
-    limit = np.nan_to_num(top, nan=-np.inf)[cells] - beneath_m
-    return preferred(cells, reliable & (z >= limit), len(top))
+    above = z >= np.nan_to_num(top, nan=-np.inf)[cells] - beneath_m
+    return preferred(cells, reliable & above, len(top)) & above
 
 
 def _view_boxes(views: list[View], grid: Grid, workers: int = 1) -> list[tuple]:
@@ -427,6 +430,7 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
                 f"({n_dropped} labelled pixels dropped: their elevation contradicts their class)"
             )
     prob_sum = np.zeros((len(CLASSES),) + grid.shape, np.float32)
+    crown_z = np.full(grid.shape, np.nan, np.float32)  # crown_sightings
     ortho = np.zeros(grid.shape + (3,), np.uint8)
     ortho_mean = np.full(grid.shape + (3,), np.nan, np.float32)
     with tempfile.TemporaryDirectory(prefix="fusion-") as cache:
@@ -458,26 +462,37 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
                     px = obs.pixels[sel]
                     colour = v.read_image().reshape(-1, 3)[px]
                     prob = np.load(Path(cache) / f"{i}.npy")[px] if forest is not None else None
-                    return local, reliable, colour, prob, obs.xyz[sel, 2]
+                    z, weight = obs.xyz[sel, 2].astype(np.float32), obs.height_weight[sel]
+                    return local, reliable, colour, prob, z, weight
 
                 touching = [i for i, box in enumerate(boxes) if _touches(box, tile)]
                 parts = list(ordered_map(tile_colours, touching, workers))
-                cells, rel, colours, z = ([p[k] for p in parts] for k in (0, 1, 2, 4))
-                probs = [p[3] for p in parts if p[3] is not None]
+                cells, rel, colours, z, weight = ([p[k] for p in parts] for k in (0, 1, 2, 4, 5))
                 cells, colours = _joined(cells, np.int64), _joined(colours, np.uint8, (3,))
+                z, weight = _joined(z, np.float32), _joined(weight, np.float32)
+                probs = None
+                if forest is not None:
+                    probs = _joined([p[3] for p in parts], np.uint8, (len(CLASSES),))
                 n = h * w
                 top_z = dsm_upper[r0 : r0 + h, c0 : c0 + w].ravel()
-                use = top_surface_votes(cells, _joined(z, np.float32), _joined(rel, bool), top_z)
+                if probs is not None and mode == "depth maps":
+                    tree = probs[:, CLASSES.index(3)] / np.float32(255)
+                    crown = crown_sightings(cells, z, weight, tree, n)
+                    crown_z[r0 : r0 + h, c0 : c0 + w] = crown.reshape(h, w)
+                    with np.errstate(invalid="ignore"):
+                        # the crown, not the ground seen beneath it, votes for the cell
+                        overhung = crown > dsm[r0 : r0 + h, c0 : c0 + w].ravel() + BENEATH_TOP_M
+                    top_z = np.where(overhung, crown, top_z)
+                use = top_surface_votes(cells, z, _joined(rel, bool), top_z)
                 cells, colours = cells[use], colours[use]
-                probs = [np.concatenate(probs)[use]] if probs else []
                 ortho[r0 : r0 + h, c0 : c0 + w] = vector_median(
                     cells, colours, n, n_projections=opts.projections, seed=opts.seed
                 ).reshape(h, w, 3)
                 ortho_mean[r0 : r0 + h, c0 : c0 + w] = group_mean(
                     cells, colours.astype(np.float32), n
                 ).reshape(h, w, 3)
-                if probs:
-                    p = np.concatenate(probs).astype(np.float32) / 255.0
+                if probs is not None:
+                    p = probs[use].astype(np.float32) / 255.0
                     for k in range(len(CLASSES)):
                         prob_sum[k, r0 : r0 + h, c0 : c0 + w] = np.bincount(
                             cells, p[:, k], minlength=n
@@ -486,6 +501,10 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
         seen = count > 0
         with np.errstate(invalid="ignore", divide="ignore"):
             class_prob = prob_sum / prob_sum.sum(axis=0, keepdims=True)
+            # before the elevation prior, which would otherwise damp tree at crowns' rims
+            overhung = crown_z > dsm + BENEATH_TOP_M
+        dsm = np.where(overhung, crown_z, dsm)
+        ndsm = (dsm - dtm).astype(np.float32)
         class_prob[:, ~seen] = np.nan
         if forest is not None:
             class_prob = elevation_prior(class_prob, ndsm, opts.label_split)
@@ -525,6 +544,7 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
         "filled_small_holes": int(holes.sum()),
         "rejected_isolated_spikes": int(spikes.sum()),
         "crown_cells_raised": int(crowns.sum()),
+        "crown_sightings_raised": int(overhung.sum()),
         "stages": timer.stages,
         "observations_per_s": round(n_obs / max(timer.stages["heights"]["wall_s"], 1e-9)),
     }
@@ -534,52 +554,6 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
         )
     ablation = {"dsm_mean": dsm_mean, "ortho_mean": ortho_mean}
     return FusionResult(grid, ortho, dsm, dtm, ndsm, class_prob, count16, ablation, record, forest)
-
-
-def crown_tops(
-    dsm: np.ndarray,
-    upper: np.ndarray,
-    classes: np.ndarray,
-    gsd: float,
-    reach_m: float = CROWN_REACH_M,
-    clear_m: float = CROWN_CLEAR_M,
-) -> tuple[np.ndarray, np.ndarray]:
-    """The DSM with the cells in and beside tree crowns raised to an upper quantile of
-    their heights.
-
-    A DSM is the top surface, but under a crown's edge the oblique views see the ground
-    beneath it: the weighted median of such a cell mixes crown and ground and reads
-    metres low, and the fused class there is often grass or ground too, which is why the
-    cells within ``reach_m`` of a tree cell count. Beside a wall it is the other way
-    round, the higher observations being the ones to distrust (facade and roof-edge
-    points spilling into the ground cell), so cells within ``clear_m`` of a building
-    keep their median. On ``small`` (seeds 0, 1, 2) the 0.7 quantile took the DSM RMSE
-    off the height jumps from 0.61, 0.64 and 0.68 m to 0.54, 0.53 and 0.53 m.
-
-    Parameters
-    ----------
-    dsm : (H, W) float
-        Weighted medians, metres (NaN unknown).
-    upper : (H, W) float
-        The same observations' ``CROWN_QUANTILE`` weighted quantiles, metres.
-    classes : (H, W) int
-        Class codes (3 tree, 4 building).
-    gsd : float
-        Cell size, metres.
-
-    Returns
-    -------
-    dsm : (H, W) float32
-    raised : (H, W) bool, the cells that took the upper quantile
-    """
-
-    def near(mask: np.ndarray, metres: float) -> np.ndarray:
-        r = max(1, int(round(metres / gsd)))
-        return cv2.dilate(mask.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0
-
-    raised = near(classes == 3, reach_m) & ~near(classes == 4, clear_m)
-    raised &= np.isfinite(upper) & np.isfinite(dsm) & (upper > dsm)
-    return np.where(raised, upper, dsm).astype(np.float32), raised
 
 
 def isolated_spikes(

@@ -3,6 +3,7 @@
 import numpy as np
 
 from fusion.classifier import elevation_consistent, elevation_prior
+from fusion.crowns import crown_sightings, crown_tops
 from fusion.ground import dtm_from_dsm
 from fusion.interpolate import push_pull_fill, small_holes
 from fusion.observations import (
@@ -23,7 +24,7 @@ from fusion.robust import (
     group_weighted_quantile,
     vector_median,
 )
-from fusion.scene_fusion import crown_tops, elevation_image, top_surface_votes
+from fusion.scene_fusion import elevation_image, top_surface_votes
 from fusion.sigma_points import N_FEATURES, feature_cues, sigma_points
 from workbench.camera import Camera, look_at_rotation
 from workbench.raster import Grid
@@ -340,13 +341,43 @@ def test_at_a_walls_foot_the_roof_edge_does_not_hide_the_ground_before_the_wall(
 def test_only_the_top_surface_votes_for_a_cells_colour_and_class():
     """Cell 0: a crown at 9 m whose edge an oblique view sees past, to the ground at
     0 m; cell 1: a roof 0.3 m rough; cell 2: only the ground beneath a crown and an
-    unreliable point, whose top is unknown; cell 3: only unreliable points."""
-    cells = np.array([0, 0, 0, 0, 1, 1, 2, 2, 3])
-    z = np.array([9.2, 8.6, 0.1, 0.0, 6.0, 6.3, 0.2, 5.0, 1.0])
-    reliable = np.array([1, 1, 1, 1, 1, 1, 1, 0, 0], bool)
-    top = np.array([9.0, 6.2, np.nan, 1.0])
+    unreliable point, whose top is unknown; cell 3: only unreliable points; cell 4: a
+    crown's rim, its top (from crown_sightings) seen only in unreliable steep points
+    above reliable ground."""
+    cells = np.array([0, 0, 0, 0, 1, 1, 2, 2, 3, 4, 4, 4])
+    z = np.array([9.2, 8.6, 0.1, 0.0, 6.0, 6.3, 0.2, 5.0, 1.0, 0.1, 7.9, 8.3])
+    reliable = np.array([1, 1, 1, 1, 1, 1, 1, 0, 0, 1, 0, 0], bool)
+    top = np.array([9.0, 6.2, np.nan, 1.0, 8.0])
     votes = top_surface_votes(cells, z, reliable, top, beneath_m=2.0)
-    np.testing.assert_array_equal(votes, [1, 1, 0, 0, 1, 1, 1, 0, 1])
+    np.testing.assert_array_equal(votes, [1, 1, 0, 0, 1, 1, 1, 0, 1, 0, 1, 1])
+
+
+def test_crown_sightings_need_enough_tree_observations_and_take_their_median():
+    """Cell 0: four sightings only; cell 1: six sightings among ten ground points; cell
+    2: five sightings among twenty ground points (20 %); cell 3: weighted sightings,
+    and one at exactly the threshold probability, which does not count."""
+    cells, z, weight, p = [], [], [], []
+
+    def add(cell, heights, prob, w=None):
+        cells.extend([cell] * len(heights))
+        z.extend(heights)
+        p.extend([prob] * len(heights))
+        weight.extend(w if w is not None else [1.0] * len(heights))
+
+    add(0, [8.0, 8.5, 9.0, 9.0], 0.9)
+    add(0, [0.0] * 6, 0.1)
+    add(1, [10.0, 8.0, 30.0, 9.5, 9.0, 8.5], 0.8)
+    add(1, [0.0] * 10, 0.2)
+    add(2, [7.0] * 5, 0.95)
+    add(2, [0.1] * 20, 0.05)
+    add(3, [9.0, 5.0, 6.0, 8.0, 7.0], 0.9, [10.0, 1.0, 1.0, 1.0, 1.0])
+    add(3, [20.0], 0.67)
+    crown = crown_sightings(
+        np.array(cells), np.array(z), np.array(weight), np.array(p), 5, min_probability=0.67
+    )
+    assert np.isnan(crown[0]) and np.isnan(crown[2]) and np.isnan(crown[4])
+    assert crown[1] == 9.25  # midway between the third and fourth of six equal weights
+    assert crown[3] == 9.0  # the weight of 10 carries the median; 20 m is no sighting
 
 
 def test_elevation_cue_ignores_an_isolated_matching_error():
