@@ -3,7 +3,8 @@
 The steps of Kluckner & Bischof (2010), sections 3 and 4, each in its module:
 :mod:`~fusion.sigma_points` (features), :mod:`~fusion.classifier` (random forest),
 :mod:`~fusion.observations` (lifting depth maps, visibility), :mod:`~fusion.robust`
-(median and vector median per cell), :mod:`~fusion.ground` (DTM), and the drivers
+(median and vector median per cell), :mod:`~fusion.crowns` (the crowns' top surface,
+not in the paper), :mod:`~fusion.ground` (DTM), and the drivers
 :mod:`~fusion.scene_fusion` (views) and :mod:`~fusion.points` (LiDAR).
 """
 

@@ -467,12 +467,14 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
 
                 touching = [i for i, box in enumerate(boxes) if _touches(box, tile)]
                 parts = list(ordered_map(tile_colours, touching, workers))
-                cells, rel, colours, z, weight = ([p[k] for p in parts] for k in (0, 1, 2, 4, 5))
-                cells, colours = _joined(cells, np.int64), _joined(colours, np.uint8, (3,))
-                z, weight = _joined(z, np.float32), _joined(weight, np.float32)
+                cells = _joined([p[0] for p in parts], np.int64)
+                rel = _joined([p[1] for p in parts], bool)
+                colours = _joined([p[2] for p in parts], np.uint8, (3,))
                 probs = None
                 if forest is not None:
                     probs = _joined([p[3] for p in parts], np.uint8, (len(CLASSES),))
+                z, weight = (_joined([p[k] for p in parts], np.float32) for k in (4, 5))
+                del parts  # the views' own copies, once joined: this pass sets the peak
                 n = h * w
                 top_z = dsm_upper[r0 : r0 + h, c0 : c0 + w].ravel()
                 if probs is not None and mode == "depth maps":
@@ -483,7 +485,7 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
                         # the crown, not the ground seen beneath it, votes for the cell
                         overhung = crown > dsm[r0 : r0 + h, c0 : c0 + w].ravel() + BENEATH_TOP_M
                     top_z = np.where(overhung, crown, top_z)
-                use = top_surface_votes(cells, z, _joined(rel, bool), top_z)
+                use = top_surface_votes(cells, z, rel, top_z)
                 cells, colours = cells[use], colours[use]
                 ortho[r0 : r0 + h, c0 : c0 + w] = vector_median(
                     cells, colours, n, n_projections=opts.projections, seed=opts.seed
