@@ -57,7 +57,7 @@ from .classifier import (
     predict_proba,
     train_forest,
 )
-from .crowns import CROWN_QUANTILE, crown_sightings, crown_tops
+from .crowns import BENEATH_TOP_M, CROWN_QUANTILE, crown_sightings, crown_tops
 from .dsm_depth import DsmSurface
 from .ground import dtm_from_dsm
 from .interpolate import push_pull_fill, small_holes
@@ -78,7 +78,6 @@ HOLE_CELLS = 9  # holes up to this many cells are interpolated (and flagged -1 i
 FILLED = -1
 ELEVATION_MEDIAN = 5  # pixels, the median filter of the per-view elevation cue
 FEATURE_BYTES_PER_PIXEL = 700  # peak of view_features, measured on small: 647
-BENEATH_TOP_M = 2.0  # a point this far below its cell's top surface saw under it
 
 
 @dataclass
@@ -430,7 +429,7 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
                 f"({n_dropped} labelled pixels dropped: their elevation contradicts their class)"
             )
     prob_sum = np.zeros((len(CLASSES),) + grid.shape, np.float32)
-    crown_z = np.full(grid.shape, np.nan, np.float32)  # crown_sightings
+    crown_z = np.full(grid.shape, np.nan, np.float32)  # crown_sightings, NaN where none
     ortho = np.zeros(grid.shape + (3,), np.uint8)
     ortho_mean = np.full(grid.shape + (3,), np.nan, np.float32)
     with tempfile.TemporaryDirectory(prefix="fusion-") as cache:
@@ -479,12 +478,11 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
                 top_z = dsm_upper[r0 : r0 + h, c0 : c0 + w].ravel()
                 if probs is not None and mode == "depth maps":
                     tree = probs[:, CLASSES.index(3)] / np.float32(255)
-                    crown = crown_sightings(cells, z, weight, tree, n)
+                    median = dsm[r0 : r0 + h, c0 : c0 + w].ravel()
+                    crown = crown_sightings(cells, z, weight, tree, median)
                     crown_z[r0 : r0 + h, c0 : c0 + w] = crown.reshape(h, w)
-                    with np.errstate(invalid="ignore"):
-                        # the crown, not the ground seen beneath it, votes for the cell
-                        overhung = crown > dsm[r0 : r0 + h, c0 : c0 + w].ravel() + BENEATH_TOP_M
-                    top_z = np.where(overhung, crown, top_z)
+                    # the crown, not the ground seen beneath it, votes for the cell
+                    top_z = np.where(np.isfinite(crown), crown, top_z)
                 use = top_surface_votes(cells, z, rel, top_z)
                 cells, colours = cells[use], colours[use]
                 ortho[r0 : r0 + h, c0 : c0 + w] = vector_median(
@@ -503,8 +501,8 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
         seen = count > 0
         with np.errstate(invalid="ignore", divide="ignore"):
             class_prob = prob_sum / prob_sum.sum(axis=0, keepdims=True)
-            # before the elevation prior, which would otherwise damp tree at crowns' rims
-            overhung = crown_z > dsm + BENEATH_TOP_M
+        # before the elevation prior, which would otherwise damp tree at crowns' rims
+        overhung = np.isfinite(crown_z)
         dsm = np.where(overhung, crown_z, dsm)
         ndsm = (dsm - dtm).astype(np.float32)
         class_prob[:, ~seen] = np.nan

@@ -372,12 +372,15 @@ def test_crown_sightings_need_enough_tree_observations_and_take_their_median():
     add(2, [0.1] * 20, 0.05)
     add(3, [9.0, 5.0, 6.0, 8.0, 7.0], 0.9, [10.0, 1.0, 1.0, 1.0, 1.0])
     add(3, [20.0], 0.67)
-    crown = crown_sightings(
-        np.array(cells), np.array(z), np.array(weight), np.array(p), 5, min_probability=0.67
-    )
+    cells, z, weight, p = (np.array(a) for a in (cells, z, weight, p))
+    median = np.array([0.0, 0.0, 0.1, 6.9, np.nan])
+    crown = crown_sightings(cells, z, weight, p, median, min_probability=0.67)
     assert np.isnan(crown[0]) and np.isnan(crown[2]) and np.isnan(crown[4])
     assert crown[1] == 9.25  # midway between the third and fourth of six equal weights
     assert crown[3] == 9.0  # the weight of 10 carries the median; 20 m is no sighting
+    # a median less than 2 m below the crown is the crown's own: nothing to raise
+    median[3] = 7.1
+    assert np.isnan(crown_sightings(cells, z, weight, p, median, min_probability=0.67)[3])
 
 
 def test_elevation_cue_ignores_an_isolated_matching_error():
