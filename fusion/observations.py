@@ -109,6 +109,22 @@ def normal_z_image(
     return nz
 
 
+def close_neighbours(values: np.ndarray, threshold) -> np.ndarray:
+    """(H, W) uint8: how many of each cell's 8 neighbours lie within ``threshold`` of
+    its value (a scalar or an (H, W) array); unknown (NaN) neighbours never do."""
+    v = np.asarray(values, dtype=np.float32)
+    padded = np.pad(v, 1, constant_values=np.nan)
+    H, W = v.shape
+    near = np.zeros(v.shape, np.uint8)
+    with np.errstate(invalid="ignore"):
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                if dr or dc:
+                    nb = padded[1 + dr : 1 + dr + H, 1 + dc : 1 + dc + W]
+                    near += np.abs(nb - v) <= threshold
+    return near
+
+
 def depth_outliers(
     depth: np.ndarray, *, rel: float = 0.03, jump: float = 1.0, support: int = 2
 ) -> np.ndarray:
@@ -123,17 +139,7 @@ def depth_outliers(
     same surface; a median filter would shave those off.
     """
     d = np.asarray(depth, dtype=np.float32)
-    padded = np.pad(d, 1, constant_values=np.nan)
-    H, W = d.shape
-    thr = np.maximum(jump, rel * d)
-    near = np.zeros(d.shape, np.uint8)
-    with np.errstate(invalid="ignore"):
-        for dr in (-1, 0, 1):
-            for dc in (-1, 0, 1):
-                if dr or dc:
-                    nb = padded[1 + dr : 1 + dr + H, 1 + dc : 1 + dc + W]
-                    near += np.abs(nb - d) <= thr
-    return np.isfinite(d) & (near < support)
+    return np.isfinite(d) & (close_neighbours(d, np.maximum(jump, rel * d)) < support)
 
 
 def depth_jumps(depth: np.ndarray, *, k: int = 3, rel: float = 0.03, jump: float = 1.0):

@@ -61,7 +61,7 @@ from .crowns import BENEATH_TOP_M, CROWN_QUANTILE, crown_sightings, crown_tops
 from .dsm_depth import DsmSurface
 from .ground import dtm_from_dsm
 from .interpolate import push_pull_fill, small_holes
-from .observations import ViewObservations, lift_depth, observe
+from .observations import ViewObservations, close_neighbours, lift_depth, observe
 from .raster_forest import classify_rasters, synthetic_raster_forest
 from .robust import (
     group_count,
@@ -566,17 +566,8 @@ def isolated_spikes(
     neighbours, whereas a cell on a real edge shares its height with the neighbours
     on its own side. Cells seen more than ``max_count`` times are trusted.
     """
-    H, W = dsm.shape
-    pad = np.pad(dsm, 1, constant_values=np.nan)
-    differ = np.zeros((H, W), np.int16)
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            if dy == dx == 0:
-                continue
-            nb = pad[1 + dy : 1 + dy + H, 1 + dx : 1 + dx + W]
-            with np.errstate(invalid="ignore"):
-                differ += (np.abs(dsm - nb) > jump) | np.isnan(nb)
-    return np.isfinite(dsm) & (count <= max_count) & (differ >= 7)
+    alone = close_neighbours(dsm, jump) <= 1  # at least 7 of 8 differ or are unknown
+    return np.isfinite(dsm) & (count <= max_count) & alone
 
 
 def _fill_small_rgb(ortho, seen, holes):

@@ -7,6 +7,7 @@ from fusion.crowns import crown_sightings, crown_tops
 from fusion.ground import dtm_from_dsm
 from fusion.interpolate import push_pull_fill, small_holes
 from fusion.observations import (
+    close_neighbours,
     depth_jumps,
     depth_outliers,
     height_weights,
@@ -24,7 +25,7 @@ from fusion.robust import (
     group_weighted_quantile,
     vector_median,
 )
-from fusion.scene_fusion import elevation_image, top_surface_votes
+from fusion.scene_fusion import elevation_image, isolated_spikes, top_surface_votes
 from fusion.sigma_points import N_FEATURES, feature_cues, sigma_points
 from workbench.camera import Camera, look_at_rotation
 from workbench.raster import Grid
@@ -199,6 +200,23 @@ def test_depth_jumps_beside_a_hole_use_the_known_side():
     # 3 px right of the edge is unknown; 1 m from the roof is a ramp's middle of 2 m
     assert j[5:35, 20].all()
     assert not j[5:35, 3:20].any() and not j[5:35, 25:37].any()
+
+
+def test_close_neighbours_and_isolated_spikes_by_hand():
+    """A 3 x 4 height field: a spike at (1, 1), an unknown cell at (0, 3), and a roof
+    edge (5 m) along the last column."""
+    h = np.array([[0.0, 0.2, 0.0, np.nan], [0.1, 9.0, 0.4, 5.0], [0.0, 0.0, 0.8, 5.2]])
+    near = close_neighbours(h, 1.0)
+    # (0, 0): (0, 1) and (1, 0) within 1 m, the spike not; (1, 2): (0, 1), (0, 2),
+    # (2, 1) and (2, 2), not the spike, the unknown cell or the roof's two cells
+    assert near[0, 0] == 2 and near[1, 1] == 0 and near[1, 2] == 4 and near[2, 2] == 2
+    assert near[1, 3] == 1 and near[2, 3] == 1  # the roof's edge: only each other
+    count = np.full(h.shape, 3)
+    count[1:, 3] = 5  # seen often enough to be trusted
+    spikes = isolated_spikes(h, count)
+    assert spikes[1, 1] and spikes.sum() == 1
+    count[2, 3] = 4  # thinly seen: the roof's lone corner counts as a spike too
+    assert isolated_spikes(h, count)[2, 3]
 
 
 def test_depth_outliers_are_isolated_pixels_not_corners_or_rims():
