@@ -7,7 +7,8 @@ forked from). Medians over ``--repeat`` runs; this machine is noisy.
 Measured: sample generation (tiny, small), workbench compare, fusion of small, the
 super-pixel and voxel paths on small (with the voxel paper's robustness experiment), what
 a noise-free sensor would score on small's height metrics (benchmarks/height_floor.py),
-and the 50 AHN3 building clouds (benchmarks/ahn3.py).
+what the super-pixel path's class CRF can reach (benchmarks/crf_ceiling.py), and the 50
+AHN3 building clouds (benchmarks/ahn3.py).
 
 Usage: python benchmarks/run.py [--presets tiny small] [--repeat 3] [--out bench_out]
 """
@@ -24,6 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from crf_ceiling import crf_ceiling, print_ceiling
 from height_floor import height_floor
 
 CHILD = r"""
@@ -493,6 +495,9 @@ def main() -> int:
             sp = bench_superpixel(Path(tmp) / "fusion_0", scene, args.repeat, Path(tmp))
             results["superpixel_small"] = sp
             print_superpixel(sp)
+            ceiling = crf_ceiling(Path(tmp) / "superpixel_0", scene)
+            results["crf_ceiling_small"] = ceiling
+            print_ceiling(ceiling)
             vx = bench_voxel(scene, Path(tmp) / "fusion_0", args.repeat, Path(tmp))
             results["voxel_small"] = vx
             print_voxel(vx, floor)
