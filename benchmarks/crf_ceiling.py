@@ -127,8 +127,8 @@ def crf_ceiling(run_dir: Path, scene: Path) -> dict:
     crf = refine_classes(graph, omega)
     majority = superpixel_majority(labels, np.where(no_data, 0, truth), graph.n)
     scored = majority > 0
-    wrong = scored & (crf != majority)
     patch = wrong_patches(graph.edges, crf, majority)
+    wrong = patch >= 0
     support = patch_support(graph.edges, graph.boundary, crf, majority, patch)
     mendable = wrong.copy()
     mendable[wrong] = support[patch[wrong]] > 0.5
