@@ -41,7 +41,9 @@ from .voxel_proxy import (
     consistent_band,
     ellipsoid_normals,
     filter_levels,
+    fused_column_heights,
     fused_ground_columns,
+    fused_level_heights,
     height_weighted_variance,
     highest_tied,
     occupancy,
@@ -106,6 +108,9 @@ class VoxelOptions:
     fusion_ground : bool
         With a fusion run's nDSM, columns it puts below ``min_height_m`` are ground
         (:func:`~modeling.voxel_proxy.fused_ground_columns`).
+    fusion_heights : bool
+        With a fusion run's nDSM, flat roof levels stand at its height
+        (:func:`~modeling.voxel_proxy.fused_level_heights`).
     ground_gsd_m : float
         Texel size of the ground texture, metres.
     seed : int
@@ -131,6 +136,7 @@ class VoxelOptions:
     keep_views: float = 0.75
     min_view_fraction: float = 0.3
     fusion_ground: bool = True
+    fusion_heights: bool = True
     ground_gsd_m: float = 0.5
     seed: int = 0
 
@@ -252,8 +258,9 @@ def building_proxy(
     layer, value = column_minimum(m)
     discarded = variance_outliers(value, options.outlier_sigma)
     on_fused_ground = np.zeros(len(value), bool)
-    if fused_ndsm is not None and options.fusion_ground:
-        ground = fused_ground_columns(frame, *fused_ndsm, options.min_height_m)
+    fused = fused_column_heights(frame, *fused_ndsm) if fused_ndsm is not None else None
+    if fused is not None and options.fusion_ground:
+        ground = fused_ground_columns(fused, options.min_height_m)
         on_fused_ground = ground[columns] & ~discarded
         discarded |= on_fused_ground
     # the run around the highest tied voxel, measured from that voxel's m_i
@@ -265,7 +272,7 @@ def building_proxy(
     min_height = np.full((nx, ny), np.nan)
     min_height[columns] = np.where(discarded, np.nan, layer * r)
     levels = np.zeros((nx, ny), np.int64)
-    level_heights = np.zeros(0)
+    level_heights = photo_heights = np.zeros(0)
     kept = np.flatnonzero(~discarded)
     n_clusters = 0
     if len(kept):
@@ -288,6 +295,11 @@ def building_proxy(
         col_levels[kept] = rank[labels]
         levels[columns] = col_levels
         levels = filter_levels(levels, columns)
+        photo_heights = level_heights[np.unique(levels[levels > 0]) - 1]
+        if fused is not None and options.fusion_heights:
+            levels, level_heights = fused_level_heights(
+                levels, level_heights, fused, 0.5 * r, 1.5 * r
+            )
     times["clustering"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -303,6 +315,7 @@ def building_proxy(
         "gis_height_m": round(float(height), 3),
         "base_z": round(float(base_z), 3),
         "roof_heights_m": [round(float(level_heights[u - 1]), 3) for u in used],
+        "roof_heights_photo_m": [round(float(h), 3) for h in photo_heights],
         "height_clusters": n_clusters,
         "voxels": int(columns.sum() * nz),
         "voxel_grid": [nx, ny, nz],

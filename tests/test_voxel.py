@@ -29,7 +29,9 @@ from modeling.voxel_proxy import (
     dominant_axes,
     ellipsoid_normals,
     filter_levels,
+    fused_column_heights,
     fused_ground_columns,
+    fused_level_heights,
     highest_tied,
     occupancy,
     proxy_mesh,
@@ -83,7 +85,7 @@ def test_voxelise_aligns_with_the_footprint_and_grows_it():
     assert grown.sum() == 12 * 8
 
 
-def test_fused_ground_columns_follow_the_ndsm_under_each_column():
+def test_fused_column_heights_follow_the_ndsm_under_each_column():
     """A 30-degree frame over a 0.25 m nDSM: a 4 m roof on the local strip x < 6 m,
     paving beyond it; unseen cells and cells off the grid decide nothing."""
     angle = np.radians(30)
@@ -95,14 +97,47 @@ def test_fused_ground_columns_follow_the_ndsm_under_each_column():
     x, y = grid.xmin + (cols + 0.5) * grid.gsd, grid.ymax - (rows + 0.5) * grid.gsd
     local_x = frame.to_local_xy(np.column_stack([x.ravel(), y.ravel()]))[:, 0].reshape(x.shape)
     ndsm = np.where(local_x < frame.x0 + 6.0, 4.0, 0.3)
-    ground = fused_ground_columns(frame, ndsm, grid, min_height=2.0)
-    assert ground.shape == columns.shape
+    fused = fused_column_heights(frame, ndsm, grid)
+    assert fused.shape == columns.shape
     # 10 x 6 columns of 1 m from the frame's corner: the first 6 along x are the roof
+    np.testing.assert_allclose(fused[:6], 4.0)
+    np.testing.assert_allclose(fused[6:], 0.3)
+    ground = fused_ground_columns(fused, min_height=2.0)
     assert not ground[:6].any() and ground[6:].all()
     ndsm[:, :] = np.nan
-    assert not fused_ground_columns(frame, ndsm, grid, min_height=2.0).any()
+    unseen = fused_column_heights(frame, ndsm, grid)
+    assert np.isnan(unseen).all() and not fused_ground_columns(unseen, 2.0).any()
     off_grid = Grid(xmin=0.0, ymax=10.0, gsd=0.25, width=40, height=40)
-    assert not fused_ground_columns(frame, np.zeros((40, 40)), off_grid, 2.0).any()
+    assert np.isnan(fused_column_heights(frame, np.zeros((40, 40)), off_grid)).all()
+
+
+def test_fused_level_heights_place_flat_levels_and_merge_them():
+    """One flat roof at 3.7 m that the photo-consistency split into levels at 3 and 5 m,
+    and a pitched level whose fused heights run from 6 to 10 m."""
+    levels = np.zeros((8, 6), np.int64)
+    levels[:3] = 1  # 18 columns
+    levels[3:5] = 2  # 12 columns
+    levels[5:] = 4  # 18 columns; level 3 is unused
+    fused = np.full(levels.shape, np.nan)
+    rng = np.random.default_rng(0)
+    fused[:5] = 3.7 + rng.uniform(-0.05, 0.05, (5, 6))
+    fused[5:] = np.linspace(6.0, 10.0, 18).reshape(3, 6)
+    fused[0, 0] = np.nan  # unseen: no vote
+    fused[4, :2] = 9.0  # a tree over two columns of the flat level
+    out, heights = fused_level_heights(levels, np.array([3.0, 5.0, 7.0, 9.0]), fused, 0.5, 1.5)
+    # the flat levels merge into one at the median of their fused heights...
+    flat = fused[:3][np.isfinite(fused[:3])], fused[3:5]
+    expected = (18 * np.median(flat[0]) + 12 * np.median(flat[1])) / 30
+    np.testing.assert_allclose(heights, [expected, 9.0])
+    assert abs(heights[0] - 3.7) < 0.05
+    # ...the pitched one keeps its photo-consistent height, and the levels are renumbered
+    np.testing.assert_array_equal(out, np.where(levels == 4, 2, np.minimum(levels, 1)))
+    # it is the flatness test that keeps it: called flat, it would drop to its median
+    _, lowered = fused_level_heights(levels, np.array([3.0, 5.0, 7.0, 9.0]), fused, 10.0, 1.5)
+    np.testing.assert_allclose(lowered[-1], 8.0)
+    none = np.zeros((3, 3), np.int64)
+    empty, no_heights = fused_level_heights(none, np.zeros(0), fused[:3, :3], 0.5, 1.5)
+    assert not empty.any() and len(no_heights) == 0
 
 
 def test_ellipsoid_normals_point_up_on_top_and_out_at_the_sides():
@@ -442,6 +477,22 @@ def test_voxel_proxies_beat_the_gis_heights(voxel_run, tiny_scene):
     assert sum(b["columns_on_fused_ground"] for b in record["buildings"]) > 0
     objects = metrics["footprint_2d"]["objects"]
     assert objects["found"] >= objects["truth_buildings"] - 1  # tiny's 20 views miss some walls
+
+
+def test_flat_roofs_stand_at_the_fused_height(voxel_run, tiny_scene):
+    """With --fusion (here the truth rasters) a flat roof stands at the nDSM's height, not
+    at the photo-consistent voxel (tiny's first house: half a voxel too high)."""
+    _, record, _ = voxel_run
+    assert record["parameters"]["fusion_heights"]
+    truth = json.loads((tiny_scene / "truth" / "buildings.json").read_text())["buildings"]
+    flat = 0
+    for b in record["buildings"]:
+        gis = Polygon(b["gis_footprint"]["coordinates"][0])
+        t = max(truth, key=lambda t: gis.intersection(Polygon(t["footprint"][0])).area)
+        if t["roof_type"] == "flat":
+            flat += 1
+            assert abs(b["base_z"] + max(b["roof_heights_m"]) - t["ridge_z"]) < 0.15
+    assert flat >= 2
 
 
 def test_graph_cuts_lower_the_seam_cost(voxel_run):

@@ -355,8 +355,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--fusion",
         type=Path,
         metavar="FUSION_DIR",
-        help="a fusion run: its DTM is the ground, its nDSM marks ground columns, its "
-        "building mask the footprints when there are none (default: a flat ground plane)",
+        help="a fusion run: its DTM is the ground, its nDSM marks ground columns and "
+        "places flat roofs, its building mask stands in for missing footprints "
+        "(default: a flat ground plane)",
     )
     q.add_argument(
         "--no-fusion-ground",
@@ -364,6 +365,13 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_false",
         help="keep the columns the --fusion nDSM puts on the ground: photo-consistency "
         "alone decides the proxies' extent, as in the paper",
+    )
+    q.add_argument(
+        "--no-fusion-heights",
+        dest="fusion_heights",
+        action="store_false",
+        help="keep the photo-consistent height of flat roof levels instead of the --fusion "
+        "nDSM's, as in the paper",
     )
     q.add_argument(
         "--voxel",
@@ -653,6 +661,7 @@ def cmd_model_voxel(args) -> int:
         grow_m=args.grow,
         consistency=args.consistency,
         fusion_ground=args.fusion_ground,
+        fusion_heights=args.fusion_heights,
         seed=args.seed,
     )
     record = run_voxel(
