@@ -268,7 +268,7 @@ from workbench.evaluate import evaluate
 from workbench.runs import load_run
 from workbench.truth import load_scene_truth
 scene, fusion, out = (Path(a) for a in sys.argv[1:4])
-options = VoxelOptions(fusion_heights=sys.argv[4:] != ["photo"])
+options = VoxelOptions(fusion_flat_roofs=sys.argv[4:] != ["photo"])
 r = run_voxel(scene, out, options, fusion_dir=fusion, overwrite=True)
 truth = load_scene_truth(scene)
 ev = evaluate(load_run(out), truth)
@@ -316,7 +316,7 @@ def bench_voxel(scene: Path, fusion: Path, repeat: int, work: Path) -> dict:
     res = runs[0][0]
     stages = stage_medians(runs)
     robust, _, _ = run_child(ROBUSTNESS_CHILD, str(scene), str(fusion))
-    # the flat roofs' heights from photo-consistency alone, as in the paper
+    # the flat roofs' heights and extent from photo-consistency alone, as in the paper
     photo, _, _ = run_child(
         VOXEL_CHILD, str(scene), str(fusion), str(work / "voxel_photo"), "photo"
     )
@@ -333,8 +333,9 @@ def bench_voxel(scene: Path, fusion: Path, repeat: int, work: Path) -> dict:
         "height_error_pct_by_truth_roof": _by_roof(res["rows"]),
         "gis_input": res["gis"],
         "robustness": robust,
-        "photo_heights": {
+        "photo_flat_roofs": {
             "height_error_pct_median": photo["metrics"]["buildings"]["height_error_pct_median"],
+            "footprint_2d_quality": photo["metrics"]["footprint_2d"]["quality"],
             "height_error_pct_by_truth_roof": _by_roof(photo["rows"]),
         },
     }
@@ -373,15 +374,16 @@ def print_voxel(v: dict, floor: dict | None = None) -> None:
         for k, g in sorted(v["height_error_pct_by_truth_roof"].items())
     )
     print(f"  height error by true roof type: {by}")
-    photo = v.get("photo_heights")
+    photo = v.get("photo_flat_roofs")
     if photo:
         by = ", ".join(
             f"{k} {g['median_abs_pct']:.1f} %"
             for k, g in sorted(photo["height_error_pct_by_truth_roof"].items())
         )
         print(
-            f"  flat roofs at their photo-consistent height (--no-fusion-heights): height "
-            f"error median {photo['height_error_pct_median']:.1f} % ({by})"
+            f"  flat roofs as photo-consistency leaves them (--no-fusion-flat-roofs): height "
+            f"error median {photo['height_error_pct_median']:.1f} % ({by}); footprint 2D "
+            f"quality {photo['footprint_2d_quality']:.3f}"
         )
     for p in (floor or {}).get("voxel_proxies", []):
         print(

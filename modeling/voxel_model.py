@@ -42,8 +42,8 @@ from .voxel_proxy import (
     ellipsoid_normals,
     filter_levels,
     fused_column_heights,
+    fused_flat_levels,
     fused_ground_columns,
-    fused_level_heights,
     height_weighted_variance,
     highest_tied,
     occupancy,
@@ -108,9 +108,10 @@ class VoxelOptions:
     fusion_ground : bool
         With a fusion run's nDSM, columns it puts below ``min_height_m`` are ground
         (:func:`~modeling.voxel_proxy.fused_ground_columns`).
-    fusion_heights : bool
-        With a fusion run's nDSM, flat roof levels stand at its height
-        (:func:`~modeling.voxel_proxy.fused_level_heights`).
+    fusion_flat_roofs : bool
+        With a fusion run's nDSM, flat roof levels stand at its height and grow over the
+        empty columns beside them at that height
+        (:func:`~modeling.voxel_proxy.fused_flat_levels`).
     ground_gsd_m : float
         Texel size of the ground texture, metres.
     seed : int
@@ -136,7 +137,7 @@ class VoxelOptions:
     keep_views: float = 0.75
     min_view_fraction: float = 0.3
     fusion_ground: bool = True
-    fusion_heights: bool = True
+    fusion_flat_roofs: bool = True
     ground_gsd_m: float = 0.5
     seed: int = 0
 
@@ -296,9 +297,9 @@ def building_proxy(
         levels[columns] = col_levels
         levels = filter_levels(levels, columns)
         photo_heights = level_heights[np.unique(levels[levels > 0]) - 1]
-        if fused is not None and options.fusion_heights:
-            levels, level_heights = fused_level_heights(
-                levels, level_heights, fused, 0.5 * r, 1.5 * r
+        if fused is not None and options.fusion_flat_roofs:
+            levels, level_heights = fused_flat_levels(
+                levels, level_heights, fused, columns, 0.5 * r, 1.5 * r
             )
     times["clustering"] = time.perf_counter() - t0
 

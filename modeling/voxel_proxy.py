@@ -569,20 +569,29 @@ def fused_ground_columns(fused: np.ndarray, min_height: float) -> np.ndarray:
         return fused < min_height
 
 
-def fused_level_heights(
-    levels: np.ndarray, level_heights: np.ndarray, fused: np.ndarray, flat: float, merge: float
+def fused_flat_levels(
+    levels: np.ndarray,
+    level_heights: np.ndarray,
+    fused: np.ndarray,
+    domain: np.ndarray,
+    flat: float,
+    merge: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Stand each flat roof level at the median fused height of its columns, and merge
-    the levels that then lie closer than ``merge`` (not in the paper).
+    """Stand each flat roof level at the median fused height of its columns, grow it over
+    the empty columns beside it at that height, and merge the levels that then lie closer
+    than ``merge`` (not in the paper).
 
-    Over a roof of uniform colour the voxels a metre or two above it are about as
-    photo-consistent as the roof itself, and k-means splits the noisy heights of one
-    flat roof into two levels that straddle it (for heights spread evenly or normally
-    about one value, k = 2 always removes more than 30 % of the k = 1 error). Dense
-    matching is not blind there. A level is flat when at least half its columns' fused
-    heights lie within ``flat / 2`` of their median; a pitched level, whose median lies
-    below its ridge, keeps its photo-consistent height. Photo-consistency still decides
-    which columns are roof and how they group into levels.
+    Over a roof of uniform colour the voxels a metre or two above it, and on a low roof
+    the paving beside it, are about as photo-consistent as the roof itself. k-means then
+    splits the noisy heights of one flat roof into two levels that straddle it (for
+    heights spread evenly or normally about one value, k = 2 always removes more than 30 %
+    of the k = 1 error), and parts of the roof fall to the ground level or are discarded.
+    Dense matching is not blind there. A level is flat when at least half its columns'
+    fused heights lie within ``flat / 2`` of their median; it then stands at that median
+    and takes every empty column of ``domain`` connected to it (4-neighbours) whose fused
+    height lies as close to it. A pitched level, whose median lies below its ridge, keeps
+    its photo-consistent height and extent: photo-consistency still decides which levels
+    there are and where they stand.
 
     Parameters
     ----------
@@ -592,6 +601,8 @@ def fused_level_heights(
         Heights of levels 1..K, metres, increasing.
     fused : (nx, ny) float
         Fused height of each column, metres, NaN unknown (:func:`fused_column_heights`).
+    domain : (nx, ny) bool
+        Columns that may be building.
     flat, merge : float
         Metres.
 
@@ -603,20 +614,28 @@ def fused_level_heights(
         Their heights; merged levels take the column-weighted mean of theirs.
     """
     heights = np.array(level_heights, dtype=np.float64)
+    out = levels.copy()
+    known = np.isfinite(fused)
     for lev in range(1, len(heights) + 1):
-        h = fused[(levels == lev) & np.isfinite(fused)]
-        if len(h) and np.mean(np.abs(h - np.median(h)) <= flat / 2) >= 0.5:
-            heights[lev - 1] = np.median(h)
-    used, size = np.unique(levels[levels > 0], return_counts=True)
+        region = levels == lev
+        h = fused[region & known]
+        if not len(h) or np.mean(np.abs(h - np.median(h)) <= flat / 2) < 0.5:
+            continue
+        heights[lev - 1] = np.median(h)
+        with np.errstate(invalid="ignore"):
+            at_height = domain & (out == 0) & (np.abs(fused - heights[lev - 1]) <= flat / 2)
+        grown = ndimage.binary_propagation(region, structure=_CROSS, mask=region | at_height)
+        out[grown & (out == 0)] = lev
+    used, size = np.unique(out[out > 0], return_counts=True)
     if not len(used):
-        return levels, np.zeros(0)
+        return out, np.zeros(0)
     order = np.argsort(heights[used - 1], kind="stable")
     group = np.concatenate([[0], np.cumsum(np.diff(heights[used[order] - 1]) >= merge)])
     renumber = np.zeros(len(heights) + 1, np.int64)
     renumber[used[order]] = group + 1
     weight = size[order]
     merged = np.bincount(group, weight * heights[used[order] - 1]) / np.bincount(group, weight)
-    return renumber[levels], merged
+    return renumber[out], merged
 
 
 def _nanmedian(a: np.ndarray, axis: int) -> np.ndarray:

@@ -30,8 +30,8 @@ from modeling.voxel_proxy import (
     ellipsoid_normals,
     filter_levels,
     fused_column_heights,
+    fused_flat_levels,
     fused_ground_columns,
-    fused_level_heights,
     highest_tied,
     occupancy,
     proxy_mesh,
@@ -111,32 +111,45 @@ def test_fused_column_heights_follow_the_ndsm_under_each_column():
     assert np.isnan(fused_column_heights(frame, np.zeros((40, 40)), off_grid)).all()
 
 
-def test_fused_level_heights_place_flat_levels_and_merge_them():
-    """One flat roof at 3.7 m that the photo-consistency split into levels at 3 and 5 m,
-    and a pitched level whose fused heights run from 6 to 10 m."""
-    levels = np.zeros((8, 6), np.int64)
+def test_fused_flat_levels_place_grow_and_merge_flat_levels():
+    """One flat roof at 3.7 m that the photo-consistency split into levels at 3 and 5 m
+    and left holes in, and a pitched level whose fused heights run from 6 to 10 m."""
+    levels = np.zeros((10, 6), np.int64)
     levels[:3] = 1  # 18 columns
     levels[3:5] = 2  # 12 columns
-    levels[5:] = 4  # 18 columns; level 3 is unused
+    levels[5:8] = 4  # 18 columns; level 3 is unused; rows 8 and 9 empty
     fused = np.full(levels.shape, np.nan)
     rng = np.random.default_rng(0)
     fused[:5] = 3.7 + rng.uniform(-0.05, 0.05, (5, 6))
-    fused[5:] = np.linspace(6.0, 10.0, 18).reshape(3, 6)
+    fused[5:8] = np.linspace(6.0, 10.0, 18).reshape(3, 6)
     fused[0, 0] = np.nan  # unseen: no vote
     fused[4, :2] = 9.0  # a tree over two columns of the flat level
-    out, heights = fused_level_heights(levels, np.array([3.0, 5.0, 7.0, 9.0]), fused, 0.5, 1.5)
-    # the flat levels merge into one at the median of their fused heights...
-    flat = fused[:3][np.isfinite(fused[:3])], fused[3:5]
-    expected = (18 * np.median(flat[0]) + 12 * np.median(flat[1])) / 30
+    fused[8] = 9.0  # beside the pitched level, at its height: a pitched level does not grow
+    fused[9] = 3.7  # at the flat roof's height, but not connected to it
+    domain = np.ones(levels.shape, bool)
+    levels[1, 5] = 0  # a hole at the roof's height: filled
+    levels[2, 4], fused[2, 4] = 0, 5.0  # a hole at another height: kept
+    levels[0, 5], domain[0, 5] = 0, False  # outside the domain: kept
+    photo = np.array([3.0, 5.0, 7.0, 9.0])
+    out, heights = fused_flat_levels(levels, photo, fused, domain, 0.5, 1.5)
+    # the flat levels merge at the column-weighted mean of their fused medians...
+    known = np.isfinite(fused)
+    med1 = np.median(fused[(levels == 1) & known])
+    med2 = np.median(fused[levels == 2])
+    n1 = (levels == 1).sum() + 1
+    expected = (n1 * med1 + 12 * med2) / (n1 + 12)
     np.testing.assert_allclose(heights, [expected, 9.0])
     assert abs(heights[0] - 3.7) < 0.05
-    # ...the pitched one keeps its photo-consistent height, and the levels are renumbered
-    np.testing.assert_array_equal(out, np.where(levels == 4, 2, np.minimum(levels, 1)))
+    # ...the hole at the roof's height joins it, and the pitched level keeps its photo-
+    # consistent height and extent (levels renumbered by height)
+    want = np.where(levels == 4, 2, np.minimum(levels, 1))
+    want[1, 5] = 1
+    np.testing.assert_array_equal(out, want)
     # it is the flatness test that keeps it: called flat, it would drop to its median
-    _, lowered = fused_level_heights(levels, np.array([3.0, 5.0, 7.0, 9.0]), fused, 10.0, 1.5)
-    np.testing.assert_allclose(lowered[-1], 8.0)
-    none = np.zeros((3, 3), np.int64)
-    empty, no_heights = fused_level_heights(none, np.zeros(0), fused[:3, :3], 0.5, 1.5)
+    _, lowered = fused_flat_levels(levels, photo, fused, domain, 10.0, 1.5)
+    np.testing.assert_allclose(lowered[-1], np.median(fused[5:8]))
+    none, block = np.zeros((3, 3), np.int64), np.s_[:3, :3]
+    empty, no_heights = fused_flat_levels(none, np.zeros(0), fused[block], domain[block], 0.5, 1.5)
     assert not empty.any() and len(no_heights) == 0
 
 
@@ -483,7 +496,7 @@ def test_flat_roofs_stand_at_the_fused_height(voxel_run, tiny_scene):
     """With --fusion (here the truth rasters) a flat roof stands at the nDSM's height, not
     at the photo-consistent voxel (tiny's first house: half a voxel too high)."""
     _, record, _ = voxel_run
-    assert record["parameters"]["fusion_heights"]
+    assert record["parameters"]["fusion_flat_roofs"]
     truth = json.loads((tiny_scene / "truth" / "buildings.json").read_text())["buildings"]
     flat = 0
     for b in record["buildings"]:

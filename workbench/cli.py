@@ -356,7 +356,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         metavar="FUSION_DIR",
         help="a fusion run: its DTM is the ground, its nDSM marks ground columns and "
-        "places flat roofs, its building mask stands in for missing footprints "
+        "places and grows flat roofs, its building mask stands in for missing footprints "
         "(default: a flat ground plane)",
     )
     q.add_argument(
@@ -367,11 +367,11 @@ def build_parser() -> argparse.ArgumentParser:
         "alone decides the proxies' extent, as in the paper",
     )
     q.add_argument(
-        "--no-fusion-heights",
-        dest="fusion_heights",
+        "--no-fusion-flat-roofs",
+        dest="fusion_flat_roofs",
         action="store_false",
-        help="keep the photo-consistent height of flat roof levels instead of the --fusion "
-        "nDSM's, as in the paper",
+        help="keep the photo-consistent height and extent of flat roofs instead of "
+        "placing and growing them on the --fusion nDSM, as in the paper",
     )
     q.add_argument(
         "--voxel",
@@ -661,7 +661,7 @@ def cmd_model_voxel(args) -> int:
         grow_m=args.grow,
         consistency=args.consistency,
         fusion_ground=args.fusion_ground,
-        fusion_heights=args.fusion_heights,
+        fusion_flat_roofs=args.fusion_flat_roofs,
         seed=args.seed,
     )
     record = run_voxel(
