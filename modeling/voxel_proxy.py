@@ -619,9 +619,12 @@ def fused_flat_levels(
     for lev in range(1, len(heights) + 1):
         region = levels == lev
         h = fused[region & known]
-        if not len(h) or np.mean(np.abs(h - np.median(h)) <= flat / 2) < 0.5:
+        if not len(h):
             continue
-        heights[lev - 1] = np.median(h)
+        middle = np.median(h)
+        if np.mean(np.abs(h - middle) <= flat / 2) < 0.5:
+            continue
+        heights[lev - 1] = middle
         with np.errstate(invalid="ignore"):
             at_height = domain & (out == 0) & (np.abs(fused - heights[lev - 1]) <= flat / 2)
         grown = ndimage.binary_propagation(region, structure=_CROSS, mask=region | at_height)
