@@ -23,10 +23,11 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from fusion.cli_fusion import fusion_arguments, run_fusion
-from modeling.cli_superpixel import run_superpixel
-from modeling.superpixel_model import SuperpixelOptions
+from fusion.run import run_fusion
+from modeling.superpixel.options import SuperpixelOptions
+from modeling.superpixel.path import run_superpixel
 from workbench.meshes import concatenate_meshes, read_mesh
+from workbench.model_run import write_model_run
 from workbench.raycast import raycasting_scene, unsigned_distance
 
 CITY3D = {"rms_m": 0.258, "triangles": 113, "seconds": 1.4}
@@ -37,9 +38,9 @@ def model_cloud(cloud: Path, work: Path) -> dict:
     """Fuse and model one cloud; score the model against the cloud's points."""
     t0 = time.perf_counter()
     fusion_dir, model_dir = work / f"{cloud.stem}_fusion", work / f"{cloud.stem}_model"
-    run_fusion(fusion_arguments(points=cloud, out=fusion_dir, overwrite=True))
+    run_fusion(fusion_dir, points=cloud, overwrite=True)
     options = SuperpixelOptions(all_building=True, min_area_m2=5.0)
-    record = run_superpixel(fusion_dir, model_dir, options, overwrite=True)
+    record = write_model_run(run_superpixel(fusion_dir, options), model_dir, overwrite=True)
     seconds = time.perf_counter() - t0
     points = np.asarray(o3d.io.read_point_cloud(str(cloud)).points)
     meshes = [read_mesh(model_dir / b["mesh"]) for b in record["buildings"]]

@@ -5,7 +5,7 @@ A CRF only relabels whole super-pixels, and only towards what their neighbours s
 script scores, against the truth and with the metric of Table 1 (``_table1``):
 
 - the path's rows (pixel, super-pixel argmax, CRF at the run's omega) and the CRF over a
-  range of omega (:data:`modeling.superpixel_model.OMEGA_CANDIDATES`);
+  range of omega (:data:`modeling.superpixel.class_crf.OMEGA_CANDIDATES`);
 - the super-pixel majority: every super-pixel takes the true class of most of its
   cells, the most any labelling of these super-pixels can score;
 - the neighbour ceiling: the CRF's labels with every wrong patch set right where most of
@@ -30,10 +30,10 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse import csgraph
 
-from modeling.aggregate import superpixel_graph
-from modeling.cli_superpixel import read_fusion_dir
-from modeling.superpixel_model import OMEGA_CANDIDATES, refine_classes
+from modeling.superpixel.aggregation import superpixel_graph
+from modeling.superpixel.class_crf import OMEGA_CANDIDATES, refine_classes
 from workbench import metrics
+from workbench.fusion_run import read_fusion_run
 from workbench.raster import read_raster
 from workbench.truth import truth_rasters
 
@@ -110,7 +110,8 @@ def crf_ceiling(run_dir: Path, scene: Path) -> dict:
     """The figures of the module docstring for one ``workbench model superpixel`` run."""
     record = json.loads((run_dir / "model.json").read_text())
     omega = record["parameters"]["omega_class"]
-    rasters, grid, _ = read_fusion_dir(record["input"]["fusion"])
+    fusion = read_fusion_run(record["inputs"]["fusion"], ("ortho", "dsm", "class_prob", "class"))
+    rasters, grid = fusion.rasters, fusion.grid
     prob = rasters["class_prob"]
     labels = read_raster(run_dir / "superpixels.tif")[0][0].astype(np.int64)
     labels -= labels.min()

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from modeling.voxel_proxy import cluster_heights, voxelise
+from modeling.voxel.proxy import cluster_heights, voxelise
 from workbench import metrics
 from workbench.footprints import read_footprints
 from workbench.meshio import read_ply
@@ -112,7 +112,7 @@ def voxel_proxy_floor(
 ) -> dict:
     """Median absolute building height error (percent) of perfect 2.5D proxies: the
     true height above ground of every ``r`` column of each true footprint, clustered by
-    the voxel path's :func:`~modeling.voxel_proxy.cluster_heights` with ``cluster_error``
+    the voxel path's :func:`~modeling.voxel.proxy.cluster_heights` with ``cluster_error``
     and snapped to the cluster means, scored as ``workbench compare`` scores a run."""
     grid, ids = truth.grid, truth.building_ids
     above = truth.building_surface - truth.dtm

@@ -10,7 +10,12 @@ a noise-free sensor would score on small's height metrics (benchmarks/height_flo
 what the super-pixel path's class CRF can reach (benchmarks/crf_ceiling.py), and the 50
 AHN3 building clouds (benchmarks/ahn3.py).
 
+Then every registered path on ``small`` seeds 0-5 (:mod:`seeds`): the defaults were chosen
+on seeds 0-2, seeds 3-5 are held out. Everything printed is also written to
+``docs/benchmarks.md``, with the commit it measured.
+
 Usage: python benchmarks/run.py [--presets tiny small] [--repeat 3] [--out bench_out]
+       [--seeds 0 1 2 3 4 5] [--doc docs/benchmarks.md]
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from pathlib import Path
 
 from crf_ceiling import crf_ceiling, print_ceiling
 from height_floor import height_floor
+from seeds import HELD_OUT, TUNED, run_seed, tables
 
 CHILD = r"""
 import json, sys
@@ -85,11 +91,11 @@ def bench_sample(preset: str, repeat: int, work: Path) -> dict:
 
 FUSION_CHILD = r"""
 import json, sys
-from fusion.cli_fusion import fusion_arguments, run_fusion
+from fusion.options import FusionOptions
+from fusion.run import run_fusion
 workers = int(sys.argv[3]) if len(sys.argv) > 3 else None
-args = fusion_arguments(scene=sys.argv[1], out=sys.argv[2], truth=sys.argv[1], overwrite=True,
-                        workers=workers)
-r = run_fusion(args)
+r = run_fusion(sys.argv[2], FusionOptions(workers=workers), scene=sys.argv[1],
+               truth=sys.argv[1], overwrite=True)
 print(json.dumps({k: r[k] for k in ("stages", "observations", "observations_per_s",
                                     "classification_mpx_per_s", "quality", "grid", "workers")}))
 """
@@ -193,16 +199,18 @@ def print_compare(c: dict) -> None:
 SUPERPIXEL_CHILD = r"""
 import json, sys
 from pathlib import Path
-from modeling.cli_superpixel import run_superpixel
-from modeling.superpixel_model import SuperpixelOptions
+from modeling.superpixel.options import SuperpixelOptions
+from modeling.superpixel.path import run_superpixel
+from workbench.model_run import write_model_run
 from workbench.evaluate import evaluate
 from workbench.runs import load_run
 from workbench.truth import load_scene_truth
 fusion, scene, out = (Path(a) for a in sys.argv[1:4])
-r = run_superpixel(fusion, out, SuperpixelOptions(), truth=scene, overwrite=True)
+r = write_model_run(run_superpixel(fusion, SuperpixelOptions(), truth=scene), out,
+                    overwrite=True)
 m = evaluate(load_run(out), load_scene_truth(scene)).metrics
 table1 = {k: v["overall_accuracy"] for k, v in r["classification_table"].items()}
-print(json.dumps({"stages": r["stages"], "grid": r["input"]["grid"], "counts": r["counts"],
+print(json.dumps({"stages": r["stages"], "grid": r["inputs"]["grid"], "counts": r["counts"],
                   "table1": table1,
                   "metrics": {k: m[k] for k in ("footprint_2d", "height", "buildings", "roofs",
                                                  "complexity", "surface") if k in m}}))
@@ -262,26 +270,27 @@ def print_superpixel(sp: dict) -> None:
 VOXEL_CHILD = r"""
 import json, sys
 from pathlib import Path
-from modeling.cli_voxel import run_voxel
-from modeling.voxel_model import VoxelOptions
+from modeling.voxel.options import VoxelOptions
+from modeling.voxel.path import run_voxel
+from workbench.model_run import write_model_run
 from workbench.evaluate import evaluate
 from workbench.runs import load_run
 from workbench.truth import load_scene_truth
 scene, fusion, out = (Path(a) for a in sys.argv[1:4])
 options = VoxelOptions(fusion_flat_roofs=sys.argv[4:] != ["photo"])
-r = run_voxel(scene, out, options, fusion_dir=fusion, overwrite=True)
+r = write_model_run(run_voxel(scene, options, fusion_dir=fusion), out, overwrite=True)
 truth = load_scene_truth(scene)
 ev = evaluate(load_run(out), truth)
 m = ev.metrics
 rows = [{k: b.get(k) for k in ("roof_type_true", "height_error_pct")} for b in ev.buildings]
 # the input as a model: the GIS footprints extruded to their over-estimated heights
-from modeling.cli_voxel import _prism, read_inputs
+from modeling.voxel.inputs import prism, read_inputs
 from workbench.meshio import write_ply
 inputs = read_inputs(scene, VoxelOptions(), fusion_dir=fusion)
 gis = out.parent / (out.name + "_gis")
 (gis / "buildings").mkdir(parents=True, exist_ok=True)
 for f, base, h in inputs.buildings:
-    write_ply(gis / "buildings" / f"{f.id}.ply", *_prism(f.polygon, base, h))
+    write_ply(gis / "buildings" / f"{f.id}.ply", *prism(f.polygon, base, h))
 (gis / "model.json").write_text(json.dumps({"method": "gis", "buildings": [
     {"id": f.id} for f, _, _ in inputs.buildings]}))
 g = evaluate(load_run(gis), truth).metrics
@@ -297,9 +306,10 @@ print(json.dumps({"stages": r["stages"], "counts": r["counts"], "texture": r["te
 ROBUSTNESS_CHILD = r"""
 import json, sys
 from pathlib import Path
-from modeling.cli_voxel import build_proxies, read_inputs
-from modeling.voxel_model import VoxelOptions
-from modeling.voxel_robustness import robustness_experiment
+from modeling.voxel.inputs import read_inputs
+from modeling.voxel.path import build_proxies
+from modeling.voxel.options import VoxelOptions
+from modeling.voxel.robustness import robustness_experiment
 scene, fusion = Path(sys.argv[1]), Path(sys.argv[2])
 options = VoxelOptions()
 inputs = read_inputs(scene, options, fusion_dir=fusion)
@@ -416,8 +426,85 @@ def main() -> int:
         default=1,
         help="fusion runs on the small sample (about 3 minutes each)",
     )
+    ap.add_argument(
+        "--seeds", type=int, nargs="*", default=[*TUNED, *HELD_OUT],
+        help="small seeds every path is scored on (none: skip; about 4 minutes each)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--doc", type=Path, default=Path("docs") / "benchmarks.md",
+        help="the page written with everything printed (none with --doc '')",
+    )  # fmt: skip
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    tee = _Tee(sys.stdout)
+    sys.stdout = tee
+    try:
+        results = run_benchmarks(args)
+    finally:
+        sys.stdout = tee.stream
+    (args.out / "bench.json").write_text(json.dumps(results, indent=1) + "\n")
+    print(f"\nwrote {args.out / 'bench.json'}")
+    if str(args.doc):
+        write_page(args.doc, results, tee.text(), sys.argv[1:])
+        print(f"wrote {args.doc}")
+    return 0
+
+
+class _Tee:
+    """Prints as usual and keeps a copy of what was printed."""
+
+    def __init__(self, stream):
+        self.stream, self.parts = stream, []
+
+    def write(self, text: str) -> int:
+        self.parts.append(text)
+        return self.stream.write(text)
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+    def text(self) -> str:
+        return "".join(self.parts)
+
+
+def _git(*args: str) -> str:
+    proc = subprocess.run(["git", *args], capture_output=True, text=True)
+    return proc.stdout.strip() if proc.returncode == 0 else ""
+
+
+def write_page(path: Path, results: dict, printed: str, argv: list[str]) -> None:
+    """docs/benchmarks.md: the commit and machine, the seeds' tables, all that was printed."""
+    commit = _git("rev-parse", "--short", "HEAD") or "unknown"
+    if _git("status", "--porcelain", "--untracked-files=no"):
+        commit += " with uncommitted changes"
+    memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
+    lines = [
+        "# Benchmarks",
+        "",
+        "Written by `make bench` (`benchmarks/run.py`); do not edit by hand.",
+        "",
+        f"- commit: `{commit}`, {time.strftime('%Y-%m-%d')}",
+        f"- machine: {os.cpu_count()} cores, {memory:.0f} GiB, Python {results['python']}",
+        f"- command: `python benchmarks/run.py {' '.join(argv)}`".rstrip() + "",
+        "",
+    ]
+    if results.get("seeds"):
+        lines += [
+            "## Quality on the tuning seeds and on held-out seeds",
+            "",
+            "`small` city, every path run as a user runs it (`workbench fusion SCENE --truth "
+            "SCENE`, then `workbench model NAME` on that fusion run, then `workbench compare`; "
+            "`benchmarks/seeds.py`). Defaults were chosen on seeds 0-2; seeds 3-5 are held "
+            "out. Wall times are of single runs beside nothing else.",
+            tables(results["seeds"]),
+        ]
+    lines += ["## Speed, memory and quality per stage", "", "```text", printed.rstrip(), "```", ""]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines))
+
+
+def run_benchmarks(args) -> dict:
+    """Every measurement of the module docstring; prints as it goes."""
     results = {"cores": os.cpu_count(), "python": sys.version.split()[0], "sample": []}
     print(f"benchmarks on {os.cpu_count()} cores, medians of {args.repeat} runs")
     with tempfile.TemporaryDirectory(dir=args.out) as tmp:
@@ -532,10 +619,15 @@ def main() -> int:
             print_compare(c)
     print("\nAHN3 building clouds (benchmarks/ahn3.py):", flush=True)
     ahn3 = [sys.executable, str(Path(__file__).with_name("ahn3.py")), "--out", str(args.out)]
-    subprocess.run(ahn3, check=False)
-    (args.out / "bench.json").write_text(json.dumps(results, indent=1) + "\n")
-    print(f"\nwrote {args.out / 'bench.json'}")
-    return 0
+    proc = subprocess.run(ahn3, check=False, capture_output=True, text=True)
+    print(proc.stdout.rstrip())
+    if args.seeds:
+        results["seeds"] = {}
+        for seed in args.seeds:
+            print(f"\nsmall seed {seed}: every path, scored (benchmarks/seeds.py) ...", flush=True)
+            results["seeds"][seed] = run_seed(seed, args.out / "seeds")
+        print(tables(results["seeds"]))
+    return results
 
 
 if __name__ == "__main__":

@@ -16,7 +16,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .robust import group_weighted_quantile
+from workbench.robust import group_weighted_quantile
 
 CROWN_QUANTILE = 0.7  # of a crown cell's weighted heights (crown_tops)
 CROWN_REACH_M = 0.5  # cells this close to a tree cell are crown cells ...

@@ -25,9 +25,10 @@ from workbench.records import StageTimer
 from .classifier import load_classifier
 from .ground import dtm_from_dsm
 from .interpolate import push_pull_fill, small_holes
+from .options import FusionOptions
 from .raster_forest import FEATURES as RASTER_FEATURES
 from .raster_forest import classify_rasters, synthetic_raster_forest
-from .scene_fusion import FILLED, HOLE_CELLS, FusionOptions, FusionResult, check_memory
+from .scene_fusion import FILLED, HOLE_CELLS, FusionResult, check_memory
 
 log = logging.getLogger(__name__)
 
@@ -186,16 +187,8 @@ def fuse_points(path, opts: FusionOptions | None = None, *, crs: str | None = No
     timer = StageTimer()
     with timer.stage("read"):
         cloud = read_points(path, crs)
-    xyz = cloud.xyz
-    keep = np.ones(len(xyz), bool)
-    if cloud.classification is not None:
-        keep &= ~np.isin(cloud.classification, ASPRS_NOISE)
-    if opts.bounds is not None:
-        x0, y0, x1, y1 = opts.bounds
-        keep &= (xyz[:, 0] >= x0) & (xyz[:, 0] < x1) & (xyz[:, 1] >= y0) & (xyz[:, 1] < y1)
-    if not keep.any():
-        raise InputError(path, "bounds", "no points inside the bounds")
-    xyz = xyz[keep]
+    keep = _kept_points(cloud, opts, path)
+    xyz = cloud.xyz[keep]
     gsd = opts.gsd or default_gsd(xyz)
     if opts.bounds is not None:
         grid = Grid.from_bounds(*opts.bounds, gsd)
@@ -211,73 +204,16 @@ def fuse_points(path, opts: FusionOptions | None = None, *, crs: str | None = No
     with timer.stage("rasterise"):
         r, c = grid.cell_index(xyz[:, 0], xyz[:, 1], clip=True)
         cells = r * grid.width + c
-        n = grid.width * grid.height
         top = _top_per_cell(cells, xyz[:, 2])
-        centres = np.column_stack(grid.cell_center(*np.divmod(cells[top], grid.width)))
-        dsm = np.full(n, np.nan)
-        dsm[cells[top]] = top_surface_at_centres(xyz[top], centres)
-        dsm = dsm.reshape(grid.shape)
-        count = np.bincount(cells, minlength=n).reshape(grid.shape)
-        holes = small_holes(~np.isfinite(dsm), HOLE_CELLS)
-        dsm = np.where(holes, push_pull_fill(dsm, np.isfinite(dsm)), dsm).astype(np.float32)
-        ortho = np.zeros((n, 3), np.uint8)
-        if cloud.rgb is not None:
-            ortho[cells[top]] = cloud.rgb[keep][top]
-        elif cloud.intensity is not None:
-            inten = cloud.intensity[keep][top]
-            hi_i = np.percentile(inten, 99) or 1.0
-            ortho[cells[top]] = np.clip(inten / hi_i * 255, 0, 255).astype(np.uint8)[:, None]
-        ortho = ortho.reshape(*grid.shape, 3)
+        dsm, count, holes = top_surface_raster(xyz, cells, top, grid)
+        ortho = _ortho(cloud, keep, cells, top, grid)
+    cls = cloud.classification[keep] if cloud.classification is not None else None
     with timer.stage("ground"):
-        metric = dict(coarse=1.0 / unit, max_window=80.0 / unit, dh0=0.5 / unit, dh_max=3.0 / unit)
-        cls = cloud.classification[keep] if cloud.classification is not None else None
-        if cls is not None and (cls == 2).sum() > 100:
-            g = cls == 2
-            ground = np.full(n, np.nan)
-            gtop = _top_per_cell(cells[g], -xyz[g, 2])  # the lowest ground return per cell
-            ground[cells[g][gtop]] = xyz[g][gtop, 2]
-            ground = ground.reshape(grid.shape)
-            dtm = push_pull_fill(ground, np.isfinite(ground)).astype(np.float32)
-            dtm_source = "LAS ground class (2), interpolated"
-        else:
-            dtm, _ = dtm_from_dsm(dsm, gsd, **metric)
-            dtm_source = "progressive morphological filter"
-        dtm = np.where(np.isfinite(dsm), np.minimum(dtm, dsm), np.nan).astype(np.float32)
+        dtm, dtm_source = cloud_dtm(xyz, cells, cls, dsm, grid, unit)
         ndsm = (dsm - dtm).astype(np.float32)
     with timer.stage("classes"):
-        prob = np.full((4, n), np.nan, np.float32)
-        class_source = "none: the cloud has no classification"
-        if cls is not None:
-            mapped = np.zeros(256, np.uint8)
-            for k, v in ASPRS_TO_CLASS.items():
-                mapped[k] = v
-            top_cls = mapped[cls[top]]
-            known = top_cls > 0
-            onehot = np.zeros((4, known.sum()), np.float32)
-            onehot[top_cls[known] - 1, np.arange(known.sum())] = 1.0
-            prob[:, cells[top][known]] = onehot
-            share = float(known.mean())
-            class_source = (
-                f"LAS classification (ASPRS codes mapped) for {share:.1%} of the occupied cells"
-            )
-        prob = prob.reshape(4, *grid.shape)
-        unknown = np.isfinite(dsm) & ~np.isfinite(prob[0])
-        if unknown.any():
-            if opts.classifier is not None:
-                forest = load_classifier(opts.classifier, features=RASTER_FEATURES)[0]
-                origin = f"the forest in {opts.classifier}"
-            else:
-                forest = synthetic_raster_forest()
-                origin = "a forest trained on the synthetic city's rasters"
-            rgb = ortho if (cloud.rgb is not None or cloud.intensity is not None) else None
-            guess = classify_rasters(forest, dsm, dtm, rgb, gsd * unit, unit)
-            prob[:, unknown] = guess[:, unknown]
-            share = float(unknown.sum() / np.isfinite(dsm).sum())
-            class_source = (
-                (class_source + "; " if cloud.classification is not None else "")
-                + f"{origin} (nDSM, slope, roughness, curvature, brightness, greenness) "
-                f"for {share:.1%} of the cells"
-            )
+        prob, class_source = cloud_classes(cloud, cls, cells, top, dsm, dtm, ortho, grid, opts,
+                                           unit)  # fmt: skip
     count16 = np.minimum(count, np.iinfo(np.int16).max).astype(np.int16)
     count16[holes] = FILLED
     inputs = {
@@ -299,3 +235,110 @@ def fuse_points(path, opts: FusionOptions | None = None, *, crs: str | None = No
     }
     result = FusionResult(grid, ortho, dsm, dtm, ndsm, prob, count16, {}, record, None)
     return result, cloud.crs, inputs
+
+
+def _kept_points(cloud, opts: FusionOptions, path) -> np.ndarray:
+    """(N,) bool: the returns that are not noise and lie inside ``opts.bounds``."""
+    xyz = cloud.xyz
+    keep = np.ones(len(xyz), bool)
+    if cloud.classification is not None:
+        keep &= ~np.isin(cloud.classification, ASPRS_NOISE)
+    if opts.bounds is not None:
+        x0, y0, x1, y1 = opts.bounds
+        keep &= (xyz[:, 0] >= x0) & (xyz[:, 0] < x1) & (xyz[:, 1] >= y0) & (xyz[:, 1] < y1)
+    if not keep.any():
+        raise InputError(path, "bounds", "no points inside the bounds")
+    return keep
+
+
+def top_surface_raster(xyz: np.ndarray, cells: np.ndarray, top: np.ndarray, grid: Grid):
+    """The DSM read at the cell centres on the top returns, small holes filled.
+
+    Returns
+    -------
+    dsm (H, W) float32, NaN unknown; count (H, W) returns per cell; holes (H, W) bool, the
+    cells filled by interpolation.
+    """
+    n = grid.width * grid.height
+    centres = np.column_stack(grid.cell_center(*np.divmod(cells[top], grid.width)))
+    dsm = np.full(n, np.nan)
+    dsm[cells[top]] = top_surface_at_centres(xyz[top], centres)
+    dsm = dsm.reshape(grid.shape)
+    count = np.bincount(cells, minlength=n).reshape(grid.shape)
+    holes = small_holes(~np.isfinite(dsm), HOLE_CELLS)
+    dsm = np.where(holes, push_pull_fill(dsm, np.isfinite(dsm)), dsm).astype(np.float32)
+    return dsm, count, holes
+
+
+def _ortho(cloud, keep, cells, top, grid: Grid) -> np.ndarray:
+    """(H, W, 3) uint8: the top return's colour, or its intensity as grey, or black."""
+    ortho = np.zeros((grid.width * grid.height, 3), np.uint8)
+    if cloud.rgb is not None:
+        ortho[cells[top]] = cloud.rgb[keep][top]
+    elif cloud.intensity is not None:
+        inten = cloud.intensity[keep][top]
+        hi_i = np.percentile(inten, 99) or 1.0
+        ortho[cells[top]] = np.clip(inten / hi_i * 255, 0, 255).astype(np.uint8)[:, None]
+    return ortho.reshape(*grid.shape, 3)
+
+
+def cloud_dtm(xyz, cells, cls, dsm: np.ndarray, grid: Grid, unit: float):
+    """The DTM from the ground class (its lowest return per cell, interpolated) where the
+    cloud has one, else the morphological filter on the DSM; NaN where the DSM is."""
+    n = grid.width * grid.height
+    if cls is not None and (cls == 2).sum() > 100:
+        g = cls == 2
+        ground = np.full(n, np.nan)
+        gtop = _top_per_cell(cells[g], -xyz[g, 2])  # the lowest ground return per cell
+        ground[cells[g][gtop]] = xyz[g][gtop, 2]
+        ground = ground.reshape(grid.shape)
+        dtm = push_pull_fill(ground, np.isfinite(ground)).astype(np.float32)
+        dtm_source = "LAS ground class (2), interpolated"
+    else:
+        metric = dict(coarse=1.0 / unit, max_window=80.0 / unit, dh0=0.5 / unit, dh_max=3.0 / unit)
+        dtm, _ = dtm_from_dsm(dsm, grid.gsd, **metric)
+        dtm_source = "progressive morphological filter"
+    dtm = np.where(np.isfinite(dsm), np.minimum(dtm, dsm), np.nan).astype(np.float32)
+    return dtm, dtm_source
+
+
+def cloud_classes(cloud, cls, cells, top, dsm, dtm, ortho, grid: Grid, opts: FusionOptions,
+                  unit: float):  # fmt: skip
+    """(4, H, W) class probabilities: the top return's ASPRS class where it has one, the
+    raster forest's elsewhere; and a sentence on where they came from."""
+    n = grid.width * grid.height
+    prob = np.full((4, n), np.nan, np.float32)
+    class_source = "none: the cloud has no classification"
+    if cls is not None:
+        mapped = np.zeros(256, np.uint8)
+        for k, v in ASPRS_TO_CLASS.items():
+            mapped[k] = v
+        top_cls = mapped[cls[top]]
+        known = top_cls > 0
+        onehot = np.zeros((4, known.sum()), np.float32)
+        onehot[top_cls[known] - 1, np.arange(known.sum())] = 1.0
+        prob[:, cells[top][known]] = onehot
+        share = float(known.mean())
+        class_source = (
+            f"LAS classification (ASPRS codes mapped) for {share:.1%} of the occupied cells"
+        )
+    prob = prob.reshape(4, *grid.shape)
+    unknown = np.isfinite(dsm) & ~np.isfinite(prob[0])
+    if not unknown.any():
+        return prob, class_source
+    if opts.classifier is not None:
+        forest = load_classifier(opts.classifier, features=RASTER_FEATURES)[0]
+        origin = f"the forest in {opts.classifier}"
+    else:
+        forest = synthetic_raster_forest()
+        origin = "a forest trained on the synthetic city's rasters"
+    rgb = ortho if (cloud.rgb is not None or cloud.intensity is not None) else None
+    guess = classify_rasters(forest, dsm, dtm, rgb, grid.gsd * unit, unit)
+    prob[:, unknown] = guess[:, unknown]
+    share = float(unknown.sum() / np.isfinite(dsm).sum())
+    class_source = (
+        (class_source + "; " if cloud.classification is not None else "")
+        + f"{origin} (nDSM, slope, roughness, curvature, brightness, greenness) "
+        f"for {share:.1%} of the cells"
+    )
+    return prob, class_source

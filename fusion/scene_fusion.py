@@ -46,6 +46,12 @@ from workbench.parallel import default_workers, ordered_map
 from workbench.progress import progress
 from workbench.raster import Grid, read_raster
 from workbench.records import StageTimer
+from workbench.robust import (
+    group_count,
+    group_mean,
+    group_weighted_quantile,
+    vector_median,
+)
 from workbench.scene import Scene, View
 from workbench.truth import sample_to_grid
 
@@ -61,14 +67,9 @@ from .crowns import BENEATH_TOP_M, CROWN_QUANTILE, crown_sightings, crown_tops
 from .dsm_depth import DsmSurface
 from .ground import dtm_from_dsm
 from .interpolate import push_pull_fill, small_holes
-from .observations import ViewObservations, close_neighbours, lift_depth, observe
+from .observations import close_neighbours, lift_depth, observe
+from .options import FusionOptions
 from .raster_forest import classify_rasters, synthetic_raster_forest
-from .robust import (
-    group_count,
-    group_mean,
-    group_weighted_quantile,
-    vector_median,
-)
 from .sigma_points import MEAN_ELEVATION, N_FEATURES, feature_cues, sigma_points
 
 log = logging.getLogger(__name__)
@@ -78,28 +79,6 @@ HOLE_CELLS = 9  # holes up to this many cells are interpolated (and flagged -1 i
 FILLED = -1
 ELEVATION_MEDIAN = 5  # pixels, the median filter of the per-view elevation cue
 FEATURE_BYTES_PER_PIXEL = 700  # peak of view_features, measured on small: 647
-
-
-@dataclass
-class FusionOptions:
-    """Parameters of :func:`fuse_views` (lengths in metres)."""
-
-    gsd: float | None = None
-    bounds: tuple[float, float, float, float] | None = None
-    tile: int = 1024  # cells per tile side
-    tolerance: float = 1.0  # visibility band behind the nearest surface of a cell
-    patch: int = 11
-    n_trees: int = 8
-    max_depth: int = 14
-    samples_per_class: int = 20000
-    label_split: float = 1.0  # trees and buildings above, ground and grass below, metres
-    training_views: int = 16  # views the training samples are drawn from (spread evenly)
-    projections: int = 8  # random directions of the vector median
-    seed: int = 0
-    classifier: str | os.PathLike | None = None
-    raster_prior: bool = False  # multiply in the raster forest's probabilities (not the paper)
-    max_memory_fraction: float = 0.5
-    workers: int | None = None  # threads over the views; None: every core this process has
 
 
 @dataclass
@@ -212,21 +191,6 @@ def _tiles(grid: Grid, size: int):
             yield r0, c0, min(size, grid.height - r0), min(size, grid.width - c0)
 
 
-def _in_tile(obs: ViewObservations, grid: Grid, tile):
-    """The visible observations in the tile.
-
-    Returns
-    -------
-    sel : indices into ``obs``; local : their cell index inside the tile;
-    reliable : whether each is a top-surface observation away from depth jumps.
-    """
-    r0, c0, h, w = tile
-    r, c = np.divmod(obs.cells, grid.width)
-    inside = (r >= r0) & (r < r0 + h) & (c >= c0) & (c < c0 + w)
-    sel = np.flatnonzero(inside & obs.visible)
-    return sel, (r[sel] - r0) * w + (c[sel] - c0), obs.top_surface[sel]
-
-
 def preferred(cells: np.ndarray, reliable: np.ndarray, n_cells: int) -> np.ndarray:
     """(N,) bool: the observations a cell fuses: its reliable ones, or all of its
     visible ones where it has no reliable one (cells beside depth edges)."""
@@ -262,19 +226,6 @@ def top_surface_votes(
     """
     above = z >= np.nan_to_num(top, nan=-np.inf)[cells] - beneath_m
     return preferred(cells, reliable & above, len(top)) & above
-
-
-def _view_boxes(views: list[View], grid: Grid, workers: int = 1) -> list[tuple]:
-    """(row0, col0, row1, col1) of the cells each view's depth map reaches."""
-
-    def box(v):
-        _, xyz = lift_depth(v.camera, v.read_depth())
-        if len(xyz) == 0:
-            return None
-        r, c = grid.world_to_cell(xyz[:, 0], xyz[:, 1])
-        return (r.min() - 1, c.min() - 1, r.max() + 1, c.max() + 1)
-
-    return list(ordered_map(box, views, workers))
 
 
 def _touches(box, tile) -> bool:
@@ -340,16 +291,73 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
     """
     opts = opts or FusionOptions()
     timer = StageTimer()
+    views, skipped, mode, given, opts = _depth_views(scene, opts, timer)
+    with timer.stage("grid"):
+        grid = default_grid(scene, opts)
+        check_memory(grid, opts, len(views))
+        workers = view_workers(views, opts)
+    with tempfile.TemporaryDirectory(prefix="fusion-") as folder:
+        cache = ObservationCache(Path(folder))
+        with timer.stage("observations"):
+            cache.observe(views, grid, opts.tolerance, workers)
+        tiles = list(_tiles(grid, opts.tile))
+        with timer.stage("heights"):
+            h = fused_heights(cache, grid, tiles, workers)
+        with timer.stage("ground"):
+            dsm, dtm, dtm_full, spikes, holes = _ground(h, grid, mode, given)
+        forest, class_source, surface = None, None, None
+        if opts.classifier is not None or scene.training_labels is not None:
+            # the surface that gives shadowed pixels their elevation cue: where no view saw
+            # the top surface (beside towers, in their shadows) the ground is the better guess
+            surface = DsmSurface(np.where(np.isfinite(dsm), dsm, dtm_full), grid)
+        with timer.stage("training"):
+            forest, class_source = _forest(scene, views, dsm, dtm, grid, opts, surface, workers)
+        with timer.stage("classification"):
+            n_px = classify_views(cache, views, forest, dtm, grid, opts, surface, workers)
+        with timer.stage("colour_and_class"):
+            c = colours_and_classes(cache, views, forest, dsm, h, grid, tiles, mode, opts,
+                                    workers)  # fmt: skip
+    with timer.stage("finish"):
+        dsm, ndsm, class_prob, ortho, count16, crowns, class_source = _finish(
+            c, h, dsm, dtm, spikes, holes, forest, class_source, grid, mode, opts
+        )
+    observe_s = timer.stages["observations"]["wall_s"] + timer.stages["heights"]["wall_s"]
+    record = {
+        "mode": mode,
+        "views": {"used": len(views), "skipped_no_depth": len(skipped), "skipped_ids": skipped},
+        "workers": workers,
+        "observations": int(h.n_obs),
+        "class_source": class_source,
+        "filled_small_holes": int(holes.sum()),
+        "rejected_isolated_spikes": int(spikes.sum()),
+        "crown_cells_raised": int(crowns.sum()),
+        "crown_sightings_raised": int(np.isfinite(c.crown_z).sum()),
+        "stages": timer.stages,
+        "observations_per_s": round(h.n_obs / max(observe_s, 1e-9)),
+    }
+    if forest is not None and timer.stages["classification"]["wall_s"] > 0:
+        record["classification_mpx_per_s"] = round(
+            n_px / 1e6 / timer.stages["classification"]["wall_s"], 3
+        )
+    ablation = {"dsm_mean": h.dsm_mean, "ortho_mean": c.ortho_mean}
+    return FusionResult(grid, ortho, dsm, dtm, ndsm, class_prob, count16, ablation, record, forest)
+
+
+def _depth_views(scene: Scene, opts: FusionOptions, timer: StageTimer):
+    """The views to fuse (with depth maps, or ray-cast from the scene's DSM), the ids of
+    those skipped, the mode, the given DSM (or None) and the options (the DSM's grid by
+    default in the true-orthophoto mode)."""
     views = [v for v in scene.views if v.depth_path is not None]
     skipped = [v.id for v in scene.views if v.depth_path is None]
-    mode = "depth maps"
+    mode, given = "depth maps", None
     if not views and scene.dsm is not None and scene.views:
         with timer.stage("dsm_surface"):
             dsm_in, dsm_grid, _ = read_raster(scene.dsm, field="dsm")
             if opts.gsd is None and opts.bounds is None:
                 opts = replace(opts, gsd=dsm_grid.gsd, bounds=dsm_grid.bounds)
-            given = DsmSurface(dsm_in[0].astype(np.float64), dsm_grid)
-        views = [DsmDepthView(v, given) for v in scene.views]
+            given = (dsm_in, dsm_grid)
+            surface = DsmSurface(dsm_in[0].astype(np.float64), dsm_grid)
+        views = [DsmDepthView(v, surface) for v in scene.views]
         skipped, mode = [], "true orthophoto (depth ray-cast from the scene's DSM)"
     if views and skipped:
         log.warning("%d view(s) without a depth map skipped: %s", len(skipped), ", ".join(skipped))
@@ -359,201 +367,283 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
             "images",
             "no view has a depth map, and no DSM or point cloud is given",
         )
-    with timer.stage("grid"):
-        grid = default_grid(scene, opts)
-        check_memory(grid, opts, len(views))
-        workers = view_workers(views, opts)
-        boxes = _view_boxes(views, grid, workers)
-    H, W = grid.shape
-    tiles = list(_tiles(grid, opts.tile))
-    dsm = np.full(grid.shape, np.nan, np.float32)
-    dsm_mean = np.full(grid.shape, np.nan, np.float32)
-    dsm_upper = np.full(grid.shape, np.nan, np.float32)  # CROWN_QUANTILE, for crown_tops
-    count = np.zeros(grid.shape, np.int32)
-    n_obs = 0
-    with timer.stage("heights"):
-        for tile in progress(tiles, "heights (tiles)"):
-            r0, c0, h, w = tile
+    return views, skipped, mode, given, opts
 
-            def tile_heights(v, tile=tile):
-                obs = observe(v.camera, v.read_depth(), grid, tolerance=opts.tolerance)
-                sel, local, reliable = _in_tile(obs, grid, tile)
-                return local, obs.xyz[sel, 2].astype(np.float32), obs.height_weight[sel], reliable
 
-            touching = [v for v, box in zip(views, boxes, strict=True) if _touches(box, tile)]
-            parts = list(ordered_map(tile_heights, touching, workers))
-            cells, z, weight, rel = ([p[i] for p in parts] for i in range(4))
-            cells, z, rel = _joined(cells, np.int64), _joined(z, np.float32), _joined(rel, bool)
-            weight = _joined(weight, np.float32)
-            cells, z, weight = cells[rel], z[rel], weight[rel]
-            n_obs += len(z)
-            # the median, and the upper quantile kept for crown_tops (which needs the
-            # classes first), from one sort
-            median, upper = group_weighted_quantile(
-                cells, z, weight, h * w, (0.5, CROWN_QUANTILE)
-            ).reshape(2, h, w)
-            dsm[r0 : r0 + h, c0 : c0 + w] = median
-            dsm_upper[r0 : r0 + h, c0 : c0 + w] = upper
-            dsm_mean[r0 : r0 + h, c0 : c0 + w] = group_mean(cells, z, h * w).reshape(h, w)
-            count[r0 : r0 + h, c0 : c0 + w] = group_count(cells, h * w).reshape(h, w)
-    with timer.stage("ground"):
-        if mode == "depth maps":
-            spikes = isolated_spikes(dsm, count)
-            dsm[spikes] = np.nan
-            count[spikes] = 0
-        else:  # the DSM is an input: it is the height product as it is
-            dsm = sample_to_grid(dsm_in, dsm_grid, grid)[0].astype(np.float32)
-            spikes = np.zeros(grid.shape, bool)
-        holes = small_holes(~np.isfinite(dsm), HOLE_CELLS)
-        dsm = np.where(holes, push_pull_fill(dsm, np.isfinite(dsm)), dsm).astype(np.float32)
-        dtm_full, _ = dtm_from_dsm(dsm, grid.gsd)
-        dtm = np.where(np.isfinite(dsm), dtm_full, np.nan).astype(np.float32)
-        ndsm = (dsm - dtm).astype(np.float32)
+class ObservationCache:
+    """Each view observed once (:func:`~fusion.observations.observe`), its visible
+    observations kept on disk for the passes over the tiles.
 
-    forest, class_source, surface = None, None, None
-    if opts.classifier is not None or scene.training_labels is not None:
-        # the surface that gives shadowed pixels their elevation cue: where no view saw the
-        # top surface (beside towers, in their shadows) the ground is the better guess
-        surface = DsmSurface(np.where(np.isfinite(dsm), dsm, dtm_full), grid)
-    with timer.stage("training"):
-        if opts.classifier is not None:
-            forest, meta = load_classifier(opts.classifier, features=FEATURES)
-            class_source = f"classifier file {opts.classifier}"
-        elif scene.training_labels is not None:
-            forest, n_train, n_dropped = _train(
-                views, scene.training_labels, dsm, dtm, grid, opts, surface, workers
-            )
-            name = Path(scene.training_labels).name
-            class_source = (
-                f"forest trained on {n_train} pixels of {name} projected into the views "
-                f"({n_dropped} labelled pixels dropped: their elevation contradicts their class)"
-            )
-    prob_sum = np.zeros((len(CLASSES),) + grid.shape, np.float32)
-    crown_z = np.full(grid.shape, np.nan, np.float32)  # crown_sightings, NaN where none
-    ortho = np.zeros(grid.shape + (3,), np.uint8)
-    ortho_mean = np.full(grid.shape + (3,), np.nan, np.float32)
-    with tempfile.TemporaryDirectory(prefix="fusion-") as cache:
-        with timer.stage("classification"):
-            n_px = 0
+    Per view: flat cell index (int64), height (float32), height weight (float32),
+    top-surface flag (bool) and flat pixel index (int64); and the box of cells it reaches.
+    """
 
-            def classify(v):
-                rgb, depth = v.read_image(), v.read_depth()
-                feats, pixels, _ = view_features(v, rgb, depth, dtm, grid, opts.patch, surface)
-                probs = np.zeros((depth.size, len(CLASSES)), np.uint8)
-                p = predict_proba(forest, feats[pixels])
-                probs[pixels] = np.round(p * 255).astype(np.uint8)
-                return probs, len(pixels)
+    FIELDS = ("cells", "z", "weight", "top", "pixels")
 
-            classified = ordered_map(classify, views if forest is not None else [], workers)
-            for i, (probs, n) in enumerate(
-                progress(classified, "classifying views", total=len(views))
-            ):
-                n_px += n
-                np.save(Path(cache) / f"{i}.npy", probs)
-        with timer.stage("colour_and_class"):
-            for tile in progress(tiles, "colour and classes (tiles)"):
-                r0, c0, h, w = tile
+    def __init__(self, folder: Path):
+        self.folder = folder
+        self.boxes: list[tuple | None] = []
 
-                def tile_colours(i, tile=tile):
-                    v = views[i]
-                    obs = observe(v.camera, v.read_depth(), grid, tolerance=opts.tolerance)
-                    sel, local, reliable = _in_tile(obs, grid, tile)
-                    px = obs.pixels[sel]
-                    colour = v.read_image().reshape(-1, 3)[px]
-                    prob = np.load(Path(cache) / f"{i}.npy")[px] if forest is not None else None
-                    z, weight = obs.xyz[sel, 2].astype(np.float32), obs.height_weight[sel]
-                    return local, reliable, colour, prob, z, weight
+    def observe(self, views: list, grid: Grid, tolerance: float, workers: int) -> None:
+        def one(i):
+            v = views[i]
+            obs = observe(v.camera, v.read_depth(), grid, tolerance=tolerance)
+            vis = obs.visible
+            fields = (obs.cells[vis], obs.xyz[vis, 2].astype(np.float32),
+                      obs.height_weight[vis], obs.top_surface[vis], obs.pixels[vis])  # fmt: skip
+            for name, data in zip(self.FIELDS, fields, strict=True):
+                np.save(self.folder / f"{i}_{name}.npy", data)
+            if not len(fields[0]):
+                return None
+            r, c = np.divmod(fields[0], grid.width)
+            return (r.min(), c.min(), r.max(), c.max())
 
-                touching = [i for i, box in enumerate(boxes) if _touches(box, tile)]
-                parts = list(ordered_map(tile_colours, touching, workers))
-                cells = _joined([p[0] for p in parts], np.int64)
-                rel = _joined([p[1] for p in parts], bool)
-                colours = _joined([p[2] for p in parts], np.uint8, (3,))
-                probs = None
-                if forest is not None:
-                    probs = _joined([p[3] for p in parts], np.uint8, (len(CLASSES),))
-                z, weight = (_joined([p[k] for p in parts], np.float32) for k in (4, 5))
-                del parts  # the views' own copies, once joined: this pass sets the peak
-                n = h * w
-                top_z = dsm_upper[r0 : r0 + h, c0 : c0 + w].ravel()
-                if probs is not None and mode == "depth maps":
-                    tree = probs[:, CLASSES.index(3)] / np.float32(255)
-                    median = dsm[r0 : r0 + h, c0 : c0 + w].ravel()
-                    crown = crown_sightings(cells, z, weight, tree, median)
-                    crown_z[r0 : r0 + h, c0 : c0 + w] = crown.reshape(h, w)
-                    # the crown, not the ground seen beneath it, votes for the cell
-                    top_z = np.where(np.isfinite(crown), crown, top_z)
-                use = top_surface_votes(cells, z, rel, top_z)
-                cells, colours = cells[use], colours[use]
-                ortho[r0 : r0 + h, c0 : c0 + w] = vector_median(
-                    cells, colours, n, n_projections=opts.projections, seed=opts.seed
-                ).reshape(h, w, 3)
-                ortho_mean[r0 : r0 + h, c0 : c0 + w] = group_mean(
-                    cells, colours.astype(np.float32), n
-                ).reshape(h, w, 3)
-                if probs is not None:
-                    p = probs[use].astype(np.float32) / 255.0
-                    for k in range(len(CLASSES)):
-                        prob_sum[k, r0 : r0 + h, c0 : c0 + w] = np.bincount(
-                            cells, p[:, k], minlength=n
-                        ).reshape(h, w)
-    with timer.stage("finish"):
-        seen = count > 0
-        with np.errstate(invalid="ignore", divide="ignore"):
-            class_prob = prob_sum / prob_sum.sum(axis=0, keepdims=True)
-        # before the elevation prior, which would otherwise damp tree at crowns' rims
-        overhung = np.isfinite(crown_z)
-        dsm = np.where(overhung, crown_z, dsm)
-        ndsm = (dsm - dtm).astype(np.float32)
-        class_prob[:, ~seen] = np.nan
-        if forest is not None:
-            class_prob = elevation_prior(class_prob, ndsm, opts.label_split)
-            class_source += (
-                f"; tree and building damped below {opts.label_split / 2:g} m nDSM, ground "
-                f"and grass above {opts.label_split + 2:g} m"
-            )
-        ortho = _fill_small_rgb(ortho, seen, holes)
-        raster_prob = None
-        if forest is None or opts.raster_prior:
-            raster_prob = classify_rasters(synthetic_raster_forest(), dsm, dtm, ortho, grid.gsd)
-        if forest is not None and opts.raster_prior:
-            # product of experts: the views' accumulated evidence and the ortho rasters'
-            with np.errstate(invalid="ignore", divide="ignore"):
-                prod = class_prob * raster_prob
-                class_prob = prod / prod.sum(axis=0, keepdims=True)
-            class_source += "; multiplied by the raster forest's probabilities (--raster-prior)"
-        if forest is None:  # no strokes, no classifier: the forest for label-free rasters
-            class_prob = raster_prob
-            class_source = (
-                "a forest trained on the synthetic city's rasters (nDSM, slope, "
-                "roughness, curvature, brightness, greenness): no training labels"
-            )
-        crowns = np.zeros(grid.shape, bool)
-        if mode == "depth maps":
-            dsm_upper[spikes | isolated_spikes(dsm_upper, count)] = np.nan
-            dsm, crowns = crown_tops(dsm, dsm_upper, class_codes(class_prob), grid.gsd)
-            ndsm = (dsm - dtm).astype(np.float32)
-        count16 = np.minimum(count, np.iinfo(np.int16).max).astype(np.int16)
-        count16[holes] = FILLED
-    record = {
-        "mode": mode,
-        "views": {"used": len(views), "skipped_no_depth": len(skipped), "skipped_ids": skipped},
-        "workers": workers,
-        "observations": int(n_obs),
-        "class_source": class_source,
-        "filled_small_holes": int(holes.sum()),
-        "rejected_isolated_spikes": int(spikes.sum()),
-        "crown_cells_raised": int(crowns.sum()),
-        "crown_sightings_raised": int(overhung.sum()),
-        "stages": timer.stages,
-        "observations_per_s": round(n_obs / max(timer.stages["heights"]["wall_s"], 1e-9)),
-    }
-    if forest is not None and timer.stages["classification"]["wall_s"] > 0:
-        record["classification_mpx_per_s"] = round(
-            n_px / 1e6 / timer.stages["classification"]["wall_s"], 3
+        self.boxes = list(ordered_map(one, range(len(views)), workers))
+
+    def touching(self, tile) -> list[int]:
+        """The views with observations in ``tile``, in view order."""
+        return [i for i, box in enumerate(self.boxes) if _touches(box, tile)]
+
+    def in_tile(self, i: int, grid: Grid, tile, *names: str) -> tuple:
+        """View ``i``'s observations in ``tile``: their cell index inside the tile, then
+        the fields ``names`` (a subset of ``FIELDS`` but "cells")."""
+        r0, c0, h, w = tile
+        cells = np.load(self.folder / f"{i}_cells.npy")
+        r, c = np.divmod(cells, grid.width)
+        sel = np.flatnonzero((r >= r0) & (r < r0 + h) & (c >= c0) & (c < c0 + w))
+        local = (r[sel] - r0) * w + (c[sel] - c0)
+        return (local, *(np.load(self.folder / f"{i}_{n}.npy")[sel] for n in names))
+
+
+@dataclass
+class FusedHeights:
+    """The heights pass: (H, W) float32 weighted median, mean and CROWN_QUANTILE of each
+    cell's trusted observations (NaN unseen), their count, and the number fused."""
+
+    dsm: np.ndarray
+    dsm_mean: np.ndarray
+    dsm_upper: np.ndarray
+    count: np.ndarray
+    n_obs: int
+
+
+def fused_heights(cache: ObservationCache, grid: Grid, tiles: list, workers: int) -> FusedHeights:
+    """Section 3's median height per cell (weighted toward steep rays), tile by tile;
+    the upper quantile is kept for :func:`~fusion.crowns.crown_tops`, which needs the
+    classes first."""
+    out = FusedHeights(
+        *(np.full(grid.shape, np.nan, np.float32) for _ in range(3)),
+        np.zeros(grid.shape, np.int32), 0,
+    )  # fmt: skip
+    for tile in progress(tiles, "heights (tiles)"):
+        r0, c0, h, w = tile
+        window = (slice(r0, r0 + h), slice(c0, c0 + w))
+        parts = list(ordered_map(lambda i, t=tile: cache.in_tile(i, grid, t, "z", "weight", "top"),
+                                 cache.touching(tile), workers))  # fmt: skip
+        cells, z, weight, rel = (
+            _joined([p[k] for p in parts], dtype)
+            for k, dtype in enumerate((np.int64, np.float32, np.float32, bool))
         )
-    ablation = {"dsm_mean": dsm_mean, "ortho_mean": ortho_mean}
-    return FusionResult(grid, ortho, dsm, dtm, ndsm, class_prob, count16, ablation, record, forest)
+        cells, z, weight = cells[rel], z[rel], weight[rel]
+        out.n_obs += len(z)
+        # the median and the upper quantile from one sort
+        median, upper = group_weighted_quantile(
+            cells, z, weight, h * w, (0.5, CROWN_QUANTILE)
+        ).reshape(2, h, w)
+        out.dsm[window], out.dsm_upper[window] = median, upper
+        out.dsm_mean[window] = group_mean(cells, z, h * w).reshape(h, w)
+        out.count[window] = group_count(cells, h * w).reshape(h, w)
+    return out
+
+
+def _ground(h: FusedHeights, grid: Grid, mode: str, given):
+    """The DSM with its isolated spikes dropped and small holes filled (or the given DSM
+    on the grid), the DTM under it (NaN where the DSM is), the DTM everywhere, the spikes
+    and the holes."""
+    if mode == "depth maps":
+        spikes = isolated_spikes(h.dsm, h.count)
+        dsm = np.where(spikes, np.float32(np.nan), h.dsm)
+        h.count[spikes] = 0
+    else:  # the DSM is an input: it is the height product as it is
+        dsm = sample_to_grid(given[0], given[1], grid)[0].astype(np.float32)
+        spikes = np.zeros(grid.shape, bool)
+    holes = small_holes(~np.isfinite(dsm), HOLE_CELLS)
+    dsm = np.where(holes, push_pull_fill(dsm, np.isfinite(dsm)), dsm).astype(np.float32)
+    dtm_full, _ = dtm_from_dsm(dsm, grid.gsd)
+    dtm = np.where(np.isfinite(dsm), dtm_full, np.nan).astype(np.float32)
+    return dsm, dtm, dtm_full, spikes, holes
+
+
+def _forest(scene: Scene, views, dsm, dtm, grid: Grid, opts: FusionOptions, surface, workers):
+    """Section 4's per-view forest, loaded or trained on the scene's strokes (None
+    without either), and a sentence on where it came from."""
+    if opts.classifier is not None:
+        forest, _ = load_classifier(opts.classifier, features=FEATURES)
+        return forest, f"classifier file {opts.classifier}"
+    if scene.training_labels is None:
+        return None, None
+    forest, n_train, n_dropped = _train(
+        views, scene.training_labels, dsm, dtm, grid, opts, surface, workers
+    )
+    name = Path(scene.training_labels).name
+    return forest, (
+        f"forest trained on {n_train} pixels of {name} projected into the views "
+        f"({n_dropped} labelled pixels dropped: their elevation contradicts their class)"
+    )
+
+
+def classify_views(
+    cache: ObservationCache, views, forest, dtm, grid: Grid, opts, surface, workers: int
+) -> int:
+    """Each view's class probabilities per pixel (uint8, 0-255), kept in the cache;
+    returns the number of pixels classified."""
+    if forest is None:
+        return 0
+
+    def classify(v):
+        rgb, depth = v.read_image(), v.read_depth()
+        feats, pixels, _ = view_features(v, rgb, depth, dtm, grid, opts.patch, surface)
+        probs = np.zeros((depth.size, len(CLASSES)), np.uint8)
+        probs[pixels] = np.round(predict_proba(forest, feats[pixels]) * 255).astype(np.uint8)
+        return probs, len(pixels)
+
+    n_px = 0
+    classified = ordered_map(classify, views, workers)
+    for i, (probs, n) in enumerate(progress(classified, "classifying views", total=len(views))):
+        n_px += n
+        np.save(cache.folder / f"{i}_probs.npy", probs)
+    return n_px
+
+
+@dataclass
+class FusedColours:
+    """The colour pass: (H, W, 3) vector median and mean colour, (4, H, W) accumulated
+    class probabilities, (H, W) crown sightings' height (NaN where none)."""
+
+    ortho: np.ndarray
+    ortho_mean: np.ndarray
+    prob_sum: np.ndarray
+    crown_z: np.ndarray
+
+
+def colours_and_classes(
+    cache: ObservationCache,
+    views,
+    forest,
+    dsm,
+    h: FusedHeights,
+    grid: Grid,
+    tiles,
+    mode: str,
+    opts,
+    workers: int,
+) -> FusedColours:
+    """Per cell, the vector median colour and the accumulated class probabilities of the
+    top surface's observations; the crown sightings (not in the paper) on the way."""
+    out = FusedColours(
+        np.zeros(grid.shape + (3,), np.uint8), np.full(grid.shape + (3,), np.nan, np.float32),
+        np.zeros((len(CLASSES),) + grid.shape, np.float32),
+        np.full(grid.shape, np.nan, np.float32),
+    )  # fmt: skip
+    for tile in progress(tiles, "colour and classes (tiles)"):
+        r0, c0, th, tw = tile
+        window, n = (slice(r0, r0 + th), slice(c0, c0 + tw)), th * tw
+
+        def tile_colours(i, tile=tile):
+            local, top, px, z, weight = cache.in_tile(i, grid, tile, "top", "pixels", "z",
+                                                      "weight")  # fmt: skip
+            colour = views[i].read_image().reshape(-1, 3)[px]
+            prob = np.load(cache.folder / f"{i}_probs.npy")[px] if forest is not None else None
+            return local, top, colour, prob, z, weight
+
+        parts = list(ordered_map(tile_colours, cache.touching(tile), workers))
+        cells = _joined([p[0] for p in parts], np.int64)
+        rel = _joined([p[1] for p in parts], bool)
+        colours = _joined([p[2] for p in parts], np.uint8, (3,))
+        probs = None
+        if forest is not None:
+            probs = _joined([p[3] for p in parts], np.uint8, (len(CLASSES),))
+        z, weight = (_joined([p[k] for p in parts], np.float32) for k in (4, 5))
+        del parts  # the views' own copies, once joined: this pass sets the peak
+        top_z = h.dsm_upper[window].ravel()
+        if probs is not None and mode == "depth maps":
+            tree = probs[:, CLASSES.index(3)] / np.float32(255)
+            crown = crown_sightings(cells, z, weight, tree, dsm[window].ravel())
+            out.crown_z[window] = crown.reshape(th, tw)
+            # the crown, not the ground seen beneath it, votes for the cell
+            top_z = np.where(np.isfinite(crown), crown, top_z)
+        use = top_surface_votes(cells, z, rel, top_z)
+        cells, colours = cells[use], colours[use]
+        out.ortho[window] = vector_median(
+            cells, colours, n, n_projections=opts.projections, seed=opts.seed
+        ).reshape(th, tw, 3)
+        out.ortho_mean[window] = group_mean(cells, colours.astype(np.float32), n).reshape(th, tw, 3)
+        if probs is not None:
+            p = probs[use].astype(np.float32) / 255.0
+            for k in range(len(CLASSES)):
+                out.prob_sum[k][window] = np.bincount(cells, p[:, k], minlength=n).reshape(th, tw)
+    return out
+
+
+def _finish(
+    c: FusedColours,
+    h: FusedHeights,
+    dsm,
+    dtm,
+    spikes,
+    holes,
+    forest,
+    class_source,
+    grid: Grid,
+    mode: str,
+    opts: FusionOptions,
+):
+    """Normalised classes with the elevation prior, the crowns' corrections of the DSM
+    (not in the paper), the small holes of the ortho filled, the count flagged."""
+    seen = h.count > 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        class_prob = c.prob_sum / c.prob_sum.sum(axis=0, keepdims=True)
+    # before the elevation prior, which would otherwise damp tree at crowns' rims
+    dsm = np.where(np.isfinite(c.crown_z), c.crown_z, dsm)
+    ndsm = (dsm - dtm).astype(np.float32)
+    class_prob[:, ~seen] = np.nan
+    if forest is not None:
+        class_prob = elevation_prior(class_prob, ndsm, opts.label_split)
+        class_source += (
+            f"; tree and building damped below {opts.label_split / 2:g} m nDSM, ground "
+            f"and grass above {opts.label_split + 2:g} m"
+        )
+    ortho = _fill_small_rgb(c.ortho, seen, holes)
+    class_prob, class_source = _raster_forest(class_prob, class_source, forest, dsm, dtm, ortho,
+                                              grid, opts)  # fmt: skip
+    crowns = np.zeros(grid.shape, bool)
+    if mode == "depth maps":
+        h.dsm_upper[spikes | isolated_spikes(h.dsm_upper, h.count)] = np.nan
+        dsm, crowns = crown_tops(dsm, h.dsm_upper, class_codes(class_prob), grid.gsd)
+        ndsm = (dsm - dtm).astype(np.float32)
+    count16 = np.minimum(h.count, np.iinfo(np.int16).max).astype(np.int16)
+    count16[holes] = FILLED
+    return dsm, ndsm, class_prob, ortho, count16, crowns, class_source
+
+
+def _raster_forest(class_prob, class_source, forest, dsm, dtm, ortho, grid: Grid, opts):
+    """Without a per-view forest, the forest for label-free rasters gives the classes;
+    with --raster-prior, its probabilities multiply the views' (a product of experts)."""
+    if forest is not None and not opts.raster_prior:
+        return class_prob, class_source
+    raster_prob = classify_rasters(synthetic_raster_forest(), dsm, dtm, ortho, grid.gsd)
+    if forest is None:
+        return raster_prob, (
+            "a forest trained on the synthetic city's rasters (nDSM, slope, roughness, "
+            "curvature, brightness, greenness): no training labels"
+        )
+    with np.errstate(invalid="ignore", divide="ignore"):
+        prod = class_prob * raster_prob
+        class_prob = prod / prod.sum(axis=0, keepdims=True)
+    return (
+        class_prob,
+        class_source + "; multiplied by the raster forest's probabilities (--raster-prior)",
+    )
 
 
 def isolated_spikes(

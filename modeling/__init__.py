@@ -1,5 +1,18 @@
-"""Modeling paths (super-pixel LOD2 meshes, voxel proxies with graph-cut textures).
+"""Modeling paths: each a folder, each a function from its inputs and options to a
+:class:`~workbench.model_run.ModelRun`, registered here for ``workbench model NAME``.
 
-Not implemented yet: tracked by the modeling issues. The package exists so that
-the layout of the workbench is in place.
+- :mod:`modeling.superpixel`: super-pixels, class CRF, roof prototypes, LOD2 meshes;
+- :mod:`modeling.voxel`: photo-consistency proxies from footprints, graph-cut textures;
+- :mod:`modeling.shared`: what more than one path uses (graph cuts, planes, roof meshes,
+  outline regularity, roof types). No path imports another path.
+
+To add a path: a folder with an options dataclass, a run function returning a
+``ModelRun``, and a ``SPEC`` in its ``__init__``; then list it in ``PATHS`` below.
 """
+
+from . import superpixel, voxel
+from .registry import Input, PathSpec
+
+PATHS: dict[str, PathSpec] = {spec.name: spec for spec in (superpixel.SPEC, voxel.SPEC)}
+
+__all__ = ["PATHS", "Input", "PathSpec"]

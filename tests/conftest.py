@@ -45,3 +45,12 @@ def model_and_score(root: Path, truth: Path, *model_args) -> tuple[Path, dict, d
     assert proc.returncode == 0, proc.stderr
     metrics = json.loads((report / "metrics.json").read_text())["runs"]["model"]
     return out, json.loads((out / "model.json").read_text()), metrics
+
+
+@pytest.fixture(scope="session")
+def tiny_fusion(tiny_scene, tmp_path_factory) -> Path:
+    """``workbench fusion`` of the tiny city, as a user would run it, once per session."""
+    out = tmp_path_factory.mktemp("tiny_fusion") / "fusion"
+    proc = run_cli("fusion", tiny_scene, "-o", out)
+    assert proc.returncode == 0, proc.stderr
+    return out

@@ -11,7 +11,7 @@ import rasterio
 
 from data_samples.truth_run import truth_fusion_run, truth_model_run
 from tests.conftest import run_cli
-from workbench.raster import read_raster
+from workbench.raster import read_raster, write_raster
 
 
 @pytest.fixture(scope="module")
@@ -167,3 +167,21 @@ def test_report_renders_in_headless_chromium(report, tmp_path):
     assert img.shape[1] == 1400
     rows_with_ink = np.mean(img.min(axis=(1, 2)) < 200)  # text, tables and pictures
     assert rows_with_ink > 0.5
+
+
+def test_a_hole_in_a_runs_ground_does_not_hide_a_missed_building(tiny_scene, tmp_path):
+    """A model run's dtm.tif is its ground where no building stands; where it is NaN the
+    truth's ground stands in, so the cells of a building the model missed still count."""
+    less = truth_model_run(tiny_scene, tmp_path / "less", drop=(1,))
+    holed = truth_model_run(tiny_scene, tmp_path / "holed", drop=(1,))
+    dtm, grid, crs = read_raster(tiny_scene / "truth" / "dtm.tif")
+    ids = read_raster(tiny_scene / "truth" / "building_id.tif")[0][0]
+    raised = dtm[0] + 0.5  # a ground of its own: half a metre above the truth's
+    raised[ids == 1] = np.nan  # unknown under the building it missed
+    write_raster(holed / "dtm.tif", raised.astype(np.float32), grid, crs)
+    out = tmp_path / "report"
+    proc = run_cli("compare", less, holed, "--truth", tiny_scene, "-o", out)
+    assert proc.returncode == 0, proc.stderr
+    runs = json.loads((out / "metrics.json").read_text())["runs"]
+    assert runs["holed"]["height"]["valid_fraction"] == 1.0
+    assert runs["holed"]["height"]["rmse_m"] == pytest.approx(runs["less"]["height"]["rmse_m"])

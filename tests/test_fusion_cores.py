@@ -17,7 +17,11 @@ from fusion.observations import (
     visibility_groups,
 )
 from fusion.points import top_surface_at_centres
-from fusion.robust import (
+from fusion.scene_fusion import elevation_image, isolated_spikes, top_surface_votes
+from fusion.sigma_points import N_FEATURES, feature_cues, sigma_points
+from workbench.camera import Camera, look_at_rotation
+from workbench.raster import Grid
+from workbench.robust import (
     group_count,
     group_mean,
     group_median,
@@ -25,10 +29,6 @@ from fusion.robust import (
     group_weighted_quantile,
     vector_median,
 )
-from fusion.scene_fusion import elevation_image, isolated_spikes, top_surface_votes
-from fusion.sigma_points import N_FEATURES, feature_cues, sigma_points
-from workbench.camera import Camera, look_at_rotation
-from workbench.raster import Grid
 
 
 def test_group_median_and_mean():

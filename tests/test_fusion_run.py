@@ -378,16 +378,3 @@ def test_point_cloud_scored_against_a_scene_truth(tiny_scene, tmp_path):
     q = json.loads((tmp_path / "c" / "fusion.json").read_text())["quality"]
     assert q["dtm"]["rmse_m"] < 1.0
     assert "dsm_mean_fusion" not in q  # no mean fusion of a cloud: absent, not invented
-
-
-def test_python_callers_get_the_command_lines_defaults():
-    from fusion.cli_fusion import fusion_arguments
-    from fusion.scene_fusion import FusionOptions
-    from workbench.cli import build_parser
-
-    parsed = vars(build_parser().parse_args(["fusion", "S", "-o", "O"]))
-    given = vars(fusion_arguments(scene=parsed["scene"], out=parsed["out"]))
-    assert {k: parsed[k] for k in given} == given
-    assert given["label_split"] == FusionOptions().label_split == 1.0
-    with pytest.raises(TypeError, match="label_spilt"):
-        fusion_arguments(label_spilt=2.0)

@@ -12,7 +12,7 @@ import shapely
 from shapely.geometry import shape
 
 from data_samples.truth_run import truth_fusion_run
-from modeling.roof_types import ROOF_TYPES
+from modeling.shared.roof_types import ROOF_TYPES
 from tests.conftest import SHARED_DATA, model_and_score, run_cli
 from workbench.raster import read_raster
 
@@ -55,10 +55,10 @@ def test_outputs_are_complete_and_readable(modelled):
         assert b["roof_type"] in ROOF_TYPES
         assert b["base_z"] < b["eave_z"] <= b["ridge_z"]
         assert b["footprint"]["type"] in ("Polygon", "MultiPolygon")
-        assert all(abs(np.linalg.norm(p["normal"]) - 1) < 1e-3 for p in b["roof_planes"])
+        assert all(abs(np.linalg.norm(p["normal"]) - 1) < 1e-3 for p in b["planes"])
     scene = o3d.io.read_triangle_mesh(str(out / "scene.ply"))
     assert len(scene.triangles) > sum(b["faces"] for b in record["buildings"])  # + terrain
-    assert (out / "scene.obj").exists() and (out / "buildings" / "materials.mtl").exists()
+    assert (out / "scene.obj").exists() and (out / "buildings" / f"{b['id']}.mtl").exists()
     cls, grid, crs = read_raster(out / "class.tif")
     _, fgrid, fcrs = read_raster(fusion / "dsm.tif")
     assert grid == fgrid and crs == fcrs and set(np.unique(cls)) <= {0, 1, 2, 3, 4}

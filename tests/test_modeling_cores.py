@@ -9,16 +9,22 @@ import shapely
 from shapely.geometry import Polygon, box, shape
 from shapely.geometry.polygon import orient
 
-from modeling.aggregate import superpixel_graph
-from modeling.buildings import split_buildings
-from modeling.crf import alpha_expansion, binary_cut, crf_energy, pairwise_cut
-from modeling.outline_regularity import regularise_outline
-from modeling.planes import plane_heights, ransac_plane
-from modeling.prototypes import cluster_prototypes, hypothesis_similarity
-from modeling.roof_mesh import extrude_faces, face_polygons, untangle_diagonals, vertex_matched
-from modeling.roof_types import roof_type
-from modeling.superpixel_model import SuperpixelOptions, model_building, observed_faces
-from modeling.superpixels import colour_height_image, quickshift_superpixels, relief_image
+from modeling.shared.graph_cuts import alpha_expansion, binary_cut, crf_energy, pairwise_cut
+from modeling.shared.outline_regularity import regularise_outline
+from modeling.shared.planes import plane_heights, ransac_plane
+from modeling.shared.roof_mesh import (
+    extrude_faces,
+    face_polygons,
+    untangle_diagonals,
+    vertex_matched,
+)
+from modeling.shared.roof_types import roof_type
+from modeling.superpixel.aggregation import superpixel_graph
+from modeling.superpixel.buildings import split_buildings
+from modeling.superpixel.options import SuperpixelOptions
+from modeling.superpixel.prototypes import cluster_prototypes, hypothesis_similarity
+from modeling.superpixel.quickshift import colour_height_image, quickshift_superpixels, relief_image
+from modeling.superpixel.rooftop import model_building, observed_faces
 from workbench.meshes import is_watertight, unpaired_edges
 from workbench.raster import Grid
 
@@ -263,8 +269,8 @@ def test_closure_gives_up_a_face_at_the_open_vertex_not_the_smallest_anywhere():
     (model,) = model_building(
         faces, grid, planes, np.zeros((24, 24)), SuperpixelOptions(simplify_m=0.01)
     )
-    assert model.record["watertight"] and model.record["faces_merged_for_closure"] == 1
-    assert len(model.record["roof_planes"]) == 4  # E kept, one of A-D given up
+    assert model.watertight and model.record["faces_merged_for_closure"] == 1
+    assert len(model.planes) == 4  # E kept, one of A-D given up
 
 
 def test_a_t_junction_is_vertex_matched_and_the_faces_simplify():
@@ -438,8 +444,8 @@ def test_model_of_a_turned_gable_with_regularised_outline():
         (model,) = model_building(
             faces, grid, np.array(planes), ground, SuperpixelOptions(regularise_deg=deg)
         )
-        assert model.record["watertight"]
-        outline = shape(model.record["footprint"]).simplify(1e-6)
+        assert model.watertight
+        outline = model.footprint.simplify(1e-6)
         ring = np.asarray(outline.exterior.coords)
         corners[deg] = len(ring) - 1
         if deg:

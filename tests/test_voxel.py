@@ -8,19 +8,8 @@ import pytest
 from shapely.geometry import Polygon, box
 
 from data_samples.truth_run import truth_fusion_run
-from modeling.surface_graph import (
-    ViewSamples,
-    patches,
-    refine_seams,
-    seam_cost,
-    seam_costs,
-    stitch_patches,
-    surface_graph,
-)
-from modeling.texture_atlas import atlas, pack_charts
-from modeling.view_images import footprint_sigma, hs_chroma
-from modeling.voxel_model import Proxy
-from modeling.voxel_proxy import (
+from modeling.voxel.building import Proxy
+from modeling.voxel.proxy import (
     VoxelFrame,
     cluster_heights,
     column_minimum,
@@ -42,7 +31,18 @@ from modeling.voxel_proxy import (
     voxel_variance,
     voxelise,
 )
-from modeling.voxel_robustness import perturbed_mesh
+from modeling.voxel.robustness import perturbed_mesh
+from modeling.voxel.surface_graph import (
+    ViewSamples,
+    patches,
+    refine_seams,
+    seam_cost,
+    seam_costs,
+    stitch_patches,
+    surface_graph,
+)
+from modeling.voxel.texture_atlas import atlas, pack_charts
+from modeling.voxel.view_images import footprint_sigma, hs_chroma
 from workbench.camera import Camera, look_at_rotation
 from workbench.meshes import is_watertight
 from workbench.meshio import write_obj
@@ -580,6 +580,6 @@ def test_without_footprints_the_fusion_building_mask_stands_in(tiny_scene, tmp_p
     proc = run_cli("model", "voxel", scene, "-o", out, "--fusion", fusion)
     assert proc.returncode == 0, proc.stderr
     record = json.loads((out / "model.json").read_text())
-    assert record["footprints"] == "fusion building mask"
+    assert record["inputs"]["footprints"] == "fusion building mask"
     truth = json.loads((tiny_scene / "truth" / "buildings.json").read_text())["buildings"]
     assert record["counts"]["buildings"] >= len(truth) - 1

@@ -33,8 +33,7 @@ def atomic_output_dir(out: str | os.PathLike, *, overwrite: bool = False) -> Ite
         A fresh folder on the same file system as ``out``; write everything there.
     """
     out = Path(out).absolute()
-    if out.exists() and not overwrite and (not out.is_dir() or any(out.iterdir())):
-        raise OutputExistsError(out)
+    check_output_dir(out, overwrite=overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
     try:
@@ -49,6 +48,15 @@ def atomic_output_dir(out: str | os.PathLike, *, overwrite: bool = False) -> Ite
     os.replace(tmp, out)
     if old is not None:
         shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()
+
+
+def check_output_dir(out: str | os.PathLike, *, overwrite: bool = False) -> None:
+    """Raise :class:`OutputExistsError` if ``out`` exists, is not an empty folder and may
+    not be replaced: callers check before long work, then write with
+    :func:`atomic_output_dir`."""
+    out = Path(out)
+    if out.exists() and not overwrite and (not out.is_dir() or any(out.iterdir())):
+        raise OutputExistsError(out.absolute())
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:

@@ -103,12 +103,12 @@ def run_layers(run: Run, truth: Truth, options: EvaluationOptions) -> RunLayers:
         return RunLayers(dsm, ids, np.where(ids > 0, dsm, np.nan), cls=cls, ortho=ortho, dsm=dsm)
     vertices, triangles, owner = stacked_meshes(run)
     ids, building_surface, normals = top_down(vertices, triangles, owner, truth.grid)
+    ground = truth.dtm if truth.dtm is not None else np.full(truth.grid.shape, np.nan)
     if run.raster("dtm"):
-        ground = _on_grid(run.raster("dtm"), truth).astype(np.float64)
-    elif truth.dtm is not None:
-        ground = truth.dtm
-    else:
-        ground = np.full(truth.grid.shape, np.nan)
+        # the run's own ground; where it has none, the truth's, so that a building cell
+        # the model misses is always scored (a hole in its ground must not hide it)
+        own = _on_grid(run.raster("dtm"), truth).astype(np.float64)
+        ground = np.where(np.isfinite(own), own, ground)
     surface = np.where(ids > 0, building_surface, ground)
     return RunLayers(surface, ids, building_surface, normals=normals, cls=cls)
 

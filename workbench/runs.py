@@ -1,21 +1,11 @@
 """Run folders: what `workbench fusion` and every `workbench model ...` leave behind.
 
-A fusion run holds ``fusion.json`` and its rasters. A model run holds ``model.json``::
-
-    {
-      "method": "superpixel",
-      "buildings": [
-        {"id": "3", "mesh": "buildings/3.ply", "roof_type": "gable",
-         "seam_cost": 4.1, "seam_cost_projective": 9.6, ...},
-        ...
-      ],
-      "texture": {"seam_cost": 4.3, "seam_cost_projective": 9.0},
-      "stages": {"step": {"wall_s": 1.2, "peak_memory_mb": 410.0}, ...}
-    }
-
-with one mesh per building in world coordinates (``mesh`` defaults to
-``buildings/<id>.ply``, then ``.obj``), and optionally ``class.tif`` and ``dtm.tif`` on
-any grid. Only ``buildings`` is required; whatever else is there gets scored.
+A fusion run holds ``fusion.json`` and its rasters. A model run holds ``model.json``
+(written by :func:`workbench.model_run.write_model_run`; the schema is in
+``docs/formats.md``) and one mesh per building in world coordinates (``mesh`` defaults to
+``buildings/<id>.ply``, then ``.obj``), and optionally ``class.tif`` and ``dtm.tif`` on any
+grid. Only ``buildings``, each with an ``id``, is required, so that the output of another
+tool can be compared; whatever else is there gets scored.
 """
 
 from __future__ import annotations

@@ -12,8 +12,9 @@ import numpy as np
 from workbench.meshes import concatenate_meshes
 from workbench.raycast import raycasting_scene
 
-from .voxel_model import Proxy, VoxelOptions, texture_building
-from .voxel_proxy import VoxelFrame, proxy_mesh
+from .building import Proxy, texture_building
+from .options import VoxelOptions
+from .proxy import VoxelFrame, proxy_mesh
 
 PAPER_NOISE_M = 5.0  # +/- 5 m on the paper's buildings ...
 PAPER_HEIGHT_M = 35.0  # ... whose default height is 35 m

@@ -49,7 +49,7 @@ def face_polygons(
         most boundary with: slivers carry no plane worth a polygon.
     regularise_deg : float
         Outline sides this close to the building's dominant directions are put on them
-        (:func:`~modeling.outline_regularity.regularise_outline`, no vertex moving more
+        (:func:`~modeling.shared.outline_regularity.regularise_outline`, no vertex moving more
         than twice ``tolerance``); 0 leaves the outline as simplified.
 
     Returns

@@ -23,11 +23,11 @@ from scipy import ndimage
 from shapely.geometry import Polygon
 from sklearn.cluster import KMeans
 
+from modeling.shared.roof_mesh import extrude_faces, face_polygons
 from workbench.camera import Camera
 from workbench.raster import Grid
 from workbench.raycast import occluded
 
-from .roof_mesh import extrude_faces, face_polygons
 from .view_images import ViewImages
 
 _CROSS = ndimage.generate_binary_structure(2, 1)

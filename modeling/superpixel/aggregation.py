@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from fusion.robust import group_median
+from workbench.robust import group_median
 
 
 @dataclass

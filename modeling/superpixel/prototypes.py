@@ -8,7 +8,9 @@ import numpy as np
 from sklearn.cluster import AffinityPropagation
 from sklearn.exceptions import ConvergenceWarning
 
-from .planes import point_plane_distances
+from modeling.shared.planes import point_plane_distances
+
+from .options import SuperpixelOptions
 
 
 def hypothesis_similarity(
@@ -83,3 +85,23 @@ def cluster_prototypes(
     if len(exemplars) == 0:  # not converged: every hypothesis its own prototype
         return np.arange(K), np.arange(K)
     return exemplars, np.asarray(ap.labels_, np.int64)
+
+
+def roof_prototypes(
+    hypotheses: dict[int, tuple[np.ndarray, np.ndarray]],
+    adjacency: dict[int, list[int]],
+    options: SuperpixelOptions,
+) -> np.ndarray:
+    """Cluster the hypotheses (from :func:`plane_hypotheses`) into prototypes by affinity
+    propagation (section 5.2).
+
+    Returns
+    -------
+    (P, 4) prototype planes.
+    """
+    owners = np.array(list(hypotheses))
+    planes = np.array([hypotheses[i][0] for i in owners])
+    support = [hypotheses[i][1] for i in owners]
+    S = hypothesis_similarity(planes, support, owners, adjacency)
+    exemplars, _ = cluster_prototypes(S, -options.prototype_tolerance_m, options.seed)
+    return planes[exemplars]

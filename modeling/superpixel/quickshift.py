@@ -13,7 +13,6 @@ from skimage.segmentation import quickshift
 from workbench.parallel import ordered_map
 
 RELIEF_LAB = 100.0  # Lab units per unit of a normal's horizontal component
-HEIGHT_LAB = 10.0  # Lab units per metre of height, beside the ortho's colour
 
 
 def quickshift_superpixels(

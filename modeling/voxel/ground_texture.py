@@ -14,11 +14,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from modeling.shared.graph_cuts import binary_cut
 from workbench.camera import Camera
 from workbench.meshes import raster_mesh
 from workbench.raster import Grid
 
-from .crf import binary_cut
 from .surface_graph import (
     ViewSamples,
     best_views,

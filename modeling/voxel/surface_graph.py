@@ -19,10 +19,10 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
+from modeling.shared.graph_cuts import pairwise_cut
 from workbench.camera import Camera
 from workbench.raycast import occluded
 
-from .crf import pairwise_cut
 from .view_images import ViewImages, rgb_to_lab
 
 _INF = 1e9
@@ -458,7 +458,7 @@ def refine_seams(
     with C of eq. 5 (0 between equal views) and ``w`` = ``facing_weight`` Lab units per
     unit of the cosine between a vertex's normal and the direction to its view, so that
     a seam moves only where it pays for the views it gives up. One alpha-expansion move
-    per view already used (a single exact cut each, :func:`~modeling.crf.pairwise_cut`:
+    per view already used (a single exact cut each, :func:`~modeling.shared.graph_cuts.pairwise_cut`:
     C is a sum of distances between views, a metric), kept when it lowers E; vertices
     take only views that see them, unseen ones stay unseen.
 

@@ -1,7 +1,7 @@
 """The voxel path per building: proxy (section 4), then surface graph cuts (section 5).
 
-Plain functions over the scene's cameras and images; the CLI layer
-(:mod:`modeling.cli_voxel`) reads the inputs and writes the run.
+Plain functions over the scene's cameras and images; :mod:`.path` reads the inputs and
+runs them for every building.
 """
 
 from __future__ import annotations
@@ -17,23 +17,8 @@ from workbench.camera import Camera
 from workbench.raster import Grid
 from workbench.records import peak_memory_mb
 
-from .surface_graph import (
-    Stitching,
-    SurfaceGraph,
-    ViewSamples,
-    best_views,
-    count_patches,
-    refine_seams,
-    seam_cost,
-    stitch_patches,
-    surface_graph,
-    texel_colours,
-    view_facing,
-    view_samples,
-)
-from .texture_atlas import atlas
-from .view_images import ViewImages
-from .voxel_proxy import (
+from .options import VoxelOptions
+from .proxy import (
     VoxelFrame,
     cluster_heights,
     column_minimum,
@@ -54,92 +39,22 @@ from .voxel_proxy import (
     voxel_variance,
     voxelise,
 )
-
-
-@dataclass
-class VoxelOptions:
-    """Parameters of the voxel path (defaults from the paper where it gives them).
-
-    Attributes
-    ----------
-    voxel_m : float
-        Voxel size r, metres.
-    subdivisions : int
-        S: each voxel face carries S x S graph vertices (texels).
-    cluster_error : float
-        c_e of the height clustering.
-    overlap_m : float
-        Width of the band in which a patch may be cut into the stitched ones, metres.
-    refine_sweeps : int
-        Passes of expansion moves over the whole surface after the greedy cuts
-        (:func:`~modeling.surface_graph.refine_seams`); 0: the paper's greedy cuts alone.
-    facing_weight : float
-        What the refinement charges for a worse-facing view: Lab units per unit cosine.
-    ring_m : float
-        Width of the building-ground ring, metres.
-    grow_m : float
-        The GIS footprint is grown by this much before voxelising, metres.
-    height_weight : float
-        How much eq. 3 favours higher voxels (0 not at all).
-    outlier_sigma : float
-        Columns whose minimum variance lies this many standard deviations above the mean
-        are discarded.
-    min_height_m : float
-        Roof levels lower than this above the ground are ground.
-    normal_sigma : float
-        sigma_n of eq. 4, voxels.
-    simplify_m : float or None
-        Outline simplification of the proxy mesh, metres (default a quarter voxel).
-    footprint_scale : float
-        Scales the eq. 2 window (1: half the voxel's projected size).
-    tie_tolerance : float
-        How far above a column's minimum a higher voxel still ties with it, as a fraction
-        of the spread up to the column's median (:func:`highest_tied`).
-    band_tolerance : float
-        How far above a column's minimum a voxel still counts as consistent, as a fraction
-        of the spread up to the column's median (:func:`consistent_band`).
-    consistency : {"lab", "hs"}
-        Colours of the photo-consistency: CIE Lab, or the paper's HSL hue and saturation.
-    keep_views : float
-        Fraction of a voxel's samples its variance keeps (those nearest its median).
-    min_view_fraction : float
-        Voxels seen by fewer views than this fraction of the building's median (and than
-        3) are unknown.
-    fusion_ground : bool
-        With a fusion run's nDSM, columns it puts below ``min_height_m`` are ground
-        (:func:`~modeling.voxel_proxy.fused_ground_columns`).
-    fusion_flat_roofs : bool
-        With a fusion run's nDSM, flat roof levels stand at its height and grow over the
-        empty columns beside them at that height
-        (:func:`~modeling.voxel_proxy.fused_flat_levels`).
-    ground_gsd_m : float
-        Texel size of the ground texture, metres.
-    seed : int
-    """
-
-    voxel_m: float = 1.0
-    subdivisions: int = 4
-    cluster_error: float = 0.3
-    overlap_m: float = 4.0
-    refine_sweeps: int = 2
-    facing_weight: float = 10.0
-    ring_m: float = 4.0
-    grow_m: float = 1.5
-    height_weight: float = 0.0
-    outlier_sigma: float = 2.0
-    min_height_m: float = 2.0
-    normal_sigma: float = 1.0
-    simplify_m: float | None = None
-    footprint_scale: float = 1.0
-    tie_tolerance: float = 0.05
-    band_tolerance: float = 0.1
-    consistency: str = "lab"
-    keep_views: float = 0.75
-    min_view_fraction: float = 0.3
-    fusion_ground: bool = True
-    fusion_flat_roofs: bool = True
-    ground_gsd_m: float = 0.5
-    seed: int = 0
+from .surface_graph import (
+    Stitching,
+    SurfaceGraph,
+    ViewSamples,
+    best_views,
+    count_patches,
+    refine_seams,
+    seam_cost,
+    stitch_patches,
+    surface_graph,
+    texel_colours,
+    view_facing,
+    view_samples,
+)
+from .texture_atlas import atlas
+from .view_images import ViewImages
 
 
 @dataclass
@@ -235,24 +150,7 @@ def building_proxy(
     times["voxelise"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-
-    def sample(c: np.ndarray, n: np.ndarray):
-        return voxel_variance(
-            c, n, r, cameras, images, occluders, options.footprint_scale, options.keep_views
-        )
-
-    pc = sample(centres.reshape(-1, 3), normals.reshape(-1, 3))
-    # a variance from a few views is small by chance: voxels high above the building,
-    # which most views frame out, would win every column
-    seen = pc.views[pc.views > 0]
-    min_views = max(3.0, options.min_view_fraction * np.median(seen)) if len(seen) else 3.0
-    pc = upward_views(pc, centres.reshape(-1, 3), min_views, sample)
-    m = height_weighted_variance(
-        np.where(pc.views >= min_views, pc.variance, np.nan).reshape(-1, nz),
-        np.arange(nz),
-        nz,
-        options.height_weight,
-    )
+    pc, m = column_variance(centres, normals, nz, cameras, images, options, occluders)
     times["variance"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -272,35 +170,9 @@ def building_proxy(
     variance[columns] = m
     min_height = np.full((nx, ny), np.nan)
     min_height[columns] = np.where(discarded, np.nan, layer * r)
-    levels = np.zeros((nx, ny), np.int64)
-    level_heights = photo_heights = np.zeros(0)
-    kept = np.flatnonzero(~discarded)
-    n_clusters = 0
-    if len(kept):
-        # the ground is one group; k-means sorts the roofs (c_e then weighs roof levels
-        # against each other, not against the ground's far larger step)
-        on_roof = heights[kept] >= options.min_height_m
-        labels = np.zeros(len(kept), np.int64)
-        if on_roof.any():
-            roof_labels, _ = cluster_heights(
-                heights[kept][on_roof], options.cluster_error, seed=options.seed
-            )
-            labels[on_roof] = roof_labels + 1
-        n_clusters = int(labels.max()) + 1
-        labels, layers = consensus_levels(lo[kept], hi[kept], labels, n_clusters, nz)
-        means = layers * r
-        roof = means >= options.min_height_m
-        rank = np.cumsum(roof) * roof  # 0 for ground levels, 1.. for roofs
-        level_heights = means[roof]
-        col_levels = np.zeros(len(heights), np.int64)
-        col_levels[kept] = rank[labels]
-        levels[columns] = col_levels
-        levels = filter_levels(levels, columns)
-        photo_heights = level_heights[np.unique(levels[levels > 0]) - 1]
-        if fused is not None and options.fusion_flat_roofs:
-            levels, level_heights = fused_flat_levels(
-                levels, level_heights, fused, columns, 0.5 * r, 1.5 * r
-            )
+    levels, level_heights, photo_heights, n_clusters = roof_levels(
+        heights, lo, hi, ~discarded, columns, nz, fused, options
+    )
     times["clustering"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -333,6 +205,100 @@ def building_proxy(
         building_id, frame, columns, variance, min_height, levels, level_heights,
         exterior, surf_normals, vertices, triangles, outline, record,
     )  # fmt: skip
+
+
+def column_variance(
+    centres: np.ndarray,
+    normals: np.ndarray,
+    nz: int,
+    cameras: list[Camera],
+    images: ViewImages,
+    options: VoxelOptions,
+    occluders=None,
+):
+    """Eq. 2-3: each voxel's photo-consistency (variance of the colours its views see),
+    unknown where too few views see it, weighted by height.
+
+    Returns
+    -------
+    the voxels' samples (:func:`~modeling.voxel.proxy.voxel_variance`) and (C, nz) m_i of
+    every column's voxels.
+    """
+    r = options.voxel_m
+
+    def sample(c: np.ndarray, n: np.ndarray):
+        return voxel_variance(
+            c, n, r, cameras, images, occluders, options.footprint_scale, options.keep_views
+        )
+
+    pc = sample(centres.reshape(-1, 3), normals.reshape(-1, 3))
+    # a variance from a few views is small by chance: voxels high above the building,
+    # which most views frame out, would win every column
+    seen = pc.views[pc.views > 0]
+    min_views = max(3.0, options.min_view_fraction * np.median(seen)) if len(seen) else 3.0
+    pc = upward_views(pc, centres.reshape(-1, 3), min_views, sample)
+    m = height_weighted_variance(
+        np.where(pc.views >= min_views, pc.variance, np.nan).reshape(-1, nz),
+        np.arange(nz),
+        nz,
+        options.height_weight,
+    )
+    return pc, m
+
+
+def roof_levels(
+    heights: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    usable: np.ndarray,
+    columns: np.ndarray,
+    nz: int,
+    fused: np.ndarray | None,
+    options: VoxelOptions,
+):
+    """Section 4.3: the columns' consistent heights clustered into roof levels (1D
+    k-means, c_e), filtered, and with a fusion run the flat ones placed on its nDSM.
+
+    Parameters
+    ----------
+    heights, lo, hi : (C,) the middle of each column's consistent run, metres, and the
+        run's bounds, voxels; usable : (C,) bool columns kept; columns : (nx, ny) bool.
+
+    Returns
+    -------
+    levels (nx, ny) int (0 empty), level_heights (K,) metres above the base, the
+    photo-consistent heights of the levels used, and the number of height clusters.
+    """
+    r = options.voxel_m
+    levels = np.zeros(columns.shape, np.int64)
+    kept = np.flatnonzero(usable)
+    if not len(kept):
+        return levels, np.zeros(0), np.zeros(0), 0
+    # the ground is one group; k-means sorts the roofs (c_e then weighs roof levels
+    # against each other, not against the ground's far larger step)
+    on_roof = heights[kept] >= options.min_height_m
+    labels = np.zeros(len(kept), np.int64)
+    if on_roof.any():
+        roof_labels, _ = cluster_heights(
+            heights[kept][on_roof], options.cluster_error, seed=options.seed
+        )
+        labels[on_roof] = roof_labels + 1
+    n_clusters = int(labels.max()) + 1
+    labels, layers = consensus_levels(lo[kept], hi[kept], labels, n_clusters, nz)
+    means = layers * r
+    roof = means >= options.min_height_m
+    rank = np.cumsum(roof) * roof  # 0 for ground levels, 1.. for roofs
+    level_heights = means[roof]
+    col_levels = np.zeros(len(heights), np.int64)
+    col_levels[kept] = rank[labels]
+    levels[columns] = col_levels
+    levels = filter_levels(levels, columns)
+    photo_heights = level_heights[np.unique(levels[levels > 0]) - 1]
+    if fused is not None and options.fusion_flat_roofs:
+        levels, level_heights = fused_flat_levels(
+            levels, level_heights, fused, columns, 0.5 * r, 1.5 * r
+        )
+    return levels, level_heights, photo_heights, n_clusters
 
 
 @dataclass

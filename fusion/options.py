@@ -1,0 +1,61 @@
+"""The fusion's options: the one place their defaults are declared."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+from workbench.options import documented, option
+
+
+@documented
+@dataclass
+class FusionOptions:
+    """Parameters of :func:`~fusion.scene_fusion.fuse_views` and
+    :func:`~fusion.points.fuse_points` (the paper's values where it gives them; the
+    departures are listed in ``docs/fusion.md``)."""
+
+    gsd: float | None = option(
+        None, "cell size in the CRS's units", unit="m",
+        auto="the scene's gsd, else the nadir view's; for clouds, the point spacing",
+    )  # fmt: skip
+    bounds: tuple[float, float, float, float] | None = option(
+        None, "area to fuse, world units (XMIN YMIN XMAX YMAX)", kind="any", nargs=4,
+        auto="the scene's bounds",
+    )  # fmt: skip
+    tile: int = option(1024, "cells per tile side", cli=False)
+    tolerance: float = option(
+        1.0, "visibility band behind the nearest surface of a cell", unit="m", cli=False
+    )
+    patch: int = option(11, "side of the feature patch around a pixel", unit="px", cli=False)
+    n_trees: int = option(8, "trees of the per-view random forest", cli=False)
+    max_depth: int = option(14, "depth of its trees", cli=False)
+    samples_per_class: int = option(20000, "training samples per class", cli=False)
+    label_split: float = option(
+        1.0, "training pixels labelled tree or building must stand at least this high above "
+        "the DTM, ground or grass below it; others are dropped", unit="m", kind="non_negative",
+    )  # fmt: skip
+    training_views: int = option(
+        16, "views the training samples are drawn from (spread evenly)", cli=False
+    )
+    projections: int = option(8, "random directions of the vector median", cli=False)
+    seed: int = option(0, "random seed", kind="non_negative")
+    classifier: str | os.PathLike | None = option(
+        None,
+        "reuse a saved forest instead of training one",
+        auto="train one",
+        parse=str,
+        metavar="FILE",
+    )
+    raster_prior: bool = option(
+        False, "multiply the views' class probabilities by those of a forest on the fused "
+        "rasters (nDSM, slope, roughness, colour), trained on the synthetic city; not in the "
+        "paper",
+    )  # fmt: skip
+    max_memory_fraction: float = option(
+        0.5, "largest share of the machine's memory the fusion plans to use", cli=False
+    )
+    workers: int | None = option(
+        None, "views processed at once, in threads (the products do not depend on it)",
+        auto="every core",
+    )  # fmt: skip

@@ -1,0 +1,118 @@
+"""A fusion run end to end: options in, products and fusion.json out."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from workbench.atomic import atomic_output_dir
+from workbench.errors import WorkbenchError
+from workbench.metrics import classification, colour_mae, height_errors
+from workbench.options import options_record
+from workbench.scene import load_scene
+from workbench.truth import truth_rasters
+
+from .classifier import save_classifier
+from .options import FusionOptions
+from .outputs import write_fusion
+from .raster_forest import classify_rasters, synthetic_raster_forest
+from .scene_fusion import FEATURES, fuse_views
+
+
+def run_fusion(
+    out: Path,
+    options: FusionOptions | None = None,
+    *,
+    scene: Path | None = None,
+    points: Path | None = None,
+    crs: str | None = None,
+    truth: Path | None = None,
+    save_classifier_to: Path | None = None,
+    overwrite: bool = False,
+) -> dict:
+    """Fuse a scene's views (or a point cloud) and write the run folder ``out``.
+
+    Parameters
+    ----------
+    out : path
+        The run folder (written atomically).
+    options : FusionOptions
+    scene, points : path
+        Exactly one: a scene folder, or a LAS/LAZ/PLY cloud.
+    crs : str, optional
+        CRS of a cloud that carries none (EPSG code or WKT).
+    truth : path, optional
+        A scene with truth/: the products' scores go into fusion.json.
+    save_classifier_to : path, optional
+        Where to save the trained per-view forest.
+
+    Returns
+    -------
+    The fusion.json record.
+    """
+    if (scene is None) == (points is None):
+        raise WorkbenchError("fusion: give either SCENE or --points CLOUD")
+    options = options or FusionOptions()
+    t0 = time.perf_counter()
+    if points is not None:
+        from .points import fuse_points
+
+        result, crs, inputs = fuse_points(points, options, crs=crs)
+    else:
+        loaded = load_scene(scene)
+        result = fuse_views(loaded, options)
+        crs = loaded.crs
+        inputs = {"scene": str(loaded.scene_json), "views": len(loaded.views)}
+    g = result.grid
+    record = {
+        "inputs": inputs,
+        "parameters": options_record(options),
+        "grid": {
+            "xmin": g.xmin, "ymax": g.ymax, "gsd": g.gsd, "width": g.width, "height": g.height,
+            "crs": crs.to_string() if crs else None,
+        },
+        **result.record,
+        "stages_total_s": round(time.perf_counter() - t0, 3),
+    }  # fmt: skip
+    if truth is not None:
+        record["quality"] = fusion_quality(result, truth)
+    with atomic_output_dir(out, overwrite=overwrite) as tmp:
+        write_fusion(tmp, result, crs, record)
+        if save_classifier_to is not None and result.forest is not None:
+            save_classifier(
+                save_classifier_to, result.forest, features=FEATURES,
+                meta={"trained_on": record["inputs"], "seed": options.seed},
+            )  # fmt: skip
+    return record
+
+
+def fusion_quality(result, truth_scene) -> dict:
+    """Scores of the fused products against the truth, with the median-vs-mean ablation."""
+    t = truth_rasters(truth_scene, result.grid)
+    q = {}
+    if "dsm" in t:
+        q["dsm"] = height_errors(result.dsm, t["dsm"])
+        if "dsm_mean" in result.ablation:  # views only: a cloud has one height per cell
+            q["dsm_mean_fusion"] = height_errors(result.ablation["dsm_mean"], t["dsm"])
+    if "dtm" in t:
+        q["dtm"] = height_errors(result.dtm, t["dtm"])
+    if "ortho" in t:
+        seen = result.count != 0
+        q["ortho_mae"] = colour_mae(result.ortho, t["ortho"], seen)
+        if "ortho_mean" in result.ablation:
+            mean = result.ablation["ortho_mean"]
+            ok = seen & np.isfinite(mean[..., 0])
+            q["ortho_mae_mean_fusion"] = colour_mae(np.round(mean), t["ortho"], ok)
+    if "class" in t and np.isfinite(result.class_prob).any():
+        q["classification"] = classification(result.classes, t["class"])
+        # what the label-free raster forest alone would give, for comparison
+        g = result.grid
+        raster = classify_rasters(
+            synthetic_raster_forest(), result.dsm, result.dtm, result.ortho, g.gsd
+        )
+        seen = np.isfinite(raster[0])
+        alone = np.where(seen, np.argmax(np.nan_to_num(raster), axis=0) + 1, 0)
+        q["classification_raster_forest_alone"] = classification(alone, t["class"])
+    return q

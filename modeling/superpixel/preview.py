@@ -1,0 +1,48 @@
+"""The super-pixel path's preview: super-pixels, CRF classes, roof prototypes, models."""
+
+from __future__ import annotations
+
+import numpy as np
+from skimage.segmentation import find_boundaries
+
+from workbench.meshes import concatenate_meshes
+from workbench.model_run import Building
+from workbench.pictures import colorize_classes, contact_sheet
+from workbench.raster import Grid
+from workbench.render import render_mesh, viewpoints
+
+
+def superpixel_preview(
+    rgb: np.ndarray,
+    labels: np.ndarray,
+    classes: np.ndarray,
+    faces: np.ndarray,
+    buildings: list[Building],
+    grid: Grid,
+    dtm: np.ndarray,
+) -> np.ndarray:
+    """(h, w, 3) uint8 contact sheet.
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8 ortho; labels : (H, W) super-pixels; classes : (H, W) CRF
+    classes; faces : (H, W) int prototype face of every building cell (0 elsewhere);
+    dtm : (H, W) float, metres.
+    """
+    edges = rgb.copy()
+    edges[find_boundaries(labels, mode="inner")] = (255, 255, 0)
+    rng = np.random.default_rng(0)
+    palette = rng.integers(60, 255, (int(faces.max()) + 1, 3)).astype(np.uint8)
+    palette[0] = 0
+    row = [
+        (edges, "super-pixels"),
+        (colorize_classes(classes), "CRF classes"),
+        (palette[faces], "roof prototypes"),
+    ]
+    if buildings:
+        V, T, _ = concatenate_meshes([(b.mesh.vertices, b.mesh.triangles) for b in buildings])
+        # a single-building cloud's DTM can be all NaN: its models' foot is the ground then
+        low = float(np.nanmin(dtm)) if np.isfinite(dtm).any() else float(V[:, 2].min())
+        cam = viewpoints(grid.bounds, (low, float(V[:, 2].max())))["south-west"]
+        row.append((render_mesh(V, T, cam, np.full((len(T), 3), 205, np.uint8)), "models"))
+    return contact_sheet([row], height=360)

@@ -1,0 +1,213 @@
+"""Rooftop modeling (the super-pixel paper, section 5.3): each building's prototype faces
+become straight-edged polygons lifted to their planes, walled down to the ground, closed."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import shapely
+
+from modeling.shared.planes import plane_heights
+from modeling.shared.roof_mesh import (
+    extrude_faces,
+    face_polygons,
+    merge_smallest_face,
+    untangle_diagonals,
+)
+from modeling.shared.roof_types import roof_type
+from workbench.meshes import is_watertight, unpaired_edges
+from workbench.model_run import Building, Surface
+from workbench.raster import Grid
+
+from .options import SuperpixelOptions
+
+# 2.25 cells: on the AHN3 clouds 2, 2.25, 2.5 and 3 cells give median RMS 0.226, 0.234,
+# 0.250 and 0.282 m with 122, 107, 103 and 95 triangles; on the synthetic city 2 and 2.25
+# give the same heights (RMSE 1.63 and 1.64 m) with 10 % fewer triangles
+SIMPLIFY_CELLS = 2.25
+
+
+def observed_faces(faces: np.ndarray, observed: np.ndarray, reach: int) -> np.ndarray:
+    """Face labels restricted to observed cells and to unobserved cells within ``reach``
+    cells of an observed cell of the building, keeping unobserved cells enclosed by it.
+
+    Cells no view saw beside a wall are partly the roof's edge (the fusion leaves a
+    building's outermost cells unseen) and partly occluded ground: a super-pixel that
+    straddles them would otherwise carry its roof out over the street, while dropping
+    them all cuts the roof short. On the small city, a reach of 1 m keeps the footprint
+    quality (0.887 against 0.893 with none) and lowers the height RMSE from 4.95 to
+    1.66 m: nearly all of it came from missed edge cells of tall buildings.
+
+    Parameters
+    ----------
+    faces : (h, w) int
+        Face label + 1 per cell, 0 outside the building.
+    observed : (h, w) bool
+        Cells with a known height.
+    reach : int
+        Cells.
+    """
+    seen = (observed & (faces > 0)).astype(np.uint8)
+    if reach > 0:
+        near = cv2.dilate(seen, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8)) > 0
+    else:
+        near = seen > 0
+    kept = np.where(observed | near, faces, 0)
+    gaps = (kept == 0).astype(np.uint8)
+    n, comp = cv2.connectedComponents(gaps, connectivity=4)
+    border = np.unique(np.concatenate([comp[0], comp[-1], comp[:, 0], comp[:, -1]]))
+    enclosed = (gaps > 0) & ~np.isin(comp, border)
+    return np.where(enclosed, faces, kept)
+
+
+def model_building(
+    face_raster: np.ndarray,
+    grid: Grid,
+    planes: np.ndarray,
+    ground: np.ndarray,
+    options: SuperpixelOptions,
+) -> list[Building]:
+    """Rooftop modeling (section 5.3): the faces become straight-edged polygons (a
+    topology-preserving simplification of their shared boundaries), each vertex is lifted
+    to its face's plane, walls go down to the ground, and the mesh is closed.
+
+    Each 4-connected part of the building becomes one model (parts below
+    ``min_area_m2`` are dropped). A part whose simplified mesh is not closed is rebuilt
+    from its unsimplified cell outlines; if that is not closed either, its smallest face
+    gives way to a neighbour until it is (counted in ``faces_merged_for_closure``).
+
+    Parameters
+    ----------
+    face_raster : (h, w) int
+        Prototype index + 1 of every cell of the building, 0 elsewhere (a crop).
+    grid : Grid
+        The crop's grid.
+    planes : (P, 4)
+        Prototype planes.
+    ground : (h, w) float
+        DTM of the crop, metres.
+
+    Returns
+    -------
+    list of Building (ids left empty for the caller), largest first.
+    """
+    faces = untangle_diagonals(face_raster)
+    n, parts, stats, _ = cv2.connectedComponentsWithStats(
+        (faces > 0).astype(np.uint8), connectivity=4
+    )
+    out = []
+    for k in np.argsort(-stats[:, cv2.CC_STAT_AREA]):
+        if k == 0 or stats[k, cv2.CC_STAT_AREA] * grid.gsd**2 < options.min_area_m2:
+            continue
+        part = np.where(parts == k, faces, 0)
+        g = ground[part > 0]
+        g = g[np.isfinite(g)] if np.isfinite(g).any() else ground[np.isfinite(ground)]
+        base = float(g.min()) if len(g) else np.inf  # unknown: just under the roof
+        simplify = (
+            options.simplify_m if options.simplify_m is not None else SIMPLIFY_CELLS * grid.gsd
+        )
+        merged = 0
+        while True:
+            model = _closed_model(part, grid, planes, base, simplify, options.regularise_deg)
+            closed = model is not None and _watertight(model)
+            if closed or len(np.unique(part[part > 0])) == 1:
+                break
+            # faces meeting at a vertex can leave two parts of the roof touching along a
+            # vertical line there (not a manifold): give up the smallest face there, retry
+            part = merge_smallest_face(part, _faces_at_open_edges(model, part, grid))
+            merged += 1
+        if model is not None:
+            model.record["faces_merged_for_closure"] = merged
+            out.append(model)
+    return out
+
+
+def _faces_at_open_edges(
+    model: Building | None, faces: np.ndarray, grid: Grid
+) -> np.ndarray | None:
+    """Face labels of the cells within one cell of the ends of the model's unpaired
+    edges (None without a model, or when every edge is paired)."""
+    if model is None:
+        return None
+    ends = np.unique(unpaired_edges(model.mesh.triangles))
+    if not len(ends):
+        return None
+    row, col = grid.cell_index(*model.mesh.vertices[ends, :2].T, clip=True)
+    near = np.zeros(faces.shape, bool)
+    near[row, col] = True
+    near = cv2.dilate(near.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    return np.unique(faces[near & (faces > 0)])
+
+
+def _closed_model(
+    faces: np.ndarray,
+    grid: Grid,
+    planes: np.ndarray,
+    ground: float,
+    simplify: float,
+    regularise_deg: float = 0.0,
+) -> Building | None:
+    """The part simplified by ``simplify`` (and regularised), else unsimplified when that
+    is not closed (or the triangulation fails); None when neither gives a model."""
+    fallback = None
+    for tolerance, regular in ((simplify, regularise_deg), (1e-3, 0.0)):
+        try:
+            model = _model_part(faces, grid, planes, ground, tolerance, regular)
+        except shapely.errors.GEOSException:  # a degenerate polygon after simplification
+            continue
+        if model is not None and _watertight(model):
+            return model
+        fallback = fallback or model
+    return fallback
+
+
+def _model_part(
+    faces: np.ndarray,
+    grid: Grid,
+    planes: np.ndarray,
+    ground: float,
+    tolerance: float,
+    regularise_deg: float = 0.0,
+) -> Building | None:
+    polygons, labels = face_polygons(faces, grid, tolerance, regularise_deg=regularise_deg)
+    if not polygons:
+        return None
+    face_planes = [planes[k - 1] for k in labels]
+    outline = shapely.union_all(polygons)
+    edge = outline.boundary
+    roof_z, eave_z = [], []
+    for poly, plane in zip(polygons, face_planes, strict=True):
+        xy = np.asarray(poly.exterior.coords)
+        z = plane_heights(plane, xy[:, 0], xy[:, 1])
+        roof_z.append(z)
+        on_outline = shapely.distance(shapely.points(xy), edge) < 1e-6
+        eave_z.append(z[on_outline])
+    roof_z = np.concatenate(roof_z)
+    eave_z = np.concatenate(eave_z)
+    base = min(ground, float(roof_z.min()) - 0.5)  # a floor under every roof vertex
+    vertices, triangles = extrude_faces(polygons, face_planes, base)
+    used = sorted(set(labels))
+    areas, heights = [], []
+    for u in used:
+        mine = [p for p, k in zip(polygons, labels, strict=True) if k == u]
+        area = sum(p.area for p in mine)
+        areas.append(area)
+        heights.append(
+            sum(p.area * plane_heights(planes[u - 1], *p.centroid.coords[0]) for p in mine) / area
+        )
+    areas, heights = np.array(areas), np.array(heights)
+    planes_used = planes[np.array(used) - 1]
+    kind = roof_type(
+        planes_used, areas, heights, eave_z, ridge_z=float(roof_z.max()),
+        centre=(outline.centroid.x, outline.centroid.y, np.sqrt(outline.area)),
+    )  # fmt: skip
+    return Building(
+        "", Surface(vertices, triangles), lod="2.2", footprint=outline, roof_type=kind,
+        planes=planes_used, plane_areas=areas, base_z=base,
+        eave_z=float(eave_z.min() if len(eave_z) else roof_z.min()), ridge_z=float(roof_z.max()),
+        watertight=is_watertight(vertices, triangles),
+    )  # fmt: skip
+
+
+def _watertight(b: Building) -> bool:
+    return bool(b.watertight)

@@ -1,0 +1,226 @@
+"""What the voxel path reads: the scene and its views, the footprints (GIS, or the
+fusion's building regions), each footprint's ground height and over-estimated height,
+and the ground model."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import rasterio.features
+import shapely
+from shapely.geometry import Polygon, mapping
+
+from modeling.shared.roof_mesh import extrude_faces
+from workbench.errors import InputError
+from workbench.footprints import Footprint, read_footprints
+from workbench.fusion_run import read_fusion_run
+from workbench.meshes import concatenate_meshes
+from workbench.raster import Grid, read_raster
+from workbench.raycast import raycasting_scene
+from workbench.scene import Scene, load_scene
+
+from .options import VoxelOptions
+from .view_images import ViewImages
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class VoxelInputs:
+    """What the voxel path reads: the scene, its views, the usable footprints (each with
+    its ground height and over-estimated height) and the ground model."""
+
+    scene: Scene
+    cameras: list
+    images: ViewImages
+    ground: Ground
+    buildings: list  # (Footprint, base_z, height)
+    skipped: list[dict]
+    footprint_source: str
+    footprint_count: int
+    fused_ndsm: tuple | None = None  # (ndsm, grid) of the fusion run, if any
+
+
+def read_inputs(
+    scene_dir: Path,
+    options: VoxelOptions,
+    footprints: Path | None = None,
+    fusion_dir: Path | None = None,
+) -> VoxelInputs:
+    """Read and check the scene, footprints and ground; skip unusable footprints with a
+    warning that names them."""
+    scene = load_scene(scene_dir)
+    cameras = [v.camera for v in scene.views]
+    images = ViewImages(scene.views, features=options.consistency)
+    fusion = _read_fusion(fusion_dir) if fusion_dir else None
+    items, source = _footprints(scene, footprints, fusion)
+    ground = _ground_model(scene, fusion, options.ground_z)
+    kept, skipped = _usable(items, cameras, ground, options.default_height_m)
+    fused_ndsm = (fusion["ndsm"], fusion["grid"]) if fusion else None
+    return VoxelInputs(
+        scene, cameras, images, ground, kept, skipped, source, len(items), fused_ndsm
+    )
+
+
+def _read_fusion(folder: Path) -> dict:
+    """The fusion run's DTM, classes and nDSM (first bands), its grid and CRS."""
+    run = read_fusion_run(folder, ("dtm", "class", "ndsm"))
+    return {**{k: v[0] for k, v in run.rasters.items()}, "grid": run.grid, "crs": run.crs}
+
+
+def _footprints(
+    scene: Scene, path: Path | None, fusion: dict | None
+) -> tuple[list[Footprint], str]:
+    path = path or scene.footprints
+    if path is not None:
+        return read_footprints(path), str(path)
+    if fusion is None:
+        raise InputError(
+            scene.scene_json, "footprints", "no footprints: pass --footprints or --fusion"
+        )
+    return footprints_from_fusion(fusion), "fusion building mask"
+
+
+def footprints_from_fusion(fusion: dict, min_area_m2: float = 20.0) -> list[Footprint]:
+    """Footprints from a fusion run's building class: one per connected region, its
+    height 1.5 times its 99th-percentile nDSM (over-estimated, as GIS heights are)."""
+    grid: Grid = fusion["grid"]
+    mask = fusion["class"] == 4
+    out = []
+    for geom, _ in rasterio.features.shapes(
+        mask.astype(np.uint8), mask=mask, transform=grid.transform, connectivity=4
+    ):
+        poly = shapely.geometry.shape(geom).simplify(grid.gsd)
+        if poly.area < min_area_m2:
+            continue
+        inside = rasterio.features.geometry_mask([geom], grid.shape, grid.transform, invert=True)
+        h = (
+            np.nanpercentile(fusion["ndsm"][inside], 99)
+            if np.isfinite(fusion["ndsm"][inside]).any()
+            else np.nan
+        )
+        if not np.isfinite(h) or h <= 0:
+            continue
+        fid = str(len(out) + 1)
+        out.append(Footprint(fid, poly, float(1.5 * h), {"_height_source": "fusion nDSM x 1.5"}))
+    return out
+
+
+class Ground:
+    """Ground height: the fusion's DTM, the scene's DTM, or a flat plane."""
+
+    def __init__(self, source: str, z=None, grid: Grid | None = None, flat: float | None = None):
+        self.source, self.z, self.grid, self.flat = source, z, grid, flat
+
+    def under(self, polygon: Polygon) -> float:
+        """Median ground height under a footprint, metres."""
+        if self.z is None:
+            return float(self.flat)
+        inside = rasterio.features.geometry_mask(
+            [mapping(polygon)], self.grid.shape, self.grid.transform, invert=True, all_touched=True
+        )
+        vals = self.z[inside]
+        vals = vals[np.isfinite(vals)]
+        if not len(vals):  # off the raster: the nearest known ground
+            c = polygon.centroid
+            r, cc = self.grid.cell_index(np.array([c.x]), np.array([c.y]), clip=True)
+            known = np.argwhere(np.isfinite(self.z))
+            j = np.argmin(np.hypot(known[:, 0] - r[0], known[:, 1] - cc[0]))
+            return float(self.z[tuple(known[j])])
+        return float(np.median(vals))
+
+    def __call__(self, grid: Grid) -> np.ndarray:
+        """Ground height at the cell centres of ``grid``."""
+        if self.z is None:
+            return np.full(grid.shape, float(self.flat))
+        X, Y = grid.cell_centers()
+        r, c = self.grid.cell_index(X.ravel(), Y.ravel(), clip=True)
+        z = self.z[r, c].reshape(grid.shape)
+        if np.isfinite(z).any():
+            z = np.where(np.isfinite(z), z, np.nanmedian(z))
+        return z
+
+
+def _ground_model(scene: Scene, fusion: dict | None, ground_z: float | None) -> Ground:
+    if fusion is not None:
+        return Ground("fusion DTM", fusion["dtm"], fusion["grid"])
+    if scene.dtm is not None:
+        z, grid, _ = read_raster(scene.dtm)
+        return Ground("scene DTM", z[0], grid)
+    if ground_z is not None:
+        return Ground("flat plane (--ground-z)", flat=ground_z)
+    z = flat_ground_from_depth(scene)
+    if z is None:
+        raise InputError(
+            scene.scene_json,
+            "dtm",
+            "no ground: pass --fusion or --ground-z, or give the scene a dtm",
+        )
+    return Ground("flat plane (depth maps)", flat=z)
+
+
+def flat_ground_from_depth(scene: Scene, step: int = 8) -> float | None:
+    """A flat ground plane from the most downward-looking views' depth maps: the median
+    of the lowest fifth of the points they see, metres. None without depth maps."""
+    heights = []
+    for view in scene.views:
+        if view.depth_path is None or -view.camera.viewing_direction[2] < 0.95:
+            continue
+        depth = view.read_depth()[::step, ::step]
+        origin, dirs = view.camera.pixel_grid_rays(step)
+        z = origin[2] + depth.ravel() * dirs[:, 2]
+        heights.append(z[np.isfinite(z)])
+    if not heights:
+        return None
+    z = np.concatenate(heights)
+    return float(np.median(z[z <= np.quantile(z, 0.2)]))
+
+
+def _usable(items, cameras, ground: Ground, default_height: float):
+    kept, skipped = [], []
+    for f in items:
+        if not f.polygon.is_valid:
+            log.warning("footprint %s: self-intersecting polygon, skipped", f.id)
+            skipped.append({"id": f.id, "reason": "self-intersecting polygon"})
+            continue
+        poly = (
+            f.polygon
+            if isinstance(f.polygon, Polygon)
+            else max(f.polygon.geoms, key=lambda g: g.area)
+        )
+        base = ground.under(poly)
+        if f.height is None:
+            f.properties["_height_source"] = "zonal default"
+        h = f.height if f.height is not None else default_height
+        c = np.array([[*poly.centroid.coords[0], base]])
+        seen = 0
+        for cam in cameras:
+            uv, _ = cam.project(c)
+            seen += bool(
+                np.all(np.isfinite(uv)) and 0 <= uv[0, 0] < cam.width and 0 <= uv[0, 1] < cam.height
+            )
+        if seen < 2:
+            log.warning("footprint %s: outside the images (seen by %d views), skipped", f.id, seen)
+            skipped.append({"id": f.id, "reason": f"seen by {seen} views"})
+            continue
+        kept.append((Footprint(f.id, poly, h, f.properties), base, h))
+    return kept, skipped
+
+
+def prism(polygon: Polygon, base: float, height: float):
+    return extrude_faces([polygon], [np.array([0.0, 0.0, 1.0, -(base + height)])], base)
+
+
+def neighbour_scene(f: Footprint, kept, prisms):
+    """The ray-casting scene of the initial proxies of the buildings near ``f``."""
+    reach = 2.0 * max(h for _, _, h in kept)
+    near = [
+        prisms[g.id] for g, _, _ in kept if g.id != f.id and g.polygon.distance(f.polygon) <= reach
+    ]
+    if not near:
+        return None
+    V, T, _ = concatenate_meshes(near)
+    return raycasting_scene(V, T)

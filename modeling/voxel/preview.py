@@ -1,0 +1,120 @@
+"""The voxel path's preview: what photo-consistency and the graph cuts did."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from workbench.meshes import concatenate_meshes
+from workbench.pictures import colorize_height, contact_sheet
+from workbench.raycast import cast, raycasting_scene
+from workbench.render import viewpoints
+
+from .building import Proxy, Texture
+from .ground_texture import ground_mesh
+
+
+def voxel_preview(proxies: list[Proxy], textures: list[Texture], gtex) -> np.ndarray:
+    """(h, w, 3) uint8 contact sheet: the largest building's variance, heights before and
+    after clustering, its roof views before and after the graph cuts, the textured
+    proxies and the ground texture."""
+    if not proxies:
+        return np.full((64, 64, 3), 255, np.uint8)
+    big = max(range(len(proxies)), key=lambda i: proxies[i].columns.sum())
+    p, t = proxies[big], textures[big]
+    nx, ny, nz = p.frame.shape
+    var = p.variance[:, ny // 2, :].T[::-1]  # vertical slice, up is up
+    var_img = colorize_height(np.log10(np.where(np.isfinite(var), var, np.nan) + 1e-6))
+    horiz = p.variance[
+        :,
+        :,
+        min(nz - 1, int(round(p.level_heights.max() / p.frame.r)) if len(p.level_heights) else 0),
+    ]
+    horiz_img = colorize_height(np.log10(horiz.T[::-1] + 1e-6))
+    top = float(np.nanmax(p.min_height)) if np.isfinite(p.min_height).any() else 1.0
+    before = _height_image(p.min_height, top)
+    after = _height_image(np.concatenate([[np.nan], p.level_heights])[p.levels], top)
+    row1 = [
+        (_upscale(var_img), f"building {p.id}: variance, vertical slice"),
+        (_upscale(horiz_img), "variance at the roof"),
+        (_upscale(before), "most consistent heights"),
+        (_upscale(after), "after clustering"),
+    ]
+    top_before = _top_labels(p, t, t.initial)
+    top_after = _top_labels(p, t, t.stitched.labels)
+    render = render_textured(proxies, textures, gtex)
+    row2 = [
+        (top_before, "roof views: best per texel"),
+        (top_after, "after graph cuts"),
+        (render, "textured proxies"),
+    ]
+    if gtex is not None:
+        row2.append((gtex.image, "ground texture"))
+    return contact_sheet([row1, row2])
+
+
+def _upscale(img: np.ndarray, size: int = 240) -> np.ndarray:
+    h, w = img.shape[:2]
+    f = max(1, size // max(h, w))
+    return cv2.resize(img, (w * f, h * f), interpolation=cv2.INTER_NEAREST)
+
+
+def _height_image(z: np.ndarray, top: float) -> np.ndarray:
+    """A column height map (nx, ny) in turbo colours from 0 to ``top`` metres, north up."""
+    g = np.clip(np.nan_to_num(z.T[::-1], nan=0.0) / max(top, 1e-6) * 255, 0, 255)
+    rgb = cv2.cvtColor(cv2.applyColorMap(g.astype(np.uint8), cv2.COLORMAP_TURBO), cv2.COLOR_BGR2RGB)
+    rgb[~np.isfinite(z.T[::-1])] = 0
+    return rgb
+
+
+def _top_labels(proxy: Proxy, tex: Texture, labels: np.ndarray) -> np.ndarray:
+    """Roof texels coloured by view, top-down in the building's own frame."""
+    g = tex.graph
+    roof = (g.normals[:, 2] > 0.9) & (labels >= 0)
+    palette = np.random.default_rng(0).integers(40, 255, (int(labels.max()) + 2, 3))
+    if not roof.any():
+        return np.full((64, 64, 3), 255, np.uint8)
+    local = proxy.frame.to_local_xy(g.positions[roof, :2])
+    ij = np.round((local - local.min(axis=0)) / g.texel_m).astype(int)  # texel centres
+    img = np.full((ij[:, 1].max() + 1, ij[:, 0].max() + 1, 3), 255, np.uint8)
+    img[ij[:, 1].max() - ij[:, 1], ij[:, 0]] = palette[labels[roof]].astype(np.uint8)
+    return _upscale(img, 240)
+
+
+def render_textured(
+    proxies: list[Proxy], textures: list[Texture], gtex, width: int = 640
+) -> np.ndarray:
+    """Ray-cast picture of the textured proxies (and ground) from the south-west: each
+    pixel's hit is looked up in its mesh's atlas through the interpolated UVs."""
+    parts = [
+        (p.vertices, p.triangles, t.uvs, t.image) for p, t in zip(proxies, textures, strict=True)
+    ]
+    gm = ground_mesh(gtex) if gtex is not None else None
+    if gm is not None:
+        parts.append((*gm, gtex.image))
+    V, T, owner = concatenate_meshes([(v, t) for v, t, _, _ in parts])
+    uvs = np.concatenate([u for _, _, u, _ in parts])
+    xy = np.vstack([p.vertices[:, :2] for p in proxies])
+    bounds = (*xy.min(axis=0), *xy.max(axis=0))
+    cam = viewpoints(bounds, (float(V[:, 2].min()), float(V[:, 2].max())), width, width * 3 // 4)[
+        "south-west"
+    ]
+    origin, dirs = cam.pixel_grid_rays()
+    hits = cast(raycasting_scene(V, T), origin, dirs)
+    img = np.full((cam.height * cam.width, 3), 255, np.uint8)
+    for i, (_, _, _, atlas_img) in enumerate(parts):
+        sel = np.flatnonzero((hits.tri >= 0) & (owner[np.maximum(hits.tri, 0)] == i + 1))
+        if not len(sel):
+            continue
+        corners = uvs[hits.tri[sel]]
+        b = hits.bary[sel]
+        uv = (
+            (1 - b[:, :1] - b[:, 1:]) * corners[:, 0]
+            + b[:, :1] * corners[:, 1]
+            + b[:, 1:] * corners[:, 2]
+        )
+        h, w = atlas_img.shape[:2]
+        c = np.clip((uv[:, 0] * w).astype(int), 0, w - 1)
+        r = np.clip(((1 - uv[:, 1]) * h).astype(int), 0, h - 1)
+        img[sel] = atlas_img[r, c]
+    return img.reshape(cam.height, cam.width, 3)

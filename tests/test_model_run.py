@@ -1,0 +1,98 @@
+"""The one writer of model runs, on hand-made runs."""
+
+import json
+
+import numpy as np
+import open3d as o3d
+import pytest
+from shapely.geometry import box
+
+from modeling.shared.roof_mesh import extrude_faces
+from workbench.meshes import read_mesh
+from workbench.model_run import (
+    BUILDING_KEYS,
+    Building,
+    ModelRun,
+    Surface,
+    Texture,
+    write_model_run,
+)
+from workbench.options import option
+from workbench.raster import Grid, read_raster
+
+
+def _box_building(bid: str, x0: float, texture: bool = False) -> Building:
+    """A 10 m x 6 m flat-roofed box, 8 m tall on ground at 2 m."""
+    footprint = box(x0, 0, x0 + 10, 6)
+    plane = np.array([0.0, 0.0, 1.0, -10.0])
+    V, T = extrude_faces([footprint], [plane], 2.0)
+    colours = np.tile(np.array([[200, 10, 10]], np.uint8), (len(V), 1))
+    tex = None
+    if texture:
+        tex = Texture(np.full((4, 4, 3), 90, np.uint8), np.full((len(T), 3, 2), 0.5))
+    return Building(
+        bid, Surface(V, T, colours, tex), lod="1.3", footprint=footprint, roof_type="flat",
+        planes=plane[None], plane_areas=np.array([60.0]), base_z=2.0, eave_z=10.0,
+        ridge_z=10.0, record={"extra": 1},
+    )  # fmt: skip
+
+
+from dataclasses import dataclass  # noqa: E402
+
+
+@dataclass
+class _Options:
+    size_m: float = option(1.0, "a size", unit="m")
+
+
+def _run(buildings, **kw) -> ModelRun:
+    grid = Grid(-5.0, 20.0, 1.0, 40, 30)
+    return ModelRun("boxes", _Options(), buildings, grid=grid,
+                    dtm=np.full(grid.shape, 2.0), **kw)  # fmt: skip
+
+
+def test_a_run_becomes_its_folder(tmp_path):
+    run = _run([_box_building("a", 0.0), _box_building("b", 15.0)],
+               rasters={"class": (np.ones((30, 40), np.uint8), 0)})  # fmt: skip
+    record = write_model_run(run, tmp_path / "run")
+    out = tmp_path / "run"
+    assert record == json.loads((out / "model.json").read_text())
+    assert record["parameters"] == {"size_m": 1.0} and record["method"] == "boxes"
+    assert record["counts"] == {"buildings": 2, "faces": 24, "watertight": 2}
+    a = record["buildings"][0]
+    assert list(a) == [*BUILDING_KEYS, "extra"]
+    assert a["mesh"] == "buildings/a.ply" and a["faces"] == 12 and a["watertight"]
+    assert a["planes"] == [{"normal": [0.0, 0.0, 1.0], "offset": -10.0, "area_m2": 60.0}]
+    assert a["footprint"]["type"] == "Polygon"
+    mesh = o3d.io.read_triangle_mesh(str(out / "buildings" / "a.ply"))
+    assert len(mesh.triangles) == 12
+    assert np.allclose(np.asarray(mesh.vertex_colors), [200 / 255, 10 / 255, 10 / 255])
+    assert "Kd 0.784 0.039 0.039" in (out / "buildings" / "a.mtl").read_text()
+    scene_v, scene_t = read_mesh(out / "scene.obj")
+    assert len(scene_t) == 24 and not (out / "ground.ply").exists()  # no ground given
+    dtm, grid, _ = read_raster(out / "dtm.tif")
+    assert dtm.dtype == np.float32 and grid == run.grid and (dtm == 2.0).all()
+    cls, _, _ = read_raster(out / "class.tif")
+    assert (cls == 1).all()
+    assert "write" in record["stages"] and (out / "preview.png").exists()
+
+
+def test_textured_runs_carry_their_atlases(tmp_path):
+    atlas = Texture(np.zeros((2, 2, 3), np.uint8), np.zeros((1, 3, 2)))
+    corners = np.array([[0, 0, 2], [30, 0, 2], [0, 20, 2.0]])
+    ground = Surface(corners, np.array([[0, 1, 2]]), texture=atlas)
+    run = _run([_box_building("a", 0.0, texture=True)], ground=ground)
+    write_model_run(run, tmp_path / "run")
+    out = tmp_path / "run"
+    for name in ("buildings/a.png", "ground.png", "ground.obj", "ground.ply"):
+        assert (out / name).exists(), name
+    mtl = (out / "scene.mtl").read_text()
+    assert "map_Kd buildings/a.png" in mtl and "map_Kd ground.png" in mtl
+    assert "vt 0.500000 0.500000" in (out / "scene.obj").read_text()
+
+
+def test_a_failed_write_leaves_nothing(tmp_path):
+    run = _run([_box_building("a", 0.0)], rasters={"bad": (np.ones((3, 3), np.uint8), 0)})
+    with pytest.raises(Exception):  # noqa: B017 - the raster does not fit the grid
+        write_model_run(run, tmp_path / "run")
+    assert not (tmp_path / "run").exists() and not list(tmp_path.iterdir())

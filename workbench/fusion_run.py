@@ -1,0 +1,95 @@
+"""Reading a fusion run folder (the output of ``workbench fusion``), as every modeling
+path that starts from rasters does."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+from .raster import Grid, read_raster
+
+BANDS = {"ortho": 3, "class_prob": 4}  # rasters with more than one band
+
+
+@dataclass
+class FusionRun:
+    """The rasters of a fusion run on their shared grid.
+
+    Attributes
+    ----------
+    folder : Path
+    rasters : {name: (B, H, W) array}
+        As read (float32 heights with NaN unknown, uint8 colour and classes).
+    grid : Grid
+    crs : rasterio CRS or None
+    record : dict
+        fusion.json ({} if it is missing or unreadable).
+    """
+
+    folder: Path
+    rasters: dict
+    grid: Grid
+    crs: object
+    record: dict
+
+    @property
+    def mode(self) -> str | None:
+        """How the run was made ("depth maps", "point cloud", ...), if it says."""
+        mode = self.record.get("mode")
+        return mode if isinstance(mode, str) else None
+
+    @property
+    def from_points(self) -> bool:
+        return self.mode == "point cloud"
+
+    def band(self, name: str) -> np.ndarray:
+        """(H, W) first band of ``name``; heights as float64."""
+        data = self.rasters[name][0]
+        return data.astype(np.float64) if data.dtype.kind == "f" else data
+
+    @property
+    def rgb(self) -> np.ndarray:
+        """(H, W, 3) uint8 ortho colour."""
+        return np.moveaxis(self.rasters["ortho"], 0, -1)
+
+
+def read_fusion_run(folder: str | Path, names: tuple[str, ...]) -> FusionRun:
+    """Read the rasters ``names`` ("ortho", "dsm", "dtm", "ndsm", "class_prob", "class")
+    of a fusion run, checked to share one grid and CRS.
+
+    Raises
+    ------
+    InputError
+        Naming the missing or mismatched file.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(folder, None, "no such fusion folder")
+    out, grid, crs, first = {}, None, None, None
+    for name in names:
+        path = folder / f"{name}.tif"
+        if not path.exists():
+            raise InputError(path, None, "missing: not the output folder of `workbench fusion`")
+        data, g, c = read_raster(path)
+        if grid is None:
+            grid, crs, first = g, c, path.name
+        elif g != grid:
+            raise InputError(path, "transform", f"grid differs from {folder}/{first}'s")
+        elif c != crs:
+            raise InputError(path, "crs", f"CRS differs from {folder}/{first}'s")
+        if name in BANDS and data.shape[0] != BANDS[name]:
+            raise InputError(path, "bands", f"expected {BANDS[name]} bands, got {data.shape[0]}")
+        out[name] = data
+    return FusionRun(folder, out, grid, crs, _record(folder / "fusion.json"))
+
+
+def _record(path: Path) -> dict:
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        return {}
+    return doc if isinstance(doc, dict) else {}

@@ -1,0 +1,310 @@
+"""The run contract every modeling path honours: a :class:`ModelRun` in memory, one
+run folder on disk, written by :func:`write_model_run` whatever the path.
+
+A run folder holds::
+
+    model.json              one schema for every path (SCHEMA), read by `workbench compare`
+    buildings/<id>.ply      each building, world metres, vertex colours (the scored mesh)
+    buildings/<id>.obj|.mtl the same, with its texture atlas <id>.png where the path makes one
+    scene.ply, scene.obj    every building and the ground in one mesh (+ scene.mtl)
+    ground.ply, ground.obj  the ground the buildings stand on (+ ground.png if textured)
+    dtm.tif                 that ground as a north-up float32 GeoTIFF, NaN nodata
+    <name>.tif              the path's own rasters (class.tif, superpixels.tif, ...)
+    preview.png             what the path wants a person to look at
+
+Every building of ``model.json`` has the keys of ``BUILDING_KEYS``; a path adds its own
+after them.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from shapely.geometry import mapping
+
+from . import __version__
+from .atomic import atomic_output_dir
+from .imageio import write_rgb
+from .meshes import concatenate_meshes, is_watertight
+from .meshio import write_mtl, write_obj, write_ply
+from .options import options_record
+from .raster import Grid, write_raster
+from .records import StageTimer, peak_memory_mb
+
+log = logging.getLogger(__name__)
+
+SCHEMA = "city-workbench/model-run/1"
+BUILDING_KEYS = (
+    "id", "lod", "mesh", "footprint", "roof_type", "planes", "base_z", "eave_z", "ridge_z",
+    "faces", "watertight",
+)  # fmt: skip
+_GREY = (170, 170, 170)
+
+
+@dataclass
+class Texture:
+    """A texture atlas and where each triangle corner falls in it.
+
+    image : (h, w, 3) uint8; uvs : (T, 3, 2) float, u right and v up, 0-1."""
+
+    image: np.ndarray
+    uvs: np.ndarray
+
+
+@dataclass
+class Surface:
+    """A mesh in world metres: vertices (V, 3) float64, triangles (T, 3) int64 counter-
+    clockwise seen from outside, optional vertex colours (V, 3) uint8 and texture."""
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    vertex_colors: np.ndarray | None = None
+    texture: Texture | None = None
+
+
+@dataclass
+class Building:
+    """One modelled building.
+
+    Attributes
+    ----------
+    id : str
+        Unique in the run; names its files.
+    mesh : Surface
+        Closed and outward-oriented where the path manages it (``watertight`` says).
+    lod : str
+        CityJSON level of detail: "1.3" for flat multi-level tops, "2.2" for roof planes.
+    footprint : shapely geometry or None
+        The outline the building stands on, world metres.
+    roof_type : str or None
+        One of :data:`modeling.shared.roof_types.ROOF_TYPES`.
+    planes : (P, 4) float
+        Roof planes (n, d) with unit normal n (n_z > 0), n . X + d = 0.
+    plane_areas : (P,) float
+        Horizontal area of each plane's faces, square metres.
+    base_z, eave_z, ridge_z : float
+        Floor, lowest eave and highest roof point, metres.
+    watertight : bool or None
+        Whether the mesh is closed, outward and free of self-intersections, if the path
+        checked it (None: checked when written).
+    record : dict
+        What else the path says of it (written after the common keys).
+    """
+
+    id: str
+    mesh: Surface
+    lod: str
+    footprint: object = None
+    roof_type: str | None = None
+    planes: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))
+    plane_areas: np.ndarray = field(default_factory=lambda: np.empty(0))
+    base_z: float = float("nan")
+    eave_z: float = float("nan")
+    ridge_z: float = float("nan")
+    watertight: bool | None = None
+    record: dict = field(default_factory=dict)
+
+    def common_record(self) -> dict:
+        """The keys every path's buildings share in model.json (``BUILDING_KEYS``)."""
+        m = self.mesh
+        if self.watertight is None:
+            self.watertight = is_watertight(m.vertices, m.triangles)
+        return {
+            "id": self.id,
+            "lod": self.lod,
+            "mesh": f"buildings/{self.id}.ply",
+            "footprint": mapping(self.footprint) if self.footprint is not None else None,
+            "roof_type": self.roof_type,
+            "planes": [
+                {
+                    "normal": p[:3].round(5).tolist(),
+                    "offset": round(float(p[3]), 4),
+                    "area_m2": round(float(a), 2),
+                }
+                for p, a in zip(self.planes, self.plane_areas, strict=True)
+            ],  # fmt: skip
+            "base_z": _rounded(self.base_z),
+            "eave_z": _rounded(self.eave_z),
+            "ridge_z": _rounded(self.ridge_z),
+            "faces": int(len(m.triangles)),
+            "watertight": self.watertight,
+        }
+
+
+@dataclass
+class ModelRun:
+    """What a modeling path returns: everything :func:`write_model_run` writes.
+
+    Attributes
+    ----------
+    method : str
+        The path's registered name.
+    options : dataclass instance
+        The options it ran with (model.json's ``parameters``).
+    buildings : list of Building
+    crs : rasterio CRS or None
+    grid : Grid or None
+        The grid of ``dtm`` and ``rasters``.
+    dtm : (H, W) float or None
+        The ground the buildings stand on, metres, NaN unknown.
+    ground : Surface or None
+        The ground as a mesh (default: none written).
+    rasters : {name: ((H, W) or (B, H, W) array, nodata)}
+        The path's own rasters on ``grid``.
+    preview : (h, w, 3) uint8 or None
+    stages : {stage: {"wall_s": float, "peak_memory_mb": float}}
+    inputs : dict
+        What it read (paths as strings).
+    parameters : dict
+        Parameters decided at run time (they update the options' values).
+    counts : dict
+        Counts beside buildings, faces and watertight.
+    record : dict
+        The path's own sections of model.json.
+    """
+
+    method: str
+    options: object
+    buildings: list[Building]
+    crs: object = None
+    grid: Grid | None = None
+    dtm: np.ndarray | None = None
+    ground: Surface | None = None
+    rasters: dict = field(default_factory=dict)
+    preview: np.ndarray | None = None
+    stages: dict = field(default_factory=dict)
+    inputs: dict = field(default_factory=dict)
+    parameters: dict = field(default_factory=dict)
+    counts: dict = field(default_factory=dict)
+    record: dict = field(default_factory=dict)
+
+    def to_record(self) -> dict:
+        """model.json as a dict (without the write stage)."""
+        buildings = [{**b.common_record(), **b.record} for b in self.buildings]
+        return {
+            "schema": SCHEMA,
+            "method": self.method,
+            "workbench_version": __version__,
+            "crs": _crs_text(self.crs),
+            "parameters": {**options_record(self.options), **self.parameters},
+            "inputs": self.inputs,
+            "buildings": buildings,
+            "counts": {
+                "buildings": len(buildings),
+                "faces": int(sum(b["faces"] for b in buildings)),
+                "watertight": int(sum(b["watertight"] for b in buildings)),
+                **self.counts,
+            },
+            "stages": dict(self.stages),
+            **self.record,
+        }
+
+
+def write_model_run(run: ModelRun, out: str | Path, *, overwrite: bool = False) -> dict:
+    """Write ``run`` as a run folder (atomically: all of it or nothing); return model.json.
+
+    Raises
+    ------
+    WorkbenchError
+        ``out`` exists and ``overwrite`` is False.
+    """
+    out = Path(out)
+    timer = StageTimer()
+    with atomic_output_dir(out, overwrite=overwrite) as tmp:
+        with timer.stage("write"):
+            _write_files(run, tmp)
+        record = run.to_record()
+        record["stages"].update(timer.stages)
+        text = json.dumps(record, indent=1) + "\n"
+        (tmp / "model.json").write_text(text)
+    if not run.buildings:
+        log.warning("%s: the model holds no building", out)
+    return json.loads(text)  # as a reader of model.json sees it
+
+
+def _write_files(run: ModelRun, tmp: Path) -> None:
+    bdir = tmp / "buildings"
+    bdir.mkdir()
+    parts: list[tuple[str, Surface]] = []
+    for b in run.buildings:
+        _write_surface(bdir, b.id, b.mesh, f"building_{b.id}")
+        parts.append((f"building_{b.id}", b.mesh))
+    if run.ground is not None:
+        _write_surface(tmp, "ground", run.ground, "ground")
+        parts.append(("ground", run.ground))
+    _write_scene(tmp, parts)
+    if run.dtm is not None and run.grid is not None:
+        write_raster(tmp / "dtm.tif", run.dtm.astype(np.float32), run.grid, run.crs)
+    for name, (data, nodata) in run.rasters.items():
+        write_raster(tmp / f"{name}.tif", data, run.grid, run.crs, nodata=nodata)
+    preview = run.preview if run.preview is not None else np.full((64, 64, 3), 255, np.uint8)
+    write_rgb(tmp / "preview.png", preview)
+
+
+def _colours(s: Surface) -> np.ndarray:
+    if s.vertex_colors is not None:
+        return np.asarray(s.vertex_colors, np.uint8)
+    return np.full((len(s.vertices), 3), 128, np.uint8)
+
+
+def _material_colour(s: Surface) -> tuple[int, int, int]:
+    if s.vertex_colors is None or not len(s.vertex_colors):
+        return _GREY
+    return tuple(int(v) for v in np.median(s.vertex_colors, axis=0))
+
+
+def _write_surface(folder: Path, name: str, s: Surface, material: str) -> None:
+    """``name``.ply with vertex colours; ``name``.obj|.mtl, with ``name``.png if textured."""
+    write_ply(folder / f"{name}.ply", s.vertices, s.triangles, vertex_colors=_colours(s))
+    if s.texture is not None:
+        write_rgb(folder / f"{name}.png", s.texture.image)
+        write_mtl(folder / f"{name}.mtl", {material: (255, 255, 255)}, {material: f"{name}.png"})
+        write_obj(
+            folder / f"{name}.obj", s.vertices, s.triangles, material=material,
+            mtllib=f"{name}.mtl", uvs=s.texture.uvs,
+        )  # fmt: skip
+        return
+    write_mtl(folder / f"{name}.mtl", {material: _material_colour(s)})
+    write_obj(
+        folder / f"{name}.obj", s.vertices, s.triangles, vertex_colors=s.vertex_colors,
+        material=material, mtllib=f"{name}.mtl",
+    )  # fmt: skip
+
+
+def _write_scene(tmp: Path, parts: list[tuple[str, Surface]]) -> None:
+    """scene.ply (vertex colours) and scene.obj|.mtl: textured when every part is."""
+    V, T, _ = concatenate_meshes([(s.vertices, s.triangles) for _, s in parts])
+    C = np.concatenate([_colours(s) for _, s in parts]) if parts else np.zeros((0, 3), np.uint8)
+    write_ply(tmp / "scene.ply", V, T, vertex_colors=C)
+    runs = [(name, len(s.triangles)) for name, s in parts]
+    textured = bool(parts) and all(s.texture is not None for _, s in parts)
+    if textured:
+        maps = {
+            name: ("ground.png" if name == "ground" else f"buildings/{name[9:]}.png")
+            for name, _ in parts
+        }
+        write_mtl(tmp / "scene.mtl", {name: (255, 255, 255) for name, _ in parts}, maps)
+        uvs = np.concatenate([s.texture.uvs for _, s in parts])
+        write_obj(tmp / "scene.obj", V, T, material=runs, mtllib="scene.mtl", uvs=uvs)
+        return
+    write_mtl(tmp / "scene.mtl", {name: _material_colour(s) for name, s in parts})
+    write_obj(tmp / "scene.obj", V, T, vertex_colors=C, material=runs, mtllib="scene.mtl")
+
+
+def _rounded(v: float) -> float | None:
+    return round(float(v), 3) if v is not None and np.isfinite(v) else None
+
+
+def _crs_text(crs) -> str | None:
+    if crs is None:
+        return None
+    return crs.to_string() if crs.to_epsg() else crs.to_wkt()
+
+
+def stage_record(seconds: float) -> dict:
+    """One stage's entry of ``stages``: its wall time and the process's peak memory."""
+    return {"wall_s": round(seconds, 3), "peak_memory_mb": round(peak_memory_mb(), 1)}
