@@ -1,3 +1,6 @@
+"""Cameras: rays invert the projection (with distortion), the centre and principal
+point, a nadir camera is north up, points behind it are NaN."""
+
 import numpy as np
 import pytest
 

@@ -1,3 +1,5 @@
+"""GeoTIFF and mesh I/O: round trips of rasters (transform, CRS, NaN nodata) and meshes."""
+
 import numpy as np
 import open3d as o3d
 import pytest

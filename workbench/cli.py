@@ -431,6 +431,11 @@ def cmd_demo(args) -> int:
     print("2/5 fusing the views into ortho, DSM/DTM/nDSM and classes ...", flush=True)
     record = run_fusion(fusion_dir, scene=scene_dir, truth=scene_dir, overwrite=True)
     print("    " + fusion_summary(record, fusion_dir).replace("\n", "\n  "))
+    q = record["quality"]
+    print(
+        f"      mean fusion instead of the median: DSM RMSE {q['dsm_mean_fusion']['rmse_m']:.2f} "
+        f"m, ortho MAE {q['ortho_mae_mean_fusion']['mean']:.1f}"
+    )
     print("3/5 super-pixel modeling: Quickshift, class CRF, roof prototypes, LOD2 ...", flush=True)
     run = run_superpixel(fusion_dir, SuperpixelOptions(seed=args.seed), truth=scene_dir)
     sp = write_model_run(run, superpixel_dir, overwrite=True)
