@@ -485,7 +485,7 @@ def write_page(path: Path, results: dict, printed: str, argv: list[str]) -> None
         "",
         f"- commit: `{commit}`, {time.strftime('%Y-%m-%d')}",
         f"- machine: {os.cpu_count()} cores, {memory:.0f} GiB, Python {results['python']}",
-        f"- command: `python benchmarks/run.py {' '.join(argv)}`".rstrip() + "",
+        f"- command: `{' '.join(['python benchmarks/run.py', *argv])}`",
         "",
     ]
     if results.get("seeds"):

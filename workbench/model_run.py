@@ -229,13 +229,13 @@ def write_model_run(run: ModelRun, out: str | Path, *, overwrite: bool = False) 
 def _write_files(run: ModelRun, tmp: Path) -> None:
     bdir = tmp / "buildings"
     bdir.mkdir()
-    parts: list[tuple[str, Surface]] = []
+    parts: list[tuple[str, Surface, str]] = []  # material, mesh, its texture's path
     for b in run.buildings:
         _write_surface(bdir, b.id, b.mesh, f"building_{b.id}")
-        parts.append((f"building_{b.id}", b.mesh))
+        parts.append((f"building_{b.id}", b.mesh, f"buildings/{b.id}.png"))
     if run.ground is not None:
         _write_surface(tmp, "ground", run.ground, "ground")
-        parts.append(("ground", run.ground))
+        parts.append(("ground", run.ground, "ground.png"))
     _write_scene(tmp, parts)
     if run.dtm is not None and run.grid is not None:
         write_raster(tmp / "dtm.tif", run.dtm.astype(np.float32), run.grid, run.crs)
@@ -275,23 +275,19 @@ def _write_surface(folder: Path, name: str, s: Surface, material: str) -> None:
     )  # fmt: skip
 
 
-def _write_scene(tmp: Path, parts: list[tuple[str, Surface]]) -> None:
+def _write_scene(tmp: Path, parts: list[tuple[str, Surface, str]]) -> None:
     """scene.ply (vertex colours) and scene.obj|.mtl: textured when every part is."""
-    V, T, _ = concatenate_meshes([(s.vertices, s.triangles) for _, s in parts])
-    C = np.concatenate([_colours(s) for _, s in parts]) if parts else np.zeros((0, 3), np.uint8)
+    V, T, _ = concatenate_meshes([(s.vertices, s.triangles) for _, s, _ in parts])
+    C = np.concatenate([_colours(s) for _, s, _ in parts]) if parts else np.zeros((0, 3), np.uint8)
     write_ply(tmp / "scene.ply", V, T, vertex_colors=C)
-    runs = [(name, len(s.triangles)) for name, s in parts]
-    textured = bool(parts) and all(s.texture is not None for _, s in parts)
-    if textured:
-        maps = {
-            name: ("ground.png" if name == "ground" else f"buildings/{name[9:]}.png")
-            for name, _ in parts
-        }
-        write_mtl(tmp / "scene.mtl", {name: (255, 255, 255) for name, _ in parts}, maps)
-        uvs = np.concatenate([s.texture.uvs for _, s in parts])
+    runs = [(name, len(s.triangles)) for name, s, _ in parts]
+    if parts and all(s.texture is not None for _, s, _ in parts):
+        white = {name: (255, 255, 255) for name, _, _ in parts}
+        write_mtl(tmp / "scene.mtl", white, {name: png for name, _, png in parts})
+        uvs = np.concatenate([s.texture.uvs for _, s, _ in parts])
         write_obj(tmp / "scene.obj", V, T, material=runs, mtllib="scene.mtl", uvs=uvs)
         return
-    write_mtl(tmp / "scene.mtl", {name: _material_colour(s) for name, s in parts})
+    write_mtl(tmp / "scene.mtl", {name: _material_colour(s) for name, s, _ in parts})
     write_obj(tmp / "scene.obj", V, T, vertex_colors=C, material=runs, mtllib="scene.mtl")
 
 

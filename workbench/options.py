@@ -151,12 +151,12 @@ def _cast_for(f: dataclasses.Field) -> type:
     return str
 
 
-def add_option_arguments(parser: argparse.ArgumentParser, cls, *, skip: tuple = ()) -> None:
+def add_option_arguments(parser: argparse.ArgumentParser, cls) -> None:
     """Add one flag per :func:`option` field of ``cls`` to ``parser``; the help says the
-    unit and the default. Fields in ``skip`` (and those with ``cli=False``) are left out."""
+    unit and the default. Fields declared with ``cli=False`` are left out."""
     for f in dataclasses.fields(cls):
         m = _meta(f)
-        if not m or not m["cli"] or f.name in skip:
+        if not m or not m["cli"]:
             continue
         cast = _cast_for(f)
         flag = m["flag"]

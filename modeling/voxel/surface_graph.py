@@ -458,8 +458,9 @@ def refine_seams(
     with C of eq. 5 (0 between equal views) and ``w`` = ``facing_weight`` Lab units per
     unit of the cosine between a vertex's normal and the direction to its view, so that
     a seam moves only where it pays for the views it gives up. One alpha-expansion move
-    per view already used (a single exact cut each, :func:`~modeling.shared.graph_cuts.pairwise_cut`:
-    C is a sum of distances between views, a metric), kept when it lowers E; vertices
+    per view already used (a single exact cut each,
+    :func:`~modeling.shared.graph_cuts.pairwise_cut`: C is a sum of distances between
+    views, a metric), kept when it lowers E; vertices
     take only views that see them, unseen ones stay unseen.
 
     Parameters
