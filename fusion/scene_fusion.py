@@ -352,7 +352,7 @@ def _depth_views(scene: Scene, opts: FusionOptions, timer: StageTimer):
     mode, given = "depth maps", None
     if not views and scene.dsm is not None and scene.views:
         with timer.stage("dsm_surface"):
-            dsm_in, dsm_grid, _ = read_raster(scene.dsm, field="dsm")
+            dsm_in, dsm_grid, _ = read_raster(scene.dsm, field="dsm", as_float=True)
             if opts.gsd is None and opts.bounds is None:
                 opts = replace(opts, gsd=dsm_grid.gsd, bounds=dsm_grid.bounds)
             given = (dsm_in, dsm_grid)

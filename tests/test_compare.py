@@ -185,3 +185,26 @@ def test_a_hole_in_a_runs_ground_does_not_hide_a_missed_building(tiny_scene, tmp
     runs = json.loads((out / "metrics.json").read_text())["runs"]
     assert runs["holed"]["height"]["valid_fraction"] == 1.0
     assert runs["holed"]["height"]["rmse_m"] == pytest.approx(runs["less"]["height"]["rmse_m"])
+
+
+def test_a_truth_dsm_with_nodata_is_scored_where_it_is_known(tiny_scene, tmp_path):
+    """Real truth DSMs mark their holes with a nodata value (-9999 here), not NaN: those
+    cells are unknown, not 9,999 m deep."""
+    run = truth_model_run(tiny_scene, tmp_path / "same")
+    dsm, grid, crs = read_raster(tiny_scene / "truth" / "dsm.tif")
+    ids = read_raster(tiny_scene / "truth" / "building_id.tif")[0][0]
+    holes = (ids == 1) & (np.arange(grid.height)[:, None] % 2 == 0)  # on a roof
+    for name, nodata in (("nan", None), ("minus9999", -9999.0)):
+        data = np.where(holes, np.nan if nodata is None else nodata, dsm[0]).astype(np.float32)
+        write_raster(tmp_path / f"{name}.tif", data, grid, crs, nodata=nodata)
+    scores = {}
+    for name in ("nan", "minus9999"):
+        out = tmp_path / f"report_{name}"
+        proc = run_cli("compare", run, "--truth-dsm", tmp_path / f"{name}.tif",
+                       "--truth-dtm", tiny_scene / "truth" / "dtm.tif", "--truth-footprints",
+                       tiny_scene / "truth" / "footprints.geojson", "-o", out)  # fmt: skip
+        assert proc.returncode == 0, proc.stderr
+        scores[name] = json.loads((out / "metrics.json").read_text())["runs"]["same"]
+    assert holes.sum() > 50
+    assert scores["minus9999"]["height"] == scores["nan"]["height"]
+    assert scores["minus9999"]["height"]["rmse_m"] < 1.0  # with -9999 read as a height: 1,000s

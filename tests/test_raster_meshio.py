@@ -3,6 +3,7 @@
 import numpy as np
 import open3d as o3d
 import pytest
+import rasterio
 from rasterio.crs import CRS
 
 from workbench.errors import InputError
@@ -63,3 +64,46 @@ def test_cell_index_nearest_and_clipped():
     assert not g.contains(r, c)[3:].any() and g.contains(r, c)[:2].all()
     rc, cc = g.cell_index(np.array([-0.5, 4.5]), np.array([1.5, 0.5]), clip=True)
     np.testing.assert_array_equal(cc, [0, 3])
+
+
+def _raster_with_nodata(path, data, nodata, mask=None):
+    """A GeoTIFF as other tools write them: a nodata value, or a mask band."""
+    g = Grid.from_bounds(0, 0, data.shape[1], data.shape[0], 1.0)
+    with rasterio.open(
+        path, "w", driver="GTiff", width=data.shape[1], height=data.shape[0], count=1,
+        dtype=data.dtype, crs=CRS.from_epsg(32631), transform=g.transform, nodata=nodata,
+    ) as dst:  # fmt: skip
+        dst.write(data, 1)
+        if mask is not None:
+            dst.write_mask(np.where(mask, 0, 255).astype(np.uint8))
+    return g
+
+
+@pytest.mark.parametrize("nodata", [-9999.0, 0.0, np.nan])
+def test_float_nodata_reads_as_nan(tmp_path, nodata):
+    data = np.full((8, 8), 12.5, np.float32)
+    data[2, 3] = data[5, 5] = nodata
+    _raster_with_nodata(tmp_path / "a.tif", data, nodata)
+    back = read_raster(tmp_path / "a.tif")[0][0]
+    assert back.dtype == np.float32
+    assert np.isnan(back[2, 3]) and np.isnan(back[5, 5]) and np.isfinite(back).sum() == 62
+    assert (back[np.isfinite(back)] == 12.5).all()
+
+
+def test_an_integer_dem_reads_as_heights_with_nan(tmp_path):
+    data = np.full((8, 8), 42, np.int16)
+    data[0, 0] = -32768
+    _raster_with_nodata(tmp_path / "dem.tif", data, -32768)
+    heights = read_raster(tmp_path / "dem.tif", as_float=True)[0][0]
+    assert np.isnan(heights[0, 0]) and (heights[1:] == 42.0).all()
+    classes = read_raster(tmp_path / "dem.tif")[0][0]  # as a class raster: 0 is no data
+    assert classes.dtype == np.int16 and classes[0, 0] == 0 and (classes[1:] == 42).all()
+
+
+def test_a_mask_band_is_nodata_too(tmp_path):
+    data = np.full((8, 8), 3.0, np.float32)
+    mask = np.zeros((8, 8), bool)
+    mask[4, :] = True
+    _raster_with_nodata(tmp_path / "m.tif", data, None, mask=mask)
+    back = read_raster(tmp_path / "m.tif")[0][0]
+    assert np.isnan(back[4]).all() and (back[~mask] == 3.0).all()

@@ -183,8 +183,20 @@ def write_raster(
                 dst.set_band_description(i, d)
 
 
-def read_raster(path: str | os.PathLike, *, field: str | None = None):
-    """Read a north-up GeoTIFF.
+def read_raster(path: str | os.PathLike, *, field: str | None = None, as_float: bool = False):
+    """Read a north-up GeoTIFF, its nodata honoured.
+
+    Cells the file marks as nodata (its nodata value, NaN, or its mask band) become NaN in
+    float rasters, and 0, the class rasters' "no data", in integer ones.
+
+    Parameters
+    ----------
+    path : path
+    field : str, optional
+        Named in the errors (the scene or truth field the file is read for).
+    as_float : bool
+        Read an integer raster as float with NaN at its nodata: heights (an int16 DEM with
+        nodata -32768 is common), never classes.
 
     Returns
     -------
@@ -201,11 +213,18 @@ def read_raster(path: str | os.PathLike, *, field: str | None = None):
         raise InputError(path, field, "file not found")
     try:
         with rasterio.open(path) as src:
-            data = src.read()
+            masked = src.read(masked=True)
             grid = Grid.from_transform(src.transform, src.width, src.height)
             crs = src.crs
     except RasterioIOError as exc:
         raise InputError(path, field, f"not a readable raster ({exc})") from None
     except ValueError as exc:
         raise InputError(path, field, str(exc)) from None
+    if masked.dtype.kind == "f" or as_float:
+        wide = masked.dtype.itemsize >= 8 or (
+            masked.dtype.kind in "iu" and masked.dtype.itemsize >= 4
+        )
+        data = masked.astype(np.float64 if wide else np.float32).filled(np.nan)
+    else:
+        data = masked.filled(0)
     return data, grid, crs

@@ -48,7 +48,7 @@ def truth_rasters(scene_or_truth: str | Path, grid: Grid) -> dict[str, np.ndarra
     for name in ("dsm", "dtm", "ortho", "class", "building_id"):
         path = folder / f"{name}.tif"
         if path.exists():
-            data, src, _ = read_raster(path)
+            data, src, _ = read_raster(path, as_float=name in ("dsm", "dtm"))
             data = sample_to_grid(data, src, grid)
             out[name] = np.moveaxis(data, 0, -1) if name == "ortho" else data[0]
     return out
@@ -149,7 +149,8 @@ def load_file_truth(
     rasters = {}
     for name, path in (("dsm", dsm), ("class", cls), ("dtm", dtm)):
         if path is not None:
-            data, src, src_crs = read_raster(path, field=f"truth {name}")
+            heights = name in ("dsm", "dtm")
+            data, src, src_crs = read_raster(path, field=f"truth {name}", as_float=heights)
             rasters[name] = (data, src, src_crs, path)
     for name in ("dsm", "class"):
         if name in rasters:

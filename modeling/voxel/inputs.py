@@ -148,7 +148,7 @@ def _ground_model(scene: Scene, fusion: dict | None, ground_z: float | None) -> 
     if fusion is not None:
         return Ground("fusion DTM", fusion["dtm"], fusion["grid"])
     if scene.dtm is not None:
-        z, grid, _ = read_raster(scene.dtm)
+        z, grid, _ = read_raster(scene.dtm, field="dtm", as_float=True)
         return Ground("scene DTM", z[0], grid)
     if ground_z is not None:
         return Ground("flat plane (--ground-z)", flat=ground_z)
