@@ -11,6 +11,7 @@ from workbench.atomic import atomic_output_dir
 from workbench.errors import WorkbenchError
 from workbench.metrics import classification, colour_mae, height_errors
 from workbench.options import options_record
+from workbench.records import provenance
 from workbench.scene import load_scene
 from workbench.truth import truth_rasters
 
@@ -31,6 +32,7 @@ def run_fusion(
     truth: Path | None = None,
     save_classifier_to: Path | None = None,
     overwrite: bool = False,
+    command: list[str] | None = None,
 ) -> dict:
     """Fuse a scene's views (or a point cloud) and write the run folder ``out``.
 
@@ -47,6 +49,8 @@ def run_fusion(
         A scene with truth/: the products' scores go into fusion.json.
     save_classifier_to : path, optional
         Where to save the trained per-view forest.
+    command : list of str, optional
+        The command line that asked for the run, for its record.
 
     Returns
     -------
@@ -67,6 +71,7 @@ def run_fusion(
         inputs = {"scene": str(loaded.scene_json), "views": len(loaded.views)}
     g = result.grid
     record = {
+        "provenance": provenance(command),
         "inputs": inputs,
         "parameters": options_record(options),
         "grid": {

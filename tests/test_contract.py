@@ -33,6 +33,9 @@ def path_run(request, tiny_scene, tiny_fusion, tmp_path_factory):
 def test_model_json_follows_the_schema(path_run, tiny_scene):
     spec, _, record = path_run
     assert record["schema"] == SCHEMA and record["method"] == spec.name
+    made = record["provenance"]
+    assert made["command"].startswith(f"workbench model {spec.name} ")
+    assert made["workbench_version"] and made["libraries"]["numpy"] == np.__version__
     assert set(record["parameters"]) >= set(options_record(spec.options()))
     assert CRS.from_user_input(record["crs"]) == load_scene(tiny_scene).crs
     assert set(record["counts"]) >= {"buildings", "faces", "watertight"}

@@ -94,6 +94,8 @@ def test_record_has_stages_and_throughput(fused):
     assert record["observations"] > 0 and record["observations_per_s"] > 0
     assert "forest trained on" in record["class_source"]
     assert "labelled pixels dropped" in record["class_source"]
+    made = record["provenance"]  # what made it: the command, the versions
+    assert made["command"].startswith("workbench fusion ") and made["libraries"]["open3d-cpu"]
 
 
 def test_saved_classifier_is_reused(fused, tiny_scene, tmp_path):

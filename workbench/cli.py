@@ -310,7 +310,7 @@ def cmd_fusion(args) -> int:
     record = run_fusion(
         args.out, options_from_args(FusionOptions, args), scene=args.scene, points=args.points,
         crs=args.crs, truth=args.truth, save_classifier_to=args.save_classifier,
-        overwrite=args.overwrite,
+        overwrite=args.overwrite, command=args.command_line,
     )  # fmt: skip
     print(fusion_summary(record, args.out))
     return 0
@@ -348,7 +348,7 @@ def cmd_model(args) -> int:
     positional = [getattr(args, i.name) for i in spec.inputs if i.flag is None]
     optional = {i.name: getattr(args, i.name) for i in spec.inputs if i.flag is not None}
     run = spec.load()(*positional, options, **optional)
-    record = write_model_run(run, args.out, overwrite=args.overwrite)
+    record = write_model_run(run, args.out, overwrite=args.overwrite, command=args.command_line)
     print(model_summary(record, args.out))
     for line in spec.summary_lines(record):
         print(line)
@@ -429,7 +429,9 @@ def cmd_demo(args) -> int:
           f"with depth maps, calibration error {meta['calibration_error_px_rms']:.2f} px RMS, "
           f"in {meta['timing']['total']:.1f} s")  # fmt: skip
     print("2/5 fusing the views into ortho, DSM/DTM/nDSM and classes ...", flush=True)
-    record = run_fusion(fusion_dir, scene=scene_dir, truth=scene_dir, overwrite=True)
+    command = args.command_line
+    record = run_fusion(fusion_dir, scene=scene_dir, truth=scene_dir, overwrite=True,
+                        command=command)  # fmt: skip
     print("    " + fusion_summary(record, fusion_dir).replace("\n", "\n  "))
     q = record["quality"]
     print(
@@ -438,13 +440,13 @@ def cmd_demo(args) -> int:
     )
     print("3/5 super-pixel modeling: Quickshift, class CRF, roof prototypes, LOD2 ...", flush=True)
     run = run_superpixel(fusion_dir, SuperpixelOptions(seed=args.seed), truth=scene_dir)
-    sp = write_model_run(run, superpixel_dir, overwrite=True)
+    sp = write_model_run(run, superpixel_dir, overwrite=True, command=command)
     print("    " + model_summary(sp, superpixel_dir))
     print("\n".join("  " + line for line in superpixel_lines(sp)))
     print("4/5 voxel modeling: photo-consistency proxies, surface graph cut textures ...",
           flush=True)  # fmt: skip
     run = run_voxel(scene_dir, VoxelOptions(seed=args.seed), fusion_dir=fusion_dir)
-    vx = write_model_run(run, voxel_dir, overwrite=True)
+    vx = write_model_run(run, voxel_dir, overwrite=True, command=command)
     print("    " + model_summary(vx, voxel_dir))
     print("\n".join("  " + line for line in voxel_lines(vx)))
     print("5/5 scoring the runs against the truth ...", flush=True)
@@ -464,7 +466,9 @@ def cmd_demo(args) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
     args = parser.parse_args(argv)
+    args.command_line = ["workbench", *map(str, argv)]
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if args.verbose:  # our own debug messages, not every library's
         for name in ("workbench", "fusion", "modeling", "data_samples"):

@@ -26,14 +26,13 @@ from pathlib import Path
 import numpy as np
 from shapely.geometry import mapping
 
-from . import __version__
 from .atomic import atomic_output_dir
 from .imageio import write_rgb
 from .meshes import concatenate_meshes, is_watertight
 from .meshio import write_mtl, write_obj, write_ply
 from .options import options_record
 from .raster import Grid, write_raster
-from .records import StageTimer, peak_memory_mb
+from .records import StageTimer, peak_memory_mb, provenance
 
 log = logging.getLogger(__name__)
 
@@ -182,13 +181,14 @@ class ModelRun:
     counts: dict = field(default_factory=dict)
     record: dict = field(default_factory=dict)
 
-    def to_record(self) -> dict:
-        """model.json as a dict (without the write stage)."""
+    def to_record(self, command: list[str] | None = None) -> dict:
+        """model.json as a dict (without the write stage); ``command``: the command line
+        that made the run, if any."""
         buildings = [{**b.common_record(), **b.record} for b in self.buildings]
         return {
             "schema": SCHEMA,
             "method": self.method,
-            "workbench_version": __version__,
+            "provenance": provenance(command),
             "crs": _crs_text(self.crs),
             "parameters": {**options_record(self.options), **self.parameters},
             "inputs": self.inputs,
@@ -204,8 +204,11 @@ class ModelRun:
         }
 
 
-def write_model_run(run: ModelRun, out: str | Path, *, overwrite: bool = False) -> dict:
+def write_model_run(
+    run: ModelRun, out: str | Path, *, overwrite: bool = False, command: list[str] | None = None
+) -> dict:
     """Write ``run`` as a run folder (atomically: all of it or nothing); return model.json.
+    ``command`` is the command line that made it, for its record.
 
     Raises
     ------
@@ -217,7 +220,7 @@ def write_model_run(run: ModelRun, out: str | Path, *, overwrite: bool = False) 
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
         with timer.stage("write"):
             _write_files(run, tmp)
-        record = run.to_record()
+        record = run.to_record(command)
         record["stages"].update(timer.stages)
         text = json.dumps(record, indent=1) + "\n"
         (tmp / "model.json").write_text(text)

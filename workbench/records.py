@@ -3,9 +3,17 @@
 from __future__ import annotations
 
 import contextlib
+import importlib.metadata
+import platform
 import resource
 import sys
 import time
+
+# the distributions whose version can change a product
+LIBRARIES = (
+    "numpy", "scipy", "scikit-learn", "scikit-image", "opencv-python-headless", "open3d-cpu",
+    "PyMaxflow", "rasterio", "laspy", "shapely",
+)  # fmt: skip
 
 
 def peak_memory_mb() -> float:
@@ -47,3 +55,22 @@ class StageTimer:
     @property
     def total_s(self) -> float:
         return round(sum(s["wall_s"] for s in self.stages.values()), 3)
+
+
+def provenance(command: list[str] | None = None) -> dict:
+    """What made a run: the workbench's version, the command line (None from Python),
+    Python's and the libraries' versions, for the run's record."""
+    from . import __version__
+
+    versions = {}
+    for name in LIBRARIES:
+        try:
+            versions[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            versions[name] = None
+    return {
+        "workbench_version": __version__,
+        "command": " ".join(command) if command else None,
+        "python": platform.python_version(),
+        "libraries": versions,
+    }
