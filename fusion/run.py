@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from workbench.atomic import atomic_output_dir
+from workbench.atomic import atomic_output_dir, check_output_dir
 from workbench.errors import WorkbenchError
 from workbench.metrics import classification, colour_mae, height_errors
 from workbench.options import options_record
@@ -58,6 +58,7 @@ def run_fusion(
     """
     if (scene is None) == (points is None):
         raise WorkbenchError("fusion: give either SCENE or --points CLOUD")
+    check_output_dir(out, overwrite=overwrite)  # before the long work
     options = options or FusionOptions()
     t0 = time.perf_counter()
     if points is not None:

@@ -380,3 +380,11 @@ def test_point_cloud_scored_against_a_scene_truth(tiny_scene, tmp_path):
     q = json.loads((tmp_path / "c" / "fusion.json").read_text())["quality"]
     assert q["dtm"]["rmse_m"] < 1.0
     assert "dsm_mean_fusion" not in q  # no mean fusion of a cloud: absent, not invented
+
+
+def test_an_existing_output_is_refused_before_any_work(tmp_path):
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "keep").write_text("x")
+    proc = run_cli("fusion", tmp_path / "no_scene", "-o", tmp_path / "out")
+    assert proc.returncode == 2 and "output exists" in proc.stderr  # not the missing scene
+    assert (tmp_path / "out" / "keep").exists()

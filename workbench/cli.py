@@ -349,21 +349,22 @@ def cmd_model(args) -> int:
     optional = {i.name: getattr(args, i.name) for i in spec.inputs if i.flag is not None}
     run = spec.load()(*positional, options, **optional)
     record = write_model_run(run, args.out, overwrite=args.overwrite, command=args.command_line)
-    print(model_summary(record, args.out))
-    for line in spec.summary_lines(record):
-        print(line)
+    print(model_summary(spec, record, args.out))
     return 0
 
 
-def model_summary(record: dict, out: Path) -> str:
-    """The line every ``workbench model`` prints: counts and total time."""
+def model_summary(spec, record: dict, out: Path) -> str:
+    """What every ``workbench model`` prints: counts and total time, then the path's own
+    lines."""
     c = record["counts"]
     total = sum(s["wall_s"] for s in record["stages"].values())
-    text = (
+    lines = [
         f"wrote {out}: {c['buildings']} buildings, {c['faces']} triangles, "
         f"{c['watertight']} of {c['buildings']} watertight, {total:.1f} s"
-    )
-    return text + ("\n  no buildings: the model is empty" if c["buildings"] == 0 else "")
+    ]
+    if c["buildings"] == 0:
+        lines.append("  no buildings: the model is empty")
+    return "\n".join(lines + spec.summary_lines(record))
 
 
 def cmd_compare(args) -> int:
@@ -404,13 +405,13 @@ def cmd_compare(args) -> int:
 def cmd_demo(args) -> int:
     from data_samples.generate import generate_sample
     from fusion.run import run_fusion
+    from modeling import PATHS
     from modeling.superpixel.options import SuperpixelOptions
     from modeling.superpixel.path import run_superpixel
-    from modeling.superpixel.path import summary_lines as superpixel_lines
     from modeling.voxel.options import VoxelOptions
     from modeling.voxel.path import run_voxel
-    from modeling.voxel.path import summary_lines as voxel_lines
 
+    from .atomic import check_output_dir
     from .compare import compare_runs, summary
     from .model_run import write_model_run
     from .truth import load_scene_truth
@@ -418,8 +419,7 @@ def cmd_demo(args) -> int:
     t0 = time.perf_counter()
     scene_dir, fusion_dir, report_dir = args.out / "scene", args.out / "fusion", args.out / "report"
     superpixel_dir, voxel_dir = args.out / "superpixel", args.out / "voxel"
-    if args.out.exists() and not args.overwrite and any(args.out.iterdir()):
-        raise WorkbenchError(f"{args.out}: output exists (pass --overwrite to replace it)")
+    check_output_dir(args.out, overwrite=args.overwrite)
     args.out.mkdir(parents=True, exist_ok=True)
     print(f"1/5 generating the tiny sample city (seed {args.seed}) ...", flush=True)
     meta = generate_sample(scene_dir, "tiny", args.seed, overwrite=True)
@@ -441,14 +441,12 @@ def cmd_demo(args) -> int:
     print("3/5 super-pixel modeling: Quickshift, class CRF, roof prototypes, LOD2 ...", flush=True)
     run = run_superpixel(fusion_dir, SuperpixelOptions(seed=args.seed), truth=scene_dir)
     sp = write_model_run(run, superpixel_dir, overwrite=True, command=command)
-    print("    " + model_summary(sp, superpixel_dir))
-    print("\n".join("  " + line for line in superpixel_lines(sp)))
+    print("    " + model_summary(PATHS["superpixel"], sp, superpixel_dir).replace("\n", "\n  "))
     print("4/5 voxel modeling: photo-consistency proxies, surface graph cut textures ...",
           flush=True)  # fmt: skip
     run = run_voxel(scene_dir, VoxelOptions(seed=args.seed), fusion_dir=fusion_dir)
     vx = write_model_run(run, voxel_dir, overwrite=True, command=command)
-    print("    " + model_summary(vx, voxel_dir))
-    print("\n".join("  " + line for line in voxel_lines(vx)))
+    print("    " + model_summary(PATHS["voxel"], vx, voxel_dir).replace("\n", "\n  "))
     print("5/5 scoring the runs against the truth ...", flush=True)
     doc = compare_runs(
         [fusion_dir, superpixel_dir, voxel_dir], load_scene_truth(scene_dir), report_dir,
