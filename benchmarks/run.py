@@ -7,8 +7,9 @@ forked from). Medians over ``--repeat`` runs; this machine is noisy.
 Measured: sample generation (tiny, small), workbench compare, fusion of small, the
 super-pixel and voxel paths on small (with the voxel paper's robustness experiment), what
 a noise-free sensor would score on small's height metrics (benchmarks/height_floor.py),
-what the super-pixel path's class CRF can reach (benchmarks/crf_ceiling.py), and the 50
-AHN3 building clouds (benchmarks/ahn3.py).
+what the super-pixel path's class CRF can reach (benchmarks/crf_ceiling.py), the 50
+AHN3 building clouds (benchmarks/ahn3.py), and terraced blocks from LiDAR tiles, the
+super-pixel path on one building region of ~30,000 cells (benchmarks/terrace.py).
 
 Then every registered path on ``small`` seeds 0-5 (:mod:`seeds`): the defaults were chosen
 on seeds 0-2, seeds 3-5 are held out. Everything printed is also written to
@@ -621,6 +622,11 @@ def run_benchmarks(args) -> dict:
     ahn3 = [sys.executable, str(Path(__file__).with_name("ahn3.py")), "--out", str(args.out)]
     proc = subprocess.run(ahn3, check=False, capture_output=True, text=True)
     print(proc.stdout.rstrip())
+    print("\nterraced blocks from LiDAR tiles (benchmarks/terrace.py), seeds 0-5:", flush=True)
+    terrace = [sys.executable, str(Path(__file__).with_name("terrace.py")), "--out",
+               str(args.out / "terrace")]  # fmt: skip
+    proc = subprocess.run(terrace, check=False, capture_output=True, text=True)
+    print("\n".join(ln for ln in proc.stdout.splitlines() if ln.startswith("|")))
     if args.seeds:
         results["seeds"] = {}
         for seed in args.seeds:

@@ -33,6 +33,7 @@ from .gis import gis_footprint
 from .layout import make_layout
 from .preset_names import preset_index
 from .presets import PRESETS, Preset
+from .relocate import relocate_sample
 from .render import Exposure, render_view, shade
 from .rig import camera_rig, ground_margin, perturb_pose, reprojection_rms
 from .shading import tone_map
@@ -57,6 +58,8 @@ def generate_sample(
     seed: int = 0,
     *,
     overwrite: bool = False,
+    origin: tuple[float, float] | None = None,
+    crs: CRS | None = None,
 ) -> dict:
     """Generate a synthetic city scene with ground truth into ``out``.
 
@@ -70,6 +73,11 @@ def generate_sample(
         Seed of every random choice.
     overwrite : bool
         Replace ``out`` if it exists.
+    origin : (E, N), optional
+        Write the city there, metres, labelled ``crs`` (:mod:`data_samples.relocate`): the
+        same city far from its CRS's zero, as real data is.
+    crs : CRS, optional
+        With ``origin``: the CRS to name (default: the sample's own).
 
     Returns
     -------
@@ -126,7 +134,7 @@ def generate_sample(
             tmp / "truth" / "buildings.json", {"crs": "see scene.json", "buildings": buildings}
         )
         gis = _gis(layout, buildings, rng["gis"])
-        _write_json(tmp / "footprints_gis.geojson", footprints_geojson(gis))
+        _write_json(tmp / "footprints_gis.geojson", footprints_geojson(gis, SAMPLE_CRS))
         truth_fp = [
             {
                 "id": b["id"],
@@ -135,7 +143,7 @@ def generate_sample(
             }
             for b, spec in zip(buildings, layout.buildings, strict=True)
         ]
-        _write_json(tmp / "truth" / "footprints.geojson", footprints_geojson(truth_fp))
+        _write_json(tmp / "truth" / "footprints.geojson", footprints_geojson(truth_fp, SAMPLE_CRS))
         (tmp / "training").mkdir()
         labels = paint_strokes(truth["class"], p.gsd, rng["strokes"])
         write_raster(tmp / "training" / "labels.tif", labels, grid, SAMPLE_CRS, nodata=0)
@@ -189,6 +197,8 @@ def generate_sample(
         _write_json(tmp / "sample.json", meta)
         sheet = _preview(shown, truth, labels, gis, grid)
         write_rgb(tmp / "preview.png", sheet)
+        if origin is not None:
+            relocate_sample(tmp, origin, crs or SAMPLE_CRS)
     timing["total"] = time.perf_counter() - t0
     meta["timing"] = timing
     return meta

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
-from workbench.raycast import raycasting_scene
+from workbench.raycast import RayScene, raycasting_scene
 
 from .envelope import building_mesh
 from .layout import GROUND_CLASS, GROUND_MATERIALS, RURAL, Layout
@@ -89,7 +89,7 @@ class World:
     terrain: Terrain
     roads: list
 
-    def raycasting_scene(self, *, mask: np.ndarray | None = None) -> o3d.t.geometry.RaycastingScene:
+    def raycasting_scene(self, *, mask: np.ndarray | None = None) -> RayScene:
         """An Open3D ray-casting scene of the triangles (all, or those in ``mask``).
 
         Primitive ids of hits index the selected triangles in order.

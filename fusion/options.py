@@ -17,7 +17,14 @@ class FusionOptions:
 
     gsd: float | None = option(
         None, "cell size in the CRS's units", unit="m",
-        auto="the scene's gsd, else the nadir view's; for clouds, the point spacing",
+        auto="the scene's gsd, else the nadir view's; for clouds, the cell that holds one "
+        "return on average at the cloud's density over the ground it covers",
+    )  # fmt: skip
+    fill_radius: float | None = option(
+        None, "clouds: empty cells in gaps up to twice this wide inside the coverage (between "
+        "scan lines) take the height, colour and class of the surface around them; larger "
+        "voids (water, occlusions) and the outside stay empty",
+        unit="m", kind="non_negative", auto="two cells",
     )  # fmt: skip
     bounds: tuple[float, float, float, float] | None = option(
         None, "area to fuse, world units (XMIN YMIN XMAX YMAX)", kind="any", nargs=4,

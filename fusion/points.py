@@ -11,23 +11,18 @@ feet); the ground filter's metric parameters are converted.
 from __future__ import annotations
 
 import logging
-import os
-from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
-from rasterio.crs import CRS
 
 from workbench.errors import InputError
-from workbench.raster import Grid, parse_crs
+from workbench.raster import Grid
 from workbench.records import StageTimer
 
-from .classifier import load_classifier
 from .ground import dtm_from_dsm
 from .interpolate import push_pull_fill, small_holes
 from .options import FusionOptions
-from .raster_forest import FEATURES as RASTER_FEATURES
-from .raster_forest import classify_rasters, synthetic_raster_forest
+from .point_classes import LOW_M, UNCLASSIFIED, classify_returns
+from .point_clouds import cloud_files, read_clouds
 from .scene_fusion import FILLED, HOLE_CELLS, FusionResult, check_memory
 
 log = logging.getLogger(__name__)
@@ -37,92 +32,32 @@ ASPRS_TO_CLASS = {2: 1, 3: 2, 4: 3, 5: 3, 6: 4, 9: 1, 11: 1}
 ASPRS_NOISE = (7, 18)
 
 
-@dataclass
-class PointCloud:
-    """Points and what they carry; xyz in the CRS's units."""
-
-    xyz: np.ndarray  # (N, 3) float64
-    rgb: np.ndarray | None  # (N, 3) uint8
-    intensity: np.ndarray | None  # (N,) float
-    classification: np.ndarray | None  # (N,) uint8, ASPRS codes
-    crs: CRS | None
-    source: str
+RETURNS_PER_CELL = 1.0  # the default cell holds this many returns on average
 
 
-def _las_crs(las, path) -> CRS | None:
-    for vlr in las.header.vlrs:
-        wkt = getattr(vlr, "string", None)
-        if type(vlr).__name__ == "WktCoordinateSystemVlr" and wkt:
-            return parse_crs(wkt, path=path, field="WKT VLR")
-    for vlr in las.header.vlrs:
-        keys = getattr(vlr, "geo_keys", None)
-        if keys:
-            for k in keys:
-                if k.id == 3072 and k.value_offset not in (0, 32767):  # ProjectedCSTypeGeoKey
-                    return parse_crs(f"EPSG:{k.value_offset}", path=path, field="GeoKeys")
-    return None
+def default_gsd(xyz: np.ndarray, returns_per_cell: float = RETURNS_PER_CELL) -> float:
+    """Cell size for a cloud: the cell that holds ``returns_per_cell`` returns on average.
 
+    The density is counted over the ground the cloud covers (coarse cells of twice the
+    mean spacing that hold a return), not its bounding box, so that water and the corners
+    of a tile do not coarsen the cell. At one return per cell about a third of the cells
+    hold none (Poisson; rows of them between scan lines): :func:`top_surface_raster` fills
+    those inside the coverage. Measured against coarser cells that hold two or three
+    returns (``benchmarks/terrace.py``, the AHN3 clouds), the finer cell with its gaps
+    filled models roofs better: docs/fusion.md gives the figures.
 
-def read_points(path: str | os.PathLike, crs: str | None = None) -> PointCloud:
-    """Read a LAS, LAZ or PLY cloud.
-
-    Parameters
-    ----------
-    path : path
-    crs : str, optional
-        EPSG code or WKT for a cloud that carries none (overrides nothing else).
-
-    Raises
-    ------
-    InputError
-        Missing or corrupt file, unknown CRS.
+    Returns
+    -------
+    float, in the units of ``xyz``, rounded to two significant digits.
     """
-    path = Path(path)
-    if not path.exists():
-        raise InputError(path, None, "point cloud not found")
-    suffix = path.suffix.lower()
-    given = parse_crs(crs, path="--crs", field="crs") if crs else None
-    if suffix in (".las", ".laz"):
-        import laspy
-
-        try:
-            las = laspy.read(path)
-        except Exception as exc:  # noqa: BLE001 - laspy raises many types for bad files
-            raise InputError(path, None, f"not a readable LAS/LAZ file ({exc})") from None
-        xyz = np.column_stack([las.x, las.y, las.z]).astype(np.float64)
-        names = set(las.point_format.dimension_names)
-        rgb = None
-        if {"red", "green", "blue"} <= names:
-            rgb16 = np.column_stack([las.red, las.green, las.blue]).astype(np.float64)
-            scale = 257.0 if rgb16.max() > 255 else 1.0
-            rgb = np.clip(np.round(rgb16 / scale), 0, 255).astype(np.uint8)
-        intensity = np.asarray(las.intensity, np.float64) if "intensity" in names else None
-        cls = np.asarray(las.classification, np.uint8) if "classification" in names else None
-        file_crs = _las_crs(las, path)
-        if file_crs is None and given is None:
-            raise InputError(path, "crs", "the file names no CRS; pass --crs")
-        return PointCloud(xyz, rgb, intensity, cls, given or file_crs, str(path))
-    if suffix == ".ply":
-        import open3d as o3d
-
-        pc = o3d.io.read_point_cloud(str(path))
-        if len(pc.points) == 0:
-            raise InputError(path, None, "no points (or not a readable PLY file)")
-        rgb = (np.asarray(pc.colors) * 255).round().astype(np.uint8) if pc.has_colors() else None
-        return PointCloud(np.asarray(pc.points, np.float64), rgb, None, None, given, str(path))
-    raise InputError(path, None, "expected a .las, .laz or .ply point cloud")
-
-
-def default_gsd(xyz: np.ndarray) -> float:
-    """Cell size for a cloud: its mean point spacing over its bounding box, rounded.
-
-    Cells without a return of their own are read on the triangulation of their
-    neighbours' (:func:`top_surface_at_centres`), so the cell need not be coarser than the
-    spacing to be filled; a coarser one costs accuracy at every outline.
-    """
-    span = np.ptp(xyz[:, :2], axis=0)
-    spacing = float(np.sqrt(max(span[0] * span[1], 1e-9) / len(xyz)))
-    return float(np.round(spacing, 2 if spacing < 1 else 1)) or spacing
+    lo = xyz[:, :2].min(axis=0)
+    span = np.maximum(np.ptp(xyz[:, :2], axis=0), 1e-9)
+    coarse = 2.0 * float(np.sqrt(span[0] * span[1] / len(xyz)))
+    ij = np.floor((xyz[:, :2] - lo) / coarse).astype(np.int64)
+    occupied = len(np.unique(ij[:, 0] * (ij[:, 1].max() + 1) + ij[:, 1]))
+    density = len(xyz) / (occupied * coarse * coarse)
+    gsd = float(np.sqrt(returns_per_cell / density))
+    return float(f"{gsd:.2g}")
 
 
 def _top_per_cell(cells: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -134,16 +69,25 @@ def _top_per_cell(cells: np.ndarray, z: np.ndarray) -> np.ndarray:
 
 
 def top_surface_at_centres(
-    xyz: np.ndarray, centres: np.ndarray, max_slope_deg: float = 70.0
+    xyz: np.ndarray,
+    centres: np.ndarray,
+    fallback: np.ndarray | None = None,
+    max_slope_deg: float = 70.0,
 ) -> np.ndarray:
     """Heights at ``centres`` (M, 2) of the surface through the highest returns ``xyz``
-    (M, 3), one per cell, the i-th return lying in the cell of the i-th centre.
+    (K, 3), one per occupied cell.
 
     Each centre takes the height of the Delaunay triangle of the returns (scipy) that holds
     it. A return sits anywhere in its cell: on a 40-degree roof, taking its height for the
     centre's errs by up to 0.4 cell sizes. Where the triangle is steeper than
     ``max_slope_deg`` (it spans a wall or a crown's edge) or no triangle holds the centre
-    (the hull's rim), the cell keeps its return's own height, so that edges stay sharp.
+    (the hull's rim), the centre keeps ``fallback``, so that edges stay sharp.
+
+    Parameters
+    ----------
+    fallback : (M,) float, optional
+        Height of the return that stands for each centre (its own cell's, or the nearest);
+        by default ``xyz[:, 2]`` (M = K, the i-th return lying in the i-th centre's cell).
 
     Returns
     -------
@@ -151,31 +95,33 @@ def top_surface_at_centres(
     """
     from scipy.spatial import Delaunay, QhullError
 
-    z = xyz[:, 2].astype(np.float64)
+    out = (xyz[:, 2] if fallback is None else fallback).astype(np.float64).copy()
     if len(xyz) < 3:
-        return z
+        return out
+    origin = xyz[:, :2].min(axis=0)  # qhull's precision is relative to the coordinates
     try:
-        tri = Delaunay(xyz[:, :2])
+        tri = Delaunay(xyz[:, :2] - origin)
     except QhullError:  # all returns on a line
-        return z
-    simplex = tri.find_simplex(centres)
+        return out
+    local = centres - origin
+    simplex = tri.find_simplex(local)
     inside = np.flatnonzero(simplex >= 0)
     s = simplex[inside]
     affine = tri.transform[s]
-    b = np.einsum("mij,mj->mi", affine[:, :2], centres[inside] - affine[:, 2])
+    b = np.einsum("mij,mj->mi", affine[:, :2], local[inside] - affine[:, 2])
     weights = np.column_stack([b, 1.0 - b.sum(axis=1)])
     corners = xyz[tri.simplices[s]]
     normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     gentle = np.abs(normal[:, 2]) >= np.cos(np.radians(max_slope_deg)) * np.linalg.norm(
         normal, axis=1
     )
-    out = z.copy()
     out[inside[gentle]] = np.einsum("mk,mk->m", weights[gentle], corners[gentle, :, 2])
     return out
 
 
-def fuse_points(path, opts: FusionOptions | None = None, *, crs: str | None = None):
-    """Rasterise a point cloud into a :class:`FusionResult`.
+def fuse_points(paths, opts: FusionOptions | None = None, *, crs: str | None = None):
+    """Rasterise a point cloud, or tiles of one (files or folders), into a
+    :class:`FusionResult`.
 
     Returns
     -------
@@ -186,8 +132,8 @@ def fuse_points(path, opts: FusionOptions | None = None, *, crs: str | None = No
     opts = opts or FusionOptions()
     timer = StageTimer()
     with timer.stage("read"):
-        cloud = read_points(path, crs)
-    keep = _kept_points(cloud, opts, path)
+        cloud = read_clouds(paths, crs)
+    keep = _kept_points(cloud, opts, cloud.source)
     xyz = cloud.xyz[keep]
     gsd = opts.gsd or default_gsd(xyz)
     if opts.bounds is not None:
@@ -205,19 +151,22 @@ def fuse_points(path, opts: FusionOptions | None = None, *, crs: str | None = No
         r, c = grid.cell_index(xyz[:, 0], xyz[:, 1], clip=True)
         cells = r * grid.width + c
         top = _top_per_cell(cells, xyz[:, 2])
-        dsm, count, holes = top_surface_raster(xyz, cells, top, grid)
-        ortho = _ortho(cloud, keep, cells, top, grid)
+        radius = opts.fill_radius / unit if opts.fill_radius is not None else 2.0 * gsd
+        dsm, count, filled, source = top_surface_raster(xyz, cells, top, grid, radius)
+        # the return whose colour and class each cell takes
+        at = np.flatnonzero(source >= 0)
+        returns = top[source[at]]
+        ortho = _ortho(cloud, keep, at, returns, grid)
     cls = cloud.classification[keep] if cloud.classification is not None else None
     with timer.stage("ground"):
         dtm, dtm_source = cloud_dtm(xyz, cells, cls, dsm, grid, unit)
         ndsm = (dsm - dtm).astype(np.float32)
     with timer.stage("classes"):
-        prob, class_source = cloud_classes(cloud, cls, cells, top, dsm, dtm, ortho, grid, opts,
-                                           unit)  # fmt: skip
+        prob, class_source = cloud_classes(cloud, keep, cls, at, returns, xyz, dtm, grid, unit)
     count16 = np.minimum(count, np.iinfo(np.int16).max).astype(np.int16)
-    count16[holes] = FILLED
+    count16[filled] = FILLED
     inputs = {
-        "points": cloud.source,
+        "points": [str(f) for f in cloud_files(paths)],
         "n_points": int(len(cloud.xyz)),
         "n_points_used": int(keep.sum()),
         "crs": cloud.crs.to_string() if cloud.crs is not None else None,
@@ -230,7 +179,8 @@ def fuse_points(path, opts: FusionOptions | None = None, *, crs: str | None = No
         "mode": "point cloud",
         "dtm_source": dtm_source,
         "class_source": class_source,
-        "filled_small_holes": int(holes.sum()),
+        "filled_cells": int(filled.sum()),
+        "fill_radius": round(radius, 6),
         "stages": timer.stages,
     }
     result = FusionResult(grid, ortho, dsm, dtm, ndsm, prob, count16, {}, record, None)
@@ -251,34 +201,67 @@ def _kept_points(cloud, opts: FusionOptions, path) -> np.ndarray:
     return keep
 
 
-def top_surface_raster(xyz: np.ndarray, cells: np.ndarray, top: np.ndarray, grid: Grid):
-    """The DSM read at the cell centres on the top returns, small holes filled.
+def top_surface_raster(
+    xyz: np.ndarray, cells: np.ndarray, top: np.ndarray, grid: Grid, fill_radius: float
+):
+    """The DSM read at the cell centres on the top returns; empty cells inside the
+    coverage filled, and small enclosed holes.
+
+    An empty cell inside the cloud's coverage (the occupied cells closed by a disc of
+    radius ``fill_radius``: gaps up to twice the radius wide, such as the rows between scan
+    lines) is read on the same triangulation, or takes the nearest top return's height
+    where the triangle spans a wall (as PDAL's ``writers.gdal`` fills by radius, but
+    without growing the outline); larger voids stay empty but for holes of up to
+    ``HOLE_CELLS`` cells, which are interpolated.
+
+    Parameters
+    ----------
+    fill_radius : float
+        In the units of ``xyz``.
 
     Returns
     -------
-    dsm (H, W) float32, NaN unknown; count (H, W) returns per cell; holes (H, W) bool, the
-    cells filled by interpolation.
+    dsm : (H, W) float32, NaN unknown
+    count : (H, W) returns per cell
+    filled : (H, W) bool, the cells with no return that were given a height
+    source : (H * W,) int, index into ``top`` of the return whose colour and class each
+        cell takes (its own top return, or the nearest one for filled cells), -1 for none
     """
+    from scipy.ndimage import distance_transform_edt
+
     n = grid.width * grid.height
-    centres = np.column_stack(grid.cell_center(*np.divmod(cells[top], grid.width)))
+    occupied = np.zeros(n, bool)
+    occupied[cells[top]] = True
+    slot = np.full(n, -1, np.int64)
+    slot[cells[top]] = np.arange(len(top))
+    distance, (nr, nc) = distance_transform_edt(~occupied.reshape(grid.shape), return_indices=True)
+    # inside the coverage only: a closing (dilation, then erosion, by the radius) fills
+    # the gaps between scan lines but does not grow the cloud's outline
+    near = distance * grid.gsd <= fill_radius
+    reached = (distance_transform_edt(near) * grid.gsd > fill_radius).ravel() | occupied
+    source = np.where(reached, slot[(nr * grid.width + nc).ravel()], -1)
+    targets = np.flatnonzero(source >= 0)
+    centres = np.column_stack(grid.cell_center(*np.divmod(targets, grid.width)))
     dsm = np.full(n, np.nan)
-    dsm[cells[top]] = top_surface_at_centres(xyz[top], centres)
+    dsm[targets] = top_surface_at_centres(xyz[top], centres, xyz[top][source[targets], 2])
     dsm = dsm.reshape(grid.shape)
     count = np.bincount(cells, minlength=n).reshape(grid.shape)
     holes = small_holes(~np.isfinite(dsm), HOLE_CELLS)
     dsm = np.where(holes, push_pull_fill(dsm, np.isfinite(dsm)), dsm).astype(np.float32)
-    return dsm, count, holes
+    filled = (reached & ~occupied).reshape(grid.shape) | holes
+    return dsm, count, filled, source
 
 
-def _ortho(cloud, keep, cells, top, grid: Grid) -> np.ndarray:
-    """(H, W, 3) uint8: the top return's colour, or its intensity as grey, or black."""
+def _ortho(cloud, keep, at: np.ndarray, returns: np.ndarray, grid: Grid) -> np.ndarray:
+    """(H, W, 3) uint8: at cells ``at`` (M,), the colour of their returns ``returns`` (M,),
+    or its intensity as grey; black elsewhere."""
     ortho = np.zeros((grid.width * grid.height, 3), np.uint8)
     if cloud.rgb is not None:
-        ortho[cells[top]] = cloud.rgb[keep][top]
+        ortho[at] = cloud.rgb[keep][returns]
     elif cloud.intensity is not None:
-        inten = cloud.intensity[keep][top]
+        inten = cloud.intensity[keep][returns]
         hi_i = np.percentile(inten, 99) or 1.0
-        ortho[cells[top]] = np.clip(inten / hi_i * 255, 0, 255).astype(np.uint8)[:, None]
+        ortho[at] = np.clip(inten / hi_i * 255, 0, 255).astype(np.uint8)[:, None]
     return ortho.reshape(*grid.shape, 3)
 
 
@@ -302,43 +285,46 @@ def cloud_dtm(xyz, cells, cls, dsm: np.ndarray, grid: Grid, unit: float):
     return dtm, dtm_source
 
 
-def cloud_classes(cloud, cls, cells, top, dsm, dtm, ortho, grid: Grid, opts: FusionOptions,
-                  unit: float):  # fmt: skip
-    """(4, H, W) class probabilities: the top return's ASPRS class where it has one, the
-    raster forest's elsewhere; and a sentence on where they came from."""
+def cloud_classes(cloud, keep, cls, at, returns, xyz, dtm, grid: Grid, unit: float):
+    """(4, H, W) class probabilities, one-hot: at cells ``at``, the class of their returns
+    ``returns``: the ASPRS code the cloud gives, or for the returns it leaves unclassified
+    (codes 0 and 1, or a cloud with no classes) the class their geometry and echoes give
+    (:func:`~fusion.point_classes.classify_returns`); and a sentence on where they came from.
+    Codes our classes do not hold (bridge decks, reserved codes) stay unclassified."""
     n = grid.width * grid.height
-    prob = np.full((4, n), np.nan, np.float32)
-    class_source = "none: the cloud has no classification"
-    if cls is not None:
-        mapped = np.zeros(256, np.uint8)
-        for k, v in ASPRS_TO_CLASS.items():
-            mapped[k] = v
-        top_cls = mapped[cls[top]]
-        known = top_cls > 0
-        onehot = np.zeros((4, known.sum()), np.float32)
-        onehot[top_cls[known] - 1, np.arange(known.sum())] = 1.0
-        prob[:, cells[top][known]] = onehot
-        share = float(known.mean())
-        class_source = (
-            f"LAS classification (ASPRS codes mapped) for {share:.1%} of the occupied cells"
+    codes = np.array(cls, np.uint8, copy=True) if cls is not None else np.zeros(len(xyz), np.uint8)
+    unclassified = np.isin(codes, UNCLASSIFIED)
+    # only the returns that stand for a cell need a class
+    needed = np.zeros(len(xyz), bool)
+    needed[returns] = True
+    todo = np.flatnonzero(needed & unclassified)
+    if len(todo):
+        r, c = grid.cell_index(xyz[:, 0], xyz[:, 1], clip=True)
+        hag = xyz[:, 2] - dtm[r, c]
+        echoes = cloud.number_of_returns[keep] if cloud.number_of_returns is not None else None
+        rgb = cloud.rgb[keep] if cloud.rgb is not None else None
+        codes[todo] = classify_returns(
+            xyz, hag, todo, number_of_returns=echoes, rgb=rgb, low=LOW_M / unit
         )
-    prob = prob.reshape(4, *grid.shape)
-    unknown = np.isfinite(dsm) & ~np.isfinite(prob[0])
-    if not unknown.any():
-        return prob, class_source
-    if opts.classifier is not None:
-        forest = load_classifier(opts.classifier, features=RASTER_FEATURES)[0]
-        origin = f"the forest in {opts.classifier}"
-    else:
-        forest = synthetic_raster_forest()
-        origin = "a forest trained on the synthetic city's rasters"
-    rgb = ortho if (cloud.rgb is not None or cloud.intensity is not None) else None
-    guess = classify_rasters(forest, dsm, dtm, rgb, grid.gsd * unit, unit)
-    prob[:, unknown] = guess[:, unknown]
-    share = float(unknown.sum() / np.isfinite(dsm).sum())
-    class_source = (
-        (class_source + "; " if cloud.classification is not None else "")
-        + f"{origin} (nDSM, slope, roughness, curvature, brightness, greenness) "
-        f"for {share:.1%} of the cells"
-    )
-    return prob, class_source
+    mapped = np.zeros(256, np.uint8)
+    for k, v in ASPRS_TO_CLASS.items():
+        mapped[k] = v
+    ours = mapped[codes[returns]]
+    known = ours > 0
+    prob = np.full((4, n), np.nan, np.float32)
+    onehot = np.zeros((4, known.sum()), np.float32)
+    onehot[ours[known] - 1, np.arange(known.sum())] = 1.0
+    prob[:, at[known]] = onehot
+    by_geometry = float(unclassified[returns].mean()) if len(returns) else 0.0
+    parts = []
+    if cls is not None:
+        parts.append(
+            f"LAS classification (ASPRS codes mapped) for {1 - by_geometry:.1%} of the cells"
+        )
+    if len(todo):
+        echo_note = "and echoes " if cloud.number_of_returns is not None else ""
+        parts.append(
+            f"their geometry {echo_note}(height above ground, neighbourhood shape) for "
+            f"{by_geometry:.1%} of the cells, whose returns are unclassified"
+        )
+    return prob.reshape(4, *grid.shape), "; ".join(parts) or "none"

@@ -27,7 +27,7 @@ def run_fusion(
     options: FusionOptions | None = None,
     *,
     scene: Path | None = None,
-    points: Path | None = None,
+    points: Path | list[Path] | None = None,
     crs: str | None = None,
     truth: Path | None = None,
     save_classifier_to: Path | None = None,
@@ -41,10 +41,10 @@ def run_fusion(
     out : path
         The run folder (written atomically).
     options : FusionOptions
-    scene, points : path
-        Exactly one: a scene folder, or a LAS/LAZ/PLY cloud.
+    scene, points : path, or paths for ``points``
+        Exactly one: a scene folder, or LAS/LAZ/PLY clouds (tiles, or folders of them).
     crs : str, optional
-        CRS of a cloud that carries none (EPSG code or WKT).
+        CRS of clouds that carry none (EPSG code or WKT).
     truth : path, optional
         A scene with truth/: the products' scores go into fusion.json.
     save_classifier_to : path, optional

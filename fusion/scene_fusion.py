@@ -328,7 +328,7 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
         "workers": workers,
         "observations": int(h.n_obs),
         "class_source": class_source,
-        "filled_small_holes": int(holes.sum()),
+        "filled_cells": int(holes.sum()),
         "rejected_isolated_spikes": int(spikes.sum()),
         "crown_cells_raised": int(crowns.sum()),
         "crown_sightings_raised": int(np.isfinite(c.crown_z).sum()),

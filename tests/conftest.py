@@ -54,3 +54,17 @@ def tiny_fusion(tiny_scene, tmp_path_factory) -> Path:
     proc = run_cli("fusion", tiny_scene, "-o", out)
     assert proc.returncode == 0, proc.stderr
     return out
+
+
+def rewrite_raster(path: Path, data=None, **changes) -> None:
+    """Rewrite a raster as a plain GeoTIFF, as another tool would, with ``data`` and
+    profile ``changes`` (crs, transform) in place of its own."""
+    import rasterio
+
+    with rasterio.open(path) as src:
+        profile, old = src.profile, src.read()
+    profile.update(driver="GTiff", **changes)
+    for key in ("blockxsize", "blockysize", "tiled", "interleave"):
+        profile.pop(key, None)
+    with rasterio.open(path, "w", **profile) as dst:
+        dst.write(old if data is None else data)

@@ -7,10 +7,9 @@ import sys
 
 import numpy as np
 import pytest
-import rasterio
 
 from data_samples.truth_run import truth_fusion_run, truth_model_run
-from tests.conftest import run_cli
+from tests.conftest import rewrite_raster, run_cli
 from workbench.raster import read_raster, write_raster
 
 
@@ -138,8 +137,7 @@ def test_bad_input_is_one_line_and_writes_nothing(tiny_scene, tmp_path, case, ex
     elif case == "crs":
         run.rmdir()
         truth_fusion_run(tiny_scene, run)
-        with rasterio.open(run / "dsm.tif", "r+") as ds:
-            ds.crs = "EPSG:32631"
+        rewrite_raster(run / "dsm.tif", crs="EPSG:32631")
     out = tmp_path / "report"
     proc = run_cli("compare", *args, "-o", out)
     assert proc.returncode == 2

@@ -13,7 +13,7 @@ from shapely.geometry import shape
 
 from data_samples.truth_run import truth_fusion_run
 from modeling.shared.roof_types import ROOF_TYPES
-from tests.conftest import SHARED_DATA, model_and_score, run_cli
+from tests.conftest import SHARED_DATA, model_and_score, rewrite_raster, run_cli
 from workbench.raster import read_raster
 
 
@@ -74,11 +74,12 @@ def test_bad_fusion_folder_is_one_line(modelled, tmp_path, case):
         (fusion / "dtm.tif").unlink()
         expect = "dtm.tif"
     else:
-        with rasterio.open(fusion / "dsm.tif", "r+") as ds:
-            if case == "grid":
-                ds.transform = ds.transform @ ds.transform.translation(1, 0)
-            else:
-                ds.crs = "EPSG:32631"
+        if case == "grid":
+            with rasterio.open(fusion / "dsm.tif") as ds:
+                moved = ds.transform @ ds.transform.translation(1, 0)
+            rewrite_raster(fusion / "dsm.tif", transform=moved)
+        else:
+            rewrite_raster(fusion / "dsm.tif", crs="EPSG:32631")
         expect = f"dsm.tif: {'transform' if case == 'grid' else 'crs'}"
     out = tmp_path / "out"
     proc = run_cli("model", "superpixel", fusion, "-o", out)
@@ -89,11 +90,11 @@ def test_bad_fusion_folder_is_one_line(modelled, tmp_path, case):
 def test_no_building_pixels_give_an_empty_valid_model(modelled, tmp_path):
     fusion = tmp_path / "fusion"
     shutil.copytree(modelled[0], fusion)
-    with rasterio.open(fusion / "class_prob.tif", "r+") as ds:
+    with rasterio.open(fusion / "class_prob.tif") as ds:
         prob = ds.read()
-        prob[:] = 0
-        prob[0] = 1  # everything ground
-        ds.write(prob)
+    prob[:] = 0
+    prob[0] = 1  # everything ground
+    rewrite_raster(fusion / "class_prob.tif", prob)
     out = tmp_path / "out"
     proc = run_cli("model", "superpixel", fusion, "-o", out)
     assert proc.returncode == 0, proc.stderr
@@ -153,16 +154,19 @@ def test_same_seed_same_meshes(modelled, tmp_path):
 
 @pytest.mark.skipif(not (SHARED_DATA / "autzen").is_dir(), reason="no ../shared/data")
 def test_autzen_models_sit_on_their_points_in_feet(tmp_path):
-    """Autzen (US survey feet, no building class): every model closed, its returns within
-    a 2.5 ft cell of the models (the median; the dense trees it takes for buildings hold
-    lower returns too), and the ground class kept outside."""
+    """Autzen (US survey feet, no building class, no building: its one elevated man-made
+    surface is the footbridge, whose deck its geometry and echoes make building while the
+    trees stay trees): the deck modelled and closed, its returns on the model (median
+    0.08 ft measured), and the ground class kept outside."""
     cloud = SHARED_DATA / "autzen" / "autzen_trim.las"
     fusion, out = tmp_path / "f", tmp_path / "m"
     assert run_cli("fusion", "--points", cloud, "-o", fusion).returncode == 0
     proc = run_cli("model", "superpixel", fusion, "-o", out)
     assert proc.returncode == 0, proc.stderr
     record = json.loads((out / "model.json").read_text())
-    assert len(record["buildings"]) >= 20 and all(b["watertight"] for b in record["buildings"])
+    assert 1 <= len(record["buildings"]) <= 3 and all(b["watertight"] for b in record["buildings"])
+    deck = max((shape(b["footprint"]) for b in record["buildings"]), key=lambda g: g.area)
+    assert 2500 < deck.area < 4500  # square feet: the deck is ~16 ft wide, ~230 ft long
     las = laspy.read(cloud)
     xyz = np.column_stack([las.x, las.y, las.z])
     ground = np.asarray(las.classification) == 2
@@ -175,4 +179,4 @@ def test_autzen_models_sit_on_their_points_in_feet(tmp_path):
         scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
     on_roofs = xyz[inside & ~ground].astype(np.float32)
     d = scene.compute_distance(o3d.core.Tensor(on_roofs)).numpy()
-    assert len(on_roofs) > 5000 and np.median(d) < 2.5  # feet
+    assert len(on_roofs) > 800 and np.median(d) < 0.3  # feet

@@ -9,6 +9,7 @@ import shapely
 from shapely.geometry import Polygon, box, shape
 from shapely.geometry.polygon import orient
 
+from modeling.shared.affinity_propagation import sparse_affinity_propagation
 from modeling.shared.graph_cuts import alpha_expansion, binary_cut, crf_energy, pairwise_cut
 from modeling.shared.outline_regularity import regularise_outline
 from modeling.shared.planes import plane_heights, ransac_plane
@@ -40,28 +41,50 @@ def _volume(v, t):
     return float(np.sum(a * np.cross(b, c)) / 6)
 
 
-def _brute_force(unary, edges, w, omega):
+def _brute_force(unary, edges, w, omega, allowed=None):
     n, L = unary.shape
     return min(
         crf_energy(np.array(c), unary, edges, w, omega)
         for c in itertools.product(range(L), repeat=n)
+        if allowed is None or allowed[np.arange(n), list(c)].all()
     )
+
+
+def _random_crf(rng, n: int, L: int):
+    """Unary (n, L), edges (E, 2) and weights (E,) of a random Potts problem."""
+    unary = rng.random((n, L)) * 3
+    edges = np.array([(a, b) for a in range(n) for b in range(a + 1, n) if rng.random() < 0.4])
+    edges = edges.reshape(-1, 2)
+    return unary, edges, rng.random(len(edges))
 
 
 def test_graph_cuts_against_brute_force():
     rng = np.random.default_rng(1)
     for trial in range(40):
         n, L = 7, 2 + trial % 3
-        unary = rng.random((n, L)) * 3
-        edges = np.array([(a, b) for a in range(n) for b in range(a + 1, n) if rng.random() < 0.4])
-        edges = edges.reshape(-1, 2)
-        w = rng.random(len(edges))
+        unary, edges, w = _random_crf(rng, n, L)
         best = _brute_force(unary, edges, w, 1.0)
         got = crf_energy(alpha_expansion(unary, edges, w, 1.0), unary, edges, w, 1.0)
         if L == 2:
             assert got == pytest.approx(best)  # one exact cut
         assert best - 1e-9 <= got <= 2 * best + 1e-9  # alpha-expansion's Potts bound
         assert got <= crf_energy(unary.argmin(1), unary, edges, w, 1.0) + 1e-9
+
+
+def test_alpha_expansion_keeps_each_node_to_its_allowed_labels():
+    rng = np.random.default_rng(3)
+    for trial in range(30):
+        n, L = 7, 3 + trial % 2
+        unary, edges, w = _random_crf(rng, n, L)
+        allowed = rng.random((n, L)) < 0.6
+        allowed[np.arange(n), rng.integers(0, L, n)] = True
+        labels = alpha_expansion(unary, edges, w, 1.0, allowed=allowed)
+        assert allowed[np.arange(n), labels].all()
+        best = _brute_force(unary, edges, w, 1.0, allowed)  # over the allowed labellings
+        got = crf_energy(labels, unary, edges, w, 1.0)
+        assert best - 1e-9 <= got <= 2 * best + 1e-9
+        everywhere = alpha_expansion(unary, edges, w, 1.0, allowed=np.ones((n, L), bool))
+        np.testing.assert_array_equal(everywhere, alpha_expansion(unary, edges, w, 1.0))
 
 
 def test_pairwise_cut_against_brute_force():
@@ -189,9 +212,40 @@ def test_prototypes_group_hypotheses_of_one_plane():
         planes.append(_plane(0, slope, 3) + rng.normal(0, 1e-3, 4))
     adjacency = {a: [b for b in range(6) if abs(a - b) == 1] for a in range(6)}
     S = hypothesis_similarity(np.array(planes), pts, np.arange(6), adjacency)
-    exemplars, assignment = cluster_prototypes(S, -0.25)
+    assert len(S[0]) == 10  # the adjacent pairs only, both ways
+    exemplars, assignment = cluster_prototypes(S, 6, -0.25)
     assert len(exemplars) == 2
     assert len(set(assignment[:3])) == 1 and len(set(assignment[3:])) == 1
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_sparse_affinity_propagation_on_all_pairs_is_scikit_learns(seed):
+    import warnings
+
+    from sklearn.cluster import AffinityPropagation
+
+    rng = np.random.default_rng(seed)
+    X = np.concatenate([rng.normal(c, 0.3, (15, 2)) for c in rng.uniform(0, 10, (4, 2))])
+    S = -((X[:, None] - X[None]) ** 2).sum(-1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ap = AffinityPropagation(
+            affinity="precomputed", preference=np.median(S), damping=0.7, random_state=0
+        ).fit(S)
+    r, c = np.nonzero(~np.eye(len(X), dtype=bool))
+    exemplars, labels = sparse_affinity_propagation(r, c, S[r, c], len(X), np.median(S))
+    assert np.array_equal(exemplars, ap.cluster_centers_indices_)
+    assert np.array_equal(labels, ap.labels_)
+
+
+def test_sparse_affinity_propagation_never_joins_items_without_a_pair():
+    # two chains of 5 items, similar within, no pair between: no exemplar spans both
+    r = np.array([0, 1, 1, 2, 2, 3, 3, 4, 5, 6, 6, 7, 7, 8, 8, 9])
+    c = np.array([1, 0, 2, 1, 3, 2, 4, 3, 6, 5, 7, 6, 8, 7, 9, 8])
+    exemplars, labels = sparse_affinity_propagation(r, c, np.full(16, -0.01), 10, -1.0)
+    assert set(exemplars[labels[:5]]).isdisjoint(exemplars[labels[5:]])
+    for i, k in enumerate(exemplars[labels]):  # each item's exemplar is itself or a neighbour
+        assert k == i or abs(k - i) == 1
 
 
 def test_split_buildings_cuts_a_thin_bridge_and_drops_small_ones():

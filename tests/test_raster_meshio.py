@@ -107,3 +107,24 @@ def test_a_mask_band_is_nodata_too(tmp_path):
     _raster_with_nodata(tmp_path / "m.tif", data, None, mask=mask)
     back = read_raster(tmp_path / "m.tif")[0][0]
     assert np.isnan(back[4]).all() and (back[~mask] == 3.0).all()
+
+
+def test_rasters_are_cloud_optimized_with_fitting_overviews(tmp_path):
+    grid = Grid(500000.0, 5700600.0, 0.25, 600, 600)  # UTM 31N
+    heights = np.add.outer(np.arange(600.0), np.arange(600.0)).astype(np.float32)
+    heights[:10] = np.nan
+    classes = np.random.default_rng(0).choice([0, 1, 4], (600, 600)).astype(np.uint8)
+    write_raster(tmp_path / "dsm.tif", heights, grid, CRS.from_epsg(32631))
+    write_raster(tmp_path / "class.tif", classes, grid, CRS.from_epsg(32631), nodata=0)
+    for name in ("dsm.tif", "class.tif"):
+        with rasterio.open(tmp_path / name) as ds:
+            assert ds.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
+            assert ds.block_shapes[0] == (256, 256) and ds.overviews(1) == [2, 4]
+    with rasterio.open(tmp_path / "dsm.tif", overview_level=0) as ds:
+        half = ds.read(1)
+    # heights average: a 2 x 2 block of the plane x + y averages to its centre
+    assert half[100, 100] == pytest.approx(np.mean(heights[200:202, 200:202]))
+    with rasterio.open(tmp_path / "class.tif", overview_level=0) as ds:
+        assert set(np.unique(ds.read(1))) <= {0, 1, 4}  # classes are picked, never averaged
+    data, g, _ = read_raster(tmp_path / "dsm.tif")
+    assert g == grid and np.isnan(data[0, :10]).all()

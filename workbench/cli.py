@@ -32,8 +32,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for add in (_add_sample, _add_validate, _add_import_colmap, _add_fusion, _add_model,
-                _add_compare, _add_demo):  # fmt: skip
+    for add in (
+        _add_sample, _add_validate, _add_import_colmap, _add_import_odm, _add_fusion,
+        _add_model, _add_compare, _add_demo,
+    ):  # fmt: skip
         add(sub)
     return parser
 
@@ -73,6 +75,12 @@ def _add_sample(sub) -> None:
         default=None,
         help="depth-map noise sigma at the flying height, metres (default 0.15)",
     )
+    p.add_argument(
+        "--origin", type=float, nargs=2, metavar=("E", "N"),
+        help="write the city centred there (metres), as real data lies far from its CRS's "
+        "zero; for example 500000 5700000 with --crs EPSG:32631",
+    )  # fmt: skip
+    p.add_argument("--crs", help="with --origin: the CRS to name (EPSG code or WKT)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     p.set_defaults(func=cmd_sample)
 
@@ -121,6 +129,32 @@ def _add_import_colmap(sub) -> None:
     p.set_defaults(func=cmd_import_colmap)
 
 
+def _add_import_odm(sub) -> None:
+    p = sub.add_parser(
+        "import-odm",
+        help="convert an OpenDroneMap (OpenSfM) project into a scene",
+        description="Convert an ODM project (opensfm/reconstruction.json: perspective, "
+        "Brown and fisheye cameras in a topocentric frame; images/; odm_dem/dsm.tif and, "
+        "if present, odm_dem/dtm.tif and odm_georeferencing/odm_georeferenced_model.laz) "
+        "into a scene in the DSM's projected CRS. `workbench fusion` on it projects every "
+        "view onto the DSM to fuse colour and classes.",
+    )
+    p.add_argument("project", type=Path, metavar="PROJECT_DIR", help="the ODM project folder")
+    p.add_argument("-o", "--out", type=Path, required=True, metavar="SCENE", help="scene folder")
+    p.add_argument("--crs", help="the scene's projected CRS (default: the DSM's)")
+    p.add_argument(
+        "--training-labels", type=Path, metavar="FILE",
+        help="strokes (label raster, codes 1-4) for the fusion's per-view classifier",
+    )  # fmt: skip
+    p.add_argument(
+        "--copy-images", action="store_true",
+        help="copy the images into the scene (default: refer to them; fisheye images are "
+        "always resampled into it)",
+    )  # fmt: skip
+    p.add_argument("--overwrite", action="store_true", help="replace SCENE if it exists")
+    p.set_defaults(func=cmd_import_odm)
+
+
 def _add_fusion(sub) -> None:
     from fusion.options import FusionOptions
 
@@ -130,12 +164,17 @@ def _add_fusion(sub) -> None:
         description="Fuse the calibrated views of SCENE (their depth maps) into north-up "
         "rasters: ortho.tif (vector median colour), dsm.tif (median height), dtm.tif, "
         "ndsm.tif, class_prob.tif, class.tif, count.tif, plus fusion.json and preview.png. "
-        "With --points, rasterise a LAS/LAZ/PLY cloud into the same products.",
+        "With --points, rasterise LAS/LAZ/PLY tiles (files or folders of them, merged) into "
+        "the same products.",
     )
     p.add_argument("scene", type=Path, nargs="?", metavar="SCENE", help="scene folder")
-    p.add_argument("--points", type=Path, metavar="CLOUD", help="LAS, LAZ or PLY point cloud")
+    p.add_argument(
+        "--points", type=Path, nargs="+", metavar="CLOUD",
+        help="LAS, LAZ or PLY point clouds, or folders of them: the tiles of one survey, "
+        "merged (their CRSs must agree)",
+    )  # fmt: skip
     p.add_argument("-o", "--out", type=Path, required=True, metavar="OUT", help="output folder")
-    p.add_argument("--crs", help="CRS of a point cloud that carries none (EPSG code or WKT)")
+    p.add_argument("--crs", help="CRS of point clouds that carry none (EPSG code or WKT)")
     p.add_argument(
         "--truth", type=Path, metavar="SCENE",
         help="score the products against SCENE/truth into fusion.json",
@@ -243,7 +282,14 @@ def cmd_sample(args) -> int:
         overrides["depth_sigma"] = args.depth_noise
     if overrides:
         preset = preset.with_overrides(**overrides)
-    meta = generate_sample(args.out, preset, args.seed, overwrite=args.overwrite)
+    if args.crs and not args.origin:
+        raise WorkbenchError("--crs: give --origin E N with it")
+    from .raster import parse_crs
+
+    crs = parse_crs(args.crs, path="--crs", field="crs") if args.crs else None
+    meta = generate_sample(
+        args.out, preset, args.seed, overwrite=args.overwrite, origin=args.origin, crs=crs
+    )
     c = meta["counts"]
     print(
         f"wrote {args.out}: {c['buildings']} buildings, {c['trees']} trees, {c['views']} views, "
@@ -299,6 +345,17 @@ def cmd_import_colmap(args) -> int:
         copy_images=args.copy_images,
         overwrite=args.overwrite,
     )
+    print(f"wrote {path}")
+    return 0
+
+
+def cmd_import_odm(args) -> int:
+    from .odm import import_odm
+
+    path = import_odm(
+        args.project, args.out, crs=args.crs, training_labels=args.training_labels,
+        copy_images=args.copy_images, overwrite=args.overwrite,
+    )  # fmt: skip
     print(f"wrote {path}")
     return 0
 

@@ -137,7 +137,7 @@ def write_raster(
     nodata: float | int | None = None,
     descriptions: list[str] | None = None,
 ) -> None:
-    """Write a tiled, compressed, north-up GeoTIFF.
+    """Write a north-up Cloud-Optimized GeoTIFF (tiled, compressed, with overviews).
 
     Parameters
     ----------
@@ -159,8 +159,10 @@ def write_raster(
         raise ValueError(f"data shape {arr.shape[1:]} does not match grid {grid.shape}")
     if nodata is None and np.issubdtype(arr.dtype, np.floating):
         nodata = float("nan")
+    image = np.issubdtype(arr.dtype, np.floating) or (arr.dtype == np.uint8 and arr.shape[0] == 3)
+    # a Cloud-Optimized GeoTIFF: tiled, overviews inside, readable in parts over HTTP
     profile = dict(
-        driver="GTiff",
+        driver="COG",
         width=grid.width,
         height=grid.height,
         count=arr.shape[0],
@@ -169,13 +171,11 @@ def write_raster(
         transform=grid.transform,
         nodata=nodata,
         compress="deflate",
-        predictor=3 if np.issubdtype(arr.dtype, np.floating) else 2,
-        interleave="band" if arr.shape[0] > 4 else "pixel",
+        predictor="FLOATING_POINT" if np.issubdtype(arr.dtype, np.floating) else "STANDARD",
+        blocksize=256,
+        # heights and colours average into an overview; classes and ids must not
+        overview_resampling="average" if image else "nearest",
     )
-    if grid.width >= 16 and grid.height >= 16:
-        profile.update(tiled=True, blockxsize=256, blockysize=256)
-    if arr.dtype == np.uint8 and arr.shape[0] == 3:
-        profile["photometric"] = "RGB"
     with rasterio.open(path, "w", **profile) as dst:
         dst.write(arr)
         if descriptions:

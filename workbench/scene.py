@@ -353,7 +353,7 @@ def _check_optional_files(scene: Scene, path: Path) -> None:
             if bad.size:
                 raise InputError(path, key, f"{p.name}: class codes {bad[:5].tolist()} not in 0-4")
     if scene.footprints is not None:
-        read_footprints(scene.footprints)
+        read_footprints(scene.footprints, crs=scene.crs, extent=scene.bounds)
 
 
 def write_scene_json(

@@ -167,7 +167,7 @@ def load_file_truth(
             setattr(truth, name, band.astype(np.float64))
         truth.sources[name] = str(path)
     if footprints is not None:
-        items = read_footprints(footprints)
+        items = read_footprints(footprints, crs=crs, extent=grid.bounds)
         shapes = [(f.polygon, i) for i, f in enumerate(items, start=1)]
         truth.building_ids = rasterize(
             shapes, out_shape=grid.shape, transform=grid.transform, fill=0, dtype="int32"

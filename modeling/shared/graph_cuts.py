@@ -58,6 +58,7 @@ def alpha_expansion(
     omega: float,
     init: np.ndarray | None = None,
     max_sweeps: int = 5,
+    allowed: np.ndarray | None = None,
 ) -> np.ndarray:
     """Minimise a Potts energy by alpha-expansion moves (Boykov et al. 2001).
 
@@ -65,7 +66,14 @@ def alpha_expansion(
     over all labels repeat until no move lowers the energy. The result is within a factor
     2 of the optimum for Potts energies; two labels get the exact :func:`binary_cut`.
 
-    Parameters as :func:`crf_energy`; ``init`` defaults to the unary minimum.
+    Parameters as :func:`crf_energy`; ``init`` defaults to the unary minimum over the
+    allowed labels.
+
+    allowed : (N, L) bool, optional
+        The labels each node may take (every node at least one); by default all. A move
+        to alpha is a cut on the nodes that allow alpha only, the others held at their
+        label: with labels that are local (each allowed on a neighbourhood), a sweep costs
+        O(N) rather than O(N L).
 
     Returns
     -------
@@ -74,7 +82,10 @@ def alpha_expansion(
     n, n_labels = unary.shape
     if n == 0:
         return np.zeros(0, np.int64)
-    if n_labels == 2:
+    if allowed is not None:
+        allowed = np.asarray(allowed, bool)
+        unary = np.where(allowed, unary, np.inf)
+    if n_labels == 2 and allowed is None:
         return binary_cut(unary, edges, weights, omega)
     labels = unary.argmin(axis=1) if init is None else np.asarray(init, np.int64).copy()
     if n_labels == 1:
@@ -82,10 +93,13 @@ def alpha_expansion(
     w = omega * np.asarray(weights, np.float64)
     i, j = (edges[:, 0], edges[:, 1]) if len(edges) else (np.zeros(0, int),) * 2
     energy = crf_energy(labels, unary, edges, weights, omega)
+    movable = np.ones((n, n_labels), bool) if allowed is None else allowed
     for _ in range(max_sweeps):
         improved = False
         for alpha in range(n_labels):
-            proposal = _expand(labels, alpha, unary, i, j, w)
+            proposal = _expand(labels, alpha, unary, i, j, w, movable[:, alpha])
+            if proposal is None:
+                continue
             e = crf_energy(proposal, unary, edges, weights, omega)
             if e < energy - 1e-9:
                 labels, energy, improved = proposal, e, True
@@ -94,18 +108,32 @@ def alpha_expansion(
     return labels
 
 
-def _expand(labels, alpha, unary, i, j, w) -> np.ndarray:
-    """One alpha-expansion move: x = 1 switches a node to alpha."""
-    n = len(labels)
-    keep_cost = unary[np.arange(n), labels]
-    move_cost = unary[:, alpha].copy()
-    move_cost[labels == alpha] = keep_cost[labels == alpha]  # already alpha: no choice
+def _expand(labels, alpha, unary, i, j, w, movable) -> np.ndarray | None:
+    """One alpha-expansion move among the ``movable`` nodes (the others, and those
+    already alpha, keep their label); None when no node can move."""
+    nodes = np.flatnonzero(movable & (labels != alpha))
+    if len(nodes) == 0:
+        return None
+    local = np.full(len(labels), -1)
+    local[nodes] = np.arange(len(nodes))
+    keep_cost = unary[nodes, labels[nodes]].astype(np.float64)
+    move_cost = unary[nodes, alpha].astype(np.float64)
     ci, cj = labels[i], labels[j]
-    # a Potts pair: both keep, i keeps and j moves, i moves and j keeps, both move
-    pair = np.column_stack([w * (ci != cj), w * (ci != alpha), w * (cj != alpha), np.zeros_like(w)])
-    x = pairwise_cut(np.column_stack([keep_cost, move_cost]), np.column_stack([i, j]), pair)
+    li, lj = local[i], local[j]
+    # an edge to a node that keeps its label adds to the moving node's two costs
+    for a, b, ca, cb in ((li, lj, ci, cj), (lj, li, cj, ci)):
+        one = (a >= 0) & (b < 0)
+        np.add.at(keep_cost, a[one], w[one] * (ca[one] != cb[one]))
+        np.add.at(move_cost, a[one], w[one] * (cb[one] != alpha))
+    # a Potts pair of movable nodes: both keep, i keeps and j moves, i moves, both move
+    both = (li >= 0) & (lj >= 0)
+    wb = w[both]
+    pair = np.column_stack([wb * (ci[both] != cj[both]), wb, wb, np.zeros_like(wb)])
+    x = pairwise_cut(
+        np.column_stack([keep_cost, move_cost]), np.column_stack([li[both], lj[both]]), pair
+    )
     out = labels.copy()
-    out[x == 1] = alpha
+    out[nodes[x == 1]] = alpha
     return out
 
 

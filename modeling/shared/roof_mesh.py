@@ -88,20 +88,45 @@ def vertex_matched(polys: list[Polygon], tolerance: float) -> np.ndarray:
     left unsimplified (a staircase of 1,464 triangles instead of 186) or not closed.
     """
     rings = [r for p in polys for r in (p.exterior, *p.interiors)]
-    vertices = shapely.MultiPoint(np.concatenate([np.asarray(r.coords) for r in rings]))
-    return np.array([shapely.snap(p, vertices, tolerance) for p in polys], dtype=object)
+    points = shapely.points(np.concatenate([np.asarray(r.coords) for r in rings]))
+    # only the vertices within the tolerance of a polygon can snap to it: a spatial index
+    # keeps a terrace of thousands of faces linear, not quadratic
+    which, near = shapely.STRtree(points).query(polys, predicate="dwithin", distance=tolerance)
+    order = np.argsort(which, kind="stable")
+    which, near = which[order], near[order]
+    starts = np.searchsorted(which, np.arange(len(polys) + 1))
+    return np.array(
+        [
+            shapely.snap(p, shapely.multipoints(points[near[starts[k] : starts[k + 1]]]), tolerance)
+            for k, p in enumerate(polys)
+        ],
+        dtype=object,
+    )
 
 
 def merge_small_regions(faces: np.ndarray, min_cells: int) -> np.ndarray:
     """Give every 4-connected region of one face label smaller than ``min_cells`` the
     label of the neighbouring face it shares most cell edges with (0 stays 0)."""
+    from scipy.ndimage import find_objects
+    from skimage.measure import label as connected_regions
+
     out = faces.copy()
-    for label in np.unique(faces[faces > 0]):
-        n, comp, stats, _ = cv2.connectedComponentsWithStats(
-            (faces == label).astype(np.uint8), connectivity=4
+    regions = connected_regions(faces, background=0, connectivity=1)
+    sizes = np.bincount(regions.ravel())
+    small = np.flatnonzero(sizes < min_cells)
+    small = small[small > 0]
+    face_of = np.zeros(len(sizes), faces.dtype)
+    face_of[regions.ravel()] = faces.ravel()
+    boxes = find_objects(regions)
+    H, W = faces.shape
+    # by face label, then raster order: each region looks at the labels left by the last
+    for k in small[np.lexsort((small, face_of[small]))]:
+        rows, cols = boxes[k - 1]
+        window = (
+            slice(max(rows.start - 1, 0), min(rows.stop + 1, H)),
+            slice(max(cols.start - 1, 0), min(cols.stop + 1, W)),
         )
-        for k in np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] < min_cells) + 1:
-            _absorb(out, comp == k)
+        _absorb(out[window], regions[window] == k)  # a view: relabels ``out`` in place
     return out
 
 
@@ -294,6 +319,7 @@ def _noded_rings(polygons: list[Polygon]) -> tuple[list[list[np.ndarray]], list]
     _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
     xy = [tuple(allxy[i]) for i in first]
     table = np.asarray(xy)
+    tree = shapely.STRtree(shapely.points(table))
     rings, k = [], 0
     for p in polygons:
         face = []
@@ -301,13 +327,17 @@ def _noded_rings(polygons: list[Polygon]) -> tuple[list[list[np.ndarray]], list]
             m = len(r.coords) - 1
             ids = inverse.ravel()[k : k + m]
             k += m
-            face.append(_insert_on_edges(ids, table))
+            near = np.sort(tree.query(shapely.box(*r.bounds).buffer(10 * _EPS)))
+            face.append(_insert_on_edges(ids, table, near))
         rings.append(face)
     return rings, xy
 
 
-def _insert_on_edges(ring: np.ndarray, table: np.ndarray) -> np.ndarray:
+def _insert_on_edges(ring: np.ndarray, table: np.ndarray, near: np.ndarray) -> np.ndarray:
+    """The ring with every vertex of ``table`` (among the indices ``near``: those in its
+    bounding box) that lies on one of its edges inserted there, in order."""
     out = []
+    candidates = table[near]
     for a, b in zip(ring, np.roll(ring, -1), strict=True):
         out.append(a)
         pa, pb = table[a], table[b]
@@ -315,10 +345,11 @@ def _insert_on_edges(ring: np.ndarray, table: np.ndarray) -> np.ndarray:
         L2 = d @ d
         if L2 == 0:
             continue
-        t = (table - pa) @ d / L2
-        perp = np.abs((table[:, 0] - pa[0]) * d[1] - (table[:, 1] - pa[1]) * d[0]) / np.sqrt(L2)
+        t = (candidates - pa) @ d / L2
+        rel = candidates - pa
+        perp = np.abs(rel[:, 0] * d[1] - rel[:, 1] * d[0]) / np.sqrt(L2)
         on = np.flatnonzero((t > 1e-9) & (t < 1 - 1e-9) & (perp < 10 * _EPS))
-        out.extend(on[np.argsort(t[on])])
+        out.extend(near[on[np.argsort(t[on])]])
     return np.asarray(out, np.int64)
 
 

@@ -48,6 +48,11 @@ class SuperpixelOptions:
         0.25, "affinity propagation's preference is minus this: a hypothesis joins another's "
         "prototype when that explains its points to about this distance", unit="m", cli=False,
     )  # fmt: skip
+    prototype_reach: int = option(
+        3, "rings of adjacent super-pixels around a prototype's exemplar that the prototype "
+        "CRF offers it to: its cluster lies within one ring, the others let it grow",
+        cli=False,
+    )  # fmt: skip
     truncation_m: float = option(
         2.0, "point-to-plane distances are truncated here in the prototype unary, so that a "
         "tree over a roof does not decide its plane", unit="m", cli=False,

@@ -166,10 +166,12 @@ def model_buildings(
         timed = _timed(seconds)
         members = members_of[b]
         hyps = timed("plane_hypotheses", plane_hypotheses, members, pts, neighbours, options)
-        protos = timed("prototypes", _prototypes, hyps, members, graph, neighbours, options)
+        protos, anchors = timed("prototypes", _prototypes, hyps, members, graph, neighbours,
+                                options)  # fmt: skip
         if not len(protos):
             continue
-        assign = timed("prototype_crf", label_prototypes, members, protos, pts, graph, options)
+        assign = timed("prototype_crf", label_prototypes, members, protos, pts, graph, options,
+                       anchors)  # fmt: skip
         protos = timed("prototype_crf", refit_planes, members, assign, protos, pts, options)
         sp_face = np.zeros(graph.n, np.int32)
         sp_face[members] = assign + 1
@@ -197,12 +199,14 @@ def _timed(seconds: dict):
     return call
 
 
-def _prototypes(hyps, members, graph: SuperpixelGraph, neighbours, options) -> np.ndarray:
-    """Section 5.2's prototypes, or with no plane anywhere one flat roof at the median."""
+def _prototypes(hyps, members, graph: SuperpixelGraph, neighbours, options):
+    """Section 5.2's prototypes and their anchors, or with no plane anywhere one flat roof
+    at the median, anchored nowhere (allowed everywhere)."""
     if hyps:
         return roof_prototypes(hyps, neighbours, options)
     z = np.nanmedian(graph.height_median[members])
-    return np.array([[0.0, 0.0, 1.0, -z]]) if np.isfinite(z) else np.empty((0, 4))
+    flat = np.array([[0.0, 0.0, 1.0, -z]]) if np.isfinite(z) else np.empty((0, 4))
+    return flat, None
 
 
 def vertex_colours(vertices: np.ndarray, rgb: np.ndarray, grid: Grid) -> np.ndarray:

@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
-from sklearn.cluster import AffinityPropagation
-from sklearn.exceptions import ConvergenceWarning
 
+from modeling.shared.affinity_propagation import sparse_affinity_propagation
 from modeling.shared.planes import point_plane_distances
 
 from .options import SuperpixelOptions
@@ -18,12 +15,12 @@ def hypothesis_similarity(
     points: list[np.ndarray],
     owner: np.ndarray,
     adjacency: dict[int, list[int]],
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sparse similarity of plane hypotheses for affinity propagation.
 
     s(i, k) = - mean distance of the points of hypothesis i's super-pixel to plane k, for
-    k on the same or an adjacent super-pixel; every other pair gets a similarity far below
-    any computed one, so it never chooses an exemplar (the paper computes it sparsely).
+    k on the same or an adjacent super-pixel only, as the paper computes it: a building of
+    K hypotheses has O(K) pairs, not K^2.
 
     Parameters
     ----------
@@ -34,30 +31,40 @@ def hypothesis_similarity(
     owner : (K,) int
         Super-pixel of each hypothesis.
     adjacency : {super-pixel: adjacent super-pixels}
+
+    Returns
+    -------
+    rows, cols : (E,) int
+        Pairs (i, k) of hypotheses, i != k.
+    similarity : (E,) float
+        s(i, k), minus metres.
     """
-    K = len(planes)
-    S = np.full((K, K), np.nan)
     index = {int(o): k for k, o in enumerate(owner)}
-    near = np.eye(K, dtype=bool)
+    rows, cols, sims = [], [], []
     for a, i in index.items():
-        for b in adjacency.get(a, ()):
-            if b in index:
-                near[i, index[b]] = True
-    for i in range(K):
-        d = point_plane_distances(planes, points[i])  # (N_i, K)
-        S[i, near[i]] = -d[:, near[i]].mean(axis=0)
-    floor = np.nanmin(S) - 100.0 if np.isfinite(S).any() else -100.0
-    return np.where(np.isnan(S), floor, S)
+        near = np.array([index[b] for b in adjacency.get(a, ()) if b in index], np.int64)
+        if len(near):
+            rows.append(np.full(len(near), i))
+            cols.append(near)
+            sims.append(-point_plane_distances(planes[near], points[i]).mean(axis=0))
+    if not rows:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    return np.concatenate(rows), np.concatenate(cols), np.concatenate(sims)
 
 
 def cluster_prototypes(
-    similarity: np.ndarray, preference: float, seed: int = 0
+    similarity: tuple[np.ndarray, np.ndarray, np.ndarray],
+    n: int,
+    preference: float,
+    seed: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Affinity propagation (scikit-learn) on a precomputed similarity.
+    """Affinity propagation on the sparse similarity of :func:`hypothesis_similarity`.
 
     Parameters
     ----------
-    similarity : (K, K) float
+    similarity : (rows, cols, s)
+    n : int
+        Number of hypotheses.
     preference : float
         Self-similarity: how readily a hypothesis becomes its own exemplar. With
         similarities of minus a mean distance in metres, -0.25 lets a hypothesis stand
@@ -66,42 +73,34 @@ def cluster_prototypes(
     Returns
     -------
     exemplars : (P,) int indices of the chosen hypotheses
-    assignment : (K,) int index into ``exemplars`` of each hypothesis
+    assignment : (K,) int index into ``exemplars`` of each hypothesis (-1: none adjacent)
     """
-    K = len(similarity)
-    if K == 1:
+    if n == 1:
         return np.array([0]), np.array([0])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConvergenceWarning)
-        warnings.simplefilter("ignore", UserWarning)  # "equal similarities": one prototype
-        ap = AffinityPropagation(
-            affinity="precomputed",
-            preference=preference,
-            damping=0.7,
-            max_iter=400,
-            random_state=seed,
-        ).fit(similarity)
-    exemplars = np.asarray(ap.cluster_centers_indices_, np.int64)
-    if len(exemplars) == 0:  # not converged: every hypothesis its own prototype
-        return np.arange(K), np.arange(K)
-    return exemplars, np.asarray(ap.labels_, np.int64)
+    exemplars, assignment = sparse_affinity_propagation(
+        *similarity, n, preference, damping=0.7, max_iter=400, seed=seed
+    )
+    if len(exemplars) == 0:  # no exemplar at all: every hypothesis its own prototype
+        return np.arange(n), np.arange(n)
+    return exemplars, assignment
 
 
 def roof_prototypes(
     hypotheses: dict[int, tuple[np.ndarray, np.ndarray]],
     adjacency: dict[int, list[int]],
     options: SuperpixelOptions,
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """Cluster the hypotheses (from :func:`plane_hypotheses`) into prototypes by affinity
     propagation (section 5.2).
 
     Returns
     -------
-    (P, 4) prototype planes.
+    planes : (P, 4) prototype planes
+    anchors : (P,) int, the super-pixel of each prototype's exemplar hypothesis
     """
     owners = np.array(list(hypotheses))
     planes = np.array([hypotheses[i][0] for i in owners])
     support = [hypotheses[i][1] for i in owners]
     S = hypothesis_similarity(planes, support, owners, adjacency)
-    exemplars, _ = cluster_prototypes(S, -options.prototype_tolerance_m, options.seed)
-    return planes[exemplars]
+    exemplars, _ = cluster_prototypes(S, len(owners), -options.prototype_tolerance_m, options.seed)
+    return planes[exemplars], owners[exemplars]

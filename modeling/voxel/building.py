@@ -134,7 +134,7 @@ def building_proxy(
         Over-estimated height above ``base_z``, metres.
     base_z : float
         Ground height under the building, metres.
-    occluders : RaycastingScene, optional
+    occluders : workbench.raycast.RayScene, optional
         Initial proxies of the neighbouring buildings.
     fused_ndsm : (ndsm, grid), optional
         A fusion run's nDSM (H, W) metres and its grid: where it says ground, a column is
@@ -350,7 +350,7 @@ def texture_building(
 
     Parameters
     ----------
-    occluders : RaycastingScene, optional
+    occluders : workbench.raycast.RayScene, optional
         All proxies of the scene, for visibility.
     """
     t0 = time.perf_counter()

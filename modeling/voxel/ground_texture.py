@@ -95,7 +95,7 @@ def ground_cut(
         Texel grid of the ground, metres.
     z : (H, W) float
         Ground height at the texel centres, metres.
-    occluders : RaycastingScene
+    occluders : workbench.raycast.RayScene
         All building proxies: the masks of the paper.
     overlap_m : float
         Band width of the stitching cuts, metres.

@@ -76,7 +76,7 @@ def _footprints(
 ) -> tuple[list[Footprint], str]:
     path = path or scene.footprints
     if path is not None:
-        return read_footprints(path), str(path)
+        return read_footprints(path, crs=scene.crs, extent=scene.bounds), str(path)
     if fusion is None:
         raise InputError(
             scene.scene_json, "footprints", "no footprints: pass --footprints or --fusion"

@@ -224,7 +224,7 @@ def voxel_variance(
         Voxel size, metres.
     cameras : list of Camera
         The scene's cameras; ``images`` serves view k of ``cameras[k]``.
-    occluders : RaycastingScene, optional
+    occluders : workbench.raycast.RayScene, optional
         The initial proxies of the neighbouring buildings: a sample whose line of sight
         crosses them is dropped (the paper's occlusion masks).
     """

@@ -223,7 +223,7 @@ def view_samples(
     Parameters
     ----------
     positions, normals : (V, 3)
-    occluders : RaycastingScene, optional
+    occluders : workbench.raycast.RayScene, optional
         Every proxy of the scene.
     """
     views = list(range(len(cameras))) if views is None else list(views)

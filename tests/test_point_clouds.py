@@ -1,0 +1,191 @@
+"""LiDAR as surveys deliver it: tiles in a projected CRS far from its origin, scan lines,
+voids; and the super-pixel path on a terraced block from those tiles."""
+
+import json
+
+import laspy
+import numpy as np
+import pytest
+from pyproj import CRS
+
+from data_samples.terrace import scan_lines, write_terrace
+from fusion.point_clouds import read_clouds
+from fusion.points import default_gsd
+from tests.conftest import SHARED_DATA, run_cli
+from workbench.errors import InputError
+from workbench.raster import read_raster
+
+ORIGIN = (500000.0, 5700000.0)  # UTM 31N, as a Dutch or Belgian survey would be
+
+
+@pytest.fixture(scope="module")
+def terrace(tmp_path_factory):
+    out = tmp_path_factory.mktemp("terrace")
+    write_terrace(out, seed=0, origin=ORIGIN, crs="EPSG:32631", tiles=2)
+    return out
+
+
+def _write_las(path, xyz, crs=None, cls=None):
+    header = laspy.LasHeader(point_format=1, version="1.4")
+    header.offsets = np.floor(xyz.min(axis=0)) if len(xyz) else [0.0, 0.0, 0.0]
+    header.scales = [0.001] * 3
+    if crs is not None:
+        header.add_crs(CRS.from_user_input(crs))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz.T
+    if cls is not None:
+        las.classification = cls
+    las.write(path)
+
+
+def test_tiles_merge_into_the_cloud_they_were_cut_from(terrace, tmp_path):
+    tiles = sorted((terrace / "tiles").glob("*.laz"))
+    merged = read_clouds(tiles)
+    assert merged.crs.to_epsg() == 32631  # laspy's parser read the header's WKT
+    parts = [laspy.read(t) for t in tiles]
+    assert len(merged.xyz) == sum(len(p.points) for p in parts)
+    np.testing.assert_array_equal(
+        merged.classification, np.concatenate([p.classification for p in parts])
+    )
+    assert merged.xyz[:, 0].min() > ORIGIN[0] - 20  # real coordinates, kept in float64
+    # a folder is its tiles, and fusing them equals fusing one file holding them all
+    whole = np.concatenate([np.column_stack([p.x, p.y, p.z]) for p in parts])
+    _write_las(tmp_path / "whole.laz", whole, "EPSG:32631",
+               np.concatenate([p.classification for p in parts]))  # fmt: skip
+    for name, given in (("tiles", [terrace / "tiles"]), ("whole", [tmp_path / "whole.laz"])):
+        proc = run_cli("fusion", "--points", *given, "-o", tmp_path / name, "--gsd", "0.5")
+        assert proc.returncode == 0, proc.stderr
+    a, grid_a, crs = read_raster(tmp_path / "tiles" / "dsm.tif")
+    b, grid_b, _ = read_raster(tmp_path / "whole" / "dsm.tif")
+    assert grid_a == grid_b and crs.to_epsg() == 32631
+    np.testing.assert_allclose(a, b, atol=1e-6, equal_nan=True)
+    record = json.loads((tmp_path / "tiles" / "fusion.json").read_text())
+    assert [p.rsplit("/", 1)[1] for p in record["inputs"]["points"]] == [t.name for t in tiles]
+
+
+def test_tiles_of_different_crs_are_refused(tmp_path):
+    xyz = np.random.default_rng(0).uniform(0, 50, (300, 3)) + [ORIGIN[0], ORIGIN[1], 0]
+    _write_las(tmp_path / "a.laz", xyz, "EPSG:32631")
+    _write_las(tmp_path / "b.laz", xyz, "EPSG:25831")
+    proc = run_cli(
+        "fusion", "--points", tmp_path / "a.laz", tmp_path / "b.laz", "-o", tmp_path / "o"
+    )
+    assert proc.returncode == 2 and not (tmp_path / "o").exists()
+    line = proc.stderr.strip()
+    assert len(line.splitlines()) == 1
+    assert "b.laz" in line and "EPSG:25831" in line and "EPSG:32631" in line and "a.laz" in line
+
+
+def test_empty_tiles_and_empty_folders_are_one_line_errors(tmp_path):
+    _write_las(tmp_path / "empty.laz", np.zeros((0, 3)), "EPSG:32631")
+    (tmp_path / "nothing").mkdir()
+    for given, words in ((tmp_path / "empty.laz", "no points"),
+                         (tmp_path / "nothing", "no .las, .laz or .ply file")):  # fmt: skip
+        proc = run_cli("fusion", "--points", given, "-o", tmp_path / "o")
+        assert proc.returncode == 2 and words in proc.stderr, proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1 and str(given) in proc.stderr
+    with pytest.raises(InputError, match="empty.laz"):
+        read_clouds([tmp_path / "empty.laz"])
+
+
+def test_default_cell_holds_one_return_on_average_whatever_the_voids():
+    rng = np.random.default_rng(0)
+    xy = scan_lines((0.0, 0.0, 100.0, 100.0), rng, line_spacing=0.45, point_spacing=0.18)
+    xyz = np.column_stack([xy, np.zeros(len(xy))])
+    density = 1 / (0.45 * 0.18)  # 12.3 returns per m2
+    assert default_gsd(xyz) == pytest.approx(np.sqrt(1 / density), rel=0.03)  # 0.28 m
+    # a lake over a third of the tile (no returns) does not thin the density
+    dry = xyz[xyz[:, 0] > 33.0]
+    dry_with_corner = np.vstack([dry, [[0.0, 0.0, 0.0]]])  # the bounding box is unchanged
+    assert default_gsd(dry_with_corner) == pytest.approx(np.sqrt(1 / density), rel=0.05)
+
+
+def test_scan_line_stripes_are_filled_and_voids_stay_empty(terrace, tmp_path):
+    truth_dsm, truth_grid, _ = read_raster(terrace / "truth" / "dsm.tif")
+    # a pond of 6 m radius with no returns in the middle of the street
+    tiles = sorted((terrace / "tiles").glob("*.laz"))
+    las = [laspy.read(t) for t in tiles]
+    xyz = np.concatenate([np.column_stack([p.x, p.y, p.z]) for p in las])
+    cls = np.concatenate([p.classification for p in las])
+    pond = np.hypot(xyz[:, 0] - (ORIGIN[0] + 40), xyz[:, 1] - (ORIGIN[1] - 19)) < 6.0
+    _write_las(tmp_path / "pond.laz", xyz[~pond], "EPSG:32631", cls[~pond])
+    # at the nearest-return spacing, a third of the cells hold no return
+    proc = run_cli(
+        "fusion", "--points", tmp_path / "pond.laz", "-o", tmp_path / "f", "--gsd", "0.27"
+    )
+    assert proc.returncode == 0, proc.stderr
+    dsm, grid, _ = read_raster(tmp_path / "f" / "dsm.tif")
+    count = read_raster(tmp_path / "f" / "count.tif")[0][0]
+    assert (count == 0).mean() < 0.02 and (count == -1).mean() > 0.2  # filled, and marked
+    X, Y = grid.cell_centers()
+    in_pond = np.hypot(X - (ORIGIN[0] + 40), Y - (ORIGIN[1] - 19)) < 6.0 - 2 * 0.27 - 0.3
+    assert np.isnan(dsm[0][in_pond]).all() and (count[in_pond] == 0).all()
+    # filled cells sit on the true surface as the cells with returns do (off the walls)
+    r, c = truth_grid.cell_index(X, Y, clip=True)
+    err = dsm[0] - truth_dsm[0][r, c]
+    walls = np.abs(np.gradient(truth_dsm[0], axis=(0, 1))).max(axis=0)[r, c] > 0.5
+    filled, seen = (count == -1) & ~walls, (count > 0) & ~walls
+    assert np.nanmedian(np.abs(err[filled])) < 0.05
+    assert np.nanmedian(np.abs(err[filled])) < 1.5 * np.nanmedian(np.abs(err[seen]))
+
+
+def test_terraced_block_from_tiles_is_one_region_modelled_on_its_planes(terrace, tmp_path):
+    fusion, model, report = tmp_path / "f", tmp_path / "m", tmp_path / "r"
+    proc = run_cli("fusion", "--points", terrace / "tiles", "-o", fusion)  # the default cell
+    assert proc.returncode == 0, proc.stderr
+    proc = run_cli("model", "superpixel", fusion, "-o", model)
+    assert proc.returncode == 0, proc.stderr
+    record = json.loads((model / "model.json").read_text())
+    region = record["buildings"][0]
+    # the terrace is one connected region of ~30,000 cells and thousands of super-pixels
+    assert region["superpixels"] > 3000 and region["hypotheses"] > 500
+    assert region["prototypes"] < region["hypotheses"]
+    assert record["crs"] == "EPSG:32631"
+    proc = run_cli("compare", model, "--truth", terrace / "truth", "-o", report, "--names", "model")
+    assert proc.returncode == 0, proc.stderr
+    m = json.loads((report / "metrics.json").read_text())["runs"]["model"]
+    assert m["footprint_2d"]["quality"] > 0.96  # 0.981 measured
+    assert m["height"]["rmse_off_jumps_m"] < 1.0  # 0.77 m measured
+
+
+# -- unclassified returns: Autzen, where trees and the footbridge are all ASPRS 1 ----------
+
+AUTZEN = SHARED_DATA / "autzen" / "autzen_trim.las"
+# Drawn by hand on the fused ortho and nDSM of autzen_trim.las (1.9 ft cells, a 100 ft
+# grid over them), in its CRS (Oregon State Plane South, US survey feet): eight single
+# crowns as discs (centre x, y, radius), the row of cottonwoods on the river bank as a box,
+# and the footbridge's deck as a 16 ft band along its axis.
+CROWNS = [(636380, 849150, 18), (636407, 849112, 14), (636478, 849145, 20),
+          (636780, 849165, 18), (636917, 849081, 20), (636970, 849115, 18),
+          (636845, 849058, 14), (637000, 849040, 14)]  # fmt: skip
+RIVER_BANK_TREES = (636100, 849285, 636330, 849360)
+FOOTBRIDGE = ((636442, 849230), (636527, 849442))
+
+
+@pytest.mark.skipif(not AUTZEN.exists(), reason="../shared/data is absent")
+def test_unclassified_trees_are_trees_and_the_footbridge_is_not(tmp_path):
+    import shapely
+    from shapely.geometry import LineString, Point, box
+
+    proc = run_cli("fusion", "--points", AUTZEN, "-o", tmp_path / "a")
+    assert proc.returncode == 0, proc.stderr
+    record = json.loads((tmp_path / "a" / "fusion.json").read_text())
+    assert "geometry and echoes" in record["class_source"]
+    cls, grid, _ = read_raster(tmp_path / "a" / "class.tif")
+    ndsm = read_raster(tmp_path / "a" / "ndsm.tif")[0][0] * 0.3048  # metres
+    X, Y = grid.cell_centers()
+    centres = shapely.points(X, Y)
+    trees = shapely.union_all(
+        [Point(x, y).buffer(r) for x, y, r in CROWNS] + [box(*RIVER_BANK_TREES)]
+    )
+    deck = LineString(FOOTBRIDGE).buffer(8)
+    up = ndsm > 2.5
+    tree_cells = up & shapely.contains(trees, centres)
+    deck_cells = up & shapely.contains(deck, centres)
+    assert tree_cells.sum() > 1000 and deck_cells.sum() > 150
+    # the raster forest trained on the synthetic city's colours made 72 % of these tree
+    # cells building (99 % on an AHN3 tile); geometry and echoes, measured: 99.6 % tree,
+    # 0.3 % building; the deck, a plane returning single echoes, 99 % building
+    assert (cls[0][tree_cells] == 3).mean() > 0.97
+    assert (cls[0][tree_cells] == 4).mean() < 0.01
+    assert (cls[0][deck_cells] == 4).mean() > 0.9
