@@ -15,7 +15,7 @@ import numpy as np
 from rasterio.crs import CRS
 
 from workbench.errors import InputError
-from workbench.raster import parse_crs
+from workbench.raster import crs_name, parse_crs
 
 CLOUD_SUFFIXES = (".las", ".laz", ".ply")
 
@@ -138,7 +138,7 @@ def read_clouds(paths, crs: str | None = None) -> PointCloud:
     for c in clouds[1:]:
         if (c.crs is None) != (first.crs is None) or (c.crs is not None and c.crs != first.crs):
             raise InputError(
-                c.source, "crs", f"{_crs_name(c.crs)} differs from {_crs_name(first.crs)} of "
+                c.source, "crs", f"{crs_name(c.crs)} differs from {crs_name(first.crs)} of "
                 f"{first.source}; reproject the tiles to one CRS",
             )  # fmt: skip
     if len(clouds) == 1:
@@ -153,10 +153,3 @@ def read_clouds(paths, crs: str | None = None) -> PointCloud:
         **{k: merged(k) for k in fields}, crs=first.crs,
         source=f"{len(clouds)} tiles: " + ", ".join(c.source for c in clouds),
     )  # fmt: skip
-
-
-def _crs_name(crs: CRS | None) -> str:
-    if crs is None:
-        return "no CRS"
-    epsg = crs.to_epsg()
-    return f"EPSG:{epsg}" if epsg else crs.to_wkt()[:60] + "..."

@@ -1,11 +1,12 @@
-"""LiDAR point clouds (LAS/LAZ via laspy, PLY via Open3D) rasterised into the ortho products.
+"""LiDAR point clouds (read by :mod:`.point_clouds`) rasterised into the ortho products.
 
 DSM: the highest return per cell, read at the cell's centre on the triangulation of those
-returns (a return may lie half a cell from the centre it stands for); ortho: the colour
-(or intensity) of that return; classes: the LAS classification of that return, ASPRS
-codes mapped to ours; DTM: the ground class where the file has one, the progressive
-morphological filter otherwise. Lengths are in the CRS's units (US survey feet stay
-feet); the ground filter's metric parameters are converted.
+returns (a return may lie half a cell from the centre it stands for), and empty cells
+inside the coverage filled the same way; ortho: the colour (or intensity) of that return;
+classes: its LAS classification, ASPRS codes mapped to ours, or for unclassified returns
+the class their geometry and echoes give (:mod:`.point_classes`); DTM: the ground class
+where the file has one, the progressive morphological filter otherwise. Lengths are in the
+CRS's units (US survey feet stay feet); metric parameters are converted.
 """
 
 from __future__ import annotations

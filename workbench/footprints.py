@@ -21,7 +21,7 @@ from rasterio.crs import CRS
 from shapely.geometry import MultiPolygon, Polygon, mapping, shape
 
 from .errors import InputError
-from .raster import parse_crs
+from .raster import crs_name, parse_crs
 
 log = logging.getLogger(__name__)
 WGS84 = CRS.from_epsg(4326)
@@ -137,18 +137,8 @@ def _read_geojson(path) -> tuple[list[Footprint], CRS | None]:
         name = member.get("properties", {}).get("name") if isinstance(member, dict) else None
         if not isinstance(name, str):
             raise InputError(path, "crs.properties.name", "expected the name of a CRS")
-        declared = parse_crs(_ogc_urn_to_user_input(name), path=path, field="crs")
+        declared = parse_crs(name, path=path, field="crs")  # an OGC URN, EPSG code or WKT
     return out, declared
-
-
-def _ogc_urn_to_user_input(name: str) -> str:
-    """``urn:ogc:def:crs:EPSG::32631`` -> ``EPSG:32631``; CRS84 -> EPSG:4326 (x = lon)."""
-    if name.upper().endswith("CRS84"):
-        return "EPSG:4326"
-    parts = name.split(":")
-    if name.lower().startswith("urn:ogc:def:crs:") and len(parts) >= 7:
-        return f"{parts[4]}:{parts[6]}"
-    return name
 
 
 def _read_ogr(path) -> tuple[list[Footprint], CRS | None]:
@@ -196,12 +186,8 @@ def _bounds(items: list[Footprint]) -> np.ndarray:
 
 
 def _overlaps(bounds, extent) -> bool:
-    return (
-        bounds[0] < extent[2]
-        and bounds[2] > extent[0]
-        and bounds[1] < extent[3]
-        and (bounds[3] > extent[1])
-    )
+    x0, y0, x1, y1 = bounds
+    return x0 < extent[2] and x1 > extent[0] and y0 < extent[3] and y1 > extent[1]
 
 
 def _source_crs(path, items, declared, crs, extent) -> CRS | None:
@@ -243,7 +229,7 @@ def _reprojected(items: list[Footprint], source: CRS, target: CRS) -> list[Footp
 def _check_overlap(path, items, extent, crs) -> None:
     b = _bounds(items)
     if not _overlaps(b, extent):
-        where = f" (in {_crs_name(crs)})" if crs is not None else ""
+        where = f" (in {crs_name(crs)})" if crs is not None else ""
         raise InputError(
             path, None, f"the footprints' extent {_fmt(b)}{where} misses the scene's extent "
             f"{_fmt(extent)}",
@@ -252,11 +238,6 @@ def _check_overlap(path, items, extent, crs) -> None:
 
 def _fmt(b) -> str:
     return "(" + ", ".join(f"{v:.6g}" for v in b) + ")"
-
-
-def _crs_name(crs: CRS) -> str:
-    epsg = crs.to_epsg()
-    return f"EPSG:{epsg}" if epsg else (crs.to_dict().get("proj") or "the scene's CRS")
 
 
 def _check_rings(path, where: str, geom: dict) -> None:

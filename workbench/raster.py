@@ -128,6 +128,14 @@ def parse_crs(value, *, path: str | os.PathLike, field: str = "crs") -> CRS:
     return crs
 
 
+def crs_name(crs: CRS | None) -> str:
+    """A short name of a CRS for messages: ``EPSG:n``, else the start of its WKT."""
+    if crs is None:
+        return "no CRS"
+    epsg = crs.to_epsg()
+    return f"EPSG:{epsg}" if epsg else crs.to_wkt()[:60] + "..."
+
+
 def write_raster(
     path: str | os.PathLike,
     data: np.ndarray,
