@@ -63,6 +63,19 @@ def test_tiles_merge_into_the_cloud_they_were_cut_from(terrace, tmp_path):
     assert [p.rsplit("/", 1)[1] for p in record["inputs"]["points"]] == [t.name for t in tiles]
 
 
+def test_a_crs_in_an_extended_vlr_is_read(tmp_path):
+    # LAS 1.4 may carry its WKT in an EVLR, after the points, with no VLR at all
+    from laspy.vlrs.known import WktCoordinateSystemVlr
+    from laspy.vlrs.vlrlist import VLRList
+
+    las = laspy.LasData(laspy.LasHeader(point_format=6, version="1.4"))
+    las.x, las.y, las.z = np.arange(10.0) + ORIGIN[0], np.arange(10.0) + ORIGIN[1], np.zeros(10)
+    las.evlrs = VLRList([WktCoordinateSystemVlr(CRS.from_epsg(32631).to_wkt())])
+    las.write(tmp_path / "evlr.laz")
+    assert len(laspy.read(tmp_path / "evlr.laz").header.vlrs) == 0
+    assert read_clouds([tmp_path / "evlr.laz"]).crs.to_epsg() == 32631
+
+
 def test_tiles_of_different_crs_are_refused(tmp_path):
     xyz = np.random.default_rng(0).uniform(0, 50, (300, 3)) + [ORIGIN[0], ORIGIN[1], 0]
     _write_las(tmp_path / "a.laz", xyz, "EPSG:32631")
