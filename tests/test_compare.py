@@ -118,6 +118,8 @@ def test_loose_file_truth_scores_what_it_can(tiny_scene, tmp_path):
         ("names", "--names"),
         ("no_truth", "--truth"),
         ("crs", "dsm.tif: crs"),
+        ("run_class", "class.tif: class: class codes [9] not in 0-4"),
+        ("truth_class", "class.tif: truth class: class codes [6] not in 0-4"),
     ],
 )
 def test_bad_input_is_one_line_and_writes_nothing(tiny_scene, tmp_path, case, expect):
@@ -138,6 +140,21 @@ def test_bad_input_is_one_line_and_writes_nothing(tiny_scene, tmp_path, case, ex
         run.rmdir()
         truth_fusion_run(tiny_scene, run)
         rewrite_raster(run / "dsm.tif", crs="EPSG:32631")
+    elif case == "run_class":  # another tool's class scheme
+        run.rmdir()
+        truth_fusion_run(tiny_scene, run)
+        codes = read_raster(run / "class.tif")[0]
+        codes[codes == 4] = 9
+        rewrite_raster(run / "class.tif", codes)
+    elif case == "truth_class":  # ASPRS codes given as a truth (6 building)
+        run.rmdir()
+        truth_fusion_run(tiny_scene, run)
+        shutil.copy(tiny_scene / "truth" / "class.tif", tmp_path / "class.tif")
+        codes = read_raster(tmp_path / "class.tif")[0]
+        codes[codes == 4] = 6
+        rewrite_raster(tmp_path / "class.tif", codes)
+        args = [run, "--truth-dsm", tiny_scene / "truth" / "dsm.tif", "--truth-class",
+                tmp_path / "class.tif"]  # fmt: skip
     out = tmp_path / "report"
     proc = run_cli("compare", *args, "-o", out)
     assert proc.returncode == 2

@@ -15,7 +15,7 @@ import numpy as np
 from . import metrics
 from .errors import InputError
 from .meshes import concatenate_meshes, is_watertight, sample_surface, triangle_areas
-from .raster import read_raster
+from .raster import check_class_codes, read_raster
 from .raycast import raycasting_scene, unsigned_distance
 from .runs import Run
 from .truth import Truth, sample_to_grid, top_down
@@ -92,7 +92,8 @@ def _on_grid(path, truth: Truth, band: int | None = 0) -> np.ndarray:
 
 def run_layers(run: Run, truth: Truth, options: EvaluationOptions) -> RunLayers:
     """The run on the truth's grid (see :class:`RunLayers`)."""
-    cls = _on_grid(run.raster("class"), truth) if run.raster("class") else None
+    path = run.raster("class")
+    cls = check_class_codes(_on_grid(path, truth), path, "class") if path else None
     if run.kind == "fusion":
         dsm = _on_grid(run.raster("dsm"), truth).astype(np.float64)
         ortho = None

@@ -128,6 +128,22 @@ def parse_crs(value, *, path: str | os.PathLike, field: str = "crs") -> CRS:
     return crs
 
 
+CLASS_CODES = (0, 1, 2, 3, 4)  # no data, ground, grass, tree, building
+
+
+def check_class_codes(data: np.ndarray, path, field: str | None = None) -> np.ndarray:
+    """``data`` unchanged if every value is a class code 0-4, else a one-line error naming
+    ``path``, ``field`` and the first codes found outside (a class raster from another
+    tool, with its own scheme, would otherwise be scored as if it were ours)."""
+    bad = np.setdiff1d(np.unique(data), CLASS_CODES)
+    if bad.size:
+        raise InputError(
+            path, field, f"class codes {bad[:5].tolist()} not in 0-4 (0 no data, 1 ground, "
+            "2 grass, 3 tree, 4 building)",
+        )  # fmt: skip
+    return data
+
+
 def crs_name(crs: CRS | None) -> str:
     """A short name of a CRS for messages: ``EPSG:n``, else the start of its WKT."""
     if crs is None:

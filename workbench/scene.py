@@ -23,7 +23,6 @@ from .raster import parse_crs
 
 SCENE_FORMAT = "city-workbench-scene"
 SCENE_VERSION = 1
-CLASS_NAMES = {0: "nodata", 1: "ground", 2: "grass", 3: "tree", 4: "building"}
 DEPTH_SUFFIXES = (".npy", ".tif", ".tiff")
 POINT_SUFFIXES = (".las", ".laz", ".ply")
 ROTATION_TOLERANCE = 1e-5
@@ -334,7 +333,7 @@ def _check_view_files(path, where, image_path, depth_path, camera: Camera) -> No
 
 def _check_optional_files(scene: Scene, path: Path) -> None:
     from .footprints import read_footprints
-    from .raster import read_raster
+    from .raster import check_class_codes, read_raster
 
     for key in ("dsm", "dtm", "training_labels"):
         p = getattr(scene, key)
@@ -349,9 +348,7 @@ def _check_optional_files(scene: Scene, path: Path) -> None:
         if crs is not None and crs != scene.crs:
             raise InputError(path, key, f"{p.name}: CRS differs from the scene's")
         if key == "training_labels":
-            bad = np.setdiff1d(np.unique(data), list(CLASS_NAMES))
-            if bad.size:
-                raise InputError(path, key, f"{p.name}: class codes {bad[:5].tolist()} not in 0-4")
+            check_class_codes(data, p, key)
     if scene.footprints is not None:
         read_footprints(scene.footprints, crs=scene.crs, extent=scene.bounds)
 

@@ -12,7 +12,7 @@ from rasterio.features import rasterize
 from .errors import InputError
 from .footprints import read_footprints
 from .meshio import read_ply
-from .raster import Grid, read_raster
+from .raster import Grid, check_class_codes, read_raster
 from .raycast import raycasting_scene, vertical_hits
 from .scene import load_scene
 
@@ -49,6 +49,8 @@ def truth_rasters(scene_or_truth: str | Path, grid: Grid) -> dict[str, np.ndarra
         path = folder / f"{name}.tif"
         if path.exists():
             data, src, _ = read_raster(path, as_float=name in ("dsm", "dtm"))
+            if name == "class":
+                check_class_codes(data, path, "truth class")
             data = sample_to_grid(data, src, grid)
             out[name] = np.moveaxis(data, 0, -1) if name == "ortho" else data[0]
     return out
@@ -151,6 +153,8 @@ def load_file_truth(
         if path is not None:
             heights = name in ("dsm", "dtm")
             data, src, src_crs = read_raster(path, field=f"truth {name}", as_float=heights)
+            if name == "class":
+                check_class_codes(data, path, "truth class")
             rasters[name] = (data, src, src_crs, path)
     for name in ("dsm", "class"):
         if name in rasters:
