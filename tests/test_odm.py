@@ -11,7 +11,7 @@ from rasterio.crs import CRS
 
 from data_samples.odm_project import write_odm_project
 from tests.conftest import run_cli
-from workbench.odm import import_odm, topocentric_to_crs
+from workbench.odm import import_odm, opensfm_camera, topocentric_to_crs
 from workbench.raster import Grid, read_raster, write_raster
 from workbench.scene import load_scene
 
@@ -33,6 +33,29 @@ def test_the_tiny_city_round_trips_through_an_odm_project(tiny_scene, tmp_path):
         np.testing.assert_allclose(b[k].K, cam.K, atol=1e-9)
         np.testing.assert_allclose(b[k].R, cam.R, atol=1e-8)
         np.testing.assert_allclose(b[k].center, cam.center, atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "params, K, dist",
+    [
+        ({"projection_type": "perspective", "focal": 0.8, "k1": -0.1, "k2": 0.01},
+         [[640, 0, 399.5], [0, 640, 299.5]], [-0.1, 0.01, 0, 0, 0]),
+        ({"projection_type": "simple_radial", "focal_x": 0.8, "focal_y": 0.81, "c_x": 0.01,
+          "c_y": -0.02, "k1": -0.1}, [[640, 0, 407.5], [0, 648, 283.5]], [-0.1, 0, 0, 0, 0]),
+        ({"projection_type": "radial", "focal_x": 0.8, "focal_y": 0.8, "c_x": 0.0,
+          "c_y": 0.0, "k1": -0.1, "k2": 0.02}, [[640, 0, 399.5], [0, 640, 299.5]],
+         [-0.1, 0.02, 0, 0, 0]),
+        ({"projection_type": "brown", "focal_x": 0.8, "focal_y": 0.8, "c_x": 0.0, "c_y": 0.0,
+          "k1": -0.1, "k2": 0.02, "p1": 0.001, "p2": -0.002, "k3": 0.003},
+         [[640, 0, 399.5], [0, 640, 299.5]], [-0.1, 0.02, 0.001, -0.002, 0.003]),
+    ],
+)  # fmt: skip
+def test_opensfm_cameras_in_opencv_pixels(params, K, dist):
+    # normalised by the larger side (800 px), centred on the image: (w - 1) / 2, (h - 1) / 2
+    got_K, got_dist, fisheye = opensfm_camera(params, 800, 600, "cameras['c']", "r.json")
+    np.testing.assert_allclose(got_K[:2], K)
+    np.testing.assert_allclose(got_dist, dist)
+    assert not fisheye
 
 
 def _one_shot_project(tmp_path, camera, crs="EPSG:32631", image=None):

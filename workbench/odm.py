@@ -104,15 +104,15 @@ def opensfm_camera(params: dict, width: int, height: int, where: str, path: Path
         )  # fmt: skip
     s = max(width, height)
     try:
-        if kind == "brown":
+        if "focal_x" in params:  # brown, simple_radial, radial: focal and centre per axis
             fx, fy = float(params["focal_x"]) * s, float(params["focal_y"]) * s
-            cx = width / 2 - 0.5 + float(params.get("c_x", 0.0)) * s
-            cy = height / 2 - 0.5 + float(params.get("c_y", 0.0)) * s
-            dist = [float(params.get(k, 0.0)) for k in ("k1", "k2", "p1", "p2", "k3")]
-        else:
+            cx = (width - 1) / 2 + float(params.get("c_x", 0.0)) * s
+            cy = (height - 1) / 2 + float(params.get("c_y", 0.0)) * s
+        else:  # perspective, fisheye: one focal, the image centre
             fx = fy = float(params["focal"]) * s
-            cx, cy = width / 2 - 0.5, height / 2 - 0.5
-            dist = [float(params.get("k1", 0.0)), float(params.get("k2", 0.0)), 0, 0, 0]
+            cx, cy = (width - 1) / 2, (height - 1) / 2
+        # OpenSfM's radial and Brown terms are OpenCV's; a model without one has it 0
+        dist = [float(params.get(k, 0.0)) for k in ("k1", "k2", "p1", "p2", "k3")]
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(path, where, f"camera parameter missing or not a number ({exc})") from None
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
