@@ -45,48 +45,42 @@ class ShapeFeatures:
     verticality: np.ndarray
 
 
-def neighbour_tree(xyz: np.ndarray):
-    """scipy's k-d tree of ``xyz`` (N, 3), in a local origin, and those local points."""
+def nearest_returns(xyz: np.ndarray, at: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` nearest returns of each return ``at`` (M,) among ``xyz`` (N, 3), itself
+    first (scipy's k-d tree): (M, k) indices into ``xyz``, and ``xyz`` in a local origin."""
     from scipy.spatial import cKDTree
 
     local = xyz - xyz.min(axis=0)
-    return cKDTree(local), local
+    _, nbrs = cKDTree(local).query(local[at], k=min(k, len(local)), workers=-1)
+    return nbrs.reshape(len(at), -1), local
 
 
 def shape_features(
-    xyz: np.ndarray, at: np.ndarray, scales=SCALES, chunk: int = 200_000, tree=None
+    points: np.ndarray, nbrs: np.ndarray, scales=SCALES, chunk: int = 200_000
 ) -> ShapeFeatures:
-    """Covariance features of the returns ``at`` (M,) among all ``xyz`` (N, 3) at each
-    number of neighbours in ``scales``; ``tree`` from :func:`neighbour_tree` if built."""
-    tree, local = tree or neighbour_tree(xyz)
-    k_max = min(max(scales), len(local))
-    out = {name: np.zeros((len(at), len(scales))) for name in ShapeFeatures.__annotations__}
-    for s in range(0, len(at), chunk):
-        rows = at[s : s + chunk]
-        _, nbrs = tree.query(local[rows], k=k_max, workers=-1)
-        nbrs = nbrs.reshape(len(rows), -1)
+    """Covariance features of each row of neighbours ``nbrs`` (M, K) of ``points`` (N, 3)
+    at each number of (nearest) neighbours in ``scales``, K at most."""
+    out = {name: np.zeros((len(nbrs), len(scales))) for name in ShapeFeatures.__annotations__}
+    for s in range(0, len(nbrs), chunk):
+        rows = slice(s, s + chunk)
         for j, k in enumerate(scales):
-            pts = local[nbrs[:, : min(k, k_max)]]  # (m, k, 3)
+            pts = points[nbrs[rows, :k]]  # (m, k, 3)
             centred = pts - pts.mean(axis=1, keepdims=True)
             cov = np.einsum("mki,mkj->mij", centred, centred) / pts.shape[1]
             values, vectors = np.linalg.eigh(cov)  # ascending
             l3, l2, l1 = (np.maximum(values[:, i], 0.0) for i in range(3))
             l1 = np.where(l1 > 0, l1, 1.0)
-            out["linearity"][s : s + len(rows), j] = (l1 - l2) / l1
-            out["planarity"][s : s + len(rows), j] = (l2 - l3) / l1
-            out["scattering"][s : s + len(rows), j] = l3 / l1
-            out["verticality"][s : s + len(rows), j] = 1.0 - np.abs(vectors[:, 2, 0])
+            out["linearity"][rows, j] = (l1 - l2) / l1
+            out["planarity"][rows, j] = (l2 - l3) / l1
+            out["scattering"][rows, j] = l3 / l1
+            out["verticality"][rows, j] = 1.0 - np.abs(vectors[:, 2, 0])
     return ShapeFeatures(**out)
 
 
-def multi_echo_share(
-    xyz: np.ndarray, number_of_returns: np.ndarray, at: np.ndarray, k: int = 25, tree=None
-) -> np.ndarray:
-    """(M,) share of the ``k`` nearest returns of each return ``at`` that came from a
-    pulse split into several echoes."""
-    tree, local = tree or neighbour_tree(xyz)
-    _, nbrs = tree.query(local[at], k=min(k, len(local)), workers=-1)
-    return (number_of_returns[nbrs.reshape(len(at), -1)] > 1).mean(axis=1)
+def multi_echo_share(number_of_returns: np.ndarray, nbrs: np.ndarray, k: int = 25) -> np.ndarray:
+    """(M,) share of the ``k`` nearest returns (rows of ``nbrs``, nearest first) that came
+    from a pulse split into several echoes."""
+    return (number_of_returns[nbrs[:, :k]] > 1).mean(axis=1)
 
 
 LOW_M = 2.0  # returns lower than this above the ground are ground or grass
@@ -132,11 +126,10 @@ def classify_returns(
     up = np.flatnonzero(hag >= low)
     if len(up) == 0:
         return codes
-    tree = neighbour_tree(xyz)
-    shape = shape_features(xyz, todo[up], tree=tree)
-    surface = np.median(shape.scattering, axis=1) < SURFACE_SCATTERING
+    # one neighbour query serves every scale and the echoes
+    nbrs, local = nearest_returns(xyz, todo[up], max(SCALES))
+    surface = np.median(shape_features(local, nbrs).scattering, axis=1) < SURFACE_SCATTERING
     if number_of_returns is not None:
-        echo = multi_echo_share(xyz, number_of_returns, todo[up], tree=tree)
-        surface &= echo < MULTI_ECHO_SHARE
+        surface &= multi_echo_share(number_of_returns, nbrs) < MULTI_ECHO_SHARE
     codes[up] = np.where(surface, ASPRS_BUILDING, ASPRS_HIGH_VEGETATION)
     return codes

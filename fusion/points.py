@@ -163,7 +163,9 @@ def fuse_points(paths, opts: FusionOptions | None = None, *, crs: str | None = N
         dtm, dtm_source = cloud_dtm(xyz, cells, cls, dsm, grid, unit)
         ndsm = (dsm - dtm).astype(np.float32)
     with timer.stage("classes"):
-        prob, class_source = cloud_classes(cloud, keep, cls, at, returns, xyz, dtm, grid, unit)
+        prob, class_source = cloud_classes(
+            cloud, keep, cls, at, returns, xyz, cells, dtm, grid, unit
+        )
     count16 = np.minimum(count, np.iinfo(np.int16).max).astype(np.int16)
     count16[filled] = FILLED
     inputs = {
@@ -286,7 +288,7 @@ def cloud_dtm(xyz, cells, cls, dsm: np.ndarray, grid: Grid, unit: float):
     return dtm, dtm_source
 
 
-def cloud_classes(cloud, keep, cls, at, returns, xyz, dtm, grid: Grid, unit: float):
+def cloud_classes(cloud, keep, cls, at, returns, xyz, cells, dtm, grid: Grid, unit: float):
     """(4, H, W) class probabilities, one-hot: at cells ``at``, the class of their returns
     ``returns``: the ASPRS code the cloud gives, or for the returns it leaves unclassified
     (codes 0 and 1, or a cloud with no classes) the class their geometry and echoes give
@@ -300,8 +302,7 @@ def cloud_classes(cloud, keep, cls, at, returns, xyz, dtm, grid: Grid, unit: flo
     needed[returns] = True
     todo = np.flatnonzero(needed & unclassified)
     if len(todo):
-        r, c = grid.cell_index(xyz[:, 0], xyz[:, 1], clip=True)
-        hag = xyz[:, 2] - dtm[r, c]
+        hag = xyz[:, 2] - dtm.ravel()[cells]  # ``cells``: each return's flat cell index
         echoes = cloud.number_of_returns[keep] if cloud.number_of_returns is not None else None
         rgb = cloud.rgb[keep] if cloud.rgb is not None else None
         codes[todo] = classify_returns(
