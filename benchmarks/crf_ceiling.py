@@ -35,7 +35,7 @@ from modeling.superpixel.class_crf import OMEGA_CANDIDATES, refine_classes
 from workbench import metrics
 from workbench.fusion_run import read_fusion_run
 from workbench.raster import read_raster
-from workbench.truth import truth_rasters
+from workbench.truth import training_cells, truth_rasters
 
 CLASS_NAMES = ("ground", "grass", "tree", "building")
 
@@ -119,11 +119,12 @@ def crf_ceiling(run_dir: Path, scene: Path) -> dict:
         labels, np.moveaxis(rasters["ortho"], 0, -1), prob, rasters["dsm"][0].astype(np.float64)
     )
     truth = truth_rasters(scene, grid)["class"]
+    strokes = training_cells(scene, grid)  # not scored, as in the run's own Table 1
     no_data = ~(np.nan_to_num(prob).sum(axis=0) > 0)
 
     def accuracy(classes: np.ndarray) -> float:
         raster = np.where(no_data, 0, classes).astype(np.uint8)
-        return metrics.classification(raster, truth)["overall_accuracy"]
+        return metrics.classification(raster, truth, exclude=strokes)["overall_accuracy"]
 
     crf = refine_classes(graph, omega)
     majority = superpixel_majority(labels, np.where(no_data, 0, truth), graph.n)

@@ -38,6 +38,9 @@ class BuildingSpec:
     rotated: bool = False
 
 
+TREE_HUES = 9  # colours of crowns: data_samples.world.TREE_PALETTE
+
+
 @dataclass
 class TreeSpec:
     x: float
@@ -307,7 +310,7 @@ def _tree(x, y, rng, small=False) -> TreeSpec:
         float(r),
         float(r * rng.uniform(0.75, 1.25)),
         float(rng.uniform(1.5, 4.5)),
-        int(rng.integers(0, 6)),
+        int(rng.integers(0, TREE_HUES)),
     )
 
 

@@ -16,7 +16,7 @@ import open3d as o3d
 from workbench.raycast import RayScene, raycasting_scene
 
 from .envelope import building_mesh
-from .layout import GROUND_CLASS, GROUND_MATERIALS, RURAL, Layout
+from .layout import GROUND_CLASS, GROUND_MATERIALS, RURAL, TREE_HUES, Layout
 from .roofs import wing_roof_faces
 from .terrain import Terrain, graded_axis
 
@@ -34,6 +34,10 @@ ROOF_PALETTE = np.array(
         [0.45, 0.44, 0.40],  # light gravel
         [0.14, 0.22, 0.18],  # green metal
         [0.25, 0.16, 0.10],  # brown tiles
+        # roofs a tree's colour would pass for: only their shape tells them apart
+        [0.11, 0.17, 0.06],  # moss-green
+        [0.20, 0.36, 0.30],  # copper-green (verdigris)
+        [0.16, 0.22, 0.07],  # sedum
     ]
 )
 FACADE_PALETTE = np.array(
@@ -54,8 +58,13 @@ TREE_PALETTE = np.array(
         [0.05, 0.12, 0.05],
         [0.16, 0.20, 0.06],
         [0.22, 0.14, 0.05],
+        # crowns a roof's colour would pass for
+        [0.30, 0.08, 0.04],  # autumn red
+        [0.28, 0.16, 0.06],  # autumn brown
+        [0.19, 0.18, 0.17],  # bare grey crown
     ]
 )
+assert len(TREE_PALETTE) == TREE_HUES
 
 
 @dataclass

@@ -54,6 +54,11 @@ class FusionOptions:
         parse=str,
         metavar="FILE",
     )
+    geometry_cues: bool = option(
+        True, "give the per-view forest the fused surface's planarity and the spread of the "
+        "heights the views see in each cell, beside colour and elevation (off: the "
+        "paper's features)",
+    )  # fmt: skip
     raster_prior: bool = option(
         False, "multiply the views' class probabilities by those of a forest on the fused "
         "rasters (nDSM, slope, roughness, colour), trained on the synthetic city; not in the "

@@ -19,7 +19,7 @@ from workbench.errors import InputError
 
 from .classifier import load_classifier, predict_proba
 
-FEATURES = "raster_ndsm_slope_rough_curv_bright_green_v2"
+FEATURES = "raster_ndsm_slope_rough_curv_bright_green_v3"
 N_FEATURES = 6
 
 

@@ -19,7 +19,7 @@ from .classifier import save_classifier
 from .options import FusionOptions
 from .outputs import write_fusion
 from .raster_forest import classify_rasters, synthetic_raster_forest
-from .scene_fusion import FEATURES, fuse_views
+from .scene_fusion import feature_set, fuse_views
 
 
 def run_fusion(
@@ -88,7 +88,7 @@ def run_fusion(
         write_fusion(tmp, result, crs, record)
         if save_classifier_to is not None and result.forest is not None:
             save_classifier(
-                save_classifier_to, result.forest, features=FEATURES,
+                save_classifier_to, result.forest, features=feature_set(options),
                 meta={"trained_on": record["inputs"], "seed": options.seed},
             )  # fmt: skip
     return record

@@ -65,6 +65,7 @@ from .classifier import (
 )
 from .crowns import BENEATH_TOP_M, CROWN_QUANTILE, crown_sightings, crown_tops
 from .dsm_depth import DsmSurface
+from .geometry_cues import cue_columns, geometric_cues
 from .ground import dtm_from_dsm
 from .interpolate import push_pull_fill, small_holes
 from .observations import close_neighbours, lift_depth, observe
@@ -74,7 +75,15 @@ from .sigma_points import MEAN_ELEVATION, N_FEATURES, feature_cues, sigma_points
 
 log = logging.getLogger(__name__)
 
-FEATURES = "sigma_points_lab_grad_elev_11x11_v1"
+FEATURES = "sigma_points_lab_grad_elev_11x11_geometry_v2"
+PAPER_FEATURES = "sigma_points_lab_grad_elev_11x11_v1"  # --no-geometry-cues
+
+
+def feature_set(opts: FusionOptions) -> str:
+    """The name of the per-view features the options give (a saved forest records it)."""
+    return FEATURES if opts.geometry_cues else PAPER_FEATURES
+
+
 HOLE_CELLS = 9  # holes up to this many cells are interpolated (and flagged -1 in count)
 FILLED = -1
 ELEVATION_MEDIAN = 5  # pixels, the median filter of the per-view elevation cue
@@ -254,22 +263,27 @@ def elevation_image(obs_pixels, xyz, shape, dtm: np.ndarray, grid: Grid) -> np.n
 
 
 def view_features(
-    view: View, rgb, depth, dtm, grid, patch, surface=None
+    view: View, rgb, depth, dtm, grid, patch, surface=None, cues=None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sigma Points of a view (H*W, 78) and its lifted pixels and points.
+    """Sigma Points of a view (H*W, 78), with the geometric cues of each pixel's cell
+    after them when ``cues`` (G, H, W) are given (:mod:`fusion.geometry_cues`), and its
+    lifted pixels and points.
 
     Pixels without a matched depth take it from the fused ``surface`` (a
-    :class:`~fusion.dsm_depth.DsmSurface`) for their elevation cue: the interpolation
-    of their neighbours would lift a shadow beside a tower to the tower's height.
+    :class:`~fusion.dsm_depth.DsmSurface`) for their elevation cue and their cell: the
+    interpolation of their neighbours would lift a shadow beside a tower to the tower's
+    height.
     """
     pixels, xyz = lift_depth(view.camera, depth)
+    all_pixels, all_xyz = pixels, xyz
     if surface is not None and len(pixels) < depth.size:
         filled = np.where(np.isfinite(depth), depth, surface.depth_map(view.camera))
         all_pixels, all_xyz = lift_depth(view.camera, filled)
-        elev = elevation_image(all_pixels, all_xyz, depth.shape, dtm, grid)
-    else:
-        elev = elevation_image(pixels, xyz, depth.shape, dtm, grid)
+    elev = elevation_image(all_pixels, all_xyz, depth.shape, dtm, grid)
     feats = sigma_points(feature_cues(rgb, elev), patch).reshape(-1, N_FEATURES)
+    if cues is not None:
+        geometry = cue_columns(cues, all_pixels, all_xyz, depth.size, grid)
+        feats = np.concatenate([feats, geometry], axis=1)
     return feats, pixels, xyz
 
 
@@ -305,15 +319,18 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
             h = fused_heights(cache, grid, tiles, workers)
         with timer.stage("ground"):
             dsm, dtm, dtm_full, spikes, holes = _ground(h, grid, mode, given)
-        forest, class_source, surface = None, None, None
+        forest, class_source, surface, cues = None, None, None, None
         if opts.classifier is not None or scene.training_labels is not None:
             # the surface that gives shadowed pixels their elevation cue: where no view saw
             # the top surface (beside towers, in their shadows) the ground is the better guess
             surface = DsmSurface(np.where(np.isfinite(dsm), dsm, dtm_full), grid)
+            cues = geometric_cues(dsm, h.spread, grid.gsd) if opts.geometry_cues else None
         with timer.stage("training"):
-            forest, class_source = _forest(scene, views, dsm, dtm, grid, opts, surface, workers)
+            forest, class_source = _forest(
+                scene, views, dsm, dtm, grid, opts, surface, cues, workers
+            )
         with timer.stage("classification"):
-            n_px = classify_views(cache, views, forest, dtm, grid, opts, surface, workers)
+            n_px = classify_views(cache, views, forest, dtm, grid, opts, surface, cues, workers)
         with timer.stage("colour_and_class"):
             c = colours_and_classes(cache, views, forest, dsm, h, grid, tiles, mode, opts,
                                     workers)  # fmt: skip
@@ -417,12 +434,14 @@ class ObservationCache:
 
 @dataclass
 class FusedHeights:
-    """The heights pass: (H, W) float32 weighted median, mean and CROWN_QUANTILE of each
-    cell's trusted observations (NaN unseen), their count, and the number fused."""
+    """The heights pass: (H, W) float32 weighted median, mean, CROWN_QUANTILE and
+    interquartile range of each cell's trusted observations (NaN unseen), their count,
+    and the number fused."""
 
     dsm: np.ndarray
     dsm_mean: np.ndarray
     dsm_upper: np.ndarray
+    spread: np.ndarray
     count: np.ndarray
     n_obs: int
 
@@ -430,9 +449,9 @@ class FusedHeights:
 def fused_heights(cache: ObservationCache, grid: Grid, tiles: list, workers: int) -> FusedHeights:
     """Section 3's median height per cell (weighted toward steep rays), tile by tile;
     the upper quantile is kept for :func:`~fusion.crowns.crown_tops`, which needs the
-    classes first."""
+    classes first, and the interquartile range for the classifier's geometric cues."""
     out = FusedHeights(
-        *(np.full(grid.shape, np.nan, np.float32) for _ in range(3)),
+        *(np.full(grid.shape, np.nan, np.float32) for _ in range(4)),
         np.zeros(grid.shape, np.int32), 0,
     )  # fmt: skip
     for tile in progress(tiles, "heights (tiles)"):
@@ -446,11 +465,12 @@ def fused_heights(cache: ObservationCache, grid: Grid, tiles: list, workers: int
         )
         cells, z, weight = cells[rel], z[rel], weight[rel]
         out.n_obs += len(z)
-        # the median and the upper quantile from one sort
-        median, upper = group_weighted_quantile(
-            cells, z, weight, h * w, (0.5, CROWN_QUANTILE)
-        ).reshape(2, h, w)
+        # the median, the quartiles and the upper quantile from one sort
+        q1, median, q3, upper = group_weighted_quantile(
+            cells, z, weight, h * w, (0.25, 0.5, 0.75, CROWN_QUANTILE)
+        ).reshape(4, h, w)
         out.dsm[window], out.dsm_upper[window] = median, upper
+        out.spread[window] = q3 - q1
         out.dsm_mean[window] = group_mean(cells, z, h * w).reshape(h, w)
         out.count[window] = group_count(cells, h * w).reshape(h, w)
     return out
@@ -474,16 +494,16 @@ def _ground(h: FusedHeights, grid: Grid, mode: str, given):
     return dsm, dtm, dtm_full, spikes, holes
 
 
-def _forest(scene: Scene, views, dsm, dtm, grid: Grid, opts: FusionOptions, surface, workers):
+def _forest(scene: Scene, views, dsm, dtm, grid: Grid, opts: FusionOptions, surface, cues, workers):
     """Section 4's per-view forest, loaded or trained on the scene's strokes (None
     without either), and a sentence on where it came from."""
     if opts.classifier is not None:
-        forest, _ = load_classifier(opts.classifier, features=FEATURES)
+        forest, _ = load_classifier(opts.classifier, features=feature_set(opts))
         return forest, f"classifier file {opts.classifier}"
     if scene.training_labels is None:
         return None, None
     forest, n_train, n_dropped = _train(
-        views, scene.training_labels, dsm, dtm, grid, opts, surface, workers
+        views, scene.training_labels, dsm, dtm, grid, opts, surface, cues, workers
     )
     name = Path(scene.training_labels).name
     return forest, (
@@ -493,7 +513,7 @@ def _forest(scene: Scene, views, dsm, dtm, grid: Grid, opts: FusionOptions, surf
 
 
 def classify_views(
-    cache: ObservationCache, views, forest, dtm, grid: Grid, opts, surface, workers: int
+    cache: ObservationCache, views, forest, dtm, grid: Grid, opts, surface, cues, workers: int
 ) -> int:
     """Each view's class probabilities per pixel (uint8, 0-255), kept in the cache;
     returns the number of pixels classified."""
@@ -502,7 +522,7 @@ def classify_views(
 
     def classify(v):
         rgb, depth = v.read_image(), v.read_depth()
-        feats, pixels, _ = view_features(v, rgb, depth, dtm, grid, opts.patch, surface)
+        feats, pixels, _ = view_features(v, rgb, depth, dtm, grid, opts.patch, surface, cues)
         probs = np.zeros((depth.size, len(CLASSES)), np.uint8)
         probs[pixels] = np.round(predict_proba(forest, feats[pixels]) * 255).astype(np.uint8)
         return probs, len(pixels)
@@ -671,7 +691,10 @@ def _fill_small_rgb(ortho, seen, holes):
     return out
 
 
-def _train(views, labels_path, dsm, dtm, grid: Grid, opts: FusionOptions, surface=None, workers=1):
+def _train(
+    views, labels_path, dsm, dtm, grid: Grid, opts: FusionOptions, surface=None, cues=None,
+    workers=1,
+):  # fmt: skip
     """Train the forest on the training strokes projected into the views.
 
     A stroke labels the top surface seen from above: a view pixel inherits its label
@@ -696,7 +719,7 @@ def _train(views, labels_path, dsm, dtm, grid: Grid, opts: FusionOptions, surfac
         """The view's labelled pixels: their Sigma Points and labels, and the number of
         labelled pixels dropped by elevation."""
         rgb, depth = v.read_image(), v.read_depth()
-        feats, pixels, xyz = view_features(v, rgb, depth, dtm, grid, opts.patch, surface)
+        feats, pixels, xyz = view_features(v, rgb, depth, dtm, grid, opts.patch, surface, cues)
         r, c = label_grid.cell_index(xyz[:, 0], xyz[:, 1])
         inside = label_grid.contains(r, c)
         lab = np.zeros(len(pixels), np.uint8)

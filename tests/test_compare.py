@@ -34,7 +34,7 @@ def test_truth_against_itself_is_perfect(report):
         for key in ("completeness", "correctness", "quality"):
             assert m[group][key] == 1.0
     assert m["height"]["rmse_m"] == pytest.approx(0.0, abs=1e-6)
-    assert m["surface"]["hausdorff_max_m"] < 1e-3
+    assert m["surface"]["hausdorff_m"] < 1e-3
     assert m["buildings"]["height_error_pct_median"] == pytest.approx(0.0, abs=1e-6)
     assert m["buildings"]["roof_type_accuracy"] == 1.0
     assert m["roofs"]["plane_angle_median_deg"] == pytest.approx(0.0, abs=0.01)
@@ -46,6 +46,7 @@ def test_truth_against_itself_is_perfect(report):
 def test_raster_truth_run_is_perfect(report):
     m = report[1]["runs"]["raster"]
     assert m["classification"]["overall_accuracy"] == 1.0
+    assert m["classification"]["building_accuracy"] == 1.0
     assert m["dsm"]["rmse_m"] == 0.0 and m["dsm"]["valid_fraction"] == 1.0
     assert m["ortho"]["mae"] == 0.0
     assert m["cost"]["wall_s"] == 2.0
@@ -55,8 +56,11 @@ def test_model_one_metre_too_high(report):
     m = report[1]["runs"]["up"]
     assert m["height"]["rmse_m"] == pytest.approx(1.0, abs=1e-4)
     assert m["height"]["mae_m"] == pytest.approx(1.0, abs=1e-4)
-    assert m["surface"]["hausdorff_max_m"] == pytest.approx(1.0, abs=1e-3)
-    assert m["volume_3d"]["quality"] == 1.0  # within the default 1 m tolerance
+    assert m["surface"]["hausdorff_m"] == pytest.approx(1.0, abs=1e-3)
+    assert m["volume_3d_tolerant"]["quality"] == 1.0  # within the default 1 m tolerance
+    # at the same altitude (the paper's), every building cell has 1 m too much
+    assert m["volume_3d"]["vfp"] == pytest.approx(m["footprint_2d"]["tp"], rel=1e-3)
+    assert m["volume_3d"]["vfn"] == pytest.approx(0.0, abs=1e-3)
     assert m["footprint_2d"]["quality"] == 1.0
 
 
@@ -73,6 +77,17 @@ def test_missing_building_costs_its_area(report, tiny_scene):
     assert o["found"] == o["truth_buildings"] - 1
     rows = {r["id"]: r for r in report[1]["per_building"]["less"]}
     assert rows[1]["height_error_pct"] == -100.0 and rows[1]["covered_fraction"] == 0.0
+    big = rows[1]["area_m2"] >= 50
+    assert m["buildings"]["missed_over_50m2"] == int(big)
+    assert report[1]["runs"]["same"]["buildings"]["missed_over_50m2"] == 0
+
+
+def test_classes_are_scored_off_the_training_strokes(report, tiny_scene):
+    strokes = read_raster(tiny_scene / "training" / "labels.tif")[0][0] > 0
+    cls = read_raster(tiny_scene / "truth" / "class.tif")[0][0]
+    c = report[1]["runs"]["raster"]["classification"]
+    assert c["excluded_cells"] == np.count_nonzero(strokes & (cls > 0)) > 0
+    assert c["scored_cells"] == np.count_nonzero(~strokes & (cls > 0))
 
 
 def test_groups_without_data_are_absent(report):

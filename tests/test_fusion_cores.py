@@ -1,9 +1,11 @@
 """The fusion steps as plain functions, on hand-computed cases."""
 
 import numpy as np
+import pytest
 
 from fusion.classifier import elevation_consistent, elevation_prior
 from fusion.crowns import crown_sightings, crown_tops
+from fusion.geometry_cues import UNKNOWN, cue_columns, plane_residual, window_cells
 from fusion.ground import dtm_from_dsm
 from fusion.interpolate import push_pull_fill, small_holes
 from fusion.observations import (
@@ -433,3 +435,31 @@ def test_top_surface_is_read_at_the_cell_centres_and_keeps_walls_sharp():
     # beside the 5 m step the wall is not smeared into a ramp
     np.testing.assert_allclose(z[centres[:, 0] == 5.5], 0.0)
     assert z[centres[:, 0] == 6.5].min() >= 5.0
+
+
+def test_plane_residual_is_zero_on_a_roof_and_the_spread_of_a_crown():
+    rows, cols = np.indices((30, 30))
+    roof = 5.0 + 0.4 * cols - 0.2 * rows  # a tilted plane: no residual at any scale
+    roof[3, 3] = np.nan  # unknown cells are left out of the windows
+    r = plane_residual(roof, 5)
+    assert np.nanmax(r) < 1e-6 and np.isnan(r).sum() == 0
+    crown = np.random.default_rng(0).normal(10.0, 0.5, (30, 30))
+    r = plane_residual(crown, 9)[10:20, 10:20]
+    assert 0.4 < np.median(r) < 0.55  # about the bumps' spread (a plane takes a little)
+    few = np.full((5, 5), np.nan)
+    few[2, :4] = 1.0  # 4 known cells: no plane to judge
+    assert np.isnan(plane_residual(few, 5)).all()
+    assert window_cells(1.25, 0.25) == 5 and window_cells(2.25, 0.25) == 9
+    assert window_cells(1.25, 1.0) == 3  # never under 3 x 3
+
+
+def test_geometric_cues_reach_each_pixel_through_its_cell():
+    grid = Grid(0.0, 4.0, 1.0, 4, 4)
+    cues = np.stack([np.full((4, 4), 0.1), np.full((4, 4), 0.2), np.full((4, 4), np.nan)])
+    cues[0, 0, 3] = 0.9  # the north-east cell
+    xyz = np.array([[3.5, 3.5, 10.0], [0.5, 0.5, 0.0]])
+    out = cue_columns(cues, np.array([5, 0]), xyz, 8, grid)
+    assert out.shape == (8, 3)
+    assert out[5].tolist() == pytest.approx([0.9, 0.2, UNKNOWN])
+    assert out[0].tolist() == pytest.approx([0.1, 0.2, UNKNOWN])
+    assert (out[[1, 2, 3, 4, 6, 7]] == UNKNOWN).all()  # pixels not lifted

@@ -21,6 +21,19 @@ def test_classification_confusion_and_accuracies():
     )
     assert c["mean_class_accuracy"] == pytest.approx((0.5 + 1 + 1 + 2 / 3) / 4)
     assert c["confusion"][3] == [1, 0, 0, 2]
+    # building against the rest: only the building called ground is wrong
+    assert c["building_accuracy"] == pytest.approx(6 / 7)
+
+
+def test_classification_skips_the_training_strokes():
+    truth = np.array([[1, 1, 2, 4], [4, 4, 3, 0]])
+    pred = np.array([[1, 2, 2, 4], [4, 1, 3, 4]])
+    strokes = np.zeros(truth.shape, bool)
+    strokes[0, :2] = True  # a stroke over one right and one wrong ground cell
+    c = metrics.classification(pred, truth, exclude=strokes)
+    assert c["scored_cells"] == 5 and c["excluded_cells"] == 2
+    assert c["overall_accuracy"] == pytest.approx(4 / 5)
+    assert "ground" not in c["per_class_accuracy"]
 
 
 def test_footprint_of_an_eroded_square_has_the_known_completeness():
@@ -63,6 +76,13 @@ def test_volume_3d_by_hand():
     assert v["quality"] == pytest.approx(21.5 / 32.5)
     same = metrics.volume_3d(truth, truth)
     assert same["completeness"] == same["correctness"] == same["quality"] == 1.0
+    # the paper's: voxels at the same altitude, no tolerance
+    p = metrics.volume_3d(pred, truth)
+    assert p["tolerance_m"] == 0.0
+    assert p["vtp"] == pytest.approx(10.0 + 10.0)
+    assert p["vfp"] == pytest.approx(0.5 + 3.0 + 5.0)
+    assert p["vfn"] == pytest.approx(4.0)
+    assert p["quality"] == pytest.approx(20.0 / 32.5)
 
 
 def test_height_jumps_flag_both_sides_of_a_wall_not_a_steep_roof():
@@ -102,13 +122,19 @@ def test_building_heights_and_percent_errors():
     assert err == pytest.approx({1: 10.0, 2: -100.0})  # building 2 missing: -100 %
 
 
+def test_height_error_summary_is_of_absolute_errors():
+    s = metrics.height_error_summary([-10.0, 2.0, 3.0])
+    assert s == {"median": 3.0, "mean": 5.0, "n": 3}
+    assert metrics.height_error_summary([]) == {"n": 0}
+
+
 def test_surface_distances_symmetric_summary():
     a, b = np.zeros((2, 3)), np.zeros((3, 3))
     s = metrics.surface_distances(a, np.array([0.0, 2.0]), b, np.array([1.0, 1.0, 4.0]))
     assert s["model_to_truth"]["mean_m"] == 1.0 and s["truth_to_model"]["mean_m"] == 2.0
-    assert s["hausdorff_mean_m"] == 1.5
-    assert s["hausdorff_max_m"] == 4.0
-    assert s["hausdorff_rms_m"] == pytest.approx(np.sqrt((2.0 + 6.0) / 2))
+    assert s["mean_distance_m"] == 1.5
+    assert s["hausdorff_m"] == 4.0
+    assert s["rms_distance_m"] == pytest.approx(np.sqrt((2.0 + 6.0) / 2))
 
 
 def test_plane_angles_ignore_normal_sign():

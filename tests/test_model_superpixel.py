@@ -11,39 +11,49 @@ import rasterio
 import shapely
 from shapely.geometry import shape
 
-from data_samples.truth_run import truth_fusion_run
 from modeling.shared.roof_types import ROOF_TYPES
 from tests.conftest import SHARED_DATA, model_and_score, rewrite_raster, run_cli
 from workbench.raster import read_raster
 
 
 @pytest.fixture(scope="module")
-def modelled(tiny_scene, tmp_path_factory):
-    """The path on perfect rasters (the truth's), so that its own errors show alone."""
+def modelled(tiny_scene, tiny_fusion, tmp_path_factory):
+    """The path as a user runs it: from ``workbench fusion``'s rasters of the tiny city."""
     root = tmp_path_factory.mktemp("superpixel")
-    fusion = truth_fusion_run(tiny_scene, root / "fusion")
     out, record, metrics = model_and_score(
-        root, tiny_scene, "superpixel", fusion, "--truth", tiny_scene
+        root, tiny_scene, "superpixel", tiny_fusion, "--truth", tiny_scene
     )
-    return fusion, out, record, metrics
+    return tiny_fusion, out, record, metrics
 
 
-def test_models_match_the_truth_on_perfect_rasters(modelled):
+def test_models_match_the_truth_from_fused_rasters(modelled):
+    """Thresholds a little above what was measured (tiny, seed 0): 2D quality 0.891,
+    plane angle 0.29 deg, height error median 0.31 %, mean 0.32 %, mean distance 0.44 m,
+    RMSE off the height jumps 1.03 m."""
     m = modelled[3]
     assert m["complexity"]["watertight_fraction"] == 1.0
-    assert m["footprint_2d"]["quality"] > 0.88  # roofs under trees are not seen
+    assert m["footprint_2d"]["quality"] > 0.87  # roofs under trees are not seen
     objects = m["footprint_2d"]["objects"]
     assert objects["found"] == objects["truth_buildings"]
-    assert m["roofs"]["plane_angle_median_deg"] < 1.0
-    assert m["buildings"]["height_error_pct_median"] < 1.0
-    assert m["surface"]["hausdorff_mean_m"] < 0.6
+    assert m["buildings"]["missed_over_50m2"] == 0
+    assert m["roofs"]["plane_angle_median_deg"] < 0.6
+    assert m["buildings"]["height_error_pct_median"] < 0.6
+    assert m["buildings"]["height_error_pct_mean"] < 0.6
+    assert m["surface"]["mean_distance_m"] < 0.55
+    assert m["height"]["rmse_off_jumps_m"] < 1.2
 
 
-def test_table1_rows_and_crf_keeps_the_accuracy(modelled):
+def test_table1_rows_are_scored_off_the_strokes(modelled):
+    """Table 1 of the super-pixel paper from fused rasters (measured: pixel 0.950, super-
+    pixel 0.965, CRF 0.959; the scored cells exclude the training strokes; binary
+    building accuracy 0.996)."""
     assert modelled[2]["parameters"]["height_weight"] == 10.0  # colour and height
     table = modelled[2]["classification_table"]
-    assert table["pixel"]["overall_accuracy"] == 1.0
-    assert table["crf"]["overall_accuracy"] >= table["superpixel"]["overall_accuracy"] - 0.005
+    assert table["superpixel"]["overall_accuracy"] > table["pixel"]["overall_accuracy"] + 0.01
+    assert table["crf"]["overall_accuracy"] > table["pixel"]["overall_accuracy"]
+    c = modelled[3]["classification"]
+    assert c["excluded_cells"] > 0 and c["overall_accuracy"] > 0.95
+    assert c["building_accuracy"] > 0.99
 
 
 def test_outputs_are_complete_and_readable(modelled):
@@ -132,9 +142,11 @@ def test_omega_auto_is_chosen_on_the_training_strokes(modelled, tiny_scene, tmp_
     fusion = tmp_path / "fusion"
     shutil.copytree(modelled[0], fusion)
     out = tmp_path / "out"
+    record = json.loads((fusion / "fusion.json").read_text())
+    record["inputs"] = {}  # a fusion run that does not say which scene it came from
+    (fusion / "fusion.json").write_text(json.dumps(record))
     proc = run_cli("model", "superpixel", fusion, "-o", out, "--omega-class", "auto")
     assert proc.returncode == 2 and "fusion.json: inputs.scene" in proc.stderr
-    record = json.loads((fusion / "fusion.json").read_text())
     record["inputs"] = {"scene": str(tiny_scene / "scene.json")}
     (fusion / "fusion.json").write_text(json.dumps(record))
     proc = run_cli("model", "superpixel", fusion, "-o", out, "--omega-class", "auto")

@@ -1,6 +1,7 @@
 """The super-pixel path's steps on hand-computed cases."""
 
 import itertools
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -20,8 +21,9 @@ from modeling.shared.roof_mesh import (
     vertex_matched,
 )
 from modeling.shared.roof_types import roof_type
-from modeling.superpixel.aggregation import superpixel_graph
+from modeling.superpixel.aggregation import plane_residuals, superpixel_graph
 from modeling.superpixel.buildings import split_buildings
+from modeling.superpixel.class_crf import geometry_factor
 from modeling.superpixel.options import SuperpixelOptions
 from modeling.superpixel.prototypes import cluster_prototypes, hypothesis_similarity
 from modeling.superpixel.quickshift import colour_height_image, quickshift_superpixels, relief_image
@@ -132,6 +134,53 @@ def test_superpixel_graph_boundaries_and_aggregates():
     assert g.class_sum[0].tolist() == [0, 0, 0, 4] and g.class_sum[2].tolist() == [0.75] * 4
     assert g.height_median.tolist() == [2.0, 3.5, 7.0]
     assert g.colour_distance[0] > 50  # black against white in Lab
+    assert np.isnan(g.plane_residual).all()  # under 6 cells each: no plane to fit
+
+
+def test_plane_residuals_of_a_roof_face_and_a_crown():
+    rng = np.random.default_rng(0)
+    rows, cols = np.indices((20, 40))
+    dsm = 10.0 + 0.3 * cols + 0.1 * rows  # one tilted plane ...
+    labels = (cols >= 20).astype(np.int64)
+    bumps = rng.normal(0.0, 0.5, (20, 20))
+    dsm[:, 20:] += bumps  # ... and, on the right, a lumpy crown
+    dsm[0, 0] = np.nan  # unknown cells are left out
+    r = plane_residuals(labels, dsm, 2)
+    assert r[0] == pytest.approx(0.0, abs=1e-9)
+    # the residual of the bumps about their own best plane: at most their spread
+    assert 0.9 * np.std(bumps) < r[1] <= np.std(bumps) + 1e-9
+
+
+def test_geometry_factor_learns_tree_and_building_residuals_from_the_strokes():
+    rng = np.random.default_rng(1)
+    n = 40
+    residual = np.r_[rng.uniform(0.02, 0.05, 20), rng.uniform(0.3, 0.6, 20)]  # roofs, crowns
+    graph = SimpleNamespace(plane_residual=residual, n=n, class_sum=np.ones((n, 4)))
+    stroked = np.zeros(n, np.int64)
+    stroked[:6], stroked[20:26] = 4, 3  # a few of each under the strokes
+    f, record = geometry_factor(graph, stroked)
+    assert record["used"] and record["building"]["superpixels"] == 6
+    assert (f[:20, 3] > 1.9).all() and (f[:20, 2] < 0.1).all()  # planar: building
+    assert (f[20:, 2] > 1.9).all() and (f[20:, 3] < 0.1).all()  # lumpy: tree
+    assert (f[:, :2] == 1).all()  # ground and grass are both flat: no say
+    stroked[20:23] = 0  # three tree super-pixels are too few to learn from
+    assert geometry_factor(graph, stroked)[0] is None
+
+
+def test_geometry_factor_is_not_overconfident_from_a_few_strokes():
+    """Five stroked roof faces of nearly one residual (0.05 m) and twenty crowns spread
+    about 0.12 m: a roof face at 0.07 m lies nearer the roofs' mean in log terms, and
+    must lean building. A spread fitted to the five alone (0.1 in log) made it tree by
+    a factor of 30."""
+    rng = np.random.default_rng(2)
+    crowns = np.exp(np.log(0.12) + 0.6 * rng.standard_normal(20))
+    residual = np.r_[0.05 * (1 + 0.01 * rng.standard_normal(5)), crowns, 0.07]
+    n = len(residual)
+    graph = SimpleNamespace(plane_residual=residual, n=n, class_sum=np.ones((n, 4)))
+    stroked = np.r_[np.full(5, 4), np.full(20, 3), 0]
+    f, record = geometry_factor(graph, stroked)
+    assert 0.4 < record["log_sigma"] < 0.8  # pooled: the crowns' spread, not the roofs'
+    assert f[-1, 3] > 1.0 > f[-1, 2]
 
 
 def test_quickshift_tiles_keep_super_pixels_connected_and_on_edges():
@@ -311,9 +360,10 @@ def test_unpaired_edges_of_open_and_doubled_meshes():
     assert len(unpaired_edges(doubled)) == 6
 
 
-def test_closure_gives_up_a_face_at_the_open_vertex_not_the_smallest_anywhere():
+def test_closure_mends_the_cells_at_the_open_vertex_not_the_smallest_face_anywhere():
     # high A and D, low B and C meet at (12, 12): their walls share one vertical edge
-    # there, four triangles on it; E, the smallest face, is far from it
+    # there, four triangles on it; E, the smallest face, is far from it. The cells next to
+    # that vertex of the smallest face there go to a neighbour; every face stays.
     faces = np.zeros((24, 24), int)
     faces[2:12, 2:12], faces[2:12, 12:22] = 1, 2
     faces[12:22, 2:12], faces[12:22, 12:22] = 3, 4
@@ -324,7 +374,8 @@ def test_closure_gives_up_a_face_at_the_open_vertex_not_the_smallest_anywhere():
         faces, grid, planes, np.zeros((24, 24)), SuperpixelOptions(simplify_m=0.01)
     )
     assert model.watertight and model.record["faces_merged_for_closure"] == 1
-    assert len(model.planes) == 4  # E kept, one of A-D given up
+    assert len(model.planes) == 5  # E kept, and A-D
+    assert sorted(model.plane_areas)[1] >= 100 - 9  # at most the 3 x 3 cells at the vertex
 
 
 def test_a_t_junction_is_vertex_matched_and_the_faces_simplify():

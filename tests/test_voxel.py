@@ -2,6 +2,7 @@
 
 import json
 
+import cv2
 import numpy as np
 import open3d as o3d
 import pytest
@@ -9,6 +10,7 @@ from shapely.geometry import Polygon, box
 
 from data_samples.truth_run import truth_fusion_run
 from modeling.voxel.building import Proxy
+from modeling.voxel.inputs import roof_heights
 from modeling.voxel.proxy import (
     VoxelFrame,
     cluster_heights,
@@ -21,6 +23,7 @@ from modeling.voxel.proxy import (
     fused_column_heights,
     fused_flat_levels,
     fused_ground_columns,
+    fused_roof_columns,
     highest_tied,
     occupancy,
     proxy_mesh,
@@ -32,21 +35,15 @@ from modeling.voxel.proxy import (
     voxelise,
 )
 from modeling.voxel.robustness import perturbed_mesh
-from modeling.voxel.surface_graph import (
-    ViewSamples,
-    patches,
-    refine_seams,
-    seam_cost,
-    seam_costs,
-    stitch_patches,
-    surface_graph,
-)
+from modeling.voxel.roof_planes import RoofFaces, column_medians, flat_planes, roof_faces
+from modeling.voxel.surface_graph import patches, refine_seams, stitch_patches, surface_graph
 from modeling.voxel.texture_atlas import atlas, pack_charts
 from modeling.voxel.view_images import footprint_sigma, hs_chroma
 from workbench.camera import Camera, look_at_rotation
 from workbench.meshes import is_watertight
 from workbench.meshio import write_obj
 from workbench.raster import Grid
+from workbench.texture_seams import ViewSamples, seam_cost, seam_costs, source_views
 
 from .conftest import model_and_score, run_cli
 
@@ -280,16 +277,123 @@ def test_proxy_mesh_is_closed_with_the_volume_of_its_levels():
     levels = np.zeros((8, 6), int)
     levels[1:7, 1:5] = 1  # 24 columns at 4 m
     levels[2:4, 2:4] = 2  # 4 of them at 9.5 m
-    v, t, outline = proxy_mesh(frame, levels, np.array([4.0, 9.5]), 0.0)
+    m = proxy_mesh(frame, _flat(levels, [4.0, 9.5]), 0.0)
+    v, t, outline = m.mesh.vertices, m.mesh.triangles, m.footprint
     assert is_watertight(v, t)
     assert _volume(v, t) == pytest.approx(20 * 4.0 + 4 * 9.5)
     assert outline.area == pytest.approx(24.0)
     assert v[:, 2].min() == pytest.approx(3.0) and v[:, 2].max() == pytest.approx(12.5)
     assert len(t) < 60  # coplanar voxel faces merged, not 2 triangles per voxel face
+    assert m.roof_type == "multi-level" and m.ridge_z == pytest.approx(12.5)
+
+
+def _flat(levels, heights):
+    return RoofFaces(levels, flat_planes(np.array(heights)), 1, False)
+
+
+def _hipped_heights(shape, cell, slope_deg=30.0, eave=6.0, box_m=(2, 2, 18, 12), gable=False):
+    """Heights of a hipped (or gable: no hips at the short ends) roof over a box, on
+    cells of ``cell`` metres from the origin, NaN off the box."""
+    x = (np.arange(shape[0]) + 0.5) * cell
+    y = (np.arange(shape[1]) + 0.5) * cell
+    X, Y = np.meshgrid(x, y, indexing="ij")
+    x0, y0, x1, y1 = box_m
+    d = np.minimum(Y - y0, y1 - Y)
+    if not gable:
+        d = np.minimum(d, np.minimum(X - x0, x1 - X))
+    h = eave + np.tan(np.radians(slope_deg)) * d
+    inside = (X > x0) & (X < x1) & (Y > y0) & (Y < y1)
+    return np.where(inside, h, np.nan)
+
+
+@pytest.mark.parametrize("gable", [False, True])
+def test_pitched_roof_planes_where_the_levels_leave_a_high_error(gable):
+    rng = np.random.default_rng(0)
+    k, shape = 4, (20, 14)
+    fine = _hipped_heights((20 * k, 14 * k), 1.0 / k, gable=gable)
+    fine += rng.normal(0, 0.05, fine.shape)  # the fusion's noise
+    column_h = column_medians(fine, shape)
+    levels = np.where(np.isfinite(column_h), 1, 0)
+    level = np.array([float(np.nanmean(column_h))])  # what k-means leaves: one slab
+    roof = roof_faces(levels, level, fine, 1.0, 0.0, 0.0, tolerance=0.3, gain=0.5,
+                      min_points=6, min_height=2.0)  # fmt: skip
+    assert roof.pitched and len(roof.planes) == (2 if gable else 4)
+    slopes = np.degrees(np.arccos(roof.planes[:, 2]))
+    np.testing.assert_allclose(slopes, 30.0, atol=1.0)
+    frame = VoxelFrame(np.zeros(2), np.eye(2), 0.0, 0.0, 1.0, (20, 14, 20), 100.0)
+    m = proxy_mesh(frame, roof, 0.25)
+    assert is_watertight(m.mesh.vertices, m.mesh.triangles)
+    assert m.roof_type == ("gable" if gable else "hipped")
+    true_ridge = 6.0 + np.tan(np.radians(30)) * 5.0
+    assert m.ridge_z == pytest.approx(100.0 + true_ridge, abs=0.2)
+    # the model's volume and heights against the roof's
+    true_h = _hipped_heights((20 * k, 14 * k), 1.0 / k, gable=gable)
+    true = np.nansum(true_h) / k**2
+    volume = _volume(m.mesh.vertices - [0.0, 0.0, 100.0], m.mesh.triangles)
+    assert volume == pytest.approx(true, rel=0.01)
+    inside = np.isfinite(true_h)
+    rms = np.sqrt(np.mean((roof.fine_heights(1.0, 0.0, 0.0)[inside] - true_h[inside]) ** 2))
+    assert rms < 0.1 < 0.5 < np.nanstd(true_h)  # one slab would be off by its spread
+    # the voxel columns stand at the roof's height over them
+    tops = roof.column_tops(1.0, 0.0, 0.0)
+    ok = np.isfinite(column_h)
+    assert np.abs(tops[ok] - column_h[ok]).max() < 0.5
+
+
+def test_flat_roof_stays_a_level():
+    rng = np.random.default_rng(1)
+    fine = np.full((48, 48), np.nan)
+    fine[8:40, 8:40] = 7.0 + rng.normal(0, 0.1, (32, 32))
+    levels = np.where(np.isfinite(column_medians(fine, (12, 12))), 1, 0)
+    roof = roof_faces(levels, np.array([7.0]), fine, 1.0, 0.0, 0.0, tolerance=0.3,
+                      gain=0.5, min_points=6, min_height=2.0)  # fmt: skip
+    assert not roof.pitched and roof.planes.tolist() == [[0.0, 0.0, 1.0, -7.0]]
+
+
+def test_a_shed_stops_where_nothing_was_seen_above_its_eave():
+    """A 30 degree shed, 6 m to 6 + 10 tan 30 m over 10 m, with two more columns of
+    levels past its high wall where the fusion saw nothing (behind the wall): carried on,
+    its plane would rise 1.15 m above the highest cell seen; those columns leave the
+    roof instead of the plane being dropped for a slab."""
+    k, shape = 2, (14, 8)
+    x = (np.arange(shape[0] * k) + 0.5) / k
+    fine = np.broadcast_to((6.0 + np.tan(np.radians(30)) * x)[:, None], (28, 16)).copy()
+    fine[20:] = np.nan  # columns 10-13: the blind strip
+    fine[:, :2] = fine[:, -2:] = np.nan
+    levels = np.zeros(shape, np.int64)
+    levels[:12, 1:7] = 1  # the levels reach two columns into the strip
+    roof = roof_faces(levels, np.array([8.9]), fine, 1.0, 0.0, 0.0, tolerance=0.3, gain=0.5,
+                      min_points=6, min_height=2.0)  # fmt: skip
+    assert roof.pitched and len(roof.planes) == 1
+    assert np.degrees(np.arccos(roof.planes[0, 2])) == pytest.approx(30.0, abs=0.5)
+    # the first unseen fine row stands within the tolerance of the highest seen
+    assert not (roof.faces[21:] > 0).any() and (roof.faces[:21, 2:14] > 0).all()
+
+
+def test_fused_roof_columns_join_the_roof_they_touch():
+    """Empty columns that the fusion sees as roof take the nearest level if they touch
+    one; a separate raised patch (a shed across the yard) and trees (NaN) do not."""
+    levels = np.zeros((8, 6), np.int64)
+    levels[1:4, 1:5] = 1
+    levels[4:6, 1:5] = 2
+    fused = np.full((8, 6), np.nan)
+    fused[1:7, 1:5] = [[3.0], [3.2], [3.5], [4.2], [4.6], [4.4]]  # row 6: an empty roof row
+    fused[0, 1:5] = 1.0  # the paving beside it
+    fused[7, 5] = 3.0  # not connected to the roof
+    out = fused_roof_columns(levels, np.array([3.2, 4.5]), fused, np.ones((8, 6), bool), 2.0)
+    assert (out[6, 1:5] == 2).all() and (out[:6] == levels[:6]).all()
+    assert out[7, 5] == 0 and (out[0] == 0).all()
+    assert (fused_roof_columns(np.zeros_like(levels), np.zeros(0), fused, out > 0, 2.0) == 0).all()
+
+
+def test_tree_cells_are_no_roof_height():
+    ndsm = np.array([[5.0, 12.0], [5.1, np.nan]])
+    classes = np.array([[4, 3], [4, 0]])
+    np.testing.assert_array_equal(roof_heights(ndsm, classes), [[5.0, np.nan], [5.1, np.nan]])
 
 
 def test_surface_normals_of_a_box():
-    occ = occupancy(np.pad(np.ones((5, 5), int), 2), np.array([3.0]), 1.0, 6)
+    occ = occupancy(np.pad(np.full((5, 5), 3.0), 2, constant_values=-np.inf), 1.0, 6)
     exterior, n = surface_normals(occ, sigma_n=0.7)
     assert exterior[4, 4, 3] and not exterior[4, 4, 2]  # top layer is the surface
     np.testing.assert_allclose(n[4, 4, 3], [0, 0, 1], atol=1e-6)
@@ -311,13 +415,30 @@ def _two_view_strip(n=24, agree=(4, 7), offset=20.0):
     return positions, edges, samples
 
 
+def test_texture_sources_are_matched_over_neighbourhoods():
+    # a strip textured from view 0 on its left half and view 1 on its right; the views
+    # agree on texels 4-7, where one texel's own colour could not tell them apart
+    _, edges, samples = _two_view_strip(12)
+    texture = np.where(np.arange(12)[:, None] < 6, 0, 1)
+    rgb = np.take_along_axis(samples.lab, texture[:, :, None], axis=1)[:, 0]
+    rgb = cv2.cvtColor(rgb.reshape(-1, 1, 3).astype(np.float32), cv2.COLOR_Lab2RGB) * 255
+    labels, dist = source_views(rgb.reshape(-1, 3), samples, edges)
+    assert labels[:4].tolist() == [0] * 4 and labels[8:].tolist() == [1] * 4
+    assert np.nanmax(dist) < 1.0
+    samples.visible[:, 1] = False  # a view that sees nothing is no source
+    assert (source_views(rgb.reshape(-1, 3), samples, edges)[0] == 0).all()
+
+
 def test_seam_cost_by_hand():
     _, edges, samples = _two_view_strip(12)
     labels = np.array([0] * 10 + [1] * 2)  # seam between texels 9 and 10: 20 Lab apart
-    assert seam_cost(edges, labels, samples) == (20.0, 1)
+    assert seam_cost(edges, labels, samples) == (20.0 / 11, 1)  # per edge of the graph
     labels = np.array([0] * 6 + [1] * 6)  # seam inside the agreeing run
     assert seam_cost(edges, labels, samples) == (0.0, 1)
     assert seam_cost(edges, np.zeros(12, int), samples) == (0.0, 0)
+    # neither view sees both sides of the seam between texels 5 and 6: the worst cost
+    samples.visible[5, 1] = samples.visible[6, 0] = False
+    assert seam_cost(edges, labels, samples) == (100.0 / 11, 1)
 
 
 def test_stitching_moves_the_seam_to_where_the_views_agree():
@@ -388,7 +509,8 @@ def test_surface_graph_and_atlas_on_a_box(tmp_path):
     frame = VoxelFrame(np.zeros(2), np.eye(2), 0.0, 0.0, 1.0, (4, 4, 4), 0.0)
     levels = np.zeros((4, 4), int)
     levels[1:3, 1:3] = 1
-    v, t, _ = proxy_mesh(frame, levels, np.array([2.0]), 0.0)  # a 2 x 2 x 2 m box
+    box_model = proxy_mesh(frame, _flat(levels, [2.0]), 0.0)  # a 2 x 2 x 2 m box
+    v, t = box_model.mesh.vertices, box_model.mesh.triangles
     g = surface_graph(v, t, 0.5, np.array([1.0, 0, 0]))
     assert len(g.positions) == 5 * 16  # 4 walls and a roof of 4 x 4 texels; no floor
     roof = g.normals[:, 2] > 0.9
@@ -426,20 +548,9 @@ def test_perturbed_proxy_grows_and_shrinks():
     frame = VoxelFrame(np.zeros(2), np.eye(2), 0.0, 0.0, 1.0, (10, 10, 20), 0.0)
     levels = np.zeros((10, 10), int)
     levels[2:8, 2:8] = 1
-    proxy = Proxy(
-        "1",
-        frame,
-        levels > 0,
-        None,
-        None,
-        levels,
-        np.array([10.0]),
-        None,
-        None,
-        None,
-        None,
-        None,
-    )
+    roof = _flat(levels, [10.0])
+    proxy = Proxy("1", frame, levels > 0, None, None, levels, np.array([10.0]), roof, None,
+                  None, proxy_mesh(frame, roof, 0.0))  # fmt: skip
     rng = np.random.default_rng(0)
     for scale in (1.1, 0.9):
         v, t = perturbed_mesh(proxy, scale, 2.0, rng)
@@ -450,10 +561,21 @@ def test_perturbed_proxy_grows_and_shrinks():
 
 
 @pytest.fixture(scope="module")
-def voxel_run(tiny_scene, tmp_path_factory):
+def voxel_run(tiny_scene, tiny_fusion, tmp_path_factory):
+    """The path as a user runs it: the scene's views and ``workbench fusion``'s rasters."""
     root = tmp_path_factory.mktemp("voxel")
-    fusion = truth_fusion_run(tiny_scene, root / "fusion")
-    return model_and_score(root, tiny_scene, "voxel", tiny_scene, "--fusion", fusion)
+    return model_and_score(root, tiny_scene, "voxel", tiny_scene, "--fusion", tiny_fusion)
+
+
+def test_voxel_heights_from_fused_rasters(voxel_run):
+    """Thresholds a little above what was measured (tiny, seed 0): height error median
+    1.27 %, mean 1.42 %, every roof type at most 2.9 % mean (hipped), 2D quality 0.821
+    (tiny's 20 views miss some walls), every building found."""
+    b = voxel_run[2]["buildings"]
+    assert b["height_error_pct_median"] < 1.8 and b["height_error_pct_mean"] < 1.8
+    assert max(t["mean"] for t in b["height_error_pct_by_roof_type"].values()) < 3.5
+    assert b["missed_over_50m2"] == 0
+    assert voxel_run[2]["footprint_2d"]["quality"] > 0.80
 
 
 def test_voxel_run_writes_closed_textured_models(voxel_run):
@@ -493,8 +615,8 @@ def test_voxel_proxies_beat_the_gis_heights(voxel_run, tiny_scene):
 
 
 def test_flat_roofs_stand_at_the_fused_height(voxel_run, tiny_scene):
-    """With --fusion (here the truth rasters) a flat roof stands at the nDSM's height, not
-    at the photo-consistent voxel (tiny's first house: half a voxel too high)."""
+    """With --fusion a flat roof stands at the fused nDSM's height, not at the photo-
+    consistent voxel (tiny's first house: half a voxel too high)."""
     _, record, _ = voxel_run
     assert record["parameters"]["fusion_flat_roofs"]
     truth = json.loads((tiny_scene / "truth" / "buildings.json").read_text())["buildings"]
@@ -511,10 +633,15 @@ def test_flat_roofs_stand_at_the_fused_height(voxel_run, tiny_scene):
 def test_graph_cuts_lower_the_seam_cost(voxel_run):
     _, record, metrics = voxel_run
     t = metrics["texture"]
-    assert t["seam_cost"] < t["seam_cost_projective"]
-    assert t["seam_cost_greedy"] < t["seam_cost_projective"]  # the paper's cuts alone
+    # recomputed by compare from the written textures and the scene's views
+    assert t["source"] == "recomputed"
+    assert t["source_lab_median"] < 3.0  # the texture's colours are the views' own
+    assert t["seam_cost"] < 0.5 * t["seam_cost_projective"]
+    own = t["reported"]  # the run's own figures, on its surface graph
+    assert own["seam_cost"] < 0.5 * own["seam_cost_projective"]
+    assert own["seam_cost_greedy"] < own["seam_cost_projective"]  # the paper's cuts alone
     lower = [b["seam_cost"] <= b["seam_cost_projective"] for b in record["buildings"]]
-    assert sum(lower) >= len(lower) - 1
+    assert all(lower)
 
 
 def test_bad_footprints_are_skipped_or_refused(tiny_scene, tmp_path):

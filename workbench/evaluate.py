@@ -18,6 +18,7 @@ from .meshes import concatenate_meshes, is_watertight, sample_surface, triangle_
 from .raster import check_class_codes, read_raster
 from .raycast import raycasting_scene, unsigned_distance
 from .runs import Run
+from .texture_seams import SceneImages, read_textured_building, recomputed_seam_costs
 from .truth import Truth, sample_to_grid, top_down
 
 DSM_KEYS = ("rmse_m", "rmse_off_jumps_m", "median_abs_m", "valid_fraction")
@@ -29,10 +30,11 @@ class EvaluationOptions:
 
     Attributes
     ----------
-    tolerance_m : vertical tolerance of the 3D completeness / correctness, metres.
+    tolerance_m : vertical tolerance of ``volume_3d_tolerant``, metres (``volume_3d`` is
+        the paper's: voxels at the same altitude, no tolerance).
     min_object_area_m2 : smallest connected building region of a raster run that counts
         as a building object.
-    samples_per_m2 : surface samples per square metre for the Hausdorff distances
+    samples_per_m2 : surface samples per square metre for the surface distances
         (at most ``max_samples`` per surface).
     max_error_m : the red end of the error colour maps, metres.
     seed : seed of the surface samples.
@@ -136,7 +138,7 @@ def evaluate(run: Run, truth: Truth, options: EvaluationOptions | None = None) -
     layers = run_layers(run, truth, options)
     m: dict = {"method": run.method, "kind": run.kind}
     if layers.cls is not None and truth.cls is not None:
-        c = metrics.classification(layers.cls, truth.cls)
+        c = metrics.classification(layers.cls, truth.cls, exclude=truth.training)
         if "overall_accuracy" in c:
             m["classification"] = c
     t_ids = truth.building_ids
@@ -146,9 +148,9 @@ def evaluate(run: Run, truth: Truth, options: EvaluationOptions | None = None) -
         m["footprint_2d"] = f
     t_surface = truth.building_surface
     if t_surface is not None and truth.dtm is not None:
-        m["volume_3d"] = metrics.volume_3d(
-            layers.building_surface - truth.dtm, t_surface - truth.dtm, options.tolerance_m
-        )
+        pred_h, true_h = layers.building_surface - truth.dtm, t_surface - truth.dtm
+        m["volume_3d"] = metrics.volume_3d(pred_h, true_h)
+        m["volume_3d_tolerant"] = metrics.volume_3d(pred_h, true_h, options.tolerance_m)
     if t_surface is not None:
         h = metrics.height_errors(layers.surface, t_surface, mask=t_ids > 0)
         if "rmse_m" in h:
@@ -171,7 +173,7 @@ def evaluate(run: Run, truth: Truth, options: EvaluationOptions | None = None) -
                     "plane_angle_median_deg": float(np.median(ang)),
                     "cells": int(both.sum()),
                 }
-        texture = texture_costs(run)
+        texture = texture_costs(run, truth)
         if texture:
             m["texture"] = texture
     if run.kind == "fusion":
@@ -241,13 +243,28 @@ def per_building(run: Run, truth: Truth, layers: RunLayers) -> list[dict]:
     return rows
 
 
-def building_summary(rows: list[dict]) -> dict:
-    """The ``buildings`` group: median |height error| in percent and roof-type accuracy
-    over the true buildings a model building covers."""
+def building_summary(rows: list[dict], min_area_m2: float = 50.0) -> dict:
+    """The ``buildings`` group: true buildings of at least ``min_area_m2`` that less than
+    half of is building in the run (``missed_over_50m2``), median and mean |height error|
+    in percent, overall and per true roof type, and roof-type accuracy over the true
+    buildings a model building covers."""
     out = {}
-    err = [abs(r["height_error_pct"]) for r in rows if "height_error_pct" in r]
+    big = [r for r in rows if r["area_m2"] >= min_area_m2]
+    if big:
+        out["missed_over_50m2"] = sum(r["covered_fraction"] < 0.5 for r in big)
+    err = [r["height_error_pct"] for r in rows if "height_error_pct" in r]
     if err:
-        out["height_error_pct_median"] = float(np.median(err))
+        s = metrics.height_error_summary(err)
+        out["height_error_pct_median"] = s["median"]
+        out["height_error_pct_mean"] = s["mean"]
+        groups: dict[str, list[float]] = {}
+        for r in rows:
+            if "height_error_pct" in r and "roof_type_true" in r:
+                groups.setdefault(r["roof_type_true"], []).append(r["height_error_pct"])
+        if groups:
+            out["height_error_pct_by_roof_type"] = {
+                k: metrics.height_error_summary(v) for k, v in sorted(groups.items())
+            }
     typed = [r for r in rows if "roof_type" in r and "roof_type_true" in r]
     if typed:
         acc = metrics.roof_type_accuracy(
@@ -259,7 +276,8 @@ def building_summary(rows: list[dict]) -> dict:
 
 
 def surface_metrics(run: Run, truth: Truth, options: EvaluationOptions) -> tuple[dict, np.ndarray]:
-    """Hausdorff distances between the run's building meshes and the true buildings, and
+    """Mean and maximum (Hausdorff) distances between the run's building meshes and the
+    true buildings, and
     the distance of each model face's centre to the truth (for the error renders)."""
     rng = np.random.default_rng(options.seed)
     vertices, triangles, _ = stacked_meshes(run)
@@ -280,20 +298,34 @@ def surface_metrics(run: Run, truth: Truth, options: EvaluationOptions) -> tuple
     return out, unsigned_distance(true_scene, centres)
 
 
-def texture_costs(run: Run) -> dict:
-    """``texture.seam_cost``, ``seam_cost_projective`` and ``seam_cost_greedy`` (the voxel
-    path's cuts before ``refine_seams``): the run's own figures, else the mean over its
-    buildings."""
+def texture_costs(run: Run, truth: Truth) -> dict:
+    """The ``texture`` group: the seam costs recomputed from the run's textured meshes
+    and the scene's views (:func:`~workbench.texture_seams.recomputed_seam_costs`), with
+    the run's own figures under ``reported``; without views to measure with, the run's
+    own figures (``seam_cost``, ``seam_cost_projective``, ``seam_cost_greedy``: its
+    record's, else the mean over its buildings) and ``source: "run"``."""
     rec = run.record.get("texture", {})
-    out = {}
+    reported = {}
     for key in ("seam_cost", "seam_cost_projective", "seam_cost_greedy"):
         if isinstance(rec, dict) and key in rec:
-            out[key] = float(rec[key])
+            reported[key] = float(rec[key])
         else:
             vals = [float(b.record[key]) for b in run.buildings if key in b.record]
             if vals:
-                out[key] = float(np.mean(vals))
-    return out
+                reported[key] = float(np.mean(vals))
+    textured = [t for t in map(read_textured_building, _obj_files(run)) if t is not None]
+    if not textured or not truth.views:
+        return {**reported, "source": "run"} if reported else {}
+    vertices, triangles, _ = stacked_meshes(run)
+    measured = recomputed_seam_costs(
+        textured, [v.camera for v in truth.views], SceneImages(truth.views),
+        raycasting_scene(vertices, triangles),
+    )  # fmt: skip
+    return {**measured, "source": "recomputed", "reported": reported}
+
+
+def _obj_files(run: Run) -> list:
+    return [p for b in run.buildings if (p := run.folder / "buildings" / f"{b.id}.obj").exists()]
 
 
 def _drop_empty(d: dict) -> dict:

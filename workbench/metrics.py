@@ -11,32 +11,41 @@ CLASS_NAMES = {1: "ground", 2: "grass", 3: "tree", 4: "building"}
 JUMP_M = 1.0  # a step between neighbouring cells of the true surface that is a wall
 
 
-def classification(pred: np.ndarray, truth: np.ndarray) -> dict:
+def classification(pred: np.ndarray, truth: np.ndarray, exclude: np.ndarray | None = None) -> dict:
     """Accuracy of a class map against the truth (the super-pixel paper's Table 1).
 
     Parameters
     ----------
     pred, truth : (H, W) int
         Class codes; cells where either is 0 are not scored.
+    exclude : (H, W) bool, optional
+        Cells not scored either: the training strokes, where a classifier trained on
+        them is right by construction.
 
     Returns
     -------
     dict with ``overall_accuracy`` (correct / scored), ``per_class_accuracy`` (per true
     class: correct / true cells of that class, for classes present in the truth),
-    ``mean_class_accuracy`` (their mean), ``confusion`` (rows truth 1-4, columns
-    prediction 1-4) and ``scored_cells``.
+    ``mean_class_accuracy`` (their mean), ``building_accuracy`` (building against
+    everything else, the paper's two-class figure), ``confusion`` (rows truth 1-4,
+    columns prediction 1-4), ``scored_cells`` and ``excluded_cells``.
     """
     m = (pred > 0) & (truth > 0)
+    excluded = 0
+    if exclude is not None:
+        excluded = int(np.count_nonzero(m & exclude))
+        m &= ~exclude
     p, t = pred[m].astype(int), truth[m].astype(int)
     conf = np.zeros((4, 4), np.int64)
     np.add.at(conf, (t - 1, np.clip(p, 1, 4) - 1), 1)
-    out = {"scored_cells": int(m.sum())}
+    out = {"scored_cells": int(m.sum()), "excluded_cells": excluded}
     if not m.any():
         return out
     out["overall_accuracy"] = float(np.trace(conf) / conf.sum())
     per = {CLASS_NAMES[k + 1]: float(conf[k, k] / conf[k].sum()) for k in range(4) if conf[k].sum()}
     out["per_class_accuracy"] = per
     out["mean_class_accuracy"] = float(np.mean(list(per.values())))
+    out["building_accuracy"] = float(np.mean((p == 4) == (t == 4)))
     out["confusion"] = conf.tolist()
     return out
 
@@ -186,13 +195,15 @@ def building_objects(truth_ids: np.ndarray, pred_ids: np.ndarray, min_cover: flo
     }
 
 
-def volume_3d(pred_height: np.ndarray, truth_height: np.ndarray, tolerance: float = 1.0) -> dict:
+def volume_3d(pred_height: np.ndarray, truth_height: np.ndarray, tolerance: float = 0.0) -> dict:
     """Voxel-based 3D completeness, correctness and quality (the variational paper, IV.A).
 
-    Every building cell is a column of voxels from the ground up to its height. In a cell
-    that both call building, the column agrees up to the lower of the two heights and,
-    within ``tolerance``, all the way up; the height difference beyond the tolerance is
-    false positive volume (model too high) or false negative volume (model too low).
+    Every building cell is a column of voxels from the ground up to its height. The
+    paper counts a voxel as true positive when model and truth both hold it at the same
+    altitude: in a cell both call building, the columns agree up to the lower of the two
+    heights, and the difference is false positive volume (model too high) or false
+    negative volume (model too low). With a ``tolerance`` (the workbench's tolerant
+    variant, ``volume_3d_tolerant``), a difference up to it counts as agreement.
     Columns of one side only are wholly false positive or false negative. Volumes are in
     cell-metres: multiply by the cell area for cubic metres.
 
@@ -201,7 +212,7 @@ def volume_3d(pred_height: np.ndarray, truth_height: np.ndarray, tolerance: floa
     pred_height, truth_height : (H, W) float
         Building height above the (common) ground, metres; 0 or NaN where no building.
     tolerance : float
-        Vertical tolerance, metres.
+        Vertical tolerance, metres; 0 is the paper's definition.
 
     Returns
     -------
@@ -258,6 +269,15 @@ def building_heights(
     }
 
 
+def height_error_summary(errors_pct: list[float]) -> dict:
+    """``{"median": .., "mean": .., "n": ..}`` of the absolute height errors (percent) of a
+    group of buildings: the voxel paper's Fig. 13 is a mean, a median hides the tail."""
+    e = np.abs(np.asarray(errors_pct, dtype=np.float64))
+    if not len(e):
+        return {"n": 0}
+    return {"median": float(np.median(e)), "mean": float(np.mean(e)), "n": len(e)}
+
+
 def height_error_pct(model: dict[int, float], truth: dict[int, float]) -> dict[int, float]:
     """Signed error of each true building's height in percent of its true height.
 
@@ -269,7 +289,7 @@ def height_error_pct(model: dict[int, float], truth: dict[int, float]) -> dict[i
 def surface_distances(
     points_a: np.ndarray, dist_a_to_b: np.ndarray, points_b: np.ndarray, dist_b_to_a: np.ndarray
 ) -> dict:
-    """Hausdorff-type distances between two surfaces from point samples of both.
+    """Distances between two surfaces from point samples of both.
 
     Parameters
     ----------
@@ -280,9 +300,10 @@ def surface_distances(
 
     Returns
     -------
-    dict with the symmetric ``hausdorff_mean_m`` (the mean of the two directed means),
-    ``hausdorff_rms_m`` (root of the mean of the two directed mean squares) and
-    ``hausdorff_max_m`` (the Hausdorff distance), plus each direction's ``mean_m``,
+    dict with the symmetric ``mean_distance_m`` (the mean of the two directed means),
+    ``rms_distance_m`` (root of the mean of the two directed mean squares) and
+    ``hausdorff_m`` (the Hausdorff distance: the larger directed maximum), plus each
+    direction's ``mean_m``,
     ``rms_m``, ``max_m`` under ``model_to_truth`` and ``truth_to_model``.
     """
     if not len(points_a) or not len(points_b):
@@ -297,9 +318,9 @@ def surface_distances(
         }
     a, b = d["model_to_truth"], d["truth_to_model"]
     return {
-        "hausdorff_mean_m": (a["mean_m"] + b["mean_m"]) / 2,
-        "hausdorff_rms_m": float(np.sqrt((a["rms_m"] ** 2 + b["rms_m"] ** 2) / 2)),
-        "hausdorff_max_m": max(a["max_m"], b["max_m"]),
+        "mean_distance_m": (a["mean_m"] + b["mean_m"]) / 2,
+        "rms_distance_m": float(np.sqrt((a["rms_m"] ** 2 + b["rms_m"] ** 2) / 2)),
+        "hausdorff_m": max(a["max_m"], b["max_m"]),
         **d,
     }
 

@@ -129,6 +129,7 @@ def parse_crs(value, *, path: str | os.PathLike, field: str = "crs") -> CRS:
 
 
 CLASS_CODES = (0, 1, 2, 3, 4)  # no data, ground, grass, tree, building
+TREE, BUILDING = 3, 4
 
 
 def check_class_codes(data: np.ndarray, path, field: str | None = None) -> np.ndarray:

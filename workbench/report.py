@@ -14,6 +14,7 @@ import numpy as np
 SUMMARY_ROWS = [
     ("classification: overall accuracy", "classification.overall_accuracy", "{:.3f}", 1),
     ("classification: mean class accuracy", "classification.mean_class_accuracy", "{:.3f}", 1),
+    ("classification: building / other", "classification.building_accuracy", "{:.3f}", 1),
     ("footprint 2D: completeness", "footprint_2d.completeness", "{:.3f}", 1),
     ("footprint 2D: correctness", "footprint_2d.correctness", "{:.3f}", 1),
     ("footprint 2D: quality", "footprint_2d.quality", "{:.3f}", 1),
@@ -21,15 +22,17 @@ SUMMARY_ROWS = [
     ("volume 3D: completeness", "volume_3d.completeness", "{:.3f}", 1),
     ("volume 3D: correctness", "volume_3d.correctness", "{:.3f}", 1),
     ("volume 3D: quality", "volume_3d.quality", "{:.3f}", 1),
+    ("volume 3D within the tolerance: quality", "volume_3d_tolerant.quality", "{:.3f}", 1),
     ("height RMSE on buildings (m)", "height.rmse_m", "{:.2f}", -1),
     ("height RMSE on buildings, off walls (m)", "height.rmse_off_jumps_m", "{:.2f}", -1),
     ("height MAE on buildings (m)", "height.mae_m", "{:.2f}", -1),
     ("building height error, median |%|", "buildings.height_error_pct_median", "{:.1f}", -1),
+    ("building height error, mean |%|", "buildings.height_error_pct_mean", "{:.1f}", -1),
     ("roof type accuracy", "buildings.roof_type_accuracy", "{:.2f}", 1),
     ("roof plane angle, median (deg)", "roofs.plane_angle_median_deg", "{:.1f}", -1),
-    ("Hausdorff mean (m)", "surface.hausdorff_mean_m", "{:.2f}", -1),
-    ("Hausdorff RMS (m)", "surface.hausdorff_rms_m", "{:.2f}", -1),
-    ("Hausdorff max (m)", "surface.hausdorff_max_m", "{:.2f}", -1),
+    ("mean surface distance (m)", "surface.mean_distance_m", "{:.2f}", -1),
+    ("RMS surface distance (m)", "surface.rms_distance_m", "{:.2f}", -1),
+    ("Hausdorff distance (m)", "surface.hausdorff_m", "{:.2f}", -1),
     ("faces, total", "complexity.faces_total", "{:d}", -1),
     ("faces per building, median", "complexity.faces_per_building_median", "{:.0f}", -1),
     ("watertight buildings", "complexity.watertight_fraction", "{:.0%}", 1),
@@ -285,7 +288,7 @@ def report_html(
 
 def _tolerance(runs: dict[str, dict]) -> str:
     for m in runs.values():
-        t = lookup(m, "volume_3d.tolerance_m")
+        t = lookup(m, "volume_3d_tolerant.tolerance_m")
         if t is not None:
             return f"{t:g}"
     return "-"

@@ -41,6 +41,16 @@ def truth_folder(scene_or_truth: str | Path) -> Path:
     return scene.truth
 
 
+def truth_scene(scene_or_truth: str | Path, folder: Path):
+    """The scene the truth belongs to (given as the scene, or as its ``truth/`` folder
+    beside ``scene.json``), None when there is none."""
+    p = Path(scene_or_truth)
+    scene_path = p if p.resolve() != folder.resolve() else folder.parent
+    if not (scene_path / "scene.json").exists() and scene_path.suffix != ".json":
+        return None
+    return load_scene(scene_path, check_files=False)
+
+
 def truth_rasters(scene_or_truth: str | Path, grid: Grid) -> dict[str, np.ndarray]:
     """The truth rasters that exist (dsm, dtm, ortho (H, W, 3), class), on ``grid``."""
     folder = truth_folder(scene_or_truth)
@@ -54,6 +64,22 @@ def truth_rasters(scene_or_truth: str | Path, grid: Grid) -> dict[str, np.ndarra
             data = sample_to_grid(data, src, grid)
             out[name] = np.moveaxis(data, 0, -1) if name == "ortho" else data[0]
     return out
+
+
+def training_mask(scene, grid: Grid) -> np.ndarray | None:
+    """(H, W) bool the cells of ``grid`` under ``scene``'s training strokes, on which the
+    classes are not scored (a classifier trained on them is right there by construction);
+    None when the scene has none."""
+    strokes = scene.training_labels if scene is not None else None
+    if strokes is None or not Path(strokes).exists():
+        return None
+    data, src, _ = read_raster(strokes, field="training labels")
+    return sample_to_grid(data, src, grid)[0] > 0
+
+
+def training_cells(scene_or_truth: str | Path, grid: Grid) -> np.ndarray | None:
+    """:func:`training_mask` of the scene a truth belongs to (None when there is none)."""
+    return training_mask(truth_scene(scene_or_truth, truth_folder(scene_or_truth)), grid)
 
 
 @dataclass
@@ -76,6 +102,9 @@ class Truth:
         The evaluation grid: the truth DSM's.
     dsm, dtm : top surface and bare ground, or None.
     cls : (H, W) uint8 top-surface classes 1-4 (0 unknown), or None.
+    training : (H, W) bool
+        Cells under the scene's training strokes, which the classes are not scored on
+        (a classifier is right there by construction), or None.
     ortho : (H, W, 3) uint8, or None.
     building_ids : (H, W) int
         Building footprints, by id (0: no building), or None. From a mesh these are the
@@ -87,6 +116,8 @@ class Truth:
     buildings : {id: record}
         Per-building facts (roof_type, height, base_z, ...) where known.
     mesh : TruthMesh or None
+    views : list of View
+        The scene's calibrated views (for the texture seams), empty without a scene.
     sources : {what: file}
     """
 
@@ -95,12 +126,14 @@ class Truth:
     dsm: np.ndarray | None = None
     dtm: np.ndarray | None = None
     cls: np.ndarray | None = None
+    training: np.ndarray | None = None
     ortho: np.ndarray | None = None
     building_ids: np.ndarray | None = None
     building_surface: np.ndarray | None = None
     roof_normals: np.ndarray | None = None
     buildings: dict[int, dict] = field(default_factory=dict)
     mesh: TruthMesh | None = None
+    views: list = field(default_factory=list)
     sources: dict[str, str] = field(default_factory=dict)
 
 
@@ -112,6 +145,12 @@ def load_scene_truth(scene_or_truth: str | Path) -> Truth:
     truth = Truth(grid, crs, dsm=r["dsm"], dtm=r.get("dtm"), cls=r.get("class"))
     truth.ortho = r.get("ortho")
     truth.sources = {k: str(folder / f"{k}.tif") for k in r}
+    scene = truth_scene(scene_or_truth, folder)
+    if scene is not None:
+        truth.views = scene.views
+        truth.training = training_mask(scene, grid)
+        if truth.training is not None:
+            truth.sources["training"] = str(scene.training_labels)
     mesh_path = folder / "mesh.ply"
     if mesh_path.exists():
         vertices, triangles, props = read_ply(mesh_path)

@@ -130,15 +130,39 @@ def merge_small_regions(faces: np.ndarray, min_cells: int) -> np.ndarray:
     return out
 
 
-def merge_smallest_face(faces: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
+def merge_smallest_face(
+    faces: np.ndarray,
+    among: np.ndarray | None = None,
+    planes: np.ndarray | None = None,
+    grid: Grid | None = None,
+    within: np.ndarray | None = None,
+) -> np.ndarray:
     """Give the cells of the smallest face label (of those in ``among``, when any of them
-    is present) to the face it shares most cell edges with."""
+    is present; only its cells in ``within`` (H, W) bool when given) to a neighbouring
+    face: with ``planes`` (P, 4) on ``grid``, the one whose plane lies nearest the face's
+    own over those cells (a face across a ridge would lift them above the roof), else
+    the one it shares most cell edges with."""
     labels, counts = np.unique(faces[faces > 0], return_counts=True)
     pick = np.isin(labels, among) if among is not None else np.zeros(len(labels), bool)
     if pick.any():
         labels, counts = labels[pick], counts[pick]
     out = faces.copy()
-    _absorb(out, faces == labels[np.argmin(counts)])
+    region = faces == labels[np.argmin(counts)]
+    if within is not None and (region & within).any():
+        region &= within
+    if planes is None or grid is None:
+        _absorb(out, region)
+        return out
+    ring = (cv2.dilate(region.astype(np.uint8), _CROSS) > 0) & ~region & (faces > 0)
+    others = np.unique(faces[ring])
+    others = others[others != faces[region][0]]
+    if not len(others):
+        return out
+    X, Y = grid.cell_centers()
+    x, y = X[region], Y[region]
+    own = plane_heights(planes[faces[region][0] - 1], x, y)
+    cost = [np.mean(np.abs(plane_heights(planes[q - 1], x, y) - own)) for q in others]
+    out[region] = others[int(np.argmin(cost))]
     return out
 
 

@@ -26,6 +26,9 @@ class SuperpixelGraph:
         Mean CIELab colour (L 0-100).
     height_median : (N,) float64
         Median DSM height, NaN where no cell has one.
+    plane_residual : (N,) float64
+        RMS residual of the least-squares plane through its DSM cells, metres: a roof
+        face is planar, a crown lumpy (NaN under 6 known cells).
     edges : (E, 2) int64
         Adjacent super-pixel pairs, i < j.
     boundary : (E,) float64
@@ -39,6 +42,7 @@ class SuperpixelGraph:
     class_sum: np.ndarray
     colour: np.ndarray
     height_median: np.ndarray
+    plane_residual: np.ndarray
     edges: np.ndarray
     boundary: np.ndarray
     colour_distance: np.ndarray
@@ -89,5 +93,30 @@ def superpixel_graph(
     edges, boundary = np.unique(pairs, axis=0, return_counts=True)
     g = np.linalg.norm(colour[edges[:, 0]] - colour[edges[:, 1]], axis=1)
     return SuperpixelGraph(
-        labels, count, class_sum, colour, height_median, edges, boundary.astype(np.float64), g
-    )
+        labels, count, class_sum, colour, height_median, plane_residuals(labels, dsm, n), edges,
+        boundary.astype(np.float64), g,
+    )  # fmt: skip
+
+
+def plane_residuals(labels: np.ndarray, dsm: np.ndarray, n: int) -> np.ndarray:
+    """(n,) RMS residual of the least-squares plane z = a x + b y + c through the known
+    DSM cells of each super-pixel, metres (x, y in cells: the residual is in metres
+    whatever their unit); NaN under 6 known cells. From per-super-pixel sums of the
+    moments, one pass over the grid."""
+    rows, cols = np.indices(dsm.shape)
+    known = np.isfinite(dsm)
+    sp = labels[known]
+    z = dsm[known].astype(np.float64)
+    x, y = cols[known].astype(np.float64), rows[known].astype(np.float64)
+    k = np.bincount(sp, minlength=n).astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = [np.bincount(sp, a, n) / k for a in (x, y, z)]
+        x, y, z = x - mean[0][sp], y - mean[1][sp], z - mean[2][sp]  # centred per super-pixel
+        cxx, cyy, cxy, cxz, cyz, czz = (
+            np.bincount(sp, a * b, n) / k
+            for a, b in ((x, x), (y, y), (x, y), (x, z), (y, z), (z, z))
+        )
+        det = cxx * cyy - cxy * cxy
+        explained = (cyy * cxz * cxz - 2 * cxy * cxz * cyz + cxx * cyz * cyz) / det
+        var = np.maximum(czz - np.where(det > 1e-9, explained, 0.0), 0.0)
+    return np.where(k >= 6, np.sqrt(var), np.nan)

@@ -28,6 +28,11 @@ class SuperpixelOptions:
         "so that super-pixels do not straddle walls (0: the colour alone, as the paper; not "
         "used on the relief)", unit="Lab/m", kind="non_negative",
     )  # fmt: skip
+    geometry_unary: bool = option(
+        False, "weigh each super-pixel's plane-fit residual into the class CRF's unary, as "
+        "tree and building residuals learned on the training strokes (default off, the "
+        "paper's class likelihoods alone: no gain on the sample, whose crowns are smooth)",
+    )  # fmt: skip
     omega_class: float | None = option(
         3.0, "weight of the class CRF's pairwise term (eq. 2), or auto: the best of 0.25-12 "
         "on the scene's training strokes", auto="auto",

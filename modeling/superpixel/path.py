@@ -20,12 +20,12 @@ from workbench.meshes import raster_mesh
 from workbench.model_run import Building, ModelRun, Surface, stage_record
 from workbench.parallel import default_workers
 from workbench.progress import progress
-from workbench.raster import Grid, read_raster
+from workbench.raster import BUILDING, Grid, read_raster
 from workbench.records import StageTimer
 
 from .aggregation import SuperpixelGraph, superpixel_graph
 from .buildings import split_buildings
-from .class_crf import choose_omega_class, refine_classes
+from .class_crf import choose_omega_class, geometry_factor, refine_classes, stroke_classes
 from .options import SuperpixelOptions
 from .plane_hypotheses import SuperpixelPoints, plane_hypotheses, superpixel_points
 from .preview import superpixel_preview
@@ -35,7 +35,6 @@ from .quickshift import quickshift_superpixels, relief_image
 from .rooftop import model_building, observed_faces
 
 FUSION_RASTERS = ("ortho", "dsm", "dtm", "class_prob", "class")
-BUILDING = 4
 BUILDING_STEPS = ("plane_hypotheses", "prototypes", "prototype_crf", "roof_modeling")
 
 
@@ -68,7 +67,7 @@ def run_superpixel(
     with timer.stage("aggregation"):
         graph = superpixel_graph(labels, fusion.rgb, fusion.rasters["class_prob"], dsm)
     with timer.stage("class_crf"):
-        sp_class, omega_choice = class_crf(graph, labels, fusion, options)
+        sp_class, crf_choices = class_crf(graph, labels, fusion, options)
         unseen = ~(np.nan_to_num(fusion.rasters["class_prob"]).sum(axis=0) > 0)
         crf_class = np.where(unseen, 0, sp_class[labels]).astype(np.uint8)
     with timer.stage("buildings"):
@@ -85,9 +84,7 @@ def run_superpixel(
         b.mesh.vertex_colors = vertex_colours(b.mesh.vertices, fusion.rgb, grid)
     with timer.stage("preview"):
         preview = superpixel_preview(fusion.rgb, labels, crf_class, faces, buildings, grid, dtm)
-    record = {"superpixels": graph.n}
-    if omega_choice is not None:
-        record["omega_class_choice"] = omega_choice
+    record = {"superpixels": graph.n, **crf_choices}
     if truth is not None:
         sp_argmax = np.where(unseen, 0, graph.class_sum.argmax(axis=1)[labels] + 1)
         record["classification_table"] = classification_table(
@@ -118,15 +115,27 @@ def decide_defaults(options: SuperpixelOptions, from_points: bool) -> dict:
 
 def class_crf(
     graph: SuperpixelGraph, labels: np.ndarray, fusion: FusionRun, options: SuperpixelOptions
-) -> tuple[np.ndarray, dict | None]:
-    """(N,) class of each super-pixel and, with ``omega_class`` auto, how it was chosen."""
+) -> tuple[np.ndarray, dict]:
+    """(N,) class of each super-pixel, and how its parameters were chosen: with
+    ``omega_class`` auto, the omega; with ``geometry_unary``, the plane residuals'
+    factors learned on the training strokes (:func:`~.class_crf.geometry_factor`)."""
     if options.all_building:
-        return np.where(np.isfinite(graph.height_median), BUILDING, 1), None
-    omega, choice = options.omega_class, None
+        return np.where(np.isfinite(graph.height_median), BUILDING, 1), {}
+    omega, record, geometry = options.omega_class, {}, None
+    strokes = None
+    if omega is None or options.geometry_unary:
+        strokes = training_strokes(fusion, required=omega is None)
+    if options.geometry_unary:
+        if strokes is None:
+            record["geometry"] = {"used": False, "reason": "no training strokes"}
+        else:
+            geometry, record["geometry"] = geometry_factor(
+                graph, stroke_classes(labels, strokes, graph.n)
+            )
     if omega is None:
-        choice = choose_omega_class(graph, labels, training_strokes(fusion))
-        omega = choice["omega"]
-    return refine_classes(graph, omega), choice
+        record["omega_class_choice"] = choose_omega_class(graph, labels, strokes, geometry)
+        omega = record["omega_class_choice"]["omega"]
+    return refine_classes(graph, omega, geometry), record
 
 
 def model_buildings(
@@ -241,8 +250,9 @@ def building_boxes(cell_building: np.ndarray, n: int) -> np.ndarray:
     )  # fmt: skip
 
 
-def training_strokes(fusion: FusionRun) -> np.ndarray:
-    """The training labels of the scene a fusion run came from, on its grid."""
+def training_strokes(fusion: FusionRun, required: bool = True) -> np.ndarray | None:
+    """The training labels of the scene a fusion run came from, on its grid; None when
+    there are none and they are not ``required`` (``--omega-class auto`` needs them)."""
     from workbench.scene import load_scene
     from workbench.truth import sample_to_grid
 
@@ -250,23 +260,29 @@ def training_strokes(fusion: FusionRun) -> np.ndarray:
     inputs = fusion.record.get("inputs")
     scene_path = inputs.get("scene") if isinstance(inputs, dict) else None
     if not scene_path:
+        if not required:
+            return None
         raise InputError(
             record_path, "inputs.scene", "--omega-class auto needs a fusion run of a scene"
         )
     scene = load_scene(scene_path, check_files=False)
     if scene.training_labels is None:
+        if not required:
+            return None
         raise InputError(scene.scene_json, "training_labels", "--omega-class auto needs them")
     data, src, _ = read_raster(scene.training_labels, field="training_labels")
     return sample_to_grid(data, src, fusion.grid)[0].astype(np.int64)
 
 
-def classification_table(truth_scene, grid: Grid, pixel, superpixel, crf) -> dict:
-    """The super-pixel paper's Table 1 rows against the truth: pixel, super-pixel, CRF."""
-    from workbench.truth import truth_rasters
+def classification_table(truth: Path, grid: Grid, pixel, superpixel, crf) -> dict:
+    """The super-pixel paper's Table 1 rows against the truth: pixel, super-pixel, CRF,
+    off the training strokes (as ``workbench compare`` scores them)."""
+    from workbench.truth import training_cells, truth_rasters
 
-    t = truth_rasters(truth_scene, grid)["class"]
+    t = truth_rasters(truth, grid)["class"]
+    strokes = training_cells(truth, grid)
     return {
-        name: metrics.classification(c, t)
+        name: metrics.classification(c, t, exclude=strokes)
         for name, c in (("pixel", pixel), ("superpixel", superpixel), ("crf", crf))
     }
 

@@ -5,18 +5,10 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-import shapely
 
-from modeling.shared.planes import plane_heights
-from modeling.shared.roof_mesh import (
-    extrude_faces,
-    face_polygons,
-    merge_smallest_face,
-    untangle_diagonals,
-)
-from modeling.shared.roof_types import roof_type
-from workbench.meshes import is_watertight, unpaired_edges
-from workbench.model_run import Building, Surface
+from modeling.shared.roof_mesh import untangle_diagonals
+from modeling.shared.roof_model import closed_roof_model
+from workbench.model_run import Building
 from workbench.raster import Grid
 
 from .options import SuperpixelOptions
@@ -106,108 +98,7 @@ def model_building(
         simplify = (
             options.simplify_m if options.simplify_m is not None else SIMPLIFY_CELLS * grid.gsd
         )
-        merged = 0
-        while True:
-            model = _closed_model(part, grid, planes, base, simplify, options.regularise_deg)
-            closed = model is not None and _watertight(model)
-            if closed or len(np.unique(part[part > 0])) == 1:
-                break
-            # faces meeting at a vertex can leave two parts of the roof touching along a
-            # vertical line there (not a manifold): give up the smallest face there, retry
-            part = merge_smallest_face(part, _faces_at_open_edges(model, part, grid))
-            merged += 1
+        model = closed_roof_model(part, grid, planes, base, simplify, options.regularise_deg)
         if model is not None:
-            model.record["faces_merged_for_closure"] = merged
             out.append(model)
     return out
-
-
-def _faces_at_open_edges(
-    model: Building | None, faces: np.ndarray, grid: Grid
-) -> np.ndarray | None:
-    """Face labels of the cells within one cell of the ends of the model's unpaired
-    edges (None without a model, or when every edge is paired)."""
-    if model is None:
-        return None
-    ends = np.unique(unpaired_edges(model.mesh.triangles))
-    if not len(ends):
-        return None
-    row, col = grid.cell_index(*model.mesh.vertices[ends, :2].T, clip=True)
-    near = np.zeros(faces.shape, bool)
-    near[row, col] = True
-    near = cv2.dilate(near.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    return np.unique(faces[near & (faces > 0)])
-
-
-def _closed_model(
-    faces: np.ndarray,
-    grid: Grid,
-    planes: np.ndarray,
-    ground: float,
-    simplify: float,
-    regularise_deg: float = 0.0,
-) -> Building | None:
-    """The part simplified by ``simplify`` (and regularised), else unsimplified when that
-    is not closed (or the triangulation fails); None when neither gives a model."""
-    fallback = None
-    for tolerance, regular in ((simplify, regularise_deg), (1e-3, 0.0)):
-        try:
-            model = _model_part(faces, grid, planes, ground, tolerance, regular)
-        except shapely.errors.GEOSException:  # a degenerate polygon after simplification
-            continue
-        if model is not None and _watertight(model):
-            return model
-        fallback = fallback or model
-    return fallback
-
-
-def _model_part(
-    faces: np.ndarray,
-    grid: Grid,
-    planes: np.ndarray,
-    ground: float,
-    tolerance: float,
-    regularise_deg: float = 0.0,
-) -> Building | None:
-    polygons, labels = face_polygons(faces, grid, tolerance, regularise_deg=regularise_deg)
-    if not polygons:
-        return None
-    face_planes = [planes[k - 1] for k in labels]
-    outline = shapely.union_all(polygons)
-    edge = outline.boundary
-    roof_z, eave_z = [], []
-    for poly, plane in zip(polygons, face_planes, strict=True):
-        xy = np.asarray(poly.exterior.coords)
-        z = plane_heights(plane, xy[:, 0], xy[:, 1])
-        roof_z.append(z)
-        on_outline = shapely.distance(shapely.points(xy), edge) < 1e-6
-        eave_z.append(z[on_outline])
-    roof_z = np.concatenate(roof_z)
-    eave_z = np.concatenate(eave_z)
-    base = min(ground, float(roof_z.min()) - 0.5)  # a floor under every roof vertex
-    vertices, triangles = extrude_faces(polygons, face_planes, base)
-    used = sorted(set(labels))
-    areas, heights = [], []
-    for u in used:
-        mine = [p for p, k in zip(polygons, labels, strict=True) if k == u]
-        area = sum(p.area for p in mine)
-        areas.append(area)
-        heights.append(
-            sum(p.area * plane_heights(planes[u - 1], *p.centroid.coords[0]) for p in mine) / area
-        )
-    areas, heights = np.array(areas), np.array(heights)
-    planes_used = planes[np.array(used) - 1]
-    kind = roof_type(
-        planes_used, areas, heights, eave_z, ridge_z=float(roof_z.max()),
-        centre=(outline.centroid.x, outline.centroid.y, np.sqrt(outline.area)),
-    )  # fmt: skip
-    return Building(
-        "", Surface(vertices, triangles), lod="2.2", footprint=outline, roof_type=kind,
-        planes=planes_used, plane_areas=areas, base_z=base,
-        eave_z=float(eave_z.min() if len(eave_z) else roof_z.min()), ridge_z=float(roof_z.max()),
-        watertight=is_watertight(vertices, triangles),
-    )  # fmt: skip
-
-
-def _watertight(b: Building) -> bool:
-    return bool(b.watertight)

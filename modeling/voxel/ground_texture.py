@@ -18,17 +18,10 @@ from modeling.shared.graph_cuts import binary_cut
 from workbench.camera import Camera
 from workbench.meshes import raster_mesh
 from workbench.raster import Grid
+from workbench.texture_seams import ViewSamples, rgb_to_lab, seam_cost, seam_costs, view_samples
 
-from .surface_graph import (
-    ViewSamples,
-    best_views,
-    seam_cost,
-    seam_costs,
-    stitch_patches,
-    texel_colours,
-    view_samples,
-)
-from .view_images import ViewImages, rgb_to_lab
+from .surface_graph import best_views, stitch_patches, texel_colours
+from .view_images import ViewImages
 
 _INF = 1e9
 _NADIR_SPREAD_DEG = 15.0

@@ -48,7 +48,7 @@ class VoxelOptions:
     normal_sigma: float = option(1.0, "sigma_n of eq. 4", unit="voxels", cli=False)
     simplify_m: float | None = option(
         None, "outline simplification of the proxy mesh", unit="m", cli=False,
-        auto="a quarter voxel",
+        auto="a quarter voxel; 2.25 fine cells on pitched roofs",
     )  # fmt: skip
     footprint_scale: float = option(
         1.0, "scales the eq. 2 window (1: half the voxel's projected size)", cli=False
@@ -77,6 +77,18 @@ class VoxelOptions:
         True, "with --fusion, columns its nDSM puts on the ground are ground (off: "
         "photo-consistency alone decides the proxies' extent, as in the paper)",
     )  # fmt: skip
+    pitched_roofs: bool = option(
+        True, "with --fusion, fit roof planes to its heights where the flat levels leave a "
+        "high height error (off: the paper's flat levels only)",
+    )  # fmt: skip
+    plane_tolerance_m: float = option(
+        0.3, "RANSAC inlier distance of the pitched roofs' planes", unit="m", cli=False
+    )
+    plane_gain: float = option(
+        0.5, "planes replace the flat levels when they bring the median absolute height "
+        "error down to this fraction of the levels'", cli=False,
+    )  # fmt: skip
+    min_plane_m2: float = option(6.0, "smallest roof plane of a pitched roof", unit="m2", cli=False)
     fusion_flat_roofs: bool = option(
         True, "with --fusion, flat roof levels stand at its nDSM's height and grow over the "
         "empty columns beside them at that height (off: the photo-consistent height and "

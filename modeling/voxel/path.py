@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +19,6 @@ import rasterio.features
 from scipy.spatial import cKDTree
 from shapely.geometry import mapping
 
-from modeling.shared.roof_types import roof_type
 from workbench.meshes import concatenate_meshes
 from workbench.model_run import Building, ModelRun, Surface, Texture
 from workbench.progress import progress
@@ -171,22 +171,16 @@ def ring_inputs(gtex: GroundTexture, proxy: Proxy, tex: BuildingTexture):
 
 
 def voxel_building(p: Proxy, t: BuildingTexture) -> Building:
-    """A proxy and its texture as a building of the run: one horizontal plane per roof
-    level (LOD 1.3 in CityJSON's terms)."""
-    used = np.unique(p.levels[p.levels > 0])
-    tops = p.frame.base_z + p.level_heights[used - 1]
-    planes = np.column_stack([np.zeros((len(used), 2)), np.ones(len(used)), -tops])
-    areas = np.array([(p.levels == u).sum() * p.frame.r**2 for u in used], float)
-    kind = roof_type(planes, areas, tops, tops) if len(used) else None
+    """A proxy and its texture as a building of the run: its roof model (one horizontal
+    plane per roof level, LOD 1.3 in CityJSON's terms, or pitched planes, LOD 2.2) with the
+    textured mesh."""
+    m = p.model
     record = {k: v for k, v in p.record.items() if k not in _COMMON}
+    record.update(m.record)
     record.update(t.record)
     mesh = Surface(p.vertices, p.triangles, vertex_colours(p.vertices, t), Texture(t.image, t.uvs))
-    return Building(
-        p.id, mesh, lod="1.3", footprint=p.outline, roof_type=kind, planes=planes,
-        plane_areas=areas, base_z=p.frame.base_z,
-        eave_z=float(tops.min()) if len(tops) else np.nan,
-        ridge_z=float(tops.max()) if len(tops) else np.nan, record=record,
-    )  # fmt: skip
+    return replace(m, id=p.id, mesh=mesh, lod="2.2" if p.roof.pitched else "1.3",
+                   watertight=None, record=record)  # fmt: skip
 
 
 def vertex_colours(vertices: np.ndarray, tex: BuildingTexture) -> np.ndarray:

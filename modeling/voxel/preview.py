@@ -25,20 +25,18 @@ def voxel_preview(proxies: list[Proxy], textures: list[Texture], gtex) -> np.nda
     nx, ny, nz = p.frame.shape
     var = p.variance[:, ny // 2, :].T[::-1]  # vertical slice, up is up
     var_img = colorize_height(np.log10(np.where(np.isfinite(var), var, np.nan) + 1e-6))
-    horiz = p.variance[
-        :,
-        :,
-        min(nz - 1, int(round(p.level_heights.max() / p.frame.r)) if len(p.level_heights) else 0),
-    ]
+    tops = p.roof.column_tops(p.frame.r, p.frame.x0, p.frame.y0)
+    roof_top = float(tops.max()) if np.isfinite(tops).any() else 0.0
+    horiz = p.variance[:, :, min(nz - 1, max(0, int(round(roof_top / p.frame.r))))]
     horiz_img = colorize_height(np.log10(horiz.T[::-1] + 1e-6))
     top = float(np.nanmax(p.min_height)) if np.isfinite(p.min_height).any() else 1.0
     before = _height_image(p.min_height, top)
-    after = _height_image(np.concatenate([[np.nan], p.level_heights])[p.levels], top)
+    after = _height_image(np.where(np.isfinite(tops), tops, np.nan), top)
     row1 = [
         (_upscale(var_img), f"building {p.id}: variance, vertical slice"),
         (_upscale(horiz_img), "variance at the roof"),
         (_upscale(before), "most consistent heights"),
-        (_upscale(after), "after clustering"),
+        (_upscale(after), "roof planes" if p.roof.pitched else "after clustering"),
     ]
     top_before = _top_labels(p, t, t.initial)
     top_after = _top_labels(p, t, t.stitched.labels)

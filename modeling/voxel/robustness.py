@@ -7,6 +7,8 @@ The scene's written poses carry its calibration error, so every case includes it
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from workbench.meshes import concatenate_meshes
@@ -23,8 +25,9 @@ PAPER_HEIGHT_M = 35.0  # ... whose default height is 35 m
 def perturbed_mesh(
     proxy: Proxy, scale: float, height_noise_m: float, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The proxy scaled about its grid's centre by ``scale`` in x and y, each roof level
-    moved by a uniform draw in +/- ``height_noise_m`` (kept at least one voxel up)."""
+    """The proxy scaled about its grid's centre by ``scale`` in x and y, each roof plane
+    moved up or down by a uniform draw in +/- ``height_noise_m`` (a flat roof kept at least
+    one voxel up)."""
     f = proxy.frame
     nx, ny, _ = f.shape
     cx, cy = f.x0 + nx * f.r / 2, f.y0 + ny * f.r / 2
@@ -32,10 +35,19 @@ def perturbed_mesh(
         f.origin, f.axes, cx + (f.x0 - cx) * scale, cy + (f.y0 - cy) * scale, f.r * scale,
         f.shape, f.base_z,
     )  # fmt: skip
-    noise = rng.uniform(-height_noise_m, height_noise_m, len(proxy.level_heights))
-    heights = np.maximum(proxy.level_heights + noise, f.r)
-    vertices, triangles, _ = proxy_mesh(frame, proxy.levels, heights, 0.0)
-    return vertices, triangles
+    planes = proxy.roof.planes.copy()
+    # the same roof over the scaled grid: x = c + (x' - c) / scale
+    planes[:, 3] += (planes[:, 0] * cx + planes[:, 1] * cy) * (1 - 1 / scale)
+    planes[:, :2] /= scale
+    planes /= np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+    noise = rng.uniform(-height_noise_m, height_noise_m, len(planes))
+    flat = (planes[:, 0] == 0) & (planes[:, 1] == 0)
+    noise = np.where(flat, np.maximum(-planes[:, 3] + noise, f.r) + planes[:, 3], noise)
+    planes[:, 3] -= planes[:, 2] * noise
+    model = proxy_mesh(frame, replace(proxy.roof, planes=planes), 0.0)
+    if model is None:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    return model.mesh.vertices, model.mesh.triangles
 
 
 def robustness_experiment(
@@ -60,7 +72,7 @@ def robustness_experiment(
     dict: ``{"height_noise_m", "cases": {name: {"seam_cost", "seam_cost_projective",
     "ratio", "buildings"}}}``; costs are means over buildings.
     """
-    tops = [p.level_heights.max() for p in proxies if len(p.level_heights)]
+    tops = [p.model.ridge_z - p.frame.base_z for p in proxies if p.model is not None]
     if height_noise_m is None:
         height_noise_m = PAPER_NOISE_M * float(np.median(tops)) / PAPER_HEIGHT_M if tops else 0.0
     rng = np.random.default_rng(seed)

@@ -20,14 +20,9 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from modeling.shared.graph_cuts import pairwise_cut
-from workbench.camera import Camera
-from workbench.raycast import occluded
-
-from .view_images import ViewImages, rgb_to_lab
+from workbench.texture_seams import ViewSamples, seam_costs
 
 _INF = 1e9
-_MISSING = 100.0  # Lab units: a seam through a vertex one of the two views cannot see
-_MIN_COS = 0.1  # views grazing a face more than this are no use to texture it
 
 
 @dataclass
@@ -122,6 +117,8 @@ def mesh_charts(
     for c in np.unique(comp):
         tris = np.flatnonzero(comp == c)
         normal = n[tris[0]]
+        if normal @ normal < 0.5:  # zero-area triangles (collinear corners): no texels
+            continue
         if abs(normal[2]) > 0.9:
             u = hint - normal * (hint @ normal)
         else:
@@ -188,79 +185,6 @@ def surface_graph(
     )  # fmt: skip
 
 
-@dataclass
-class ViewSamples:
-    """What every view sees of every graph vertex.
-
-    Attributes
-    ----------
-    visible : (V, K) bool
-        The view faces the vertex, has it in frame and nothing hides it.
-    facing : (V, K) float
-        Cosine between the vertex normal and the direction to the view.
-    lab : (V, K, 3) float32
-        CIE Lab colour (valid where visible).
-    rgb : (V, K, 3) uint8
-    """
-
-    visible: np.ndarray
-    facing: np.ndarray
-    lab: np.ndarray
-    rgb: np.ndarray
-
-
-def view_samples(
-    positions: np.ndarray,
-    normals: np.ndarray,
-    cameras: list[Camera],
-    images: ViewImages,
-    occluders=None,
-    views: list[int] | None = None,
-) -> ViewSamples:
-    """Visibility (ray casting against ``occluders``) and colour of every vertex in every
-    view, or in ``views`` only: then column j of the arrays is view ``views[j]``.
-
-    Parameters
-    ----------
-    positions, normals : (V, 3)
-    occluders : workbench.raycast.RayScene, optional
-        Every proxy of the scene.
-    """
-    views = list(range(len(cameras))) if views is None else list(views)
-    v, n_views = len(positions), len(views)
-    visible = np.zeros((v, n_views), bool)
-    facing = np.zeros((v, n_views), np.float32)
-    lab = np.zeros((v, n_views, 3), np.float32)
-    rgb = np.zeros((v, n_views, 3), np.uint8)
-    lifted = positions + 0.05 * normals
-    for j, k in enumerate(views):
-        cam = cameras[k]
-        to_cam = cam.center - positions
-        dist = np.linalg.norm(to_cam, axis=1)
-        cos = np.einsum("ij,ij->i", to_cam, normals) / np.maximum(dist, 1e-9)
-        sel = np.flatnonzero(cos > _MIN_COS)
-        uv, depth = cam.project(positions[sel])
-        inside = (
-            (depth > 0)
-            & (uv[:, 0] >= 0)
-            & (uv[:, 1] >= 0)
-            & (uv[:, 0] <= cam.width - 1)
-            & (uv[:, 1] <= cam.height - 1)
-        )
-        sel, uv = sel[inside], uv[inside]
-        if occluders is not None and len(sel):
-            hidden = occluded(occluders, lifted[sel], cam.center - lifted[sel], tfar=1.0)
-            sel, uv = sel[~hidden], uv[~hidden]
-        if not len(sel):
-            continue
-        colours = images.rgb_samples(k, uv)
-        visible[sel, j] = True
-        facing[sel, j] = cos[sel]
-        rgb[sel, j] = np.clip(np.round(colours), 0, 255).astype(np.uint8)
-        lab[sel, j] = rgb_to_lab(colours)
-    return ViewSamples(visible, facing, lab, rgb)
-
-
 def texel_colours(labels: np.ndarray, samples: ViewSamples, fill: int = 128) -> np.ndarray:
     """(V, 3) uint8 colour of every vertex in its view (``labels``), ``fill`` grey where
     it has none."""
@@ -299,47 +223,6 @@ def patches(edges: np.ndarray, labels: np.ndarray) -> np.ndarray:
     _, comp = csgraph.connected_components(adj, directed=False)
     comp[labels < 0] = -1
     return comp
-
-
-def _view_differences(
-    edges: np.ndarray, src: np.ndarray, dst: np.ndarray, samples: ViewSamples
-) -> tuple[np.ndarray, np.ndarray]:
-    """||P1(x) - P2(x)|| in CIE Lab at both ends x of each edge, views ``src`` and ``dst``
-    (each (E,)), and whether both views see x: two (E, 2) arrays."""
-    d = np.empty((len(edges), 2))
-    ok = np.empty((len(edges), 2), bool)
-    for end in (0, 1):
-        x = edges[:, end]
-        ok[:, end] = samples.visible[x, src] & samples.visible[x, dst]
-        d[:, end] = np.linalg.norm(samples.lab[x, src] - samples.lab[x, dst], axis=1)
-    return d, ok
-
-
-def seam_costs(
-    edges: np.ndarray, src: np.ndarray, dst: np.ndarray, samples: ViewSamples
-) -> np.ndarray:
-    """C(s, t) of eq. 5 for each edge (s, t) between views ``src`` and ``dst`` (each (E,)):
-    ||P1(s) - P2(s)|| + ||P1(t) - P2(t)|| in CIE Lab. A term a view cannot see costs
-    ``_MISSING``."""
-    d, ok = _view_differences(edges, src, dst, samples)
-    return np.where(ok, d, _MISSING).sum(axis=1)
-
-
-def seam_cost(edges: np.ndarray, labels: np.ndarray, samples: ViewSamples) -> tuple[float, int]:
-    """The texture's seam cost: mean over the edges whose two vertices take different
-    views of the mean Lab difference of those two views at the two vertices (eq. 5
-    halved), over the views that see them. Returns (cost, number of seam edges); the
-    cost is 0 without seams, NaN when no view pair sees a seam."""
-    a, b = labels[edges[:, 0]], labels[edges[:, 1]]
-    seam = (a != b) & (a >= 0) & (b >= 0)
-    if not seam.any():
-        return 0.0, 0
-    d, ok = _view_differences(edges[seam], a[seam], b[seam], samples)
-    counts = ok.sum(axis=1)
-    if not counts.any():
-        return float("nan"), int(seam.sum())
-    per_edge = np.where(ok, d, 0.0).sum(axis=1)[counts > 0] / counts[counts > 0]
-    return float(per_edge.mean()), int(seam.sum())
 
 
 def view_facing(labels: np.ndarray, samples: ViewSamples) -> float:

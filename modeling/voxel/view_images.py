@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from workbench.scene import View
+from workbench.texture_seams import bilinear, rgb_to_lab
 
 
 def footprint_sigma(half_width: int) -> float:
@@ -50,27 +51,6 @@ def lab_features(rgb: np.ndarray) -> np.ndarray:
 
 
 CONSISTENCY_FEATURES = {"hs": hs_chroma, "lab": lab_features}
-
-
-def rgb_to_lab(rgb: np.ndarray) -> np.ndarray:
-    """(..., 3) RGB 0-255 (any float or uint8) to CIE Lab (L 0-100), float32."""
-    shape = rgb.shape
-    flat = np.asarray(rgb, np.float32).reshape(-1, 1, 3) / 255.0
-    return cv2.cvtColor(flat, cv2.COLOR_RGB2Lab).reshape(shape)
-
-
-def bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Sample ``image`` (H, W, C) at pixel coordinates ``uv`` (N, 2) -> (N, C) float32."""
-    if len(uv) == 0:
-        return np.zeros((0, image.shape[2]), np.float32)
-    n = len(uv)
-    width = 4096  # remap's maps must stay under 32767 on each side
-    rows = -(-n // width)
-    m = np.zeros((rows * width, 2), np.float32)
-    m[:n] = uv
-    m = m.reshape(rows, width, 2)
-    out = cv2.remap(image, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return out.reshape(rows * width, -1)[:n].astype(np.float32)
 
 
 class ViewImages:

@@ -1,0 +1,99 @@
+"""Geometric cues of the fused surface for the per-view forest (not in the paper).
+
+Colour alone calls a moss-green roof a tree and an autumn crown a roof. Their shapes
+differ: a roof is planar over a metre or two (or two planes meeting at a ridge), a crown
+is lumpy; and the views see a crown at depths that scatter (the rim, leaves in front of
+others) where they agree on a roof. Three cues per cell say so:
+
+- ``plane_residual`` at two scales: the RMS residual of the least-squares plane through
+  the fused DSM in a window of about 1.25 m and 2.25 m;
+- ``height_spread``: the interquartile range of the heights the views observed in the
+  cell (weighted as the DSM's median is).
+
+Each view pixel takes the cues of the cell its point falls in, beside its Sigma Points.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from workbench.raster import Grid
+
+CUES = ("plane_residual_1.25m", "plane_residual_2.25m", "height_spread")
+WINDOWS_M = (1.25, 2.25)
+UNKNOWN = -1.0  # the forest's value for a cue no cell gives (NaN it cannot split on)
+
+
+def plane_residual(dsm: np.ndarray, size: int) -> np.ndarray:
+    """(H, W) float32 RMS residual of the least-squares plane z = a x + b y + c through
+    the known cells of the ``size`` x ``size`` window around each cell, metres; NaN
+    where fewer than 6 cells are known.
+
+    From box sums of the moments of x, y and z, so that it costs a few filters of the
+    grid whatever the window.
+    """
+    z = np.asarray(dsm, np.float64)
+    known = np.isfinite(z)
+    if not known.any():
+        return np.full(z.shape, np.nan, np.float32)
+    z = np.where(known, z - np.nanmedian(z), 0.0)  # heights near 0: no cancellation
+    w = known.astype(np.float64)
+    rows, cols = np.indices(z.shape, dtype=np.float64)
+
+    def box(a):
+        return cv2.boxFilter(a, cv2.CV_64F, (size, size), normalize=False,
+                             borderType=cv2.BORDER_CONSTANT)  # fmt: skip
+
+    n = box(w)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mx, my, mz = (box(w * a) / n for a in (cols, rows, z))
+        cxx = box(w * cols * cols) / n - mx * mx
+        cyy = box(w * rows * rows) / n - my * my
+        cxy = box(w * cols * rows) / n - mx * my
+        cxz = box(w * cols * z) / n - mx * mz
+        cyz = box(w * rows * z) / n - my * mz
+        czz = box(w * z * z) / n - mz * mz
+        det = cxx * cyy - cxy * cxy
+        explained = (cyy * cxz * cxz - 2 * cxy * cxz * cyz + cxx * cyz * cyz) / det
+        var = np.maximum(czz - np.where(det > 1e-9, explained, 0.0), 0.0)
+    return np.where(n >= 6, np.sqrt(var), np.nan).astype(np.float32)
+
+
+def window_cells(window_m: float, gsd: float) -> int:
+    """An odd window of about ``window_m`` metres in cells of ``gsd`` metres, at least 3."""
+    return max(3, int(round(window_m / gsd)) // 2 * 2 + 1)
+
+
+def geometric_cues(dsm: np.ndarray, spread: np.ndarray, gsd: float) -> np.ndarray:
+    """(3, H, W) float32 :data:`CUES` of every cell (NaN where unknown).
+
+    Parameters
+    ----------
+    dsm : (H, W) float
+        Fused heights, metres, NaN unknown.
+    spread : (H, W) float
+        Interquartile range of each cell's observed heights, metres.
+    gsd : float
+        Cell size, metres.
+    """
+    residuals = [plane_residual(dsm, window_cells(w, gsd)) for w in WINDOWS_M]
+    return np.stack([*residuals, np.asarray(spread, np.float32)])
+
+
+def cue_columns(cues: np.ndarray, pixels: np.ndarray, xyz: np.ndarray, n_pixels: int,
+                grid: Grid) -> np.ndarray:  # fmt: skip
+    """(n_pixels, G) the cues of the cell each lifted pixel's point falls in,
+    :data:`UNKNOWN` for pixels not lifted or cells without the cue.
+
+    Parameters
+    ----------
+    cues : (G, H, W) float
+    pixels : (N,) int
+        Flat indices of the lifted pixels; ``xyz`` (N, 3) their points, world metres.
+    """
+    out = np.full((n_pixels, len(cues)), UNKNOWN, np.float32)
+    r, c = grid.cell_index(xyz[:, 0], xyz[:, 1], clip=True)
+    values = cues[:, r, c].T
+    out[pixels] = np.where(np.isfinite(values), values, UNKNOWN)
+    return out
