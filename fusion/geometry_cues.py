@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from workbench.raster import Grid
+from workbench.robust import plane_residual_from_moments
 
 CUES = ("plane_residual_1.25m", "plane_residual_2.25m", "height_spread")
 WINDOWS_M = (1.25, 2.25)
@@ -54,10 +55,8 @@ def plane_residual(dsm: np.ndarray, size: int) -> np.ndarray:
         cxz = box(w * cols * z) / n - mx * mz
         cyz = box(w * rows * z) / n - my * mz
         czz = box(w * z * z) / n - mz * mz
-        det = cxx * cyy - cxy * cxy
-        explained = (cyy * cxz * cxz - 2 * cxy * cxz * cyz + cxx * cyz * cyz) / det
-        var = np.maximum(czz - np.where(det > 1e-9, explained, 0.0), 0.0)
-    return np.where(n >= 6, np.sqrt(var), np.nan).astype(np.float32)
+    rms = plane_residual_from_moments(cxx, cyy, cxy, cxz, cyz, czz)
+    return np.where(n >= 6, rms, np.nan).astype(np.float32)
 
 
 def window_cells(window_m: float, gsd: float) -> int:

@@ -7,7 +7,7 @@ import rasterio
 from rasterio.crs import CRS
 
 from workbench.errors import InputError
-from workbench.meshio import read_ply, write_ply
+from workbench.meshio import read_obj, read_ply, texture_of, write_mtl, write_obj, write_ply
 from workbench.raster import Grid, read_raster, write_raster
 
 
@@ -52,6 +52,25 @@ def test_ply_roundtrip_and_open3d_reads_it(tmp_path):
     m = o3d.io.read_triangle_mesh(str(tmp_path / "m.ply"))
     assert len(m.triangles) == 4
     np.testing.assert_allclose(np.asarray(m.vertices), v)
+
+
+def test_obj_roundtrip_keeps_utm_millimetres_and_texture(tmp_path):
+    """Open3D's OBJ reader rounds to single precision (0.5 m at a northing of 5.7e6 m);
+    ours keeps what write_obj wrote (millimetres), its uvs and its texture."""
+    v = np.array([[500000.123, 5700000.456, 10.0], [500010.0, 5700000.456, 10.0],
+                  [500010.0, 5700010.0, 12.5], [500000.123, 5700010.0, 12.5]])  # fmt: skip
+    t = np.array([[0, 1, 2], [0, 2, 3]])
+    uvs = np.random.default_rng(0).random((2, 3, 2))
+    write_obj(tmp_path / "b.obj", v, t, uvs=uvs, material="m", mtllib="b.mtl")
+    write_mtl(tmp_path / "b.mtl", {"m": (255, 255, 255)}, {"m": "b.png"})
+    vertices, triangles, read_uvs = read_obj(tmp_path / "b.obj")
+    np.testing.assert_allclose(vertices, v, atol=5e-4)
+    np.testing.assert_array_equal(triangles, t)
+    np.testing.assert_allclose(read_uvs, uvs, atol=1e-6)
+    assert texture_of(tmp_path / "b.obj") == tmp_path / "b.png"
+    plain = tmp_path / "plain.obj"
+    write_obj(plain, v, t)
+    assert read_obj(plain)[2] is None and texture_of(plain) is None
 
 
 def test_cell_index_nearest_and_clipped():

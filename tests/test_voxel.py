@@ -20,7 +20,7 @@ from modeling.voxel.proxy import (
     dominant_axes,
     ellipsoid_normals,
     filter_levels,
-    fused_column_heights,
+    fused_fine_heights,
     fused_flat_levels,
     fused_ground_columns,
     fused_roof_columns,
@@ -82,6 +82,10 @@ def test_voxelise_aligns_with_the_footprint_and_grows_it():
     assert grown.sum() == 12 * 8
 
 
+def _fused_column_heights(frame, ndsm, grid):
+    return column_medians(fused_fine_heights(frame, ndsm, grid), frame.shape[:2])
+
+
 def test_fused_column_heights_follow_the_ndsm_under_each_column():
     """A 30-degree frame over a 0.25 m nDSM: a 4 m roof on the local strip x < 6 m,
     paving beyond it; unseen cells and cells off the grid decide nothing."""
@@ -94,7 +98,7 @@ def test_fused_column_heights_follow_the_ndsm_under_each_column():
     x, y = grid.xmin + (cols + 0.5) * grid.gsd, grid.ymax - (rows + 0.5) * grid.gsd
     local_x = frame.to_local_xy(np.column_stack([x.ravel(), y.ravel()]))[:, 0].reshape(x.shape)
     ndsm = np.where(local_x < frame.x0 + 6.0, 4.0, 0.3)
-    fused = fused_column_heights(frame, ndsm, grid)
+    fused = _fused_column_heights(frame, ndsm, grid)
     assert fused.shape == columns.shape
     # 10 x 6 columns of 1 m from the frame's corner: the first 6 along x are the roof
     np.testing.assert_allclose(fused[:6], 4.0)
@@ -102,10 +106,10 @@ def test_fused_column_heights_follow_the_ndsm_under_each_column():
     ground = fused_ground_columns(fused, min_height=2.0)
     assert not ground[:6].any() and ground[6:].all()
     ndsm[:, :] = np.nan
-    unseen = fused_column_heights(frame, ndsm, grid)
+    unseen = _fused_column_heights(frame, ndsm, grid)
     assert np.isnan(unseen).all() and not fused_ground_columns(unseen, 2.0).any()
     off_grid = Grid(xmin=0.0, ymax=10.0, gsd=0.25, width=40, height=40)
-    assert np.isnan(fused_column_heights(frame, np.zeros((40, 40)), off_grid)).all()
+    assert np.isnan(_fused_column_heights(frame, np.zeros((40, 40)), off_grid)).all()
 
 
 def test_fused_flat_levels_place_grow_and_merge_flat_levels():

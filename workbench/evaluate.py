@@ -277,8 +277,8 @@ def building_summary(rows: list[dict], min_area_m2: float = 50.0) -> dict:
 
 def surface_metrics(run: Run, truth: Truth, options: EvaluationOptions) -> tuple[dict, np.ndarray]:
     """Mean and maximum (Hausdorff) distances between the run's building meshes and the
-    true buildings, and
-    the distance of each model face's centre to the truth (for the error renders)."""
+    true buildings, and the distance of each model face's centre to the truth (for the
+    error renders)."""
     rng = np.random.default_rng(options.seed)
     vertices, triangles, _ = stacked_meshes(run)
     origin = truth.mesh.vertices.mean(axis=0)  # float32 ray casting near the origin

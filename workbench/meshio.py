@@ -8,6 +8,7 @@ properties. Open3D and other tools read the geometry and ignore the extras.
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import numpy as np
 
@@ -193,3 +194,44 @@ def write_mtl(
         lines.append("")
     with open(path, "w") as f:
         f.write("\n".join(lines))
+
+
+def read_obj(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Read a Wavefront OBJ's faces as triangles (polygons as fans) in double precision,
+    with their texture coordinates: Open3D's OBJ reader keeps single precision, half a
+    metre at UTM northings.
+
+    Returns
+    -------
+    vertices : (V, 3) float64
+    triangles : (T, 3) int64
+    uvs : (T, 3, 2) float64, or None unless every face has texture coordinates
+    """
+    v, vt, tris, uv_idx = [], [], [], []
+    with_uv = True
+    for line in Path(path).read_text().splitlines():
+        head, _, rest = line.partition(" ")
+        if head == "v":
+            v.append([float(x) for x in rest.split()[:3]])
+        elif head == "vt":
+            vt.append([float(x) for x in rest.split()[:2]])
+        elif head == "f":
+            corners = [c.split("/") for c in rest.split()]
+            with_uv = with_uv and all(len(c) >= 2 and c[1] for c in corners)
+            for k in range(1, len(corners) - 1):
+                tri = (corners[0], corners[k], corners[k + 1])
+                tris.append([int(c[0]) - 1 for c in tri])
+                if with_uv:
+                    uv_idx.append([int(c[1]) - 1 for c in tri])
+    uvs = np.asarray(vt, np.float64)[np.asarray(uv_idx, np.int64)] if with_uv and tris else None
+    return np.asarray(v, np.float64).reshape(-1, 3), np.asarray(tris, np.int64).reshape(-1, 3), uvs
+
+
+def texture_of(obj_path: str | os.PathLike) -> Path | None:
+    """The image (``map_Kd``) of the ``.mtl`` beside an OBJ, None when there is none."""
+    mtl = Path(obj_path).with_suffix(".mtl")
+    if not mtl.exists():
+        return None
+    maps = [line.split(None, 1)[1].strip() for line in mtl.read_text().splitlines()
+            if line.startswith("map_Kd ")]  # fmt: skip
+    return mtl.parent / maps[0] if maps else None

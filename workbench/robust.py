@@ -160,3 +160,18 @@ def vector_median(
     winners = order[first]
     out[cells[winners]] = vectors[winners]
     return out
+
+
+def plane_residual_from_moments(cxx, cyy, cxy, cxz, cyz, czz) -> np.ndarray:
+    """RMS residual of the least-squares plane z = a x + b y + c through a set of points,
+    from their central second moments (arrays of one shape: one set per element), in the
+    unit of z; where x and y are degenerate (collinear), the spread of z.
+
+    The variance of z less what the best plane explains, which is
+    ``c_z^T C_xy^-1 c_z`` for ``C_xy`` the 2 x 2 moments of x, y and ``c_z`` their
+    moments with z.
+    """
+    with np.errstate(invalid="ignore", divide="ignore"):
+        det = cxx * cyy - cxy * cxy
+        explained = (cyy * cxz * cxz - 2 * cxy * cxz * cyz + cxx * cyz * cyz) / det
+        return np.sqrt(np.maximum(czz - np.where(det > 1e-9, explained, 0.0), 0.0))

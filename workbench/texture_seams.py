@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 from .camera import Camera
 from .errors import InputError
 from .imageio import read_rgb
+from .meshio import read_obj, texture_of
 from .raycast import occluded
 
 MISSING_LAB = 100.0  # Lab units: a seam through a vertex one of the two views cannot see
@@ -317,36 +318,17 @@ class TexturedBuilding:
 
 
 def read_textured_building(obj_path: Path) -> TexturedBuilding | None:
-    """A building's OBJ with its texture (the ``map_Kd`` of its ``.mtl``), None when it
-    has no texture. Parsed here in double precision: Open3D's OBJ reader keeps single
-    precision, half a metre at UTM northings."""
-    mtl = obj_path.with_suffix(".mtl")
-    if not mtl.exists():
+    """A building's OBJ (:func:`~workbench.meshio.read_obj`, double precision) with its
+    texture (the ``map_Kd`` of its ``.mtl``), None when it has no texture."""
+    image_path = texture_of(obj_path)
+    if image_path is None:
         return None
-    maps = [line.split(None, 1)[1].strip() for line in mtl.read_text().splitlines()
-            if line.startswith("map_Kd ")]  # fmt: skip
-    if not maps:
+    vertices, triangles, uvs = read_obj(obj_path)
+    if not len(triangles):
         return None
-    v, vt, tris, uv_idx = [], [], [], []
-    for line in obj_path.read_text().splitlines():
-        head, _, rest = line.partition(" ")
-        if head == "v":
-            v.append([float(x) for x in rest.split()[:3]])
-        elif head == "vt":
-            vt.append([float(x) for x in rest.split()[:2]])
-        elif head == "f":
-            corners = [c.split("/") for c in rest.split()]
-            if any(len(c) < 2 or not c[1] for c in corners):
-                raise InputError(obj_path, "f", "a face without texture coordinates")
-            for k in range(1, len(corners) - 1):  # a polygon as a fan of triangles
-                tri = (corners[0], corners[k], corners[k + 1])
-                tris.append([int(c[0]) - 1 for c in tri])
-                uv_idx.append([int(c[1]) - 1 for c in tri])
-    if not tris:
-        return None
-    uvs = np.asarray(vt, np.float64)[np.asarray(uv_idx)]
-    image = read_rgb(obj_path.parent / maps[0])
-    return TexturedBuilding(np.asarray(v, np.float64), np.asarray(tris, np.int64), uvs, image)
+    if uvs is None:
+        raise InputError(obj_path, "f", "a face without texture coordinates")
+    return TexturedBuilding(vertices, triangles, uvs, read_rgb(image_path))
 
 
 def recomputed_seam_costs(

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from workbench.robust import group_median
+from workbench.robust import group_median, plane_residual_from_moments
 
 
 @dataclass
@@ -112,11 +112,9 @@ def plane_residuals(labels: np.ndarray, dsm: np.ndarray, n: int) -> np.ndarray:
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = [np.bincount(sp, a, n) / k for a in (x, y, z)]
         x, y, z = x - mean[0][sp], y - mean[1][sp], z - mean[2][sp]  # centred per super-pixel
-        cxx, cyy, cxy, cxz, cyz, czz = (
+        moments = (
             np.bincount(sp, a * b, n) / k
             for a, b in ((x, x), (y, y), (x, y), (x, z), (y, z), (z, z))
         )
-        det = cxx * cyy - cxy * cxy
-        explained = (cyy * cxz * cxz - 2 * cxy * cxz * cyz + cxx * cyz * cyz) / det
-        var = np.maximum(czz - np.where(det > 1e-9, explained, 0.0), 0.0)
-    return np.where(k >= 6, np.sqrt(var), np.nan)
+        rms = plane_residual_from_moments(*moments)
+    return np.where(k >= 6, rms, np.nan)

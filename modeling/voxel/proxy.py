@@ -29,7 +29,7 @@ from workbench.model_run import Building, Surface
 from workbench.raster import Grid
 from workbench.raycast import occluded
 
-from .roof_planes import RoofFaces, column_medians
+from .roof_planes import RoofFaces
 from .view_images import ViewImages
 
 _CROSS = ndimage.generate_binary_structure(2, 1)
@@ -551,13 +551,6 @@ def fused_fine_heights(frame: VoxelFrame, ndsm: np.ndarray, grid: Grid) -> np.nd
     return h.reshape(nx, ny, k, k).transpose(0, 2, 1, 3).reshape(nx * k, ny * k)
 
 
-def fused_column_heights(frame: VoxelFrame, ndsm: np.ndarray, grid: Grid) -> np.ndarray:
-    """(nx, ny) median of a fusion run's nDSM over the cells of each column, metres (NaN
-    where the fusion saw none of them, or outside its grid); see
-    :func:`fused_fine_heights`."""
-    return column_medians(fused_fine_heights(frame, ndsm, grid), frame.shape[:2])
-
-
 def fused_ground_columns(fused: np.ndarray, min_height: float) -> np.ndarray:
     """(nx, ny) bool: columns a fusion run's nDSM puts on the ground.
 
@@ -571,7 +564,8 @@ def fused_ground_columns(fused: np.ndarray, min_height: float) -> np.ndarray:
     Parameters
     ----------
     fused : (nx, ny) float
-        Fused height of each column, metres (:func:`fused_column_heights`).
+        Fused height of each column, metres (the column medians of
+        :func:`fused_fine_heights`).
     min_height : float
         Metres; lower columns are ground (the path's lowest roof level).
     """
@@ -610,7 +604,8 @@ def fused_flat_levels(
     level_heights : (K,) float
         Heights of levels 1..K, metres, increasing.
     fused : (nx, ny) float
-        Fused height of each column, metres, NaN unknown (:func:`fused_column_heights`).
+        Fused height of each column, metres, NaN unknown (the column medians of
+        :func:`fused_fine_heights`).
     domain : (nx, ny) bool
         Columns that may be building.
     flat, merge : float
