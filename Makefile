@@ -18,8 +18,8 @@ test: setup
 test-fast: setup
 	$(BIN)/python -m pytest -q -m "not slow"
 
-bench: setup
-	$(BIN)/python benchmarks/run.py
+bench: setup  # BENCH_ARGS="--preset city": the 1 km² city end to end (about an hour)
+	$(BIN)/python benchmarks/run.py $(BENCH_ARGS)
 
 lint: setup
 	$(BIN)/ruff check .

@@ -15,8 +15,11 @@ Then every registered path on ``small`` seeds 0-5 (:mod:`seeds`): the defaults w
 on seeds 0-2, seeds 3-5 are held out. Everything printed is also written to
 ``docs/benchmarks.md``, with the commit it measured.
 
+``--preset city`` runs instead the 1 km² city and small end to end, command by command
+(:mod:`city`), and writes ``docs/benchmarks-city.md``.
+
 Usage: python benchmarks/run.py [--presets tiny small] [--repeat 3] [--out bench_out]
-       [--seeds 0 1 2 3 4 5] [--doc docs/benchmarks.md]
+       [--seeds 0 1 2 3 4 5] [--doc docs/benchmarks.md] [--preset small|city]
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from city import city_run, print_city
 from crf_ceiling import crf_ceiling, print_ceiling
 from height_floor import height_floor
 from seeds import HELD_OUT, TUNED, run_seed, tables
@@ -97,8 +101,9 @@ from fusion.run import run_fusion
 workers = int(sys.argv[3]) if len(sys.argv) > 3 else None
 r = run_fusion(sys.argv[2], FusionOptions(workers=workers), scene=sys.argv[1],
                truth=sys.argv[1], overwrite=True)
-print(json.dumps({k: r[k] for k in ("stages", "observations", "observations_per_s",
-                                    "classification_mpx_per_s", "quality", "grid", "workers")}))
+print(json.dumps({k: r.get(k) for k in ("stages", "observations", "observations_per_s",
+                                        "classification_mpx_per_s", "quality", "grid",
+                                        "workers", "engine", "worker_peak_memory_mb")}))
 """
 
 READ_CHILD = r"""
@@ -125,7 +130,7 @@ def bench_fusion(scene: Path, repeat: int, work: Path) -> dict:
     res = runs[0][0]
     walls = [sum(st["wall_s"] for st in r[0]["stages"].values()) for r in runs]
     stages = stage_medians(runs)
-    # one view at a time, once: what the threads over the views buy on this machine
+    # in this process alone, once: what the workers buy on this machine
     single, _, single_peak = run_child(FUSION_CHILD, str(scene), str(work / "fusion_w1"), "1")
     return {
         "repeat": repeat,
@@ -144,6 +149,8 @@ def bench_fusion(scene: Path, repeat: int, work: Path) -> dict:
         "observations_per_s": statistics.median(r[0]["observations_per_s"] for r in runs),
         "classification_mpx_per_s": res.get("classification_mpx_per_s"),
         "peak_memory_mib": max(r[2] for r in runs),
+        "engine": res.get("engine"),
+        "worker_peak_memory_mib": res.get("worker_peak_memory_mb"),
         "grid": res["grid"],
         "quality": res["quality"],
     }
@@ -280,7 +287,13 @@ from workbench.truth import load_scene_truth
 scene, fusion, out = (Path(a) for a in sys.argv[1:4])
 variant = sys.argv[4] if len(sys.argv) > 4 else ""
 options = VoxelOptions(fusion_flat_roofs=variant != "photo", pitched_roofs=variant != "levels")
-r = write_model_run(run_voxel(scene, options, fusion_dir=fusion), out, overwrite=True)
+from workbench.engine import start_engine
+engine = start_engine(preload=("modeling.voxel.path",))  # as the command: every core
+try:
+    r = write_model_run(run_voxel(scene, options, fusion_dir=fusion, engine=engine), out,
+                        overwrite=True)
+finally:
+    engine.close()
 truth = load_scene_truth(scene)
 ev = evaluate(load_run(out), truth)
 m = ev.metrics
@@ -474,15 +487,29 @@ def main() -> int:
         help="small seeds every path is scored on (none: skip; about 4 minutes each)",
     )  # fmt: skip
     ap.add_argument(
-        "--doc", type=Path, default=Path("docs") / "benchmarks.md",
-        help="the page written with everything printed (none with --doc '')",
+        "--doc", type=Path,
+        help="the page written with everything printed (default: docs/benchmarks.md, "
+        "docs/benchmarks-city.md with --preset city; none with --doc '')",
+    )  # fmt: skip
+    ap.add_argument(
+        "--preset", choices=("small", "city"), default="small",
+        help="city: the 1 km² city end to end beside small, command by command (about an "
+        "hour, benchmarks/city.py), instead of everything above",
+    )  # fmt: skip
+    ap.add_argument(
+        "--reuse-runs", action="store_true",
+        help="with --preset city: take the runs already in OUT/small and OUT/city as they "
+        "are (their records' times) instead of running them again",
     )  # fmt: skip
     args = ap.parse_args()
+    if args.doc is None:
+        args.doc = Path("docs") / ("benchmarks-city.md" if args.preset == "city" else
+                                   "benchmarks.md")  # fmt: skip
     args.out.mkdir(parents=True, exist_ok=True)
     tee = _Tee(sys.stdout)
     sys.stdout = tee
     try:
-        results = run_benchmarks(args)
+        results = run_city(args) if args.preset == "city" else run_benchmarks(args)
     finally:
         sys.stdout = tee.stream
     (args.out / "bench.json").write_text(json.dumps(results, indent=1) + "\n")
@@ -547,6 +574,24 @@ def write_page(path: Path, results: dict, printed: str, argv: list[str]) -> None
     path.write_text("\n".join(lines))
 
 
+def run_city(args) -> dict:
+    """``--preset city``: small and city end to end, seed 0, command by command (the
+    sample scenes already in ``args.out`` are kept)."""
+    results = {"cores": os.cpu_count(), "python": sys.version.split()[0]}
+    print(f"end to end on {os.cpu_count()} cores, one run of each command")
+    for preset in ("small", "city"):
+        results[preset] = city_run(preset, 0, args.out / preset, None, reuse=True,
+                                   reuse_runs=args.reuse_runs)  # fmt: skip
+        print_city(results[preset])
+    small, city = results["small"], results["city"]
+    for stage in ("fusion", "superpixel", "voxel"):
+        a, b = small[stage], city[stage]
+        print(f"  {stage}: peak memory city / small {b['peak_mb'] / a['peak_mb']:.2f} (command)"
+              + (f", {max(b['worker_peak_mb']) / max(a['worker_peak_mb']):.2f} (workers)"
+                 if a.get("worker_peak_mb") and b.get("worker_peak_mb") else ""))  # fmt: skip
+    return results
+
+
 def run_benchmarks(args) -> dict:
     """Every measurement of the module docstring; prints as it goes."""
     results = {"cores": os.cpu_count(), "python": sys.version.split()[0], "sample": []}
@@ -604,13 +649,16 @@ def run_benchmarks(args) -> dict:
                 f"{f['read_inputs_once_median_s']:.1f} s; ratio {f['ratio_fusion_to_read']:.1f}"
             )
             one = f["one_worker"]
+            wp = f.get("worker_peak_memory_mib") or []
+            workers = ", ".join(f"{p:.0f}" for p in wp)
             print(
                 f"  {f['observations_per_s'] / 1e6:.2f} M observations fused per second; "
                 f"classification {f['classification_mpx_per_s']:.2f} Mpx/s of view pixels; "
-                f"peak memory {f['peak_memory_mib']:.0f} MiB ({f['workers']} views at once)"
+                f"peak memory {f['peak_memory_mib']:.0f} MiB in the command"
+                + (f", {workers} MiB in its {len(wp)} Dask workers" if wp else "")
             )
             print(
-                f"  one view at a time (--workers 1, one run): {one['fusion_s']:.1f} s "
+                f"  in one process (--workers 1, one run): {one['fusion_s']:.1f} s "
                 f"(x{one['fusion_s'] / f['fusion_median_s']:.2f}), "
                 f"{one['observations_per_s'] / 1e6:.2f} M observations/s, classification "
                 f"{one['classification_mpx_per_s']:.2f} Mpx/s, {one['peak_memory_mib']:.0f} MiB"

@@ -30,12 +30,27 @@ class DsmSurface:
     """
 
     def __init__(self, dsm: np.ndarray, grid: Grid):
-        filled = push_pull_fill(dsm, np.isfinite(dsm))
-        X, Y = grid.cell_centers()
+        self.filled = push_pull_fill(dsm, np.isfinite(dsm))
+        self.grid = grid
         x0, y0, x1, y1 = grid.bounds
-        self.origin = np.array([(x0 + x1) / 2, (y0 + y1) / 2, float(np.nanmedian(filled))])
+        self.origin = np.array([(x0 + x1) / 2, (y0 + y1) / 2, float(np.nanmedian(self.filled))])
+        self._scene = None
+
+    def __getstate__(self):  # the ray-casting scene is rebuilt where it is used
+        return {**self.__dict__, "_scene": None}
+
+    @property
+    def scene(self):
+        """The Open3D scene of the surface, built on first use."""
+        if self._scene is None:
+            self._scene = self._build()
+        return self._scene
+
+    def _build(self):
+        X, Y = self.grid.cell_centers()
+        filled = self.filled
         verts = np.column_stack([X.ravel(), Y.ravel(), filled.ravel()]) - self.origin
-        H, W = grid.shape
+        H, W = self.grid.shape
         j, i = np.meshgrid(np.arange(W - 1), np.arange(H - 1))
         v00 = (i * W + j).ravel()
         tris = np.concatenate(
@@ -44,7 +59,7 @@ class DsmSurface:
                 np.column_stack([v00 + 1, v00 + W, v00 + W + 1]),
             ]
         )
-        self.scene = raycasting_scene(verts, tris)
+        return raycasting_scene(verts, tris)
 
     def depth_map(self, camera: Camera, step: int = 1) -> np.ndarray:
         """(H, W) z-depth of the surface seen by every pixel, NaN where the ray misses."""

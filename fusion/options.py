@@ -30,7 +30,7 @@ class FusionOptions:
         None, "area to fuse, world units (XMIN YMIN XMAX YMAX)", kind="any", nargs=4,
         auto="the scene's bounds",
     )  # fmt: skip
-    tile: int = option(1024, "cells per tile side", cli=False)
+    tile: int = option(512, "cells per tile side", cli=False)
     tolerance: float = option(
         1.0, "visibility band behind the nearest surface of a cell", unit="m", cli=False
     )
@@ -68,6 +68,7 @@ class FusionOptions:
         0.5, "largest share of the machine's memory the fusion plans to use", cli=False
     )
     workers: int | None = option(
-        None, "views processed at once, in threads (the products do not depend on it)",
+        None, "views and tiles processed at once: worker processes of a local Dask cluster "
+        "(1: in this process; the products do not depend on it)",
         auto="every core",
     )  # fmt: skip

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from workbench.atomic import atomic_output_dir, check_output_dir
+from workbench.engine import engine_for, run_signature
 from workbench.errors import WorkbenchError
 from workbench.metrics import classification, colour_mae, height_errors
 from workbench.options import options_record
@@ -33,6 +34,8 @@ def run_fusion(
     save_classifier_to: Path | None = None,
     overwrite: bool = False,
     command: list[str] | None = None,
+    scheduler: str | None = None,
+    resume: bool = False,
 ) -> dict:
     """Fuse a scene's views (or a point cloud) and write the run folder ``out``.
 
@@ -51,6 +54,11 @@ def run_fusion(
         Where to save the trained per-view forest.
     command : list of str, optional
         The command line that asked for the run, for its record.
+    scheduler : str, optional
+        A Dask scheduler's address: its workers run the views' and tiles' tasks
+        (default: a local cluster of ``options.workers`` processes, or this process for 1).
+    resume : bool
+        Keep the tasks an interrupted run of the same fusion finished.
 
     Returns
     -------
@@ -65,11 +73,21 @@ def run_fusion(
         from .points import fuse_points
 
         result, crs, inputs = fuse_points(points, options, crs=crs)
-    else:
-        loaded = load_scene(scene)
-        result = fuse_views(loaded, options)
-        crs = loaded.crs
-        inputs = {"scene": str(loaded.scene_json), "views": len(loaded.views)}
+        return _write(out, result, crs, inputs, options, truth, save_classifier_to, overwrite,
+                      command, t0)  # fmt: skip
+    loaded = load_scene(scene)
+    inputs = {"scene": str(loaded.scene_json), "views": len(loaded.views)}
+    signature = run_signature(options, {"scene": scene})
+    with engine_for(out, signature, workers=options.workers, scheduler=scheduler,
+                    resume=resume, preload=("fusion.scene_fusion",)) as engine:  # fmt: skip
+        result = fuse_views(loaded, options, engine)
+        return _write(out, result, loaded.crs, inputs, options, truth, save_classifier_to,
+                      overwrite, command, t0)  # fmt: skip
+
+
+def _write(out, result, crs, inputs, options, truth, save_classifier_to, overwrite, command, t0):
+    """The run's record (scored against ``truth`` if given), and the run folder written
+    atomically; returns the record."""
     g = result.grid
     record = {
         "provenance": provenance(command),

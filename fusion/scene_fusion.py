@@ -24,28 +24,31 @@ Passes over the views (each reads a view's files once):
    (:func:`~fusion.crowns.crown_tops`).
 
 The ortho grid is processed in tiles: a pass keeps only the current tile's
-observations, so memory follows the tile size, not the area. Every pass works on
-several views at once in threads (NumPy and OpenCV release the GIL), as many as the
-cores and memory allow (:func:`view_workers`); results are gathered in view order, so
-the products do not depend on the number of workers.
+observations, so a worker's memory follows the tile size, not the area. Every pass is a
+list of tasks, a view or a tile each, run by an engine (:mod:`workbench.engine`: a Dask
+cluster, or threads of this process, as many as the cores and memory allow,
+:func:`view_workers`); results are gathered in task order, so the products do not depend
+on the engine or the number of workers.
 """
 
 from __future__ import annotations
 
+import copy
 import logging
 import os
 import tempfile
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from workbench.engine import Engine, ThreadEngine
 from workbench.errors import InputError, WorkbenchError
-from workbench.parallel import default_workers, ordered_map
-from workbench.progress import progress
+from workbench.parallel import default_workers
 from workbench.raster import Grid, read_raster
-from workbench.records import StageTimer
+from workbench.records import StageTimer, peak_memory_mb
 from workbench.robust import (
     group_count,
     group_mean,
@@ -237,13 +240,6 @@ def top_surface_votes(
     return preferred(cells, reliable & above, len(top)) & above
 
 
-def _touches(box, tile) -> bool:
-    if box is None:
-        return False
-    r0, c0, h, w = tile
-    return not (box[2] < r0 or box[0] >= r0 + h or box[3] < c0 or box[1] >= c0 + w)
-
-
 def elevation_image(obs_pixels, xyz, shape, dtm: np.ndarray, grid: Grid) -> np.ndarray:
     """(H, W) elevation above the DTM of the surface each pixel sees, metres.
 
@@ -287,7 +283,9 @@ def view_features(
     return feats, pixels, xyz
 
 
-def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
+def fuse_views(
+    scene: Scene, opts: FusionOptions | None = None, engine: Engine | None = None
+) -> FusionResult:
     """Fuse the views of a scene into ortho rasters.
 
     Views with depth maps are lifted through them; views without one are skipped
@@ -298,6 +296,10 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
     ----------
     scene : Scene
     opts : FusionOptions
+    engine : Engine, optional
+        Runs the views' and tiles' tasks (:mod:`workbench.engine`); its store keeps the
+        finished ones for ``--resume``. Default: threads of this process
+        (:func:`view_workers`), nothing kept.
 
     Returns
     -------
@@ -309,31 +311,30 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
     with timer.stage("grid"):
         grid = default_grid(scene, opts)
         check_memory(grid, opts, len(views))
-        workers = view_workers(views, opts)
-    with tempfile.TemporaryDirectory(prefix="fusion-") as folder:
-        cache = ObservationCache(Path(folder))
+        engine = engine or ThreadEngine(view_workers(views, opts))
+    with _scratch(engine) as folder:
+        cache = ObservationCache(folder, grid, opts.tile)
+        shared_views = engine.share(views)
         with timer.stage("observations"):
-            cache.observe(views, grid, opts.tolerance, workers)
-        tiles = list(_tiles(grid, opts.tile))
+            cache.observe(engine, shared_views, len(views), opts.tolerance)
         with timer.stage("heights"):
-            h = fused_heights(cache, grid, tiles, workers)
+            h = fused_heights(cache, engine)
         with timer.stage("ground"):
             dsm, dtm, dtm_full, spikes, holes = _ground(h, grid, mode, given)
-        forest, class_source, surface, cues = None, None, None, None
+        ctx = None
         if opts.classifier is not None or scene.training_labels is not None:
             # the surface that gives shadowed pixels their elevation cue: where no view saw
             # the top surface (beside towers, in their shadows) the ground is the better guess
             surface = DsmSurface(np.where(np.isfinite(dsm), dsm, dtm_full), grid)
             cues = geometric_cues(dsm, h.spread, grid.gsd) if opts.geometry_cues else None
+            ctx = ViewContext(views, grid, opts, dsm, dtm, surface, cues)
         with timer.stage("training"):
-            forest, class_source = _forest(
-                scene, views, dsm, dtm, grid, opts, surface, cues, workers
-            )
+            forest, class_source = _forest(scene, ctx, opts, engine)
         with timer.stage("classification"):
-            n_px = classify_views(cache, views, forest, dtm, grid, opts, surface, cues, workers)
+            n_px = classify_views(cache, ctx, forest, engine)
         with timer.stage("colour_and_class"):
-            c = colours_and_classes(cache, views, forest, dsm, h, grid, tiles, mode, opts,
-                                    workers)  # fmt: skip
+            c = colours_and_classes(cache, shared_views, forest is not None, dsm, h, mode, opts,
+                                    engine)  # fmt: skip
     with timer.stage("finish"):
         dsm, ndsm, class_prob, ortho, count16, crowns, class_source = _finish(
             c, h, dsm, dtm, spikes, holes, forest, class_source, grid, mode, opts
@@ -342,7 +343,9 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
     record = {
         "mode": mode,
         "views": {"used": len(views), "skipped_no_depth": len(skipped), "skipped_ids": skipped},
-        "workers": workers,
+        "workers": engine.workers,
+        **engine.describe(),
+        "tiles": len(cache.tiles),
         "observations": int(h.n_obs),
         "class_source": class_source,
         "filled_cells": int(holes.sum()),
@@ -351,6 +354,7 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
         "crown_sightings_raised": int(np.isfinite(c.crown_z).sum()),
         "stages": timer.stages,
         "observations_per_s": round(h.n_obs / max(observe_s, 1e-9)),
+        "peak_memory_mb": round(peak_memory_mb(), 1),
     }
     if forest is not None and timer.stages["classification"]["wall_s"] > 0:
         record["classification_mpx_per_s"] = round(
@@ -358,6 +362,42 @@ def fuse_views(scene: Scene, opts: FusionOptions | None = None) -> FusionResult:
         )
     ablation = {"dsm_mean": h.dsm_mean, "ortho_mean": c.ortho_mean}
     return FusionResult(grid, ortho, dsm, dtm, ndsm, class_prob, count16, ablation, record, forest)
+
+
+@contextmanager
+def _scratch(engine: Engine):
+    """The folder of the views' observations and probabilities: in the engine's store
+    (kept for --resume; on a cluster, on a file system every worker sees), else a
+    temporary folder of this machine (workers on it only)."""
+    if engine.store is not None:
+        yield engine.store.scratch("views")
+        return
+    with tempfile.TemporaryDirectory(prefix="fusion-") as folder:
+        yield Path(folder)
+
+
+@dataclass
+class ViewContext:
+    """What a view's features need, shared by the tasks of the training and the
+    classification: the views, the grid, the options, the fused DSM and DTM, the surface
+    that fills unmatched pixels, the geometric cues (or None), and the forest once
+    trained."""
+
+    views: list
+    grid: Grid
+    opts: FusionOptions
+    dsm: np.ndarray
+    dtm: np.ndarray
+    surface: DsmSurface
+    cues: np.ndarray | None
+    forest: object = None
+
+    def features(self, v) -> tuple:
+        """The view's image, depth map, Sigma Points (with the cues), pixels and points."""
+        rgb, depth = v.read_image(), v.read_depth()
+        feats, pixels, xyz = view_features(v, rgb, depth, self.dtm, self.grid, self.opts.patch,
+                                           self.surface, self.cues)  # fmt: skip
+        return depth, feats, pixels, xyz
 
 
 def _depth_views(scene: Scene, opts: FusionOptions, timer: StageTimer):
@@ -389,47 +429,62 @@ def _depth_views(scene: Scene, opts: FusionOptions, timer: StageTimer):
 
 class ObservationCache:
     """Each view observed once (:func:`~fusion.observations.observe`), its visible
-    observations kept on disk for the passes over the tiles.
+    observations kept on disk, split by tile, for the passes over the tiles.
 
-    Per view: flat cell index (int64), height (float32), height weight (float32),
-    top-surface flag (bool) and flat pixel index (int64); and the box of cells it reaches.
+    Per view and tile, ``<view>_<tile>.npz``: the cell index inside the tile (int32),
+    height (float32), height weight (float32), top-surface flag (bool) and flat pixel
+    index in the view (int32). ``present[i]`` lists the tiles view ``i`` reaches.
     """
 
     FIELDS = ("cells", "z", "weight", "top", "pixels")
 
-    def __init__(self, folder: Path):
-        self.folder = folder
-        self.boxes: list[tuple | None] = []
+    def __init__(self, folder: Path, grid: Grid, tile: int):
+        self.folder, self.grid, self.tile = folder, grid, tile
+        self.tiles = list(_tiles(grid, tile))
+        self.present: list[list[int]] = []
 
-    def observe(self, views: list, grid: Grid, tolerance: float, workers: int) -> None:
-        def one(i):
-            v = views[i]
-            obs = observe(v.camera, v.read_depth(), grid, tolerance=tolerance)
-            vis = obs.visible
-            fields = (obs.cells[vis], obs.xyz[vis, 2].astype(np.float32),
-                      obs.height_weight[vis], obs.top_surface[vis], obs.pixels[vis])  # fmt: skip
-            for name, data in zip(self.FIELDS, fields, strict=True):
-                np.save(self.folder / f"{i}_{name}.npy", data)
-            if not len(fields[0]):
-                return None
-            r, c = np.divmod(fields[0], grid.width)
-            return (r.min(), c.min(), r.max(), c.max())
+    def observe(self, engine: Engine, views, n_views: int, tolerance: float) -> None:
+        """Observe every view (a task each); ``views`` is the engine's handle on them."""
+        self.present = list(engine.map(observe_view, range(n_views), views, self, tolerance,
+                                       stage="observations"))  # fmt: skip
 
-        self.boxes = list(ordered_map(one, range(len(views)), workers))
+    def tile_of(self, r: np.ndarray, c: np.ndarray) -> np.ndarray:
+        n_cols = -(-self.grid.width // self.tile)
+        return (r // self.tile) * n_cols + c // self.tile
 
-    def touching(self, tile) -> list[int]:
-        """The views with observations in ``tile``, in view order."""
-        return [i for i, box in enumerate(self.boxes) if _touches(box, tile)]
+    def path(self, i: int, t: int) -> Path:
+        return self.folder / f"{i}_{t}.npz"
 
-    def in_tile(self, i: int, grid: Grid, tile, *names: str) -> tuple:
-        """View ``i``'s observations in ``tile``: their cell index inside the tile, then
-        the fields ``names`` (a subset of ``FIELDS`` but "cells")."""
-        r0, c0, h, w = tile
-        cells = np.load(self.folder / f"{i}_cells.npy")
-        r, c = np.divmod(cells, grid.width)
-        sel = np.flatnonzero((r >= r0) & (r < r0 + h) & (c >= c0) & (c < c0 + w))
-        local = (r[sel] - r0) * w + (c[sel] - c0)
-        return (local, *(np.load(self.folder / f"{i}_{n}.npy")[sel] for n in names))
+    def touching(self, t: int) -> list[int]:
+        """The views with observations in tile ``t``, in view order."""
+        return [i for i, tiles in enumerate(self.present) if t in tiles]
+
+    def in_tile(self, i: int, t: int, *names: str) -> tuple:
+        """View ``i``'s observations in tile ``t``: the fields ``names``."""
+        with np.load(self.path(i, t)) as f:
+            return tuple(f[n].astype(np.int64) if n in ("cells", "pixels") else f[n] for n in names)
+
+
+def observe_view(i: int, views: list, cache: ObservationCache, tolerance: float) -> list[int]:
+    """Task: observe view ``i`` and write its visible observations per tile; returns the
+    tiles it reaches."""
+    v, grid = views[i], cache.grid
+    obs = observe(v.camera, v.read_depth(), grid, tolerance=tolerance)
+    vis = obs.visible
+    r, c = np.divmod(obs.cells[vis], grid.width)
+    tile = cache.tile_of(r, c)
+    order = np.argsort(tile, kind="stable")  # keeps the view's order within a cell
+    fields = {"z": obs.xyz[vis, 2].astype(np.float32), "weight": obs.height_weight[vis],
+              "top": obs.top_surface[vis], "pixels": obs.pixels[vis].astype(np.int32)}  # fmt: skip
+    tile, r, c = tile[order], r[order], c[order]
+    fields = {k: f[order] for k, f in fields.items()}
+    present, starts = np.unique(tile, return_index=True)
+    ends = np.append(starts[1:], len(tile))[: len(starts)]  # none for a view that sees nothing
+    for t, a, b in zip(present.tolist(), starts, ends, strict=True):
+        r0, c0, _, w = cache.tiles[t]
+        cells = ((r[a:b] - r0) * w + (c[a:b] - c0)).astype(np.int32)
+        np.savez(cache.path(i, t), cells=cells, **{k: f[a:b] for k, f in fields.items()})
+    return present.tolist()
 
 
 @dataclass
@@ -446,34 +501,45 @@ class FusedHeights:
     n_obs: int
 
 
-def fused_heights(cache: ObservationCache, grid: Grid, tiles: list, workers: int) -> FusedHeights:
-    """Section 3's median height per cell (weighted toward steep rays), tile by tile;
+def fused_heights(cache: ObservationCache, engine: Engine) -> FusedHeights:
+    """Section 3's median height per cell (weighted toward steep rays), a task per tile;
     the upper quantile is kept for :func:`~fusion.crowns.crown_tops`, which needs the
     classes first, and the interquartile range for the classifier's geometric cues."""
+    grid = cache.grid
     out = FusedHeights(
         *(np.full(grid.shape, np.nan, np.float32) for _ in range(4)),
         np.zeros(grid.shape, np.int32), 0,
     )  # fmt: skip
-    for tile in progress(tiles, "heights (tiles)"):
-        r0, c0, h, w = tile
+    results = engine.map(tile_heights, range(len(cache.tiles)), cache, stage="heights")
+    for (r0, c0, h, w), (median, mean, upper, spread, count, n) in zip(
+        cache.tiles, results, strict=True
+    ):
         window = (slice(r0, r0 + h), slice(c0, c0 + w))
-        parts = list(ordered_map(lambda i, t=tile: cache.in_tile(i, grid, t, "z", "weight", "top"),
-                                 cache.touching(tile), workers))  # fmt: skip
-        cells, z, weight, rel = (
-            _joined([p[k] for p in parts], dtype)
-            for k, dtype in enumerate((np.int64, np.float32, np.float32, bool))
-        )
-        cells, z, weight = cells[rel], z[rel], weight[rel]
-        out.n_obs += len(z)
-        # the median, the quartiles and the upper quantile from one sort
-        q1, median, q3, upper = group_weighted_quantile(
-            cells, z, weight, h * w, (0.25, 0.5, 0.75, CROWN_QUANTILE)
-        ).reshape(4, h, w)
-        out.dsm[window], out.dsm_upper[window] = median, upper
-        out.spread[window] = q3 - q1
-        out.dsm_mean[window] = group_mean(cells, z, h * w).reshape(h, w)
-        out.count[window] = group_count(cells, h * w).reshape(h, w)
+        out.dsm[window], out.dsm_mean[window], out.dsm_upper[window] = median, mean, upper
+        out.spread[window], out.count[window] = spread, count
+        out.n_obs += n
     return out
+
+
+def tile_heights(t: int, cache: ObservationCache) -> tuple:
+    """Task: tile ``t``'s (h, w) median, mean, upper quantile and interquartile range of
+    the trusted heights, their count, and the number of observations fused."""
+    _, _, h, w = cache.tiles[t]
+    parts = [cache.in_tile(i, t, "cells", "z", "weight", "top") for i in cache.touching(t)]
+    cells, z, weight, rel = (
+        _joined([p[k] for p in parts], dtype)
+        for k, dtype in enumerate((np.int64, np.float32, np.float32, bool))
+    )
+    cells, z, weight = cells[rel], z[rel], weight[rel]
+    # the median, the quartiles and the upper quantile from one sort
+    q1, median, q3, upper = group_weighted_quantile(
+        cells, z, weight, h * w, (0.25, 0.5, 0.75, CROWN_QUANTILE)
+    ).reshape(4, h, w)
+    mean = group_mean(cells, z, h * w).reshape(h, w)
+    count = group_count(cells, h * w).reshape(h, w).astype(np.int32)
+    f32 = np.float32
+    return median.astype(f32), mean.astype(f32), upper.astype(f32), (q3 - q1).astype(f32), \
+        count, len(z)  # fmt: skip
 
 
 def _ground(h: FusedHeights, grid: Grid, mode: str, given):
@@ -494,7 +560,7 @@ def _ground(h: FusedHeights, grid: Grid, mode: str, given):
     return dsm, dtm, dtm_full, spikes, holes
 
 
-def _forest(scene: Scene, views, dsm, dtm, grid: Grid, opts: FusionOptions, surface, cues, workers):
+def _forest(scene: Scene, ctx: ViewContext | None, opts: FusionOptions, engine: Engine):
     """Section 4's per-view forest, loaded or trained on the scene's strokes (None
     without either), and a sentence on where it came from."""
     if opts.classifier is not None:
@@ -502,9 +568,7 @@ def _forest(scene: Scene, views, dsm, dtm, grid: Grid, opts: FusionOptions, surf
         return forest, f"classifier file {opts.classifier}"
     if scene.training_labels is None:
         return None, None
-    forest, n_train, n_dropped = _train(
-        views, scene.training_labels, dsm, dtm, grid, opts, surface, cues, workers
-    )
+    forest, n_train, n_dropped = _train(ctx, scene.training_labels, engine)
     name = Path(scene.training_labels).name
     return forest, (
         f"forest trained on {n_train} pixels of {name} projected into the views "
@@ -512,27 +576,29 @@ def _forest(scene: Scene, views, dsm, dtm, grid: Grid, opts: FusionOptions, surf
     )
 
 
-def classify_views(
-    cache: ObservationCache, views, forest, dtm, grid: Grid, opts, surface, cues, workers: int
-) -> int:
-    """Each view's class probabilities per pixel (uint8, 0-255), kept in the cache;
-    returns the number of pixels classified."""
+def classify_views(cache: ObservationCache, ctx: ViewContext | None, forest,
+                   engine: Engine) -> int:  # fmt: skip
+    """Each view's class probabilities per pixel (uint8, 0-255), kept beside the cache
+    (a task per view); returns the number of pixels classified."""
     if forest is None:
         return 0
+    ctx.forest = forest
+    if engine.workers > 1:  # a task per core: the forest's own threads would oversubscribe
+        ctx.forest = copy.copy(forest)
+        ctx.forest.set_params(n_jobs=1)
+    shared = engine.share(ctx)
+    return sum(engine.map(classify_view, range(len(ctx.views)), shared, cache.folder,
+                          stage="classification"))  # fmt: skip
 
-    def classify(v):
-        rgb, depth = v.read_image(), v.read_depth()
-        feats, pixels, _ = view_features(v, rgb, depth, dtm, grid, opts.patch, surface, cues)
-        probs = np.zeros((depth.size, len(CLASSES)), np.uint8)
-        probs[pixels] = np.round(predict_proba(forest, feats[pixels]) * 255).astype(np.uint8)
-        return probs, len(pixels)
 
-    n_px = 0
-    classified = ordered_map(classify, views, workers)
-    for i, (probs, n) in enumerate(progress(classified, "classifying views", total=len(views))):
-        n_px += n
-        np.save(cache.folder / f"{i}_probs.npy", probs)
-    return n_px
+def classify_view(i: int, ctx: ViewContext, folder: Path) -> int:
+    """Task: view ``i``'s class probabilities, (H*W, 4) uint8, to ``folder/<i>_probs.npy``;
+    returns the number of pixels classified."""
+    depth, feats, pixels, _ = ctx.features(ctx.views[i])
+    probs = np.zeros((depth.size, len(CLASSES)), np.uint8)
+    probs[pixels] = np.round(predict_proba(ctx.forest, feats[pixels]) * 255).astype(np.uint8)
+    np.save(folder / f"{i}_probs.npy", probs)
+    return len(pixels)
 
 
 @dataclass
@@ -549,60 +615,88 @@ class FusedColours:
 def colours_and_classes(
     cache: ObservationCache,
     views,
-    forest,
-    dsm,
+    with_probs: bool,
+    dsm: np.ndarray,
     h: FusedHeights,
-    grid: Grid,
-    tiles,
     mode: str,
-    opts,
-    workers: int,
+    opts: FusionOptions,
+    engine: Engine,
 ) -> FusedColours:
     """Per cell, the vector median colour and the accumulated class probabilities of the
-    top surface's observations; the crown sightings (not in the paper) on the way."""
+    top surface's observations; the crown sightings (not in the paper) on the way. A task
+    per tile; ``views`` is the engine's handle on the views."""
+    grid = cache.grid
     out = FusedColours(
         np.zeros(grid.shape + (3,), np.uint8), np.full(grid.shape + (3,), np.nan, np.float32),
         np.zeros((len(CLASSES),) + grid.shape, np.float32),
         np.full(grid.shape, np.nan, np.float32),
     )  # fmt: skip
-    for tile in progress(tiles, "colour and classes (tiles)"):
-        r0, c0, th, tw = tile
-        window, n = (slice(r0, r0 + th), slice(c0, c0 + tw)), th * tw
-
-        def tile_colours(i, tile=tile):
-            local, top, px, z, weight = cache.in_tile(i, grid, tile, "top", "pixels", "z",
-                                                      "weight")  # fmt: skip
-            colour = views[i].read_image().reshape(-1, 3)[px]
-            prob = np.load(cache.folder / f"{i}_probs.npy")[px] if forest is not None else None
-            return local, top, colour, prob, z, weight
-
-        parts = list(ordered_map(tile_colours, cache.touching(tile), workers))
-        cells = _joined([p[0] for p in parts], np.int64)
-        rel = _joined([p[1] for p in parts], bool)
-        colours = _joined([p[2] for p in parts], np.uint8, (3,))
-        probs = None
-        if forest is not None:
-            probs = _joined([p[3] for p in parts], np.uint8, (len(CLASSES),))
-        z, weight = (_joined([p[k] for p in parts], np.float32) for k in (4, 5))
-        del parts  # the views' own copies, once joined: this pass sets the peak
-        top_z = h.dsm_upper[window].ravel()
-        if probs is not None and mode == "depth maps":
-            tree = probs[:, CLASSES.index(3)] / np.float32(255)
-            crown = crown_sightings(cells, z, weight, tree, dsm[window].ravel())
-            out.crown_z[window] = crown.reshape(th, tw)
-            # the crown, not the ground seen beneath it, votes for the cell
-            top_z = np.where(np.isfinite(crown), crown, top_z)
-        use = top_surface_votes(cells, z, rel, top_z)
-        cells, colours = cells[use], colours[use]
-        out.ortho[window] = vector_median(
-            cells, colours, n, n_projections=opts.projections, seed=opts.seed
-        ).reshape(th, tw, 3)
-        out.ortho_mean[window] = group_mean(cells, colours.astype(np.float32), n).reshape(th, tw, 3)
-        if probs is not None:
-            p = probs[use].astype(np.float32) / 255.0
-            for k in range(len(CLASSES)):
-                out.prob_sum[k][window] = np.bincount(cells, p[:, k], minlength=n).reshape(th, tw)
+    windows = [(slice(r0, r0 + th), slice(c0, c0 + tw)) for r0, c0, th, tw in cache.tiles]
+    # each task takes its tile's DSM and top surface along: no whole grid is sent
+    items = [(t, dsm[w], h.dsm_upper[w]) for t, w in enumerate(windows)]
+    setting = TileColouring(with_probs, mode == "depth maps", opts.projections, opts.seed)
+    results = engine.map(tile_colours, items, views, cache, setting, stage="colour_and_class")
+    for window, (ortho, ortho_mean, prob_sum, crown_z) in zip(windows, results, strict=True):
+        out.ortho[window], out.ortho_mean[window] = ortho, ortho_mean
+        out.crown_z[window] = crown_z
+        if prob_sum is not None:
+            out.prob_sum[(slice(None), *window)] = prob_sum
     return out
+
+
+@dataclass(frozen=True)
+class TileColouring:
+    """How :func:`tile_colours` works: with the views' class probabilities or not, with
+    the crown sightings (views with depth maps) or not, and the vector median's
+    projections and seed."""
+
+    with_probs: bool
+    crown_sightings: bool
+    projections: int
+    seed: int
+
+
+def tile_colours(item: tuple, views: list, cache: ObservationCache, how: TileColouring):
+    """Task: tile ``item[0]``'s (h, w, 3) vector median and mean colour, (4, h, w)
+    accumulated class probabilities (None without them) and (h, w) crown sightings'
+    height, given the tile's (h, w) DSM ``item[1]`` and upper quantile ``item[2]``."""
+    t, dsm, upper = item
+    _, _, th, tw = cache.tiles[t]
+    n = th * tw
+    parts = []
+    for i in cache.touching(t):
+        local, top, px, z, weight = cache.in_tile(i, t, "cells", "top", "pixels", "z", "weight")
+        colour = views[i].read_image().reshape(-1, 3)[px]
+        prob = np.load(cache.folder / f"{i}_probs.npy", mmap_mode="r")[px] if how.with_probs \
+            else None  # fmt: skip
+        parts.append((local, top, colour, prob, z, weight))
+    cells = _joined([p[0] for p in parts], np.int64)
+    rel = _joined([p[1] for p in parts], bool)
+    colours = _joined([p[2] for p in parts], np.uint8, (3,))
+    probs = _joined([p[3] for p in parts], np.uint8, (len(CLASSES),)) if how.with_probs else None
+    z, weight = (_joined([p[k] for p in parts], np.float32) for k in (4, 5))
+    del parts  # the views' own copies, once joined: this pass sets the peak
+    top_z = upper.ravel()
+    crown_z = np.full((th, tw), np.nan, np.float32)
+    if probs is not None and how.crown_sightings:
+        tree = probs[:, CLASSES.index(3)] / np.float32(255)
+        crown = crown_sightings(cells, z, weight, tree, dsm.ravel())
+        crown_z = crown.reshape(th, tw).astype(np.float32)
+        # the crown, not the ground seen beneath it, votes for the cell
+        top_z = np.where(np.isfinite(crown), crown, top_z)
+    use = top_surface_votes(cells, z, rel, top_z)
+    cells, colours = cells[use], colours[use]
+    ortho = vector_median(cells, colours, n, n_projections=how.projections, seed=how.seed).reshape(
+        th, tw, 3
+    )
+    ortho_mean = group_mean(cells, colours.astype(np.float32), n).reshape(th, tw, 3)
+    prob_sum = None
+    if probs is not None:
+        p = probs[use].astype(np.float32) / 255.0
+        prob_sum = np.stack(
+            [np.bincount(cells, p[:, k], minlength=n).reshape(th, tw) for k in range(len(CLASSES))]
+        ).astype(np.float32)
+    return ortho, ortho_mean.astype(np.float32), prob_sum, crown_z
 
 
 def _finish(
@@ -691,55 +785,35 @@ def _fill_small_rgb(ortho, seen, holes):
     return out
 
 
-def _train(
-    views, labels_path, dsm, dtm, grid: Grid, opts: FusionOptions, surface=None, cues=None,
-    workers=1,
-):  # fmt: skip
+def _train(ctx: ViewContext, labels_path, engine: Engine):
     """Train the forest on the training strokes projected into the views.
 
     A stroke labels the top surface seen from above: a view pixel inherits its label
     only where the pixel's point lies on that surface (within the visibility
     tolerance of the fused DSM), not on a facade or an edge's rounded depth, and only
     where the patch's elevation agrees with the class (:func:`elevation_consistent`).
+    A task per view returns its labelled pixels; the samples are drawn here, in view
+    order, so that the draw does not depend on the engine.
 
     Returns
     -------
     forest, number of training pixels, number of labelled pixels dropped by elevation
     """
+    opts = ctx.opts
     data, label_grid, _ = read_raster(labels_path, field="training_labels")
-    labels = data[0]
+    labels = (data[0], label_grid)
     rng = np.random.default_rng(opts.seed)
     # a spread subset of views gives as varied samples as all of them, in less time
-    step = max(1, int(np.ceil(len(views) / opts.training_views)))
-    views = views[::step]
-    per_view = max(200, opts.samples_per_class // len(views))
+    step = max(1, int(np.ceil(len(ctx.views) / opts.training_views)))
+    chosen_views = list(range(0, len(ctx.views), step))
+    per_view = max(200, opts.samples_per_class // len(chosen_views))
     X, y, n_dropped = [], [], 0
-
-    def labelled(v):
-        """The view's labelled pixels: their Sigma Points and labels, and the number of
-        labelled pixels dropped by elevation."""
-        rgb, depth = v.read_image(), v.read_depth()
-        feats, pixels, xyz = view_features(v, rgb, depth, dtm, grid, opts.patch, surface, cues)
-        r, c = label_grid.cell_index(xyz[:, 0], xyz[:, 1])
-        inside = label_grid.contains(r, c)
-        lab = np.zeros(len(pixels), np.uint8)
-        lab[inside] = labels[r[inside], c[inside]]
-        gr, gc = grid.cell_index(xyz[:, 0], xyz[:, 1], clip=True)
-        with np.errstate(invalid="ignore"):
-            on_top = np.abs(xyz[:, 2] - dsm[gr, gc]) < opts.tolerance
-        lab[~on_top] = 0
-        agree = elevation_consistent(lab, feats[pixels, MEAN_ELEVATION], opts.label_split)
-        lab[~agree] = 0
-        keep = np.flatnonzero(lab > 0)
-        return feats[pixels[keep]], lab[keep], int((~agree).sum())
-
-    for feats, lab, dropped in progress(
-        ordered_map(labelled, views, workers), "training samples", total=len(views)
-    ):
+    shared = engine.share(ctx)
+    for feats, lab, dropped in engine.map(labelled_pixels, chosen_views, shared, labels,
+                                          stage="training"):  # fmt: skip
         n_dropped += dropped
         if len(lab) == 0:
             continue
-        # drawn here, in view order, so that the draw does not depend on the workers
         chosen = []
         for k in CLASSES:
             idx = np.flatnonzero(lab == k)
@@ -753,3 +827,22 @@ def _train(
     X, y = np.concatenate(X), np.concatenate(y)
     forest = train_forest(X, y, n_trees=opts.n_trees, max_depth=opts.max_depth, seed=opts.seed)
     return forest, len(y), n_dropped
+
+
+def labelled_pixels(i: int, ctx: ViewContext, labels: tuple) -> tuple:
+    """Task: view ``i``'s labelled pixels: their features and labels, and the number of
+    labelled pixels dropped by elevation. ``labels`` is (label raster, its grid)."""
+    label_raster, label_grid = labels
+    _, feats, pixels, xyz = ctx.features(ctx.views[i])
+    r, c = label_grid.cell_index(xyz[:, 0], xyz[:, 1])
+    inside = label_grid.contains(r, c)
+    lab = np.zeros(len(pixels), np.uint8)
+    lab[inside] = label_raster[r[inside], c[inside]]
+    gr, gc = ctx.grid.cell_index(xyz[:, 0], xyz[:, 1], clip=True)
+    with np.errstate(invalid="ignore"):
+        on_top = np.abs(xyz[:, 2] - ctx.dsm[gr, gc]) < ctx.opts.tolerance
+    lab[~on_top] = 0
+    agree = elevation_consistent(lab, feats[pixels, MEAN_ELEVATION], ctx.opts.label_split)
+    lab[~agree] = 0
+    keep = np.flatnonzero(lab > 0)
+    return feats[pixels[keep]], lab[keep], int((~agree).sum())

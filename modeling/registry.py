@@ -45,6 +45,10 @@ class PathSpec:
     summary : str, optional
         ``"module:function"`` of ``function(record) -> list of str``: what the command
         prints beside the counts.
+    tasks : bool
+        The run function takes ``engine=`` (:mod:`workbench.engine`) and runs its
+        buildings as its tasks: the command gives it ``--workers``, ``--scheduler`` and
+        ``--resume``.
     """
 
     name: str
@@ -54,6 +58,7 @@ class PathSpec:
     inputs: tuple[Input, ...]
     run: str
     summary: str | None = None
+    tasks: bool = False
 
     def load(self) -> Callable:
         """The run function (imported now: it pulls in the path's dependencies)."""

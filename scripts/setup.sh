@@ -53,7 +53,7 @@ fi
 echo "setup: installing the workbench and its dependencies into $VENV"
 "$VENV/bin/python" -m pip install -q --upgrade pip 2>&1 | grep -v "^WARNING: Location" || true
 "$VENV/bin/python" -m pip install -q -e ".[dev]" 2>&1 | grep -v "^WARNING: Location" || true
-"$VENV/bin/python" -c "import open3d, maxflow, rasterio, laspy, shapely, skimage, sklearn, cv2, workbench" \
+"$VENV/bin/python" -c "import open3d, maxflow, rasterio, laspy, shapely, skimage, sklearn, cv2, distributed, workbench" \
     || { echo "setup: error: the installed packages do not import (see above)" >&2; exit 1; }
 echo "$want" > "$STAMP"
 train_raster_forest

@@ -714,3 +714,74 @@ def test_without_footprints_the_fusion_building_mask_stands_in(tiny_scene, tmp_p
     assert record["inputs"]["footprints"] == "fusion building mask"
     truth = json.loads((tiny_scene / "truth" / "buildings.json").read_text())["buildings"]
     assert record["counts"]["buildings"] >= len(truth) - 1
+
+
+def test_framing_cameras_keep_every_view_that_sees_the_box(tiny_scene):
+    from workbench.camera import framing_cameras
+    from workbench.scene import load_scene
+
+    cams = [v.camera for v in load_scene(tiny_scene).views]
+    box = np.array([[-4.0, -3.0, 30.0], [5.0, 4.0, 45.0]])
+    kept = framing_cameras(cams, box)
+    # every camera that has a point of the box in frame is kept
+    g = np.stack(np.meshgrid(*(np.linspace(box[0, i], box[1, i], 6) for i in range(3))), -1)
+    points = g.reshape(-1, 3)
+    for k, cam in enumerate(cams):
+        uv, depth = cam.project(points)
+        inside = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width - 1) & (
+            uv[:, 1] >= 0) & (uv[:, 1] <= cam.height - 1)  # fmt: skip
+        if inside.any():
+            assert k in kept
+    # a box far off the flight is kept only by the views whose image plane it straddles
+    far = box + [5000.0, 0.0, 0.0]
+    corners = np.array([[x, y, z] for x in far[:, 0] for y in far[:, 1] for z in far[:, 2]])
+    for k in framing_cameras(cams, far):
+        depth = cams[k].project(corners)[1]
+        assert (depth <= 0).any() and (depth > 0).any(), k
+    assert len(framing_cameras(cams, far)) < len(cams) // 4
+
+
+def test_a_ring_cut_in_a_window_paints_what_the_whole_ground_would(tiny_scene, tiny_fusion):
+    import copy
+
+    import modeling.voxel.path as vp
+    from modeling.voxel.ground_texture import ground_cut, join_ground_tiles, ring_cut
+    from modeling.voxel.inputs import read_inputs
+    from modeling.voxel.options import VoxelOptions
+
+    opts = VoxelOptions()
+    inputs = read_inputs(tiny_scene, opts, fusion_dir=tiny_fusion)
+    proxies = vp.build_proxies(inputs, opts)
+    occ = vp.ProxyScene.of(proxies)
+    feet = [vp.texture_task((p, False), inputs, opts, occ)[1] for p in proxies]
+    grid = vp.ground_grid(inputs.scene, proxies, opts.ground_gsd_m)
+    gz = inputs.ground(grid)
+    whole = slice(0, grid.height), slice(0, grid.width)
+    cut = ground_cut(grid, gz, inputs.cameras, inputs.images, occ.rays(), opts.overlap_m)
+    full = join_ground_tiles(grid, gz, [whole], [cut])
+    windowed = copy.deepcopy(full)
+    painted = 0
+    for foot in feet:
+        a = ring_cut(full, *vp.ring_inputs(full, foot), inputs.cameras, inputs.images,
+                     occ.rays(), opts.ring_m)  # fmt: skip
+        part = windowed.window(*vp.ring_window(grid, foot, opts.ring_m))
+        b = ring_cut(part, *vp.ring_inputs(part, foot), inputs.cameras, inputs.images,
+                     occ.rays(), opts.ring_m)  # fmt: skip
+        assert a == b
+        painted += a["from_building"]
+    assert painted > 0
+    np.testing.assert_array_equal(full.image, windowed.image)
+
+
+def test_a_ground_tile_beyond_every_view_is_unseen(tiny_scene):
+    from modeling.voxel.ground_texture import ground_cut, join_ground_tiles
+    from workbench.raster import Grid
+    from workbench.scene import load_scene
+
+    cams = [v.camera for v in load_scene(tiny_scene).views]
+    far = Grid(5000.0, 5000.0, 0.5, 8, 6)
+    cut = ground_cut(far, np.zeros(far.shape), cams, images=None, occluders=None, overlap_m=1.0)
+    assert (cut.labels == -1).all() and cut.counts == {"texels": 48, "unseen": 48}
+    record = join_ground_tiles(far, np.zeros(far.shape), [(slice(0, 6), slice(0, 8))],
+                               [cut]).record  # fmt: skip
+    assert record["unseen_fraction"] == 1.0 and record["views"] == []

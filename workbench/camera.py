@@ -141,6 +141,31 @@ class Camera:
         return d
 
 
+def framing_cameras(cameras: list[Camera], vertices: np.ndarray) -> list[int]:
+    """The cameras whose image can hold some point of the box around ``vertices`` (V, 3):
+    the box's projection lies inside the hull of its projected corners, so a view whose
+    frame misses those corners' bounding rectangle (and a margin for the lens's
+    distortion) sees none of it. A city's flight has
+    hundreds of views and a building is in a few dozen: the others would only fill the
+    texture's (texels x views) arrays with nothing seen."""
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])])  # fmt: skip
+    out = []
+    for k, cam in enumerate(cameras):
+        uv, depth = cam.project(corners)
+        if np.all(depth <= 0):
+            continue  # all behind the camera
+        if np.any(depth <= 0):
+            out.append(k)  # the box straddles the camera's plane: keep it, to be safe
+            continue
+        m = 0.1 * max(cam.width, cam.height)  # lens distortion bends the hull a little
+        if (uv[:, 0].max() >= -m and uv[:, 0].min() <= cam.width - 1 + m
+                and uv[:, 1].max() >= -m and uv[:, 1].min() <= cam.height - 1 + m):  # fmt: skip
+            out.append(k)
+    return out
+
+
 def _undistort(uv: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
     if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4
         return cv2.undistortPointsIter(uv, K, dist, None, None, _UNDISTORT_CRITERIA)

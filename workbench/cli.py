@@ -184,8 +184,24 @@ def _add_fusion(sub) -> None:
         help="save the trained forest for another scene",
     )  # fmt: skip
     add_option_arguments(p, FusionOptions)
+    _add_engine_arguments(p)
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     p.set_defaults(func=cmd_fusion)
+
+
+def _add_engine_arguments(p) -> None:
+    """--scheduler and --resume, for the commands whose work is tasks."""
+    p.add_argument(
+        "--scheduler", metavar="ADDRESS",
+        help="run the tasks on this Dask scheduler's workers (tcp://host:8786), which must "
+        "read the inputs and OUT's folder at the same paths (default: a local cluster of "
+        "--workers processes)",
+    )  # fmt: skip
+    p.add_argument(
+        "--resume", action="store_true",
+        help="keep the tasks an interrupted run of the same command finished (in "
+        ".OUT.partial beside OUT) and do only the others",
+    )  # fmt: skip
 
 
 def _add_model(sub) -> None:
@@ -210,6 +226,8 @@ def _add_model(sub) -> None:
         q.add_argument("-o", "--out", type=Path, required=True, metavar="OUT",
                        help="output folder")  # fmt: skip
         add_option_arguments(q, spec.options)
+        if spec.tasks:
+            _add_engine_arguments(q)
         q.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
         q.set_defaults(func=cmd_model, spec=spec)
 
@@ -367,7 +385,8 @@ def cmd_fusion(args) -> int:
     record = run_fusion(
         args.out, options_from_args(FusionOptions, args), scene=args.scene, points=args.points,
         crs=args.crs, truth=args.truth, save_classifier_to=args.save_classifier,
-        overwrite=args.overwrite, command=args.command_line,
+        overwrite=args.overwrite, command=args.command_line, scheduler=args.scheduler,
+        resume=args.resume,
     )  # fmt: skip
     print(fusion_summary(record, args.out))
     return 0
@@ -404,8 +423,20 @@ def cmd_model(args) -> int:
     options = options_from_args(spec.options, args)
     positional = [getattr(args, i.name) for i in spec.inputs if i.flag is None]
     optional = {i.name: getattr(args, i.name) for i in spec.inputs if i.flag is not None}
-    run = spec.load()(*positional, options, **optional)
-    record = write_model_run(run, args.out, overwrite=args.overwrite, command=args.command_line)
+    if not spec.tasks:
+        run = spec.load()(*positional, options, **optional)
+        record = write_model_run(run, args.out, overwrite=args.overwrite,
+                                 command=args.command_line)  # fmt: skip
+    else:
+        from .engine import engine_for, run_signature
+
+        signature = run_signature(options, {i.name: getattr(args, i.name) for i in spec.inputs})
+        module = spec.run.split(":")[0]
+        with engine_for(args.out, signature, workers=options.workers, scheduler=args.scheduler,
+                        resume=args.resume, preload=(module,)) as engine:  # fmt: skip
+            run = spec.load()(*positional, options, engine=engine, **optional)
+            record = write_model_run(run, args.out, overwrite=args.overwrite,
+                                     command=args.command_line)  # fmt: skip
     print(model_summary(spec, record, args.out))
     return 0
 
@@ -528,13 +559,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.verbose:  # our own debug messages, not every library's
         for name in ("workbench", "fusion", "modeling", "data_samples"):
             logging.getLogger(name).setLevel(logging.DEBUG)
+    if getattr(args, "resume", False):  # say what is kept
+        logging.getLogger("workbench.engine").setLevel(logging.INFO)
     try:
         return args.func(args)
     except WorkbenchError as exc:
         print(f"workbench: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("workbench: interrupted", file=sys.stderr)
+        print(f"workbench: interrupted{_kept(args)}", file=sys.stderr)
         return 130
     except Exception as exc:  # noqa: BLE001 - never a bare traceback from the CLI
         if args.verbose:
@@ -546,6 +579,16 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 1
+
+
+def _kept(args) -> str:
+    """What an interrupted command kept for --resume, if anything."""
+    from .engine import partial_folder
+
+    out = getattr(args, "out", None)
+    if out is None or not partial_folder(out).exists():
+        return ""
+    return f"; the finished tasks are kept in {partial_folder(out)}: run again with --resume"
 
 
 if __name__ == "__main__":

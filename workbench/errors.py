@@ -32,6 +32,9 @@ class InputError(WorkbenchError):
         where = f"{self.path}: {field}" if field else self.path
         super().__init__(f"{where}: {message}")
 
+    def __reduce__(self):  # raised in a Dask worker, re-raised in the client
+        return type(self), (self.path, self.field, self.message)
+
 
 class OutputExistsError(WorkbenchError):
     """The output folder exists and ``overwrite`` was not asked for."""
@@ -39,3 +42,6 @@ class OutputExistsError(WorkbenchError):
     def __init__(self, path: str | os.PathLike):
         self.path = os.fspath(path)
         super().__init__(f"{self.path}: output exists (pass --overwrite to replace it)")
+
+    def __reduce__(self):
+        return type(self), (self.path,)

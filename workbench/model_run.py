@@ -222,6 +222,8 @@ def write_model_run(
             _write_files(run, tmp)
         record = run.to_record(command)
         record["stages"].update(timer.stages)
+        # the command's own peak, every path alike (a path with workers adds theirs)
+        record.setdefault("peak_memory_mb", round(peak_memory_mb(), 1))
         text = json.dumps(record, indent=1) + "\n"
         (tmp / "model.json").write_text(text)
     if not run.buildings:

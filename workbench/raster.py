@@ -72,6 +72,11 @@ class Grid:
         y = self.ymax - (np.asarray(row) + 0.5) * self.gsd
         return x, y
 
+    def window(self, rows: slice, cols: slice) -> Grid:
+        """The grid of the cells ``rows`` x ``cols`` (slices with start and stop)."""
+        return Grid(self.xmin + cols.start * self.gsd, self.ymax - rows.start * self.gsd,
+                    self.gsd, cols.stop - cols.start, rows.stop - rows.start)  # fmt: skip
+
     def cell_centers(self) -> tuple[np.ndarray, np.ndarray]:
         """World x and y of every cell centre, each of shape (height, width)."""
         xs, _ = self.cell_center(0, np.arange(self.width))

@@ -68,6 +68,11 @@ class ViewSamples:
     lab: np.ndarray
     rgb: np.ndarray
 
+    def columns(self, keep: np.ndarray) -> ViewSamples:
+        """The samples of the views ``keep`` (K,) bool only."""
+        return ViewSamples(self.visible[:, keep], self.facing[:, keep], self.lab[:, keep],
+                           self.rgb[:, keep])  # fmt: skip
+
 
 def view_samples(
     positions: np.ndarray,

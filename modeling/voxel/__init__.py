@@ -38,6 +38,7 @@ SPEC = PathSpec(
     ),  # fmt: skip
     run="modeling.voxel.path:run_voxel",
     summary="modeling.voxel.path:summary_lines",
+    tasks=True,
 )
 
 __all__ = ["SPEC", "VoxelOptions"]

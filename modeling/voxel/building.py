@@ -13,7 +13,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from shapely.geometry import Polygon
 
-from workbench.camera import Camera
+from workbench.camera import Camera, framing_cameras
 from workbench.model_run import Building
 from workbench.raster import Grid
 from workbench.records import peak_memory_mb
@@ -274,11 +274,13 @@ def column_variance(
     every column's voxels.
     """
     r = options.voxel_m
+    views = framing_cameras(cameras, centres.reshape(-1, 3))
 
     def sample(c: np.ndarray, n: np.ndarray):
         return voxel_variance(
-            c, n, r, cameras, images, occluders, options.footprint_scale, options.keep_views
-        )
+            c, n, r, cameras, images, occluders, options.footprint_scale, options.keep_views,
+            views,
+        )  # fmt: skip
 
     pc = sample(centres.reshape(-1, 3), normals.reshape(-1, 3))
     # a variance from a few views is small by chance: voxels high above the building,
@@ -371,6 +373,8 @@ class Texture:
     uvs : (T, 3, 2) float
         Texture coordinates of the proxy's triangle corners.
     record : dict
+    views : (K,) int
+        The camera of each column of ``samples``: the labels above index these columns.
     """
 
     graph: SurfaceGraph
@@ -381,6 +385,7 @@ class Texture:
     image: np.ndarray
     uvs: np.ndarray
     record: dict
+    views: np.ndarray
 
     def colours(self, labels: np.ndarray | None = None) -> np.ndarray:
         """(V, 3) uint8 texel colours under ``labels`` (default: the stitched views)."""
@@ -413,9 +418,14 @@ def texture_building(
     t_graph = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    samples = view_samples(graph.positions, graph.normals, cameras, images, occluders)
+    views = framing_cameras(cameras, V)
+    samples = view_samples(graph.positions, graph.normals, cameras, images, occluders, views)
+    # views that see no texel are no label of the cuts, and would only cost time
+    seen = samples.visible.any(axis=0)
+    if seen.any():  # a proxy no view sees keeps its (empty) columns
+        views, samples = [k for k, s in zip(views, seen, strict=True) if s], samples.columns(seen)
     smooth = _voxel_normals_at(proxy, graph.positions, graph.normals)
-    best = best_views(graph.positions, smooth, [c.center for c in cameras], samples)
+    best = best_views(graph.positions, smooth, [cameras[k].center for k in views], samples)
     projective = face_views(voxel_faces(proxy.frame, graph), best, samples)
     t_views = time.perf_counter() - t0
 
@@ -464,7 +474,8 @@ def texture_building(
             "atlas": round(t_atlas, 3),
         },
     }
-    return Texture(graph, samples, best, projective, stitched, image, uvs, record)
+    return Texture(graph, samples, best, projective, stitched, image, uvs, record,
+                   np.asarray(views, int))  # fmt: skip
 
 
 def voxel_faces(frame: VoxelFrame, graph: SurfaceGraph) -> np.ndarray:

@@ -15,7 +15,7 @@ import numpy as np
 from scipy import ndimage
 
 from modeling.shared.graph_cuts import binary_cut
-from workbench.camera import Camera
+from workbench.camera import Camera, framing_cameras
 from workbench.meshes import raster_mesh
 from workbench.raster import Grid
 from workbench.texture_seams import ViewSamples, rgb_to_lab, seam_cost, seam_costs, view_samples
@@ -55,11 +55,7 @@ class GroundTexture:
         Ground height of every texel, metres.
     image : (H, W, 3) uint8
     labels : (H, W) int
-        Index into ``views`` of each texel's view, -1 where no view sees the ground
-        (under buildings).
-    views : list of int
-        Scene view indices the texture draws from.
-    samples : ViewSamples
+        The scene view of each texel, -1 where no view sees the ground (under buildings).
     record : dict
     """
 
@@ -67,9 +63,25 @@ class GroundTexture:
     z: np.ndarray
     image: np.ndarray
     labels: np.ndarray
-    views: list[int]
-    samples: ViewSamples
     record: dict
+
+    def window(self, rows: slice, cols: slice) -> GroundTexture:
+        """The texture inside ``rows`` x ``cols``, sharing this one's arrays (a ring cut
+        on the window paints this texture)."""
+        window = (rows, cols)
+        return GroundTexture(self.grid.window(*window), self.z[window], self.image[window],
+                             self.labels[window], self.record)  # fmt: skip
+
+
+@dataclass
+class GroundTile:
+    """One tile's ground cut: its image (h, w, 3) uint8, labels (h, w) (scene views, -1
+    unseen), and the figures the record sums: texels, unseen texels, graph edges,
+    patches before and after, and the seam costs summed over the edges."""
+
+    image: np.ndarray
+    labels: np.ndarray
+    counts: dict
 
 
 def ground_cut(
@@ -79,8 +91,9 @@ def ground_cut(
     images: ViewImages,
     occluders,
     overlap_m: float,
-) -> GroundTexture:
-    """The ground surface graph cut (section 5.4) on the texels of ``grid``.
+) -> GroundTile:
+    """The ground surface graph cut (section 5.4) on the texels of ``grid`` (the whole
+    ground, or one tile of it).
 
     Parameters
     ----------
@@ -96,9 +109,17 @@ def ground_cut(
     X, Y = grid.cell_centers()
     positions = np.column_stack([X.ravel(), Y.ravel(), z.ravel()])
     up = np.broadcast_to([0.0, 0.0, 1.0], positions.shape)
-    views = downward_views(cameras)
+    down = downward_views(cameras)
+    views = [down[j] for j in framing_cameras([cameras[k] for k in down], positions)]
+    if not views:  # a tile beyond every downward view (off the flight): nothing to cut
+        n = len(positions)
+        return GroundTile(np.zeros((grid.height, grid.width, 3), np.uint8),
+                          np.full(grid.shape, -1), {"texels": n, "unseen": n})  # fmt: skip
     samples = view_samples(positions, up, cameras, images, occluders, views)
-    centres = np.array([cameras[k].center for k in views])
+    seen = samples.visible.any(axis=0)  # views that see no texel are no label of the cuts
+    if seen.any():
+        views, samples = [k for k, s in zip(views, seen, strict=True) if s], samples.columns(seen)
+    centres = np.array([cameras[k].center for k in views]).reshape(-1, 3)
     labels = best_views(positions, up, centres, samples)
     edges = grid_edges(grid.shape)
     stitched = stitch_patches(edges, positions, labels, samples, overlap_m, min_patch=64)
@@ -106,19 +127,48 @@ def ground_cut(
     cost_proj, _ = seam_cost(edges, labels, samples)
     image = texel_colours(stitched.labels, samples).reshape(grid.height, grid.width, 3)
     image = fill_unseen(image, stitched.labels.reshape(grid.shape))
+    scene_views = np.asarray(views + [-1], int)[stitched.labels]  # -1 stays -1
+    counts = {
+        "texels": int(len(positions)), "unseen": int((labels < 0).sum()),
+        "edges": int(len(edges)), "patches_before": stitched.patches_before,
+        "patches_after": stitched.patches_after, "seam_cost_sum": cost_cut * len(edges),
+        "seam_cost_projective_sum": cost_proj * len(edges),
+    }  # fmt: skip
+    return GroundTile(image, scene_views.reshape(grid.shape), counts)
+
+
+def ground_tiles(grid: Grid, size: int) -> list[tuple[slice, slice]]:
+    """The ground grid's tiles of ``size`` x ``size`` texels, row by row."""
+    return [
+        (slice(r, min(r + size, grid.height)), slice(c, min(c + size, grid.width)))
+        for r in range(0, grid.height, size)
+        for c in range(0, grid.width, size)
+    ]
+
+
+def join_ground_tiles(grid: Grid, z: np.ndarray, tiles: list, cuts: list[GroundTile]):
+    """The ground texture of the tiles' cuts, and its record (seam costs per graph edge
+    over all tiles; the tiles' borders are seams the cuts did not place)."""
+    image = np.zeros((grid.height, grid.width, 3), np.uint8)
+    labels = np.full(grid.shape, -1)
+    total: dict = {}
+    for (rows, cols), cut in zip(tiles, cuts, strict=True):
+        image[rows, cols], labels[rows, cols] = cut.image, cut.labels
+        for k, v in cut.counts.items():
+            total[k] = total.get(k, 0) + v
+    edges = max(total.get("edges", 0), 1)
     record = {
         "texels": [grid.width, grid.height],
         "texel_m": grid.gsd,
-        "views": [int(k) for k in views],
-        "unseen_fraction": round(float((labels < 0).mean()), 4),
-        "patches_before": stitched.patches_before,
-        "patches_after": stitched.patches_after,
-        "seam_cost": round(cost_cut, 4),
-        "seam_cost_projective": round(cost_proj, 4),
+        "tiles": len(tiles),
+        "views": sorted(int(k) for k in np.unique(labels[labels >= 0])),
+        "unseen_fraction": round(total.get("unseen", 0) / max(total.get("texels", 0), 1), 4),
+        "patches_before": total.get("patches_before", 0),
+        "patches_after": total.get("patches_after", 0),
+        "seam_cost": round(total.get("seam_cost_sum", 0.0) / edges, 4),
+        "seam_cost_projective": round(total.get("seam_cost_projective_sum", 0.0) / edges, 4),
     }
-    return GroundTexture(
-        grid, z, image, stitched.labels.reshape(grid.shape), views, samples, record
-    )
+    return GroundTexture(grid, z, image, labels, record)
 
 
 def ground_mesh(

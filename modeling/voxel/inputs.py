@@ -43,6 +43,13 @@ class VoxelInputs:
     footprint_count: int
     fused_ndsm: tuple | None = None  # (ndsm, grid) of the fusion run's roofs, if any
 
+    def prisms(self) -> dict:
+        """Each usable footprint's initial proxy (its prism to the over-estimated height),
+        by id; made once per copy of the inputs (a worker's, in a Dask run)."""
+        if getattr(self, "_prisms", None) is None:
+            self._prisms = {f.id: prism(f.polygon, base, h) for f, base, h in self.buildings}
+        return self._prisms
+
 
 def read_inputs(
     scene_dir: Path,

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +19,7 @@ import rasterio.features
 from scipy.spatial import cKDTree
 from shapely.geometry import mapping
 
+from workbench.engine import Engine, ThreadEngine
 from workbench.meshes import concatenate_meshes
 from workbench.model_run import Building, ModelRun, Surface, Texture
 from workbench.progress import progress
@@ -29,10 +30,17 @@ from workbench.scene import Scene
 
 from .building import Proxy, building_proxy, texture_building
 from .building import Texture as BuildingTexture
-from .ground_texture import GroundTexture, ground_cut, ground_mesh, ring_cut
-from .inputs import VoxelInputs, neighbour_scene, prism, read_inputs
+from .ground_texture import (
+    GroundTexture,
+    ground_cut,
+    ground_mesh,
+    ground_tiles,
+    join_ground_tiles,
+    ring_cut,
+)
+from .inputs import VoxelInputs, neighbour_scene, read_inputs
 from .options import VoxelOptions
-from .preview import voxel_preview
+from .preview import largest, voxel_preview
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +54,7 @@ def run_voxel(
     *,
     footprints: Path | None = None,
     fusion_dir: Path | None = None,
+    engine: Engine | None = None,
 ) -> ModelRun:
     """The voxel path (Garcia-Dorado, Demir & Aliaga 2013) on a scene's images.
 
@@ -60,27 +69,35 @@ def run_voxel(
     fusion_dir : path, optional
         A fusion run: its DTM is the ground, its nDSM marks ground columns and places
         flat roofs (see the options).
+    engine : Engine, optional
+        Runs the buildings' tasks (:mod:`workbench.engine`); its store keeps finished
+        buildings for ``--resume``. Default: this process, one building at a time (the
+        command starts a Dask cluster of ``options.workers`` processes).
     """
     options = options or VoxelOptions()
+    engine = engine or ThreadEngine(1)  # the views' image cache is one per process
     timer = StageTimer()
     t_start = time.perf_counter()
     with timer.stage("read"):
         inputs = read_inputs(scene_dir, options, footprints, fusion_dir)
+        shared = engine.share(inputs)
+        ids = [f.id for f, _, _ in inputs.buildings]
     with timer.stage("proxies"):
-        proxies = build_proxies(inputs, options)
-        inputs.images.release_blurred()
-    all_proxies = concatenate_meshes([(p.vertices, p.triangles) for p in proxies])
-    scene_rc = raycasting_scene(*all_proxies[:2]) if proxies else None
+        proxies = build_proxies(inputs, options, engine, shared, ids)
     with timer.stage("textures"):
-        textures = [
-            texture_building(p, inputs.cameras, inputs.images, options, scene_rc)
-            for p in progress(proxies, "surface graph cuts")
-        ]
+        occluders = engine.share(ProxyScene.of(proxies))
+        big = largest(proxies) if proxies else -1
+        items = [(p, i == big) for i, p in enumerate(proxies)]
+        textured = list(engine.map(texture_task, items, shared, options, occluders,
+                                   stage="textures", keys=[p.id for p in proxies]))  # fmt: skip
     with timer.stage("ground"):
-        gtex, ground_z = texture_ground(inputs, proxies, textures, options, scene_rc)
+        feet = [foot for _, foot, _ in textured]
+        gtex, ground_z = texture_ground(inputs, proxies, feet, options, engine, shared,
+                                        occluders)  # fmt: skip
+    buildings = [b for b, _, _ in textured]
     with timer.stage("preview"):
-        preview = voxel_preview(proxies, textures, gtex)
-    buildings = [voxel_building(p, t) for p, t in zip(proxies, textures, strict=True)]
+        shown = (proxies[big], textured[big][2]) if proxies else (None, None)
+        preview = voxel_preview(*shown, buildings, gtex)
     return ModelRun(
         "voxel", options, buildings, crs=inputs.scene.crs,
         grid=gtex.grid if gtex is not None else None, dtm=ground_z,
@@ -93,7 +110,8 @@ def run_voxel(
         counts={"skipped": len(inputs.skipped), "footprints": inputs.footprint_count},
         record={
             "skipped": inputs.skipped, "ground": gtex.record if gtex is not None else None,
-            "texture": texture_summary(textures),
+            "texture": texture_summary([b.record for b in buildings]),
+            **engine.describe(),
             "seconds_per_building": round((time.perf_counter() - t_start) / max(len(proxies), 1),
                                           3),
             "peak_memory_mb": round(peak_memory_mb(), 1),
@@ -101,46 +119,144 @@ def run_voxel(
     )  # fmt: skip
 
 
-def build_proxies(inputs: VoxelInputs, options: VoxelOptions) -> list[Proxy]:
-    """Section 4 for every usable footprint, each with the initial proxies of its
-    neighbours as occlusion masks; footprints without a consistent roof are skipped."""
-    kept = inputs.buildings
-    prisms = {f.id: prism(f.polygon, base, h) for f, base, h in kept}
+def build_proxies(
+    inputs: VoxelInputs,
+    options: VoxelOptions,
+    engine: Engine | None = None,
+    shared=None,
+    ids: list[str] | None = None,
+) -> list[Proxy]:
+    """Section 4 for every usable footprint (a task each), each with the initial proxies
+    of its neighbours as occlusion masks; footprints without a consistent roof are
+    skipped. ``shared`` is the engine's handle on ``inputs``."""
+    engine = engine or ThreadEngine(1)
+    ids = ids if ids is not None else [f.id for f, _, _ in inputs.buildings]
+    shared = shared if shared is not None else inputs
     proxies: list[Proxy] = []
-    for f, base, h in progress(kept, "voxel proxies"):
-        occluders = neighbour_scene(f, kept, prisms)
-        p = building_proxy(
-            f.id, f.polygon, h, base, inputs.cameras, inputs.images, options, occluders,
-            inputs.fused_ndsm,
-        )  # fmt: skip
-        p.record["height_source"] = f.properties.get("_height_source", "GIS")
-        p.record["gis_footprint"] = mapping(f.polygon)
+    tasks = engine.map(proxy_task, range(len(ids)), shared, options, stage="proxies", keys=ids)
+    for p in tasks:
         if p.empty:
-            inputs.skipped.append({"id": f.id, "reason": "no photo-consistent roof"})
-            log.warning("footprint %s: no photo-consistent roof, skipped", f.id)
+            inputs.skipped.append({"id": p.id, "reason": "no photo-consistent roof"})
+            log.warning("footprint %s: no photo-consistent roof, skipped", p.id)
             continue
         proxies.append(p)
     return proxies
 
 
+def proxy_task(j: int, inputs: VoxelInputs, options: VoxelOptions) -> Proxy:
+    """Task: section 4 for the ``j``-th usable footprint."""
+    kept = inputs.buildings
+    f, base, h = kept[j]
+    occluders = neighbour_scene(f, kept, inputs.prisms())
+    p = building_proxy(
+        f.id, f.polygon, h, base, inputs.cameras, inputs.images, options, occluders,
+        inputs.fused_ndsm,
+    )  # fmt: skip
+    p.record["height_source"] = f.properties.get("_height_source", "GIS")
+    p.record["gis_footprint"] = mapping(f.polygon)
+    return p
+
+
+class ProxyScene:
+    """Every proxy's mesh, for visibility; its ray-casting scene is built where it is
+    first used (once per worker) and not sent."""
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray):
+        self.vertices, self.triangles = vertices, triangles
+        self._rays = None
+
+    @classmethod
+    def of(cls, proxies: list[Proxy]) -> ProxyScene:
+        V, T, _ = concatenate_meshes([(p.vertices, p.triangles) for p in proxies])
+        return cls(V, T)
+
+    def rays(self):
+        """The :class:`~workbench.raycast.RayScene` (None without a triangle)."""
+        if self._rays is None and len(self.triangles):
+            self._rays = raycasting_scene(self.vertices, self.triangles)
+        return self._rays
+
+    def __getstate__(self):
+        return {"vertices": self.vertices, "triangles": self.triangles, "_rays": None}
+
+
+@dataclass
+class WallFoot:
+    """Where a building's walls meet the ground, for the ring cut: its outline, and the
+    positions (N, 2) world metres and views (N,) of its textured wall texels less than
+    ``_WALL_FOOT_M`` above its base."""
+
+    outline: object
+    xy: np.ndarray
+    views: np.ndarray
+
+
+def texture_task(item: tuple, inputs: VoxelInputs, options: VoxelOptions,
+                 occluders: ProxyScene):  # fmt: skip
+    """Task: sections 5.1-5.2 for the proxy ``item[0]``: the building of the run, its
+    wall foot, and its whole texture if ``item[1]`` (the preview's building), else None."""
+    p, keep = item
+    t = texture_building(p, inputs.cameras, inputs.images, options, occluders.rays())
+    g = t.graph
+    low = (np.abs(g.normals[:, 2]) < 0.5) & (g.positions[:, 2] < p.frame.base_z + _WALL_FOOT_M)
+    low &= t.stitched.labels >= 0
+    foot = WallFoot(p.outline, g.positions[low, :2], t.views[t.stitched.labels[low]])
+    return voxel_building(p, t), foot, t if keep else None
+
+
 def texture_ground(
-    inputs: VoxelInputs, proxies: list[Proxy], textures: list, options: VoxelOptions, scene_rc
-) -> tuple[GroundTexture | None, np.ndarray | None]:
-    """Sections 5.3-5.4: the ground cut with the proxies masked out, then the ring cut
-    around each building; returns the ground texture and the ground heights on its grid."""
+    inputs: VoxelInputs, proxies: list[Proxy], feet: list[WallFoot], options: VoxelOptions,
+    engine: Engine, shared, occluders,
+) -> tuple[GroundTexture | None, np.ndarray | None]:  # fmt: skip
+    """Sections 5.3-5.4: the ground cut with the proxies masked out, a task per tile of
+    ``GROUND_TILE`` texels, then the ring cut around each building in a window around it;
+    returns the ground texture and the ground heights on its grid. ``shared`` and
+    ``occluders`` are the engine's handles on the inputs and the proxies' scene."""
     if not proxies:
         return None, None
     grid = ground_grid(inputs.scene, proxies, options.ground_gsd_m)
     gz = inputs.ground(grid)
-    cams, images = inputs.cameras, inputs.images
-    gtex = ground_cut(grid, gz, cams, images, scene_rc, options.overlap_m)
-    rings = [
-        ring_cut(gtex, *ring_inputs(gtex, p, t), cams, images, scene_rc, options.ring_m)
-        for p, t in zip(proxies, textures, strict=True)
-    ]
+    tiles = ground_tiles(grid, GROUND_TILE)
+    items = [(grid.window(rows, cols), gz[rows, cols]) for rows, cols in tiles]
+    cuts = engine.map(ground_tile_task, items, shared, options, occluders, stage="ground")
+    gtex = join_ground_tiles(grid, gz, tiles, list(cuts))
+    cams, images, rays = inputs.cameras, inputs.images, ProxyScene.of(proxies).rays()
+    rings = []
+    for foot in progress(feet, "ring cuts"):
+        window = ring_window(gtex.grid, foot, options.ring_m)
+        if window is None:
+            continue
+        part = gtex.window(*window)
+        rings.append(ring_cut(part, *ring_inputs(part, foot), cams, images, rays, options.ring_m))
     gtex.record["ring_texels"] = int(sum(r["ring_texels"] for r in rings))
     gtex.record["ring_from_building"] = int(sum(r["from_building"] for r in rings))
     return gtex, gz
+
+
+GROUND_TILE = 512  # texels per side of a ground cut's task: 256 m at 0.5 m
+
+
+def ground_tile_task(item: tuple, inputs: VoxelInputs, options: VoxelOptions,
+                     occluders: ProxyScene):  # fmt: skip
+    """Task: the ground cut of one tile, ``item`` = (its grid, its ground heights)."""
+    grid, z = item
+    return ground_cut(grid, z, inputs.cameras, inputs.images, occluders.rays(),
+                      options.overlap_m)  # fmt: skip
+
+
+def ring_window(grid: Grid, foot: WallFoot, ring_m: float) -> tuple[slice, slice] | None:
+    """Rows and columns of ``grid`` around the building's outline, with the ring and a
+    texel to spare (None if it lies off the grid): every texel of its ring, and every
+    footprint texel nearest to one, is inside."""
+    x0, y0, x1, y1 = foot.outline.bounds
+    m = ring_m + 2 * grid.gsd
+    c0 = max(int(np.floor((x0 - m - grid.xmin) / grid.gsd)), 0)
+    c1 = min(int(np.ceil((x1 + m - grid.xmin) / grid.gsd)), grid.width)
+    r0 = max(int(np.floor((grid.ymax - y1 - m) / grid.gsd)), 0)
+    r1 = min(int(np.ceil((grid.ymax - y0 + m) / grid.gsd)), grid.height)
+    if r1 <= r0 or c1 <= c0:
+        return None
+    return slice(r0, r1), slice(c0, c1)
 
 
 def ground_grid(scene: Scene, proxies: list[Proxy], gsd: float) -> Grid:
@@ -152,21 +268,18 @@ def ground_grid(scene: Scene, proxies: list[Proxy], gsd: float) -> Grid:
     return Grid.from_bounds(lo[0], lo[1], hi[0], hi[1], gsd)
 
 
-def ring_inputs(gtex: GroundTexture, proxy: Proxy, tex: BuildingTexture):
-    """The proxy's footprint on the ground grid, and for every ground cell the view of
+def ring_inputs(gtex: GroundTexture, foot: WallFoot):
+    """The building's footprint on the ground grid, and for every ground cell the view of
     the nearest low wall texel (-1 where there is none)."""
     grid = gtex.grid
     footprint = rasterio.features.geometry_mask(
-        [mapping(proxy.outline)], grid.shape, grid.transform, invert=True
+        [mapping(foot.outline)], grid.shape, grid.transform, invert=True
     )
-    g = tex.graph
-    low = (np.abs(g.normals[:, 2]) < 0.5) & (g.positions[:, 2] < proxy.frame.base_z + _WALL_FOOT_M)
-    low &= tex.stitched.labels >= 0
     wall_view = np.full(grid.shape, -1)
-    if low.any():
+    if len(foot.xy):
         X, Y = grid.cell_centers()
-        _, j = cKDTree(g.positions[low, :2]).query(np.column_stack([X.ravel(), Y.ravel()]))
-        wall_view = tex.stitched.labels[low][j].reshape(grid.shape)
+        _, j = cKDTree(foot.xy).query(np.column_stack([X.ravel(), Y.ravel()]))
+        wall_view = foot.views[j].reshape(grid.shape)
     return footprint, wall_view
 
 
@@ -209,12 +322,12 @@ def ground_surface(gtex: GroundTexture | None) -> Surface | None:
     return Surface(gv, gt, gtex.image[r, c], Texture(gtex.image, guv))
 
 
-def texture_summary(textures: list[BuildingTexture]) -> dict:
-    """Mean seam costs over the buildings (graph cut, projective, greedy before the
-    refinement)."""
+def texture_summary(records: list[dict]) -> dict:
+    """Mean seam costs over the buildings' records (graph cut, projective, greedy before
+    the refinement)."""
     out = {}
     for key in ("seam_cost", "seam_cost_projective", "seam_cost_greedy"):
-        vals = [t.record[key] for t in textures if np.isfinite(t.record[key])]
+        vals = [r[key] for r in records if np.isfinite(r[key])]
         out[key] = round(float(np.mean(vals)), 4) if vals else None
     return out
 

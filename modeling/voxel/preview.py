@@ -14,14 +14,17 @@ from .building import Proxy, Texture
 from .ground_texture import ground_mesh
 
 
-def voxel_preview(proxies: list[Proxy], textures: list[Texture], gtex) -> np.ndarray:
-    """(h, w, 3) uint8 contact sheet: the largest building's variance, heights before and
-    after clustering, its roof views before and after the graph cuts, the textured
-    proxies and the ground texture."""
-    if not proxies:
+def largest(proxies: list[Proxy]) -> int:
+    """The index of the proxy with the most columns, the preview's building."""
+    return max(range(len(proxies)), key=lambda i: proxies[i].columns.sum())
+
+
+def voxel_preview(p: Proxy | None, t: Texture | None, buildings: list, gtex) -> np.ndarray:
+    """(h, w, 3) uint8 contact sheet: the variance of ``p`` (the largest proxy), heights
+    before and after clustering, its roof views before and after the graph cuts (its
+    texture ``t``), the textured buildings and the ground texture."""
+    if p is None:
         return np.full((64, 64, 3), 255, np.uint8)
-    big = max(range(len(proxies)), key=lambda i: proxies[i].columns.sum())
-    p, t = proxies[big], textures[big]
     nx, ny, nz = p.frame.shape
     var = p.variance[:, ny // 2, :].T[::-1]  # vertical slice, up is up
     var_img = colorize_height(np.log10(np.where(np.isfinite(var), var, np.nan) + 1e-6))
@@ -40,7 +43,7 @@ def voxel_preview(proxies: list[Proxy], textures: list[Texture], gtex) -> np.nda
     ]
     top_before = _top_labels(p, t, t.initial)
     top_after = _top_labels(p, t, t.stitched.labels)
-    render = render_textured(proxies, textures, gtex)
+    render = render_textured(buildings, gtex)
     row2 = [
         (top_before, "roof views: best per texel"),
         (top_after, "after graph cuts"),
@@ -79,20 +82,17 @@ def _top_labels(proxy: Proxy, tex: Texture, labels: np.ndarray) -> np.ndarray:
     return _upscale(img, 240)
 
 
-def render_textured(
-    proxies: list[Proxy], textures: list[Texture], gtex, width: int = 640
-) -> np.ndarray:
-    """Ray-cast picture of the textured proxies (and ground) from the south-west: each
+def render_textured(buildings: list, gtex, width: int = 640) -> np.ndarray:
+    """Ray-cast picture of the textured buildings (and ground) from the south-west: each
     pixel's hit is looked up in its mesh's atlas through the interpolated UVs."""
-    parts = [
-        (p.vertices, p.triangles, t.uvs, t.image) for p, t in zip(proxies, textures, strict=True)
-    ]
+    meshes = [b.mesh for b in buildings]
+    parts = [(m.vertices, m.triangles, m.texture.uvs, m.texture.image) for m in meshes]
     gm = ground_mesh(gtex) if gtex is not None else None
     if gm is not None:
         parts.append((*gm, gtex.image))
     V, T, owner = concatenate_meshes([(v, t) for v, t, _, _ in parts])
     uvs = np.concatenate([u for _, _, u, _ in parts])
-    xy = np.vstack([p.vertices[:, :2] for p in proxies])
+    xy = np.vstack([m.vertices[:, :2] for m in meshes])
     bounds = (*xy.min(axis=0), *xy.max(axis=0))
     cam = viewpoints(bounds, (float(V[:, 2].min()), float(V[:, 2].max())), width, width * 3 // 4)[
         "south-west"

@@ -214,6 +214,7 @@ def voxel_variance(
     occluders=None,
     footprint_scale: float = 1.0,
     keep: float = 1.0,
+    views: list[int] | None = None,
 ) -> PhotoConsistency:
     """Colour samples (eq. 2) of every voxel in the views that face it, and their variance
     (the bracket of eq. 3), accumulated view by view.
@@ -229,11 +230,15 @@ def voxel_variance(
     occluders : workbench.raycast.RayScene, optional
         The initial proxies of the neighbouring buildings: a sample whose line of sight
         crosses them is dropped (the paper's occlusion masks).
+    views : list of int, optional
+        The cameras to sample (default: all); the others see none of the voxels.
     """
     n = len(centres)
+    views = list(range(len(cameras))) if views is None else list(views)
     samples = None
     dropped = 0
-    for k, cam in enumerate(cameras):
+    for j, k in enumerate(views):
+        cam = cameras[k]
         to_cam = cam.center - centres
         sel = np.flatnonzero(np.einsum("ij,ij->i", to_cam, normals) > 0)
         uv, depth = cam.project(centres[sel])
@@ -254,8 +259,8 @@ def voxel_variance(
             continue
         c = images.consistency_samples(k, uv, s)
         if samples is None:
-            samples = np.full((n, len(cameras), c.shape[1]), np.nan, np.float32)
-        samples[sel, k] = c
+            samples = np.full((n, len(views), c.shape[1]), np.nan, np.float32)
+        samples[sel, j] = c
     if samples is None:
         return PhotoConsistency(np.full(n, np.nan), np.zeros(n, np.int64), dropped)
     variance, views = sample_variance(samples, keep)

@@ -2,8 +2,8 @@
 photo-consistency (HSL hue and saturation as the paper, or CIE Lab; eq. 2-3) and CIE Lab
 for seam costs (eq. 5).
 
-Images are read once and kept; Gaussian-blurred photo-consistency images are made on
-demand, one per (view, window half-width), and kept while they fit in a memory budget.
+Images are read on demand and kept while they fit in a memory budget; the photo-
+consistency colours are converted and blurred around the pixels asked for only.
 """
 
 from __future__ import annotations
@@ -56,59 +56,64 @@ CONSISTENCY_FEATURES = {"hs": hs_chroma, "lab": lab_features}
 class ViewImages:
     """Lazy, cached access to the views' pixels.
 
+    Images are read on demand and kept while they fit in a memory budget, the least
+    recently used going first: a city's flight has hundreds of views, of which one
+    building needs a few dozen, and its neighbours mostly the same ones.
+
     Parameters
     ----------
     views : list of View
     budget_mb : float
-        Memory for blurred images; the least recently used go first.
+        Memory for the images kept.
     features : {"lab", "hs"}
         Colours of the photo-consistency: CIE Lab / 100, or HSL's S (cos H, sin H).
     """
 
-    def __init__(self, views: list[View], budget_mb: float = 512.0, features: str = "lab"):
+    def __init__(self, views: list[View], budget_mb: float = 1024.0, features: str = "lab"):
         self.views = views
         self._features = CONSISTENCY_FEATURES[features]
-        self._rgb: dict[int, np.ndarray] = {}
-        self._blurred: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
+        self._rgb: OrderedDict[int, np.ndarray] = OrderedDict()
         self._budget = budget_mb * 2**20
         self._bytes = 0
 
     def rgb(self, k: int) -> np.ndarray:
         """(H, W, 3) uint8 image of view ``k``."""
-        if k not in self._rgb:
-            self._rgb[k] = self.views[k].read_image()
-        return self._rgb[k]
-
-    def consistency_image(self, k: int, half_width: int) -> np.ndarray:
-        """(H, W, C) photo-consistency colours of view ``k`` averaged over the Gaussian
-        window of eq. 2 of half-width ``half_width`` pixels."""
-        key = (k, half_width)
-        if key in self._blurred:
-            self._blurred.move_to_end(key)
-            return self._blurred[key]
-        img = self._features(self.rgb(k))
-        if half_width > 0:
-            size = 2 * half_width + 1
-            img = cv2.GaussianBlur(img, (size, size), footprint_sigma(half_width))
-        self._blurred[key] = img
+        if k in self._rgb:
+            self._rgb.move_to_end(k)
+            return self._rgb[k]
+        img = self._rgb[k] = self.views[k].read_image()
         self._bytes += img.nbytes
-        while self._bytes > self._budget and len(self._blurred) > 1:
-            _, old = self._blurred.popitem(last=False)
+        while self._bytes > self._budget and len(self._rgb) > 1:
+            _, old = self._rgb.popitem(last=False)
             self._bytes -= old.nbytes
         return img
 
-    def release_blurred(self) -> None:
-        """Drop the blurred images (the proxies need them, the textures do not)."""
-        self._blurred.clear()
-        self._bytes = 0
+    def __getstate__(self):  # sent to a worker without the images read so far
+        return {**self.__dict__, "_rgb": OrderedDict(), "_bytes": 0}
 
     def consistency_samples(self, k: int, uv: np.ndarray, half_width: np.ndarray) -> np.ndarray:
         """Gaussian-weighted colours c_ik of eq. 2 at ``uv`` (N, 2), window half-widths
-        (N,) int pixels -> (N, C) float32."""
+        (N,) int pixels -> (N, C) float32.
+
+        Only the part of the image around ``uv`` is converted and blurred, with a margin
+        of the window and the bilinear neighbour: the values there are those of the
+        whole image blurred (at the image's edge the crop's edge is the image's).
+        """
+        rgb = self.rgb(k)
+        h, w = rgb.shape[:2]
         out = None
         for s in np.unique(half_width):
             sel = half_width == s
-            samples = bilinear(self.consistency_image(k, int(s)), uv[sel])
+            at = uv[sel]
+            m = int(s) + 2
+            x0, y0 = (max(int(np.floor(at[:, i].min())) - m, 0) for i in (0, 1))
+            x1 = min(int(np.ceil(at[:, 0].max())) + m + 1, w)
+            y1 = min(int(np.ceil(at[:, 1].max())) + m + 1, h)
+            img = self._features(rgb[y0:y1, x0:x1])
+            if s > 0:
+                size = 2 * int(s) + 1
+                img = cv2.GaussianBlur(img, (size, size), footprint_sigma(int(s)))
+            samples = bilinear(img, at - np.array([x0, y0]))
             if out is None:
                 out = np.empty((len(uv), samples.shape[1]), np.float32)
             out[sel] = samples

@@ -1,0 +1,174 @@
+"""A whole preset end to end, as a user runs it: ``workbench sample``, ``fusion``, both
+modeling paths and ``compare``, each a command of its own; wall time, throughput and the
+peak memory of every process (the command's, and each Dask worker's).
+
+``make bench BENCH_ARGS="--preset city"`` runs it on the 1 km² city (about 40 minutes on
+2 cores); ``--preset small`` gives the same table on the everyday sample, to set beside
+it: peak memory must not grow with the area.
+
+Usage: python benchmarks/city.py [--preset city] [--seed 0] [--out bench_out/city]
+       [--workers 2] [--reuse] [--reuse-runs]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+BIN = Path(sys.executable).parent / "workbench"
+# the child's own high-water mark, printed by the shell after the command (Linux)
+TIME = ["/usr/bin/time", "-f", "maxrss_kb %M"] if Path("/usr/bin/time").exists() else []
+
+
+def run(*args, log: Path, kept: float | None = None) -> tuple[float, float | None]:
+    """Run ``workbench *args``; returns wall seconds and the command's peak RSS in MiB.
+
+    With ``kept`` (the seconds an earlier run's record gives), an earlier run whose log
+    is there is taken as it is."""
+    if kept is not None and log.exists() and "maxrss_kb" in log.read_text():
+        return kept, _peak(log.read_text())
+    t0 = time.perf_counter()
+    with open(log, "w") as f:
+        proc = subprocess.run([*TIME, str(BIN), *map(str, args)], stdout=f,
+                              stderr=subprocess.STDOUT)  # fmt: skip
+    wall = time.perf_counter() - t0
+    text = log.read_text()
+    if proc.returncode != 0:
+        raise SystemExit(f"failed ({proc.returncode}): workbench {' '.join(map(str, args))}\n"
+                         f"{text[-2000:]}")  # fmt: skip
+    return wall, _peak(text)
+
+
+def _peak(text: str) -> float | None:
+    peak = [ln for ln in text.splitlines() if ln.startswith("maxrss_kb ")]
+    return float(peak[-1].split()[1]) / 1024 if peak else None
+
+
+def _recorded_s(record: Path, key: str) -> float | None:
+    """The seconds a finished run's record gives (None if there is no such run)."""
+    if not record.exists():
+        return None
+    rec = json.loads(record.read_text())
+    return rec.get(key) or sum(s["wall_s"] for s in rec["stages"].values())
+
+
+def city_run(
+    preset: str, seed: int, out: Path, workers: int | None, reuse: bool, reuse_runs: bool = False
+) -> dict:
+    """Every stage on one preset and seed; the figures of each. ``reuse`` keeps an
+    existing sample scene; ``reuse_runs`` also the runs whose logs are there."""
+    out.mkdir(parents=True, exist_ok=True)
+    scene, fusion = out / "scene", out / "fusion"
+    sp, vx, report = out / "superpixel", out / "voxel", out / "report"
+    w = ["--workers", str(workers)] if workers else []
+    res: dict = {"preset": preset, "seed": seed, "workers": workers}
+    if not (reuse and (scene / "scene.json").exists()):
+        wall, peak = run("sample", scene, "--preset", preset, "--seed", seed, "--overwrite",
+                         log=out / "sample.log")  # fmt: skip
+        res["sample"] = {"wall_s": wall, "peak_mb": peak}
+    meta_path = scene / "sample.json"
+    meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
+    res["buildings_in_truth"] = meta.get("counts", {}).get("buildings")
+    res["views"] = meta.get("counts", {}).get("views")
+
+    kept = _recorded_s(fusion / "fusion.json", "stages_total_s") if reuse_runs else None
+    wall, peak = run("fusion", scene, "-o", fusion, "--truth", scene, *w, "--overwrite",
+                     log=out / "fusion.log", kept=kept)  # fmt: skip
+    rec = json.loads((fusion / "fusion.json").read_text())
+    res["fusion"] = {
+        "wall_s": wall, "peak_mb": peak, "own_peak_mb": rec.get("peak_memory_mb"),
+        "worker_peak_mb": rec.get("worker_peak_memory_mb"),
+        "stages": {k: v["wall_s"] for k, v in rec["stages"].items()},
+        "observations": rec["observations"], "observations_per_s": rec["observations_per_s"],
+        "cells": rec["grid"]["width"] * rec["grid"]["height"], "tiles": rec.get("tiles"),
+        "engine": rec.get("engine"), "workers": rec.get("workers"),
+        "quality": rec.get("quality", {}),
+    }  # fmt: skip
+    for name, folder, args in (
+        ("superpixel", sp, ["superpixel", fusion]),
+        ("voxel", vx, ["voxel", scene, "--fusion", fusion, *w]),
+    ):
+        kept = _recorded_s(folder / "model.json", "") if reuse_runs else None
+        wall, peak = run("model", *args, "-o", folder, "--overwrite", log=out / f"{name}.log",
+                         kept=kept)  # fmt: skip
+        rec = json.loads((folder / "model.json").read_text())
+        n = rec["counts"]["buildings"]
+        res[name] = {
+            "wall_s": wall, "peak_mb": peak, "buildings": n,
+            "seconds_per_building": wall / max(n, 1),
+            "stages": {k: v["wall_s"] for k, v in rec["stages"].items()},
+            "own_peak_mb": rec.get("peak_memory_mb"),
+            "worker_peak_mb": rec.get("worker_peak_memory_mb"),
+        }  # fmt: skip
+    wall, peak = run("compare", fusion, sp, vx, "--truth", scene, "-o", report, "--overwrite",
+                     log=out / "compare.log")  # fmt: skip
+    res["compare"] = {"wall_s": wall, "peak_mb": peak}
+    res["total_s"] = sum(v["wall_s"] for v in res.values() if isinstance(v, dict) and
+                         "wall_s" in v)  # fmt: skip
+    return res
+
+
+def print_city(r: dict) -> None:
+    """The table of one preset's run."""
+    print(f"\n{r['preset']} seed {r['seed']} end to end ({r.get('views')} views, "
+          f"{r.get('buildings_in_truth')} buildings in the truth), one run each:")  # fmt: skip
+
+    def peaks(s):
+        """The largest process's peak (the command or a worker: `time` sees them all),
+        the command's own where its record gives it, each worker's."""
+        out = f"peak {s['peak_mb']:.0f} MiB" if s.get("peak_mb") else ""
+        if s.get("own_peak_mb"):
+            out += f" (command {s['own_peak_mb']:.0f} MiB"
+            wp = s.get("worker_peak_mb")
+            out += f", workers {', '.join(f'{p:.0f}' for p in wp)} MiB)" if wp else ")"
+        elif s.get("worker_peak_mb"):
+            out += f" (workers {', '.join(f'{p:.0f}' for p in s['worker_peak_mb'])} MiB)"
+        return out
+
+    if "sample" in r:
+        print(f"  sample      {r['sample']['wall_s']:8.1f} s  {peaks(r['sample'])}")
+    f = r["fusion"]
+    print(f"  fusion      {f['wall_s']:8.1f} s  {peaks(f)}; {f['engine']} x {f['workers']}, "
+          f"{f['tiles']} tiles of {f['cells'] / 1e6:.2f} M cells; {f['observations'] / 1e6:.1f} M "
+          f"observations, {f['observations_per_s'] / 1e6:.2f} M/s")  # fmt: skip
+    print("              " + ", ".join(f"{k} {v:.1f}" for k, v in f["stages"].items()))
+    m = r["superpixel"]
+    print(f"  superpixel  {m['wall_s']:8.1f} s  {peaks(m)}; {m['buildings']} buildings, "
+          f"{m['wall_s'] / (f['cells'] / 1e6):.1f} s per ortho megapixel")  # fmt: skip
+    m = r["voxel"]
+    print(f"  voxel       {m['wall_s']:8.1f} s  {peaks(m)}; {m['buildings']} buildings, "
+          f"{m['seconds_per_building']:.2f} s per building")  # fmt: skip
+    print("              " + ", ".join(f"{k} {v:.1f}" for k, v in m["stages"].items()))
+    print(f"  compare     {r['compare']['wall_s']:8.1f} s  {peaks(r['compare'])}")
+    print(f"  total       {r['total_s']:8.1f} s")
+    q = f.get("quality", {})
+    if q.get("classification"):
+        print(f"  fusion classes overall {q['classification']['overall_accuracy']:.3f}, "
+              f"DSM RMSE off jumps {q['dsm'].get('rmse_off_jumps_m')} m")  # fmt: skip
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--preset", default="city")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=Path("bench_out") / "city")
+    ap.add_argument("--workers", type=int, help="default: every core")
+    ap.add_argument("--reuse", action="store_true", help="keep an existing sample scene")
+    ap.add_argument(
+        "--reuse-runs", action="store_true",
+        help="also keep the runs whose logs are there (their time is then their record's, "
+        "without the interpreter's start)",
+    )  # fmt: skip
+    args = ap.parse_args()
+    res = city_run(args.preset, args.seed, args.out, args.workers, args.reuse, args.reuse_runs)
+    (args.out / "city.json").write_text(json.dumps(res, indent=1) + "\n")
+    print_city(res)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,245 @@
+"""The engine: tasks in order on threads or a Dask cluster, finished tasks kept for
+--resume, the same products whatever runs them, one-line errors when the cluster or the
+disk fails."""
+
+import errno
+import json
+import pickle
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from tests.conftest import run_cli
+from workbench.engine import (
+    TaskStore,
+    ThreadEngine,
+    engine_for,
+    open_store,
+    partial_folder,
+    run_signature,
+)
+from workbench.errors import WorkbenchError
+from workbench.raster import read_raster
+
+RASTERS = ("dsm.tif", "dtm.tif", "ortho.tif", "class_prob.tif", "class.tif", "count.tif")
+
+
+def square(x):
+    return x * x
+
+
+def refuse(x):
+    raise AssertionError(f"task {x} ran again")
+
+
+def test_thread_engine_yields_in_order_and_keeps_what_finished(tmp_path):
+    store = open_store(tmp_path / "out", {"a": 1}, resume=False)
+    engine = ThreadEngine(3, store)
+    assert list(engine.map(square, list(range(7)), stage="sq")) == [x * x for x in range(7)]
+    assert store.finished("sq") == 7
+    # started again with --resume: every task is in the store, none runs
+    again = ThreadEngine(2, open_store(tmp_path / "out", {"a": 1}, resume=True))
+    assert list(again.map(refuse, list(range(7)), stage="sq")) == [x * x for x in range(7)]
+
+
+def test_resume_refuses_a_run_started_with_other_options(tmp_path):
+    out = tmp_path / "out"
+    open_store(out, {"parameters": {"tile": 512, "seed": 0}}, resume=False)
+    with pytest.raises(WorkbenchError, match=r"parameters\.seed: .*drop --resume"):
+        open_store(out, {"parameters": {"tile": 512, "seed": 1}}, resume=True)
+    # without --resume the old partial run is discarded
+    store = open_store(out, {"parameters": {"seed": 1}}, resume=False)
+    assert store.empty() and json.loads((store.folder / "manifest.json").read_text()) == {
+        "parameters": {"seed": 1}
+    }
+
+
+def test_the_number_of_workers_is_no_part_of_a_runs_signature():
+    from fusion.options import FusionOptions
+
+    a = run_signature(FusionOptions(workers=1), {"scene": "s"})
+    assert a == run_signature(FusionOptions(workers=4), {"scene": "s"})
+    assert a != run_signature(FusionOptions(seed=3), {"scene": "s"})
+
+
+def test_a_full_disk_is_one_line_and_keeps_the_finished_tasks(tmp_path, monkeypatch):
+    store = TaskStore(tmp_path / "partial")
+    real_dump, calls = pickle.dump, []
+
+    def dump(obj, f, **kw):
+        calls.append(obj)
+        if len(calls) == 3:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_dump(obj, f, **kw)
+
+    monkeypatch.setattr(pickle, "dump", dump)
+    with pytest.raises(WorkbenchError, match="disk full.*--resume") as err:
+        list(ThreadEngine(1, store).map(square, [1, 2, 3, 4], stage="sq"))
+    assert "\n" not in str(err.value)
+    assert store.finished("sq") == 2 and not list((store.folder / "sq").glob("*.tmp-*"))
+
+
+def fills_the_disk(x):
+    if x == 2:
+        raise OSError(errno.ENOSPC, "No space left on device", f"/scratch/{x}.npz")
+    return x
+
+
+def test_a_task_that_fills_the_disk_is_one_line(tmp_path):
+    store = TaskStore(tmp_path / "partial")
+    with pytest.raises(WorkbenchError, match=r"^/scratch/2.npz: disk full.*--resume"):
+        list(ThreadEngine(1, store).map(fills_the_disk, [0, 1, 2, 3], stage="s"))
+    assert store.finished("s") == 2
+
+
+def test_engine_for_leaves_nothing_when_nothing_finished(tmp_path):
+    out = tmp_path / "out"
+    with pytest.raises(ValueError), engine_for(out, {"a": 1}, workers=1) as engine:
+        list(engine.map(int, ["x"], stage="bad"))
+    assert not partial_folder(out).exists()
+    with engine_for(out, {"a": 1}, workers=1) as engine:
+        assert list(engine.map(square, [2], stage="ok")) == [4]
+    assert not partial_folder(out).exists()  # a finished run leaves no partial folder
+
+
+def test_an_unreachable_scheduler_is_one_line(tiny_scene, tmp_path):
+    out = tmp_path / "o"
+    proc = run_cli("fusion", tiny_scene, "-o", out, "--scheduler", "tcp://127.0.0.1:9")
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--scheduler tcp://127.0.0.1:9" in lines[0], proc.stderr
+    assert not out.exists() and not partial_folder(out).exists()
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A local Dask cluster of two worker processes, as `dask scheduler` and two
+    `dask worker`s would be."""
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as c:  # fmt: skip
+        yield c
+
+
+def test_a_worker_that_cannot_read_an_image_names_it(cluster, tiny_scene, tmp_path):
+    """An image the command saw but a worker cannot read (not mounted there, say): the
+    worker's one-line error reaches the command as it was raised."""
+    from distributed import Client
+
+    from fusion.scene_fusion import fuse_views
+    from workbench.engine import DaskEngine
+    from workbench.errors import InputError
+    from workbench.scene import load_scene
+
+    scene_dir = tmp_path / "scene"
+    shutil.copytree(tiny_scene, scene_dir)
+    scene = load_scene(scene_dir)  # checked and read by the command
+    gone = scene.views[3].image_path
+    gone.unlink()  # ... and not there for the workers
+    engine = DaskEngine(Client(cluster.scheduler_address))
+    try:
+        with pytest.raises(InputError, match="not a readable image") as err:
+            fuse_views(scene, engine=engine)
+    finally:
+        engine.close()
+    assert err.value.path == str(gone) and "\n" not in str(err.value)
+
+
+@pytest.mark.slow
+def test_two_worker_processes_give_the_products_of_one_process(
+    cluster, tiny_scene, tmp_path
+):  # fmt: skip
+    one, two = tmp_path / "one", tmp_path / "two"
+    proc = run_cli("fusion", tiny_scene, "-o", one, "--workers", "1")
+    assert proc.returncode == 0, proc.stderr
+    proc = run_cli("fusion", tiny_scene, "-o", two, "--scheduler", cluster.scheduler_address)
+    assert proc.returncode == 0, proc.stderr
+    record = json.loads((two / "fusion.json").read_text())
+    assert record["engine"] == "dask" and record["workers"] == 2
+    assert record["scheduler"] == cluster.scheduler_address
+    assert len(record["worker_peak_memory_mb"]) == 2
+    for name in RASTERS:  # byte for byte
+        a, _, _ = read_raster(one / name)
+        b, _, _ = read_raster(two / name)
+        np.testing.assert_array_equal(a, b, err_msg=name)
+    vx1, vx2 = tmp_path / "vx1", tmp_path / "vx2"
+    for out, how in ((vx1, ["--workers", "1"]), (vx2, ["--scheduler", cluster.scheduler_address])):
+        proc = run_cli("model", "voxel", tiny_scene, "--fusion", one, "-o", out, *how)
+        assert proc.returncode == 0, proc.stderr
+    meshes = sorted(p.name for p in (vx1 / "buildings").iterdir())
+    assert meshes == sorted(p.name for p in (vx2 / "buildings").iterdir()) and meshes
+    for name in meshes:
+        assert (vx1 / "buildings" / name).read_bytes() == (vx2 / "buildings" / name).read_bytes()
+
+
+@pytest.mark.slow
+def test_a_killed_fusion_resumes_with_only_the_unfinished_tasks(tiny_scene, tmp_path):
+    out = tmp_path / "o"
+    partial = partial_folder(out)
+    cmd = [sys.executable, "-m", "workbench.cli", "fusion", str(tiny_scene), "-o", str(out),
+           "--workers", "1"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while TaskStore(partial).finished("classification") < 5:
+        assert proc.poll() is None and time.monotonic() < deadline, "the run ended first"
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)  # no clean-up at all: a killed machine
+    proc.wait()
+    assert not out.exists()
+    kept = TaskStore(partial).finished("classification")
+    assert 5 <= kept < 20
+    again = run_cli(*cmd[3:], "--resume")
+    assert again.returncode == 0, again.stderr
+    assert f"classification: {kept} of 20 tasks finished before, kept" in again.stderr
+    assert "observations: 20 of 20 tasks finished before, kept" in again.stderr
+    assert not partial.exists()
+    whole = tmp_path / "whole"
+    assert run_cli(*cmd[3:5], "-o", whole, "--workers", "1").returncode == 0
+    for name in RASTERS:
+        a, _, _ = read_raster(out / name)
+        b, _, _ = read_raster(whole / name)
+        np.testing.assert_array_equal(a, b, err_msg=name)
+
+
+def test_an_interrupted_voxel_run_redoes_only_its_unfinished_buildings(
+    tiny_scene, tiny_fusion, tmp_path, monkeypatch
+):  # fmt: skip
+    import modeling.voxel.path as vp
+    from modeling.voxel.options import VoxelOptions
+
+    opts = VoxelOptions(workers=1)
+    whole = vp.run_voxel(tiny_scene, opts, fusion_dir=tiny_fusion)
+    out = tmp_path / "vx"
+    sig = run_signature(opts, {"scene": tiny_scene, "fusion": tiny_fusion})
+    real_texture = vp.texture_task
+    done = []
+
+    def dies_at_the_fourth(*args):
+        if len(done) == 3:
+            raise KeyboardInterrupt  # Ctrl-C
+        done.append(1)
+        return real_texture(*args)
+
+    monkeypatch.setattr(vp, "texture_task", dies_at_the_fourth)
+    with pytest.raises(KeyboardInterrupt), engine_for(out, sig, workers=1) as engine:
+        vp.run_voxel(tiny_scene, opts, fusion_dir=tiny_fusion, engine=engine)
+    store = TaskStore(partial_folder(out))
+    assert store.finished("proxies") == 6 and store.finished("textures") == 3
+
+    # resumed: no proxy is built again, three buildings are textured
+    monkeypatch.setattr(vp, "building_proxy", refuse)
+    textured = []
+    monkeypatch.setattr(vp, "texture_task", lambda *a: textured.append(1) or real_texture(*a))
+    with engine_for(out, sig, workers=1, resume=True) as engine:
+        resumed = vp.run_voxel(tiny_scene, opts, fusion_dir=tiny_fusion, engine=engine)
+    assert len(textured) == 3
+    assert [b.id for b in resumed.buildings] == [b.id for b in whole.buildings]
+    for a, b in zip(resumed.buildings, whole.buildings, strict=True):
+        np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
+        np.testing.assert_array_equal(a.mesh.texture.image, b.mesh.texture.image)

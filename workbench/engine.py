@@ -1,0 +1,477 @@
+"""Where a run's tasks execute: threads of this process, or a Dask cluster; and the
+finished tasks kept on disk so that ``--resume`` redoes only the others.
+
+A long stage is a list of independent tasks (a fusion tile, a view, a building). A path
+hands them to :meth:`Engine.map`, which yields their results in the tasks' order,
+whatever ran them and in whatever order they finished, so that the products do not
+depend on the engine or the number of workers. Large read-only inputs (the views, a
+forest, the DTM) go to :meth:`Engine.share` once and reach every task by reference.
+
+:class:`ThreadEngine` runs the tasks in threads of this process (``--workers 1``, and
+what the library's functions use when given no engine). :class:`DaskEngine` runs them on
+a ``dask.distributed`` cluster: a local one of the machine's cores by default, or the
+scheduler of ``--scheduler ADDRESS``, whose workers read the inputs from paths they all
+see.
+
+With a :class:`TaskStore`, each finished task's result is saved as it finishes, under
+the stage's name and the task's key; a run started again with ``--resume`` loads those
+and submits only the rest.
+"""
+
+from __future__ import annotations
+
+import errno
+import importlib
+import json
+import logging
+import os
+import pickle
+import shutil
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+
+from .errors import WorkbenchError
+from .parallel import default_workers, ordered_map
+from .progress import progress
+
+log = logging.getLogger(__name__)
+
+CONNECT_TIMEOUT_S = 10  # for a scheduler to answer, and for its first worker to join
+MANIFEST = "manifest.json"
+
+
+class TaskStore:
+    """Finished tasks' results, one pickle each, under ``folder/<stage>/<key>.pkl``.
+
+    A result is written to a temporary file and renamed, so a task is either finished
+    in the store or absent, even when the run is killed while writing.
+
+    Parameters
+    ----------
+    folder : path
+        The run's partial folder (``.<OUT>.partial`` beside the output).
+    """
+
+    def __init__(self, folder: str | os.PathLike):
+        self.folder = Path(folder)
+
+    def path(self, stage: str, key: str) -> Path:
+        return self.folder / stage / f"{key}.pkl"
+
+    def has(self, stage: str, key: str) -> bool:
+        return self.path(stage, key).exists()
+
+    def load(self, stage: str, key: str):
+        with open(self.path(stage, key), "rb") as f:
+            return pickle.load(f)
+
+    def save(self, stage: str, key: str, result) -> None:
+        path = self.path(stage, key)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".tmp-{os.getpid()}")
+        try:
+            with open(tmp, "wb") as f:
+                pickle.dump(result, f, protocol=5)
+            os.replace(tmp, path)
+        except OSError as e:
+            tmp.unlink(missing_ok=True)
+            full = disk_full(e, path)
+            if full is None:
+                raise
+            raise full from None
+
+    def finished(self, stage: str) -> int:
+        """How many of ``stage``'s tasks are in the store."""
+        d = self.folder / stage
+        return len(list(d.glob("*.pkl"))) if d.is_dir() else 0
+
+    def empty(self) -> bool:
+        """Whether no task has finished (the folder holds its manifest at most)."""
+        return not any(self.folder.glob("*/*.pkl"))
+
+    def scratch(self, name: str) -> Path:
+        """A folder of the store for a stage's own files (every worker must see it)."""
+        d = self.folder / name
+        d.mkdir(parents=True, exist_ok=True)
+        return d
+
+
+def disk_full(e: OSError, path=None) -> WorkbenchError | None:
+    """The one-line error of a full disk (None for another OSError)."""
+    if e.errno != errno.ENOSPC:
+        return None
+    return WorkbenchError(
+        f"{path or e.filename}: disk full while keeping a finished task; the tasks finished "
+        "before it are kept: free some space and run again with --resume"
+    )
+
+
+def _raise_disk_full(e: OSError) -> None:
+    full = disk_full(e)
+    if full is not None:
+        raise full from None
+
+
+def partial_folder(out: str | os.PathLike) -> Path:
+    """Where a run writing ``out`` keeps its finished tasks: ``.<name>.partial`` beside it."""
+    out = Path(out).absolute()
+    return out.with_name(f".{out.name}.partial")
+
+
+def open_store(out: str | os.PathLike, signature: dict, *, resume: bool) -> TaskStore:
+    """The task store of a run writing ``out``.
+
+    With ``resume``, the partial folder of an interrupted run is kept if it was started
+    with the same ``signature`` (the options and inputs, as JSON); a different one is
+    refused, naming the first field that differs. Without it, any earlier partial folder
+    is discarded.
+    """
+    folder = partial_folder(out)
+    signature = json.loads(json.dumps(signature, default=str))
+    manifest = folder / MANIFEST
+    if resume and manifest.exists():
+        before = _flat(json.loads(manifest.read_text()))
+        now = _flat(signature)
+        if before != now:
+            field = next(k for k in sorted(set(before) | set(now)) if before.get(k) != now.get(k))
+            raise WorkbenchError(
+                f"{folder}: {field}: the interrupted run was started with other inputs or "
+                "options; drop --resume to start afresh"
+            )
+        log.info("resuming from %s", folder)
+        return TaskStore(folder)
+    if folder.exists():
+        if resume:
+            log.warning("%s has no manifest: starting afresh", folder)
+        else:
+            log.info("discarding the unfinished run in %s (--resume keeps it)", folder)
+        shutil.rmtree(folder)
+    elif resume:
+        log.warning("nothing to resume for %s: starting afresh", out)
+    folder.mkdir(parents=True)
+    manifest.write_text(json.dumps(signature, indent=1))
+    return TaskStore(folder)
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    """A nested dict as {"a.b": value}."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def run_signature(options, inputs: dict) -> dict:
+    """What an interrupted run must share with its resumption: its inputs (as absolute
+    paths) and its options but the number of workers."""
+    from .options import options_record
+
+    params = {k: v for k, v in options_record(options).items() if k != "workers"}
+    paths = {k: str(Path(v).absolute()) if v is not None else None for k, v in inputs.items()}
+    return {"inputs": paths, "parameters": params}
+
+
+def discard_store(store: TaskStore | None) -> None:
+    """Remove a finished run's partial folder."""
+    if store is not None:
+        shutil.rmtree(store.folder, ignore_errors=True)
+
+
+class Engine:
+    """Runs a stage's tasks and yields their results in the tasks' order.
+
+    Attributes
+    ----------
+    workers : int
+        Tasks that can run at once.
+    store : TaskStore or None
+        Where finished tasks are kept (None: nothing is kept).
+    """
+
+    workers: int = 1
+    store: TaskStore | None = None
+    name: str = ""
+
+    def share(self, obj):
+        """A handle on ``obj`` to pass to every task of :meth:`map` (the object itself)."""
+        return obj
+
+    def map(
+        self,
+        fn: Callable,
+        items: Sequence,
+        *shared,
+        stage: str,
+        keys: Sequence[str] | None = None,
+    ) -> Iterator:
+        """``fn(item, *shared)`` for each item, yielded in the items' order.
+
+        Parameters
+        ----------
+        fn : callable
+            A module-level function (it may be sent to other processes).
+        items : sequence
+            One per task, small (sent with the task).
+        *shared
+            Handles from :meth:`share`, or small objects, passed to every task.
+        stage : str
+            The stage's name: its progress bar, and its folder in the store.
+        keys : sequence of str, optional
+            Unique keys of the tasks in the store (default: their positions). Without a
+            store the results are not kept.
+        """
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+    def describe(self) -> dict:
+        """The engine for the run's record."""
+        return {"engine": self.name, "workers": self.workers}
+
+    def _keys(self, items, keys):
+        return [str(k) for k in keys] if keys is not None else [str(i) for i in range(len(items))]
+
+    def _log_resumed(self, stage: str, done: int, total: int) -> None:
+        if done:
+            log.info("%s: %d of %d tasks finished before, kept", stage, done, total)
+
+
+class ThreadEngine(Engine):
+    """The tasks in ``workers`` threads of this process (NumPy and OpenCV release the
+    GIL), at most ``workers`` results waiting (:func:`~workbench.parallel.ordered_map`)."""
+
+    name = "threads"
+
+    def __init__(self, workers: int | None = None, store: TaskStore | None = None):
+        self.workers = workers or default_workers()
+        self.store = store
+
+    def map(self, fn, items, *shared, stage, keys=None):
+        keys = self._keys(items, keys)
+        store = self.store
+        if store is not None:
+            self._log_resumed(stage, sum(store.has(stage, k) for k in keys), len(keys))
+
+        def one(j):
+            if store is not None and store.has(stage, keys[j]):
+                return store.load(stage, keys[j])
+            result = fn(items[j], *shared)
+            if store is not None:
+                store.save(stage, keys[j], result)
+            return result
+
+        try:
+            yield from progress(ordered_map(one, range(len(items)), self.workers), stage,
+                                total=len(items))  # fmt: skip
+        except OSError as e:  # a task's own files (the fusion's observations, say)
+            _raise_disk_full(e)
+            raise
+
+
+class DaskEngine(Engine):
+    """The tasks on a ``dask.distributed`` cluster, at most twice its threads submitted
+    or waiting in order, so that the client's memory follows the workers, not the tasks.
+
+    Parameters
+    ----------
+    client : distributed.Client
+    cluster : distributed.LocalCluster, optional
+        Closed with the engine (a cluster this run started).
+    store : TaskStore, optional
+    """
+
+    name = "dask"
+
+    def __init__(self, client, cluster=None, store: TaskStore | None = None):
+        self.client, self.store, self.cluster = client, store, cluster
+        self.workers = max(1, sum(client.nthreads().values()))
+        self.address = client.scheduler.address
+
+    def share(self, obj):
+        # one copy per worker, deserialised once; tasks receive that object
+        return self.client.scatter(obj, broadcast=True, hash=False)
+
+    def map(self, fn, items, *shared, stage, keys=None):
+        from distributed import as_completed
+
+        keys = self._keys(items, keys)
+        store = self.store
+        stored = [store is not None and store.has(stage, k) for k in keys]
+        self._log_resumed(stage, sum(stored), len(keys))
+        window = 2 * self.workers
+        run_id = os.urandom(4).hex()  # task keys unique on a shared scheduler
+        done: dict[int, object] = {}
+        index: dict = {}
+        running = as_completed()
+        next_submit, next_yield = 0, 0
+        bar = progress(range(len(items)), stage)
+        bar_iter = iter(bar)
+
+        def submit_more():
+            nonlocal next_submit
+            while next_submit < len(items) and next_submit - next_yield < window:
+                j = next_submit
+                next_submit += 1
+                if stored[j]:
+                    continue
+                key = f"{stage}-{keys[j]}-{run_id}"
+                fut = self.client.submit(fn, items[j], *shared, pure=False, key=key)
+                index[fut.key] = j
+                running.add(fut)
+
+        try:
+            submit_more()
+            while next_yield < len(items):
+                if stored[next_yield]:
+                    result = store.load(stage, keys[next_yield])
+                elif next_yield in done:
+                    result = done.pop(next_yield)
+                else:
+                    fut = next(running)
+                    j = index.pop(fut.key)
+                    done[j] = _task_result(fut, stage, keys[j])
+                    fut.release()
+                    if store is not None:
+                        store.save(stage, keys[j], done[j])
+                    continue
+                next_yield += 1
+                next(bar_iter, None)
+                submit_more()
+                yield result
+        finally:
+            bar.close()
+            for fut in list(running.futures):
+                fut.cancel()
+
+    def close(self) -> None:
+        self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+    def describe(self) -> dict:
+        """The engine, and each worker's peak resident memory so far (MiB)."""
+        from .records import peak_memory_mb
+
+        peaks = self.client.run(peak_memory_mb)
+        return {"engine": self.name, "workers": self.workers,
+                "scheduler": None if self.cluster is not None else self.address,
+                "worker_peak_memory_mb": [round(peaks[w], 1) for w in sorted(peaks)]}  # fmt: skip
+
+
+def _task_result(fut, stage: str, key: str):
+    from distributed import KilledWorker
+
+    try:
+        return fut.result()
+    except OSError as e:
+        _raise_disk_full(e)
+        raise
+    except KilledWorker:
+        raise WorkbenchError(
+            f"{stage} task {key}: the workers running it died (out of memory, or killed); "
+            "the finished tasks are kept: run again with --resume"
+        ) from None
+
+
+def start_engine(
+    workers: int | None = None,
+    scheduler: str | None = None,
+    store: TaskStore | None = None,
+    preload: tuple[str, ...] = (),
+) -> Engine:
+    """The engine of a command: ``--scheduler ADDRESS``'s cluster; else one worker in
+    this process (``--workers 1``); else a local cluster of ``workers`` processes
+    (default: this process's cores), one thread each. Dask workers import the modules
+    ``preload`` names before the first task, so that no stage's time counts it."""
+    if scheduler is not None:
+        engine = DaskEngine(connect(scheduler), store=store)
+    elif (workers or default_workers()) == 1:
+        return ThreadEngine(1, store)
+    else:
+        engine = DaskEngine(*local_cluster(workers or default_workers()), store=store)
+    engine.client.run(glibc_malloc_defaults)
+    for module in preload:
+        engine.client.run(importlib.import_module, module)
+    return engine
+
+
+def glibc_malloc_defaults() -> None:
+    """Undo, in a Dask worker, the ``MALLOC_TRIM_THRESHOLD_`` its nanny sets: it also
+    freezes glibc's mmap threshold, so that every large NumPy temporary is mapped and
+    unmapped page by page. On ``small`` the views' observations took 2.5 times longer
+    (10.1 s against 4.1 s on one core). The mmap threshold goes to glibc's own ceiling
+    (32 MiB on 64 bits), where its dynamic threshold ends up by itself."""
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    if name is None or not os.environ.get("MALLOC_TRIM_THRESHOLD_"):
+        return
+    libc = ctypes.CDLL(name)
+    m_trim_threshold, m_mmap_threshold = -1, -3  # malloc.h
+    libc.mallopt(m_mmap_threshold, 32 * 2**20)
+    libc.mallopt(m_trim_threshold, 64 * 2**20)
+
+
+def local_cluster(workers: int):
+    """A client of a new local cluster of ``workers`` processes of one thread, and the
+    cluster."""
+    from distributed import Client, LocalCluster
+
+    logging.getLogger("distributed").setLevel(logging.WARNING)  # its INFO is for operators
+    cluster = LocalCluster(
+        n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+        silence_logs=logging.ERROR,
+    )  # fmt: skip
+    return Client(cluster), cluster
+
+
+def connect(address: str):
+    """A client of the scheduler at ``address`` with at least one worker, or a one-line
+    error naming it."""
+    from distributed import Client
+
+    logging.getLogger("distributed").setLevel(logging.WARNING)
+    try:
+        client = Client(address, timeout=f"{CONNECT_TIMEOUT_S}s")
+    except (OSError, TimeoutError, ValueError) as e:
+        raise WorkbenchError(
+            f"--scheduler {address}: no Dask scheduler answered within "
+            f"{CONNECT_TIMEOUT_S} s ({type(e).__name__})"
+        ) from None
+    try:
+        client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
+    except (OSError, TimeoutError):
+        client.close()
+        raise WorkbenchError(
+            f"--scheduler {address}: the scheduler has no worker (start `dask worker "
+            f"{address}` on the machines that should compute)"
+        ) from None
+    return client
+
+
+@contextmanager
+def engine_for(out, signature: dict, *, workers=None, scheduler=None, resume=False,
+               preload: tuple[str, ...] = ()):  # fmt: skip
+    """The engine and task store of a command writing ``out``; the store's partial
+    folder goes once the block succeeds, and stays for ``--resume`` if it fails."""
+    store = open_store(out, signature, resume=resume)
+    try:
+        engine = start_engine(workers, scheduler, store, preload)
+    except BaseException:
+        discard_store(store if store.empty() else None)
+        raise
+    try:
+        yield engine
+    except BaseException:
+        # nothing finished (bad input, say): nothing to resume, no trace left
+        discard_store(store if store.empty() else None)
+        raise
+    finally:
+        engine.close()
+    discard_store(store)
