@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 
@@ -21,6 +22,8 @@ from .options import FusionOptions
 from .outputs import write_fusion
 from .raster_forest import classify_rasters, synthetic_raster_forest
 from .scene_fusion import feature_set, fuse_views
+
+log = logging.getLogger(__name__)
 
 
 def run_fusion(
@@ -72,6 +75,9 @@ def run_fusion(
     if points is not None:
         from .points import fuse_points
 
+        if scheduler is not None or resume:
+            log.warning("--scheduler and --resume apply to the fusion of views; clouds are "
+                        "rasterised in this process")  # fmt: skip
         result, crs, inputs = fuse_points(points, options, crs=crs)
         return _write(out, result, crs, inputs, options, truth, save_classifier_to, overwrite,
                       command, t0)  # fmt: skip
