@@ -52,12 +52,15 @@ def _peak(text: str) -> float | None:
     return float(peak[-1].split()[1]) / 1024 if peak else None
 
 
-def _recorded_s(record: Path, key: str) -> float | None:
-    """The seconds a finished run's record gives (None if there is no such run)."""
+def _recorded_s(record: Path, key: str | None = None) -> float | None:
+    """The seconds a finished run's record gives: its ``key``, else the sum of its
+    stages (None if there is no such run)."""
     if not record.exists():
         return None
     rec = json.loads(record.read_text())
-    return rec.get(key) or sum(s["wall_s"] for s in rec["stages"].values())
+    if key is not None and rec.get(key) is not None:
+        return rec[key]
+    return sum(s["wall_s"] for s in rec["stages"].values())
 
 
 def city_run(
@@ -96,7 +99,7 @@ def city_run(
         ("superpixel", sp, ["superpixel", fusion]),
         ("voxel", vx, ["voxel", scene, "--fusion", fusion, *w]),
     ):
-        kept = _recorded_s(folder / "model.json", "") if reuse_runs else None
+        kept = _recorded_s(folder / "model.json") if reuse_runs else None
         wall, peak = run("model", *args, "-o", folder, "--overwrite", log=out / f"{name}.log",
                          kept=kept)  # fmt: skip
         rec = json.loads((folder / "model.json").read_text())

@@ -85,7 +85,8 @@ def run_voxel(
     with timer.stage("proxies"):
         proxies = build_proxies(inputs, options, engine, shared, ids)
     with timer.stage("textures"):
-        occluders = engine.share(ProxyScene.of(proxies))
+        scene = ProxyScene.of(proxies)
+        occluders = engine.share(scene)
         big = largest(proxies) if proxies else -1
         items = [(p, i == big) for i, p in enumerate(proxies)]
         textured = list(engine.map(texture_task, items, shared, options, occluders,
@@ -93,7 +94,7 @@ def run_voxel(
     with timer.stage("ground"):
         feet = [foot for _, foot, _ in textured]
         gtex, ground_z = texture_ground(inputs, proxies, feet, options, engine, shared,
-                                        occluders)  # fmt: skip
+                                        scene, occluders)  # fmt: skip
     buildings = [b for b, _, _ in textured]
     with timer.stage("preview"):
         shown = (proxies[big], textured[big][2]) if proxies else (None, None)
@@ -206,12 +207,13 @@ def texture_task(item: tuple, inputs: VoxelInputs, options: VoxelOptions,
 
 def texture_ground(
     inputs: VoxelInputs, proxies: list[Proxy], feet: list[WallFoot], options: VoxelOptions,
-    engine: Engine, shared, occluders,
+    engine: Engine, shared, scene: ProxyScene, occluders,
 ) -> tuple[GroundTexture | None, np.ndarray | None]:  # fmt: skip
     """Sections 5.3-5.4: the ground cut with the proxies masked out, a task per tile of
     ``GROUND_TILE`` texels, then the ring cut around each building in a window around it;
     returns the ground texture and the ground heights on its grid. ``shared`` and
-    ``occluders`` are the engine's handles on the inputs and the proxies' scene."""
+    ``occluders`` are the engine's handles on the inputs and on ``scene``, the proxies'
+    meshes (whose rays the ring cuts cast here)."""
     if not proxies:
         return None, None
     grid = ground_grid(inputs.scene, proxies, options.ground_gsd_m)
@@ -220,7 +222,7 @@ def texture_ground(
     items = [(grid.window(rows, cols), gz[rows, cols]) for rows, cols in tiles]
     cuts = engine.map(ground_tile_task, items, shared, options, occluders, stage="ground")
     gtex = join_ground_tiles(grid, gz, tiles, list(cuts))
-    cams, images, rays = inputs.cameras, inputs.images, ProxyScene.of(proxies).rays()
+    cams, images, rays = inputs.cameras, inputs.images, scene.rays()
     rings = []
     for foot in progress(feet, "ring cuts"):
         window = ring_window(gtex.grid, foot, options.ring_m)
