@@ -3,7 +3,7 @@
 A wing is a rectangle with centre ``(cx, cy)``, half-length ``a`` along its axis
 (the ridge direction, at ``angle`` radians from east) and half-width ``b``. Each
 roof type is a list of planar faces, each a convex polygon with 3D vertices in
-world coordinates; :func:`data_samples.envelope.building_mesh` takes the upper
+world coordinates; :func:`modeling.shared.roof_envelope.building_mesh` takes the upper
 envelope of the faces of all wings of a building.
 """
 
@@ -12,6 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from modeling.shared.roof_envelope import RoofFace
 
 ROOF_TYPES = ("flat", "shed", "gable", "hipped", "pyramid", "mansard", "multi-level")
 
@@ -46,14 +48,6 @@ class Wing:
         s = np.array([-self.a, self.a, self.a, -self.a])
         r = np.array([-self.b, -self.b, self.b, self.b])
         return np.column_stack(self.to_world(s, r))
-
-
-@dataclass
-class RoofFace:
-    """A planar roof face: a convex polygon and its plane z = p[0] x + p[1] y + p[2]."""
-
-    xy: np.ndarray  # (n, 2) world polygon, counter-clockwise
-    plane: np.ndarray  # (3,)
 
 
 def _face(wing: Wing, local: list[tuple[float, float, float]]) -> RoofFace:

@@ -13,9 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
+from modeling.shared.roof_envelope import building_mesh
 from workbench.raycast import RayScene, raycasting_scene
 
-from .envelope import building_mesh
 from .layout import GROUND_CLASS, GROUND_MATERIALS, RURAL, TREE_HUES, Layout
 from .roofs import wing_roof_faces
 from .terrain import Terrain, graded_axis

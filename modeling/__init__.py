@@ -3,6 +3,8 @@
 
 - :mod:`modeling.superpixel`: super-pixels, class CRF, roof prototypes, LOD2 meshes;
 - :mod:`modeling.voxel`: photo-consistency proxies from footprints, graph-cut textures;
+- :mod:`modeling.parametric`: a level set, footprint priors in competition, five-parameter
+  roofs (the variational paper);
 - :mod:`modeling.shared`: what more than one path uses (graph cuts, planes, roof meshes,
   outline regularity, roof types). No path imports another path.
 
@@ -10,9 +12,11 @@ To add a path: a folder with an options dataclass, a run function returning a
 ``ModelRun``, and a ``SPEC`` in its ``__init__``; then list it in ``PATHS`` below.
 """
 
-from . import superpixel, voxel
+from . import parametric, superpixel, voxel
 from .registry import Input, PathSpec
 
-PATHS: dict[str, PathSpec] = {spec.name: spec for spec in (superpixel.SPEC, voxel.SPEC)}
+PATHS: dict[str, PathSpec] = {
+    spec.name: spec for spec in (superpixel.SPEC, voxel.SPEC, parametric.SPEC)
+}
 
 __all__ = ["PATHS", "Input", "PathSpec"]

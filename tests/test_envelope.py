@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from data_samples.envelope import building_mesh
 from data_samples.roofs import ROOF_TYPES, Wing, wing_roof_faces
+from modeling.shared.roof_envelope import building_mesh
 
 
 def _o3d(m):

@@ -13,11 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
+from modeling.shared.raster_ground import ground_surface, vertex_colours
 from workbench import metrics
 from workbench.errors import InputError
 from workbench.fusion_run import FusionRun, read_fusion_run
-from workbench.meshes import raster_mesh
-from workbench.model_run import Building, ModelRun, Surface, stage_record
+from workbench.model_run import Building, ModelRun, stage_record
 from workbench.parallel import default_workers
 from workbench.progress import progress
 from workbench.raster import BUILDING, Grid, read_raster
@@ -216,20 +216,6 @@ def _prototypes(hyps, members, graph: SuperpixelGraph, neighbours, options):
     z = np.nanmedian(graph.height_median[members])
     flat = np.array([[0.0, 0.0, 1.0, -z]]) if np.isfinite(z) else np.empty((0, 4))
     return flat, None
-
-
-def vertex_colours(vertices: np.ndarray, rgb: np.ndarray, grid: Grid) -> np.ndarray:
-    """(V, 3) uint8 ortho colour under each vertex."""
-    r, c = grid.cell_index(vertices[:, 0], vertices[:, 1], clip=True)
-    return rgb[r, c]
-
-
-def ground_surface(dtm: np.ndarray, rgb: np.ndarray, grid: Grid) -> Surface | None:
-    """The DTM as a mesh of 2 m cells, coloured by the ortho."""
-    ground = raster_mesh(dtm, grid, step=max(1, round(2.0 / grid.gsd)))
-    if ground is None:
-        return None
-    return Surface(*ground, vertex_colors=vertex_colours(ground[0], rgb, grid))
 
 
 def building_boxes(cell_building: np.ndarray, n: int) -> np.ndarray:

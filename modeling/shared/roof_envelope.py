@@ -19,10 +19,16 @@ import shapely
 from shapely.geometry import LineString, Polygon
 from shapely.geometry.polygon import orient
 
-from .roofs import RoofFace
-
 GRID = 1e-4  # metres: coordinates are snapped to this grid so that vertices match exactly
 _EPS = 1e-3  # metres: offset used to probe the cell across an edge
+
+
+@dataclass
+class RoofFace:
+    """A planar roof face: a convex polygon and its plane z = p[0] x + p[1] y + p[2]."""
+
+    xy: np.ndarray  # (n, 2) world polygon, counter-clockwise
+    plane: np.ndarray  # (3,)
 
 
 @dataclass

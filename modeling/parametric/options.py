@@ -1,0 +1,81 @@
+"""The parametric path's options: the one place their defaults are declared."""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+
+from workbench.options import documented, option
+
+FAMILIES = ("rect", "L", "T", "U", "courtyard")
+
+
+def _families(text: str) -> tuple[str, ...]:
+    names = tuple(t.strip() for t in text.split(",") if t.strip())
+    bad = [n for n in names if n not in FAMILIES]
+    if bad or not names:
+        raise argparse.ArgumentTypeError(f"a comma-separated list of {', '.join(FAMILIES)}")
+    return names
+
+
+@documented
+@dataclass
+class ParametricOptions:
+    """Parameters of the parametric path (the variational paper's values where it gives
+    them: rho 1, lambda 0.95, mu 1, the height term's weight 0.85; the departures are
+    listed in ``docs/parametric.md``)."""
+
+    families: tuple[str, ...] = option(
+        FAMILIES, "footprint priors in competition (comma-separated)", parse=_families,
+        metavar="rect,L,T,U,courtyard",
+    )  # fmt: skip
+    mu: float = option(1.0, "weight of the shape-prior terms E_2D and E_3D (eq. 7)")
+    rho: float = option(
+        1.0, "weight of the labelling's boundary length (eq. 4): a prior with a longer "
+        "outline must explain that many more cells", flag="--rho",
+    )  # fmt: skip
+    lambda_: float = option(
+        0.95, "cost of the unknown-object label per cell (eq. 4): a segment that no prior "
+        "explains better is left to the data term and not modelled", flag="--lambda",
+    )  # fmt: skip
+    height_weight: float = option(
+        0.85, "weight of the height's region term against the colour's (eq. 1's varrho)",
+        kind="non_negative",
+    )  # fmt: skip
+    probability_weight: float = option(
+        1.0, "weight of a third region term on the fusion's building probability, beside "
+        "colour and height (0: the paper's two sources)", kind="non_negative",
+    )  # fmt: skip
+    length_weight: float = option(
+        0.5, "weight of the level set's boundary length (eq. 1's first term)", unit="m",
+        kind="non_negative", cli=False,
+    )  # fmt: skip
+    level_set_iterations: int = option(
+        120, "gradient steps of the level set per round", cli=False,
+    )  # fmt: skip
+    rounds: int = option(
+        2, "rounds of segmentation and prior registration (eq. 8 pulls the second round's "
+        "level set towards the registered priors)",
+    )  # fmt: skip
+    min_area_m2: float = option(20.0, "smallest building kept", unit="m2", flag="--min-area")
+    min_part_m: float = option(
+        3.0, "narrowest wing or notch of a footprint prior, and of a part decomposed from a "
+        "complex outline", unit="m",
+    )  # fmt: skip
+    opening_m: float = option(
+        1.0, "radius of the opening that splits weakly touching segments", unit="m",
+        kind="non_negative", cli=False,
+    )  # fmt: skip
+    tier_step_m: float = option(
+        1.5, "a part of the roof standing this far above the fitted roof, over at least the "
+        "smallest part's area, is a part of its own (a multi-level building's upper tier)",
+        unit="m",
+    )  # fmt: skip
+    robust_m: float = option(
+        0.3, "scale of the robust loss of the roof fit (eq. 6): residuals beyond it, walls' "
+        "cells and chimneys, weigh less", unit="m", cli=False,
+    )  # fmt: skip
+    workers: int | None = option(
+        None, "buildings modelled at once: worker processes of a local Dask cluster (1: in "
+        "this process; the models do not depend on it)", auto="every core",
+    )  # fmt: skip

@@ -1,0 +1,454 @@
+"""The parametric path end to end: a fusion run in, a :class:`ModelRun` out.
+
+The steps of the variational paper, each in the module named after it:
+:mod:`.segmentation` (eq. 1 and 8), :mod:`.footprint_priors` (eq. 2-4),
+:mod:`.roof_geometry` (eq. 5, 6, 11, 12), :mod:`.part_meshes` (the meshes). This module
+reads, runs a task per segment (:func:`building_task`) and times them.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import rasterio.features
+from shapely.geometry import mapping
+
+from modeling.shared.raster_ground import ground_surface, vertex_colours
+from workbench.engine import Engine, ThreadEngine
+from workbench.errors import InputError
+from workbench.fusion_run import read_fusion_run
+from workbench.model_run import Building, ModelRun, Surface
+from workbench.raster import BUILDING, Grid
+from workbench.records import StageTimer, peak_memory_mb
+
+from .footprint_priors import (
+    Prior,
+    compete_priors,
+    label_count,
+    leftover_parts,
+    segment_frame,
+    union_outline,
+)
+from .options import ParametricOptions
+from .part_meshes import building_solid, face_planes, wing_faces
+from .preview import parametric_preview
+from .roof_geometry import RoofFit, exact_heights, fit_roof, roof_type, side_distances
+from .segmentation import building_segments, heaviside, level_set_segmentation, signed_distance
+
+log = logging.getLogger(__name__)
+
+FUSION_RASTERS = ("ortho", "dsm", "dtm", "ndsm", "class_prob")
+_MAX_PARTS = 4  # priors per segment: the first and the parts its labelling leaves
+_MAX_TIERS = 3  # tiers stacked on a building (a multi-level building's levels)
+_LOGIT_CLIP = 0.01  # the building probability's source is its log-odds, clipped here
+
+
+@dataclass
+class ParametricInputs:
+    """What every segment's task reads: the rasters on the fusion's grid, the segments."""
+
+    grid: Grid
+    dsm: np.ndarray
+    dtm: np.ndarray
+    rgb: np.ndarray
+    segments: np.ndarray
+    boxes: np.ndarray  # (q + 1, 4) r0, r1, c0, c1 of each segment with its margin
+
+
+@dataclass
+class Wing:
+    """A rectangle of a part, in its prior's frame, with its fitted roof."""
+
+    rect: np.ndarray
+    fit: RoofFit
+    roof_type: str
+    tier: bool = False
+
+    def record(self) -> dict:
+        return {
+            "rect_m": [round(float(v), 3) for v in self.rect],
+            "h_main_z": round(self.fit.z_main, 3),
+            "omega_deg": [round(float(v), 2) for v in np.degrees(self.fit.omega)],
+            "cap_m": None if self.fit.cap is None else round(self.fit.cap, 3),
+            "roof_type": self.roof_type,
+            "rms_m": round(self.fit.rms, 3),
+            "energy_3d": round(self.fit.cost, 5),
+            "evaluations": self.fit.evaluations,
+            "tier": self.tier,
+        }
+
+
+@dataclass
+class SegmentResult:
+    """A task's answer: the building, or why the segment was skipped; the priors' outlines
+    for the preview and the next round's pull (eq. 8)."""
+
+    segment: int
+    building: Building | None = None
+    skipped: str | None = None
+    outlines: list = field(default_factory=list)
+
+
+def run_parametric(
+    fusion_dir: Path,
+    options: ParametricOptions | None = None,
+    *,
+    footprints: Path | None = None,
+    engine: Engine | None = None,
+) -> ModelRun:
+    """The parametric path (Karantzas & Paragios) on the rasters of ``workbench fusion``.
+
+    Parameters
+    ----------
+    fusion_dir : path
+        A fusion run folder (ortho, dsm, dtm, ndsm, class_prob).
+    options : ParametricOptions
+    footprints : path, optional
+        Building outlines (GeoJSON or any vector file GDAL reads) that initialise the
+        level set instead of the fusion's building probability.
+    engine : Engine, optional
+        Runs the segments' tasks (default: this process, one after another).
+    """
+    options = options or ParametricOptions()
+    engine = engine or ThreadEngine(1)
+    timer = StageTimer()
+    t_start = time.perf_counter()
+    with timer.stage("read"):
+        fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
+        grid = fusion.grid
+        dsm, dtm, rgb = fusion.band("dsm"), fusion.band("dtm"), fusion.rgb
+        init, init_source = initial_region(fusion, footprints)
+        sources = region_sources(fusion, options)
+    pull = None
+    results: list[SegmentResult] = []
+    rounds = []
+    for r in range(options.rounds):
+        with timer.stage("segmentation" if r == 0 else f"segmentation_{r + 1}"):
+            prior, weight = pull if pull is not None else (None, 0.0)
+            mask = level_set_segmentation(
+                sources, init, length_weight=options.length_weight,
+                iterations=options.level_set_iterations, prior=prior, prior_weight=weight,
+            )  # fmt: skip
+            segments = building_segments(mask, grid.gsd, options.opening_m, options.min_area_m2)
+            q = int(segments.max())
+            inputs = ParametricInputs(grid, dsm, dtm, rgb, segments, segment_boxes(segments, q))
+        with timer.stage("priors_and_roofs" if r == 0 else f"priors_and_roofs_{r + 1}"):
+            shared = engine.share(inputs)
+            results = list(engine.map(building_task, list(range(1, q + 1)), shared, options,
+                                      stage=f"segments_{r + 1}",
+                                      keys=[str(i) for i in range(1, q + 1)]))  # fmt: skip
+        k, nu = label_count(q)
+        rounds.append({"segments": q, "labels_k": k, "regions_nu": nu,
+                       "buildings": sum(x.building is not None for x in results)})  # fmt: skip
+        if r + 1 < options.rounds:
+            pull = prior_pull(results, grid, options)
+            init = mask
+    buildings = [x.building for x in results if x.building is not None]
+    skipped = [{"segment": x.segment, "reason": x.skipped} for x in results if x.skipped]
+    for b in buildings:
+        b.mesh.vertex_colors = vertex_colours(b.mesh.vertices, rgb, grid)
+    with timer.stage("preview"):
+        outlines = [o for x in results for o in x.outlines]
+        preview = parametric_preview(rgb, grid, mask, outlines, buildings, skipped_outlines(
+            results, segments, grid))  # fmt: skip
+    seconds = time.perf_counter() - t_start
+    return ModelRun(
+        "parametric", options, buildings, crs=fusion.crs, grid=grid, dtm=dtm,
+        ground=ground_surface(dtm, rgb, grid), preview=preview, stages=timer.stages,
+        rasters={"segments": (segments.astype(np.int32), 0)},
+        inputs={"fusion": str(Path(fusion_dir).absolute()),
+                "footprints": str(Path(footprints).absolute()) if footprints else None,
+                "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd}},
+        counts={"segments": int(segments.max()), "skipped": len(skipped)},
+        record={
+            "segmentation": {"initialised_from": init_source, "rounds": rounds},
+            "skipped": skipped,
+            **engine.describe(),
+            "seconds_per_building": round(seconds / max(len(buildings), 1), 3),
+            "seconds_per_megapixel": round(seconds / (grid.width * grid.height / 1e6), 3),
+            "peak_memory_mb": round(peak_memory_mb(), 1),
+        },
+    )  # fmt: skip
+
+
+def initial_region(fusion, footprints: Path | None) -> tuple[np.ndarray, str]:
+    """(H, W) bool initial object region: the footprints rasterised, or the cells whose
+    fused building probability exceeds one half."""
+    grid = fusion.grid
+    if footprints is None:
+        p = np.nan_to_num(fusion.rasters["class_prob"][BUILDING - 1].astype(np.float64))
+        return p > 0.5, "building probability"
+    from workbench.footprints import read_footprints
+
+    items = read_footprints(footprints, crs=fusion.crs, extent=grid.bounds)
+    shapes = [(f.polygon, 1) for f in items]
+    mask = rasterio.features.rasterize(shapes, out_shape=grid.shape, transform=grid.transform,
+                                       fill=0, dtype=np.uint8)  # fmt: skip
+    if not mask.any():
+        raise InputError(footprints, None, "no footprint covers a cell of the fusion's grid")
+    return mask.astype(bool), "footprints"
+
+
+def region_sources(fusion, options: ParametricOptions) -> list:
+    """Eq. 1's sources with their weights: the ortho's colour (weight 1), the nDSM's
+    height (varrho), the building probability's log-odds (a third source)."""
+    rgb = fusion.rgb.astype(np.float64) / 255.0
+    ndsm = fusion.band("ndsm")
+    prob = fusion.rasters["class_prob"].astype(np.float64)
+    seen = np.isfinite(prob).all(axis=0) & (np.nan_to_num(prob).sum(axis=0) > 0)
+    p = np.clip(np.nan_to_num(prob[BUILDING - 1]), _LOGIT_CLIP, 1 - _LOGIT_CLIP)
+    return [
+        (rgb, rgb.sum(axis=-1) > 0, 1.0),
+        (ndsm[..., None], np.isfinite(ndsm), options.height_weight),
+        (np.log(p / (1 - p))[..., None], seen, options.probability_weight),
+    ]
+
+
+def segment_boxes(segments: np.ndarray, q: int) -> np.ndarray:
+    """(q + 1, 4) row and column bounds of each segment, grown by a quarter of its size
+    and 8 cells (eq. 4's domain; row 0 unused)."""
+    H, W = segments.shape
+    out = np.zeros((q + 1, 4), np.int64)
+    rows, cols = np.nonzero(segments)
+    ids = segments[rows, cols]
+    for k in range(1, q + 1):
+        rr, cc = rows[ids == k], cols[ids == k]
+        mr = int(0.25 * (rr.max() - rr.min())) + 8
+        mc = int(0.25 * (cc.max() - cc.min())) + 8
+        out[k] = [max(rr.min() - mr, 0), min(rr.max() + mr + 1, H),
+                  max(cc.min() - mc, 0), min(cc.max() + mc + 1, W)]  # fmt: skip
+    return out
+
+
+def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) -> SegmentResult:
+    """Task: eq. 2-6 and the mesh for segment ``k``."""
+    t0 = time.perf_counter()
+    r0, r1, c0, c1 = inputs.boxes[k]
+    g = inputs.grid
+    crop = g.window(slice(r0, r1), slice(c0, c1))
+    mask = inputs.segments[r0:r1, c0:c1] == k
+    dsm, dtm = inputs.dsm[r0:r1, c0:c1], inputs.dtm[r0:r1, c0:c1]
+    xs = crop.xmin + (np.arange(crop.width) + 0.5) * g.gsd
+    ys = crop.ymax - (np.arange(crop.height) + 0.5) * g.gsd
+    min_cells = int(np.ceil(max(options.min_part_m**2, 0.5 * options.min_area_m2) / g.gsd**2))
+    priors, energies = decompose_segment(mask, xs, ys, g.gsd, options, min_cells)
+    if not priors:
+        return SegmentResult(k, skipped=f"unknown object: no footprint prior explains it "
+                             f"(eq. 4 energies {energies})")  # fmt: skip
+    X, Y = np.meshgrid(xs, ys)
+    outline = union_outline(priors)
+    inside = rasterize_on(outline, crop)
+    wings = fit_wings(priors, X, Y, dsm, inside, options, g.gsd)
+    wings += stack_tiers(priors, wings, X, Y, dsm, inside, options, g.gsd, min_cells)
+    if not wings:
+        return SegmentResult(k, skipped="no DSM height on the registered prior")
+    per_wing = [wing_faces(w.rect, w.fit, p.theta, p.origin) for w, p in wings]
+    faces = [f for wf in per_wing for f in wf]
+    ground = dtm[inside & np.isfinite(dtm)]
+    base_z = float(np.min(ground)) if len(ground) else float(np.nanmin(dsm[inside]) - 3.0)
+    solid = building_solid(per_wing, base_z, priors[0].theta, priors[0].origin)
+    planes, areas = face_planes(faces)
+    heights = model_heights(wings, X, Y)
+    record = {
+        "family": priors[0].family,
+        "parts": [p.record() for p in priors],
+        "wings": [w.record() for w, _ in wings],
+        "energies_2d": energies,
+        "energy_2d": round(float(sum(p.energy for p in priors)), 5),
+        "energy_3d_rms_m": round(float(_rms(heights - dsm, inside)), 3),
+        "iterations": int(sum(p.evaluations for p in priors) + sum(w.fit.evaluations
+                                                                  for w, _ in wings)),
+        "seconds": round(time.perf_counter() - t0, 3),
+    }  # fmt: skip
+    building = Building(
+        str(k), Surface(solid.vertices, solid.triangles), "2.2", footprint=outline,
+        roof_type=building_roof_type([w for w, _ in wings], options.tier_step_m),
+        planes=planes, plane_areas=areas, base_z=base_z,
+        eave_z=min(w.fit.z_main for w, _ in wings),
+        ridge_z=float(np.nanmax(np.where(inside, heights, np.nan))), record=record,
+    )  # fmt: skip
+    return SegmentResult(k, building, outlines=[mapping(p.polygon()) for p in priors])
+
+
+def decompose_segment(mask, xs, ys, gsd, options: ParametricOptions, min_cells: int):
+    """Eq. 4 on one segment: the winning prior, then priors for the parts its labelling
+    leaves to the data term, up to ``_MAX_PARTS``. Returns the priors and the first
+    competition's energies."""
+    frame = segment_frame(mask, xs, ys, gsd)
+    first, energies = compete_priors(frame, options.families, options.min_part_m,
+                                     options.lambda_)  # fmt: skip
+    if first is None:
+        return [], energies
+    priors = [first]
+    crop = Grid(xs[0] - gsd / 2, ys[0] + gsd / 2, gsd, len(xs), len(ys))
+    todo = [mask]
+    while todo and len(priors) < _MAX_PARTS:
+        region = todo.pop(0)
+        covered = rasterize_on(union_outline(priors), crop)
+        ind = covered.astype(np.float64)
+        var = float(np.mean(ind**2) - np.mean(ind) ** 2)
+        for part in leftover_parts(region, covered, var, options.lambda_, options.rho,
+                                   min_cells):  # fmt: skip
+            p, _ = compete_priors(segment_frame(part, xs, ys, gsd), options.families,
+                                  options.min_part_m, options.lambda_)  # fmt: skip
+            if p is not None and len(priors) < _MAX_PARTS:
+                priors.append(p)
+    return priors, energies
+
+
+def rasterize_on(shape, grid: Grid) -> np.ndarray:
+    """(h, w) bool cells whose centre ``shape`` covers."""
+    if shape.is_empty:
+        return np.zeros(grid.shape, bool)
+    return rasterio.features.rasterize([(shape, 1)], out_shape=grid.shape,
+                                       transform=grid.transform, fill=0,
+                                       dtype=np.uint8).astype(bool)  # fmt: skip
+
+
+def _frame_coords(p: Prior, X, Y):
+    c, s = np.cos(p.theta), np.sin(p.theta)
+    dx, dy = X - p.origin[0], Y - p.origin[1]
+    return c * dx + s * dy, -s * dx + c * dy
+
+
+def _in_rect(u, v, rect, pad=0.0):
+    return (u >= rect[0] - pad) & (u <= rect[1] + pad) & (v >= rect[2] - pad) & (v <= rect[3] + pad)
+
+
+def fit_wings(priors, X, Y, dsm, inside, options: ParametricOptions, gsd: float) -> list:
+    """Eq. 6 on every wing of every part: its cells are those of the outline inside its
+    rectangle that no other wing covers (all of its cells where the others cover most),
+    less the outermost ring, whose heights the walls blur. The wings share one main
+    height h_m (their median), as the paper's buildings do; tiers get their own."""
+    rects = [(w, p) for p in priors for w in p.wings()]
+    coords = {id(p): _frame_coords(p, X, Y) for p in priors}
+    masks = [_in_rect(*coords[id(p)], w) & inside for w, p in rects]
+    cells_of = []
+    for i, (rect, p) in enumerate(rects):
+        own = masks[i].copy()
+        for j, m in enumerate(masks):
+            if j != i:
+                own &= ~m
+        cells = own if own.sum() >= 0.5 * masks[i].sum() else masks[i]
+        u, v = coords[id(p)]
+        d = side_distances(u[cells], v[cells], rect)
+        z = dsm[cells]
+        keep = np.isfinite(z) & (d.min(axis=0) >= gsd)
+        if keep.sum() < 10:
+            continue
+        cells_of.append((rect, p, d[:, keep], z[keep]))
+    fits = [fit_roof(d, z, options.robust_m) for _, _, d, z in cells_of]
+    if len(fits) > 1:  # the paper's h_m is one per building: the wings share the median
+        z_main = float(np.median([f.z_main for f in fits]))
+        fits = [fit_roof(d, z, options.robust_m, z_main) for _, _, d, z in cells_of]
+    return [(Wing(rect, f, roof_type(f, rect)), p)
+            for (rect, p, _, _), f in zip(cells_of, fits, strict=True)]  # fmt: skip
+
+
+def model_heights(wings, X, Y) -> np.ndarray:
+    """(h, w) the model's roof height at every cell: the highest wing over it."""
+    z = np.full(X.shape, -np.inf)
+    for w, p in wings:
+        u, v = _frame_coords(p, X, Y)
+        m = _in_rect(u, v, w.rect)
+        if m.any():
+            h = w.fit.z_main + exact_heights(side_distances(u[m], v[m], w.rect), w.fit)
+            z[m] = np.maximum(z[m], h)
+    return np.where(np.isfinite(z), z, np.nan)
+
+
+def stack_tiers(priors, wings, X, Y, dsm, inside, options, gsd, min_cells) -> list:
+    """Parts of the roof standing ``tier_step_m`` above the fitted roof over at least
+    ``min_cells``: each a prior and a fitted wing of its own, on top (a multi-level
+    building's upper tiers), up to ``_MAX_TIERS``."""
+    from scipy import ndimage
+
+    extra: list = []
+    crop = Grid(X[0, 0] - gsd / 2, Y[0, 0] + gsd / 2, gsd, X.shape[1], X.shape[0])
+    for _ in range(_MAX_TIERS):
+        above = inside & (np.nan_to_num(dsm - model_heights(wings + extra, X, Y), nan=0.0)
+                          > options.tier_step_m)  # fmt: skip
+        above = ndimage.binary_opening(above, iterations=max(1, int(1.0 / gsd)))
+        labels, n = ndimage.label(above)
+        sizes = np.bincount(labels.ravel(), minlength=n + 1)
+        big = [j for j in range(1, n + 1) if sizes[j] >= min_cells]
+        if not big:
+            break
+        for j in big:
+            part = labels == j
+            p, _ = compete_priors(segment_frame(part, X[0], Y[:, 0], gsd), ("rect",),
+                                  options.min_part_m, options.lambda_)  # fmt: skip
+            if p is None:
+                continue
+            cells = rasterize_on(p.polygon(), crop) & inside
+            new = fit_wings([p], X, Y, dsm, cells, options, gsd)
+            extra += [(Wing(w.rect, w.fit, w.roof_type, tier=True), q) for w, q in new]
+    return extra
+
+
+def building_roof_type(wings: list[Wing], tier_step_m: float) -> str:
+    """One label per building, as the truth has: multi-level when its flat wings stand
+    at more than one level, else the type of its largest wing."""
+    flat = [w for w in wings if w.roof_type == "flat"]
+    if len(flat) == len(wings):
+        levels = sorted(w.fit.z_main + (w.fit.cap or 0.0) for w in wings)
+        return "multi-level" if levels[-1] - levels[0] > tier_step_m else "flat"
+    main = [w for w in wings if not w.tier] or wings
+    areas = [(w.rect[1] - w.rect[0]) * (w.rect[3] - w.rect[2]) for w in main]
+    return main[int(np.argmax(areas))].roof_type
+
+
+def prior_pull(results: list[SegmentResult], grid: Grid, options: ParametricOptions):
+    """Eq. 8's pull for the next round: H_eps of the registered priors' signed distance,
+    and mu / sigma^2 (the template variance over the grid) where a prior lies near."""
+    from shapely.geometry import shape
+
+    shapes = [(shape(o), 1) for x in results for o in x.outlines]
+    if not shapes:
+        return None
+    inside = rasterio.features.rasterize(shapes, out_shape=grid.shape, transform=grid.transform,
+                                         fill=0, dtype=np.uint8).astype(bool)  # fmt: skip
+    phi = signed_distance(inside)
+    near = np.abs(phi) < 8
+    h = heaviside(phi)
+    var = max(float(np.mean(h[near] ** 2) - np.mean(h[near]) ** 2), 1e-3)
+    return h, np.where(near, options.mu / var, 0.0)
+
+
+def skipped_outlines(results: list[SegmentResult], segments: np.ndarray, grid: Grid) -> list:
+    """Outlines of the skipped segments (the preview draws them)."""
+    out = []
+    for x in results:
+        if x.skipped is None:
+            continue
+        for geom, _ in rasterio.features.shapes((segments == x.segment).astype(np.uint8),
+                                                mask=segments == x.segment,
+                                                transform=grid.transform):  # fmt: skip
+            out.append(geom)
+    return out
+
+
+def _rms(e: np.ndarray, mask: np.ndarray) -> float:
+    e = e[mask & np.isfinite(e)]
+    return float(np.sqrt(np.mean(e**2))) if len(e) else float("nan")
+
+
+def summary_lines(record: dict) -> list[str]:
+    """What ``workbench model parametric`` prints beside the counts."""
+    rounds = record["segmentation"]["rounds"]
+    types: dict[str, int] = {}
+    for b in record["buildings"]:
+        types[b["roof_type"]] = types.get(b["roof_type"], 0) + 1
+    families: dict[str, int] = {}
+    for b in record["buildings"]:
+        families[b["family"]] = families.get(b["family"], 0) + 1
+    return [
+        f"  {rounds[-1]['segments']} segments, {len(record['skipped'])} left to the data term "
+        f"(unknown objects); {record['seconds_per_building']} s per building",
+        "  footprint priors: " + ", ".join(f"{k} {v}" for k, v in sorted(families.items())),
+        "  roof types: " + ", ".join(f"{k} {v}" for k, v in sorted(types.items())),
+    ]

@@ -1,0 +1,76 @@
+"""The parametric path's preview: the level set and the registered priors on the ortho,
+the roof types, and the models."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from skimage.segmentation import find_boundaries
+
+from workbench.meshes import concatenate_meshes
+from workbench.model_run import Building
+from workbench.pictures import contact_sheet
+from workbench.raster import Grid
+from workbench.render import render_mesh, viewpoints
+
+ROOF_COLOURS = {
+    "flat": (150, 150, 150), "shed": (230, 160, 60), "gable": (220, 60, 60),
+    "hipped": (60, 120, 220), "pyramid": (160, 60, 200), "mansard": (60, 180, 90),
+    "platform": (40, 200, 200), "dissymmetric": (240, 220, 40), "multi-level": (120, 80, 40),
+}  # fmt: skip
+
+
+def _polylines(img: np.ndarray, geoms: list, grid: Grid, colour) -> None:
+    for g in geoms:
+        rings = g["coordinates"] if g["type"] == "Polygon" else [
+            r for poly in g["coordinates"] for r in poly]  # fmt: skip
+        for ring in rings:
+            xy = np.asarray(ring, np.float64)
+            col = (xy[:, 0] - grid.xmin) / grid.gsd
+            row = (grid.ymax - xy[:, 1]) / grid.gsd
+            pts = np.round(np.column_stack([col, row]) * 4).astype(np.int32)  # 2 bits of shift
+            cv2.polylines(img, [pts], True, colour, 1, cv2.LINE_AA, shift=2)
+
+
+def parametric_preview(
+    rgb: np.ndarray,
+    grid: Grid,
+    mask: np.ndarray,
+    outlines: list,
+    buildings: list[Building],
+    skipped: list,
+) -> np.ndarray:
+    """(h, w, 3) uint8 contact sheet: the ortho with the level set's boundary (cyan), the
+    registered priors (yellow) and the segments left to the data term (red); the roof
+    types; the models.
+
+    rgb : (H, W, 3) uint8; mask : (H, W) bool, phi > 0; outlines, skipped : GeoJSON-like
+    polygons, world metres."""
+    over = rgb.copy()
+    over[find_boundaries(mask, mode="inner")] = (0, 255, 255)
+    _polylines(over, outlines, grid, (255, 255, 0))
+    _polylines(over, skipped, grid, (255, 0, 0))
+    types = np.full(rgb.shape, 255, np.uint8)
+    for b in buildings:
+        if b.footprint is None:
+            continue
+        from shapely.geometry import mapping
+
+        poly = mapping(b.footprint)
+        rings = poly["coordinates"] if poly["type"] == "Polygon" else [
+            r for p in poly["coordinates"] for r in p]  # fmt: skip
+        colour = ROOF_COLOURS.get(b.roof_type, (0, 0, 0))
+        for i, ring in enumerate(rings):
+            xy = np.asarray(ring, np.float64)
+            pts = np.round(
+                np.column_stack(
+                    [(xy[:, 0] - grid.xmin) / grid.gsd, (grid.ymax - xy[:, 1]) / grid.gsd]
+                )
+            ).astype(np.int32)
+            cv2.fillPoly(types, [pts], colour if i == 0 else (255, 255, 255))
+    row = [(over, "level set, priors"), (types, "roof types")]
+    if buildings:
+        V, T, _ = concatenate_meshes([(b.mesh.vertices, b.mesh.triangles) for b in buildings])
+        cam = viewpoints(grid.bounds, (float(V[:, 2].min()), float(V[:, 2].max())))["south-west"]
+        row.append((render_mesh(V, T, cam, np.full((len(T), 3), 205, np.uint8)), "models"))
+    return contact_sheet([row], height=360)

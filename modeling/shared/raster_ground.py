@@ -1,0 +1,24 @@
+"""The ground and vertex colours of a path that models from fused rasters: the DTM as a
+mesh, and the ortho's colour under each vertex."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from workbench.meshes import raster_mesh
+from workbench.model_run import Surface
+from workbench.raster import Grid
+
+
+def vertex_colours(vertices: np.ndarray, rgb: np.ndarray, grid: Grid) -> np.ndarray:
+    """(V, 3) uint8 ortho colour under each vertex."""
+    r, c = grid.cell_index(vertices[:, 0], vertices[:, 1], clip=True)
+    return rgb[r, c]
+
+
+def ground_surface(dtm: np.ndarray, rgb: np.ndarray, grid: Grid) -> Surface | None:
+    """The DTM as a mesh of 2 m cells, coloured by the ortho."""
+    ground = raster_mesh(dtm, grid, step=max(1, round(2.0 / grid.gsd)))
+    if ground is None:
+        return None
+    return Surface(*ground, vertex_colors=vertex_colours(ground[0], rgb, grid))
