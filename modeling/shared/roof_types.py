@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-ROOF_TYPES = ("flat", "shed", "gable", "hipped", "pyramid", "mansard", "multi-level", "complex")
+ROOF_TYPES = (
+    "flat", "shed", "gable", "hipped", "pyramid", "mansard", "multi-level", "complex",
+    "dissymmetric", "platform",  # the variational paper's roofs (the parametric path)
+)  # fmt: skip
 
 
 def roof_type(
