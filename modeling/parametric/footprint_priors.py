@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 from scipy import ndimage, optimize
+from shapely import affinity
 from shapely.geometry import Polygon, box
 from shapely.ops import unary_union
 
@@ -107,8 +108,6 @@ class Prior:
 
 
 def _to_world(shape, theta: float, origin: np.ndarray):
-    from shapely import affinity
-
     rotated = affinity.rotate(shape, theta, origin=(0, 0), use_radians=True)
     return affinity.translate(rotated, float(origin[0]), float(origin[1]))
 

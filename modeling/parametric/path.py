@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import rasterio.features
-from shapely.geometry import mapping
+from scipy import ndimage
+from shapely.geometry import mapping, shape
 
 from modeling.shared.raster_ground import ground_surface, vertex_colours
 from workbench.engine import Engine, ThreadEngine
@@ -235,7 +236,7 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     xs = crop.xmin + (np.arange(crop.width) + 0.5) * g.gsd
     ys = crop.ymax - (np.arange(crop.height) + 0.5) * g.gsd
     min_cells = int(np.ceil(max(options.min_part_m**2, 0.5 * options.min_area_m2) / g.gsd**2))
-    priors, energies = decompose_segment(mask, xs, ys, g.gsd, options, min_cells)
+    priors, energies = decompose_segment(mask, xs, ys, crop, options, min_cells)
     if not priors:
         return SegmentResult(k, skipped=f"unknown object: no footprint prior explains it "
                              f"(eq. 4 energies {energies})")  # fmt: skip
@@ -243,7 +244,7 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     outline = union_outline(priors)
     inside = rasterize_on(outline, crop)
     wings = fit_wings(priors, X, Y, dsm, inside, options, g.gsd)
-    wings += stack_tiers(priors, wings, X, Y, dsm, inside, options, g.gsd, min_cells)
+    wings += stack_tiers(wings, X, Y, dsm, inside, crop, options, min_cells)
     if not wings:
         return SegmentResult(k, skipped="no DSM height on the registered prior")
     per_wing = [wing_faces(w.rect, w.fit, p.theta, p.origin) for w, p in wings]
@@ -274,37 +275,34 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     return SegmentResult(k, building, outlines=[mapping(p.polygon()) for p in priors])
 
 
-def decompose_segment(mask, xs, ys, gsd, options: ParametricOptions, min_cells: int):
+def decompose_segment(mask, xs, ys, crop: Grid, options: ParametricOptions, min_cells: int):
     """Eq. 4 on one segment: the winning prior, then priors for the parts its labelling
     leaves to the data term, up to ``_MAX_PARTS``. Returns the priors and the first
-    competition's energies."""
-    frame = segment_frame(mask, xs, ys, gsd)
-    first, energies = compete_priors(frame, options.families, options.min_part_m,
-                                     options.lambda_)  # fmt: skip
+    competition's energies.
+
+    mask : (h, w) bool on ``crop``; xs : (w,), ys : (h,) its cell centres, metres."""
+    gsd = crop.gsd
+    first, energies = compete_priors(segment_frame(mask, xs, ys, gsd), options.families,
+                                     options.min_part_m, options.lambda_)  # fmt: skip
     if first is None:
         return [], energies
     priors = [first]
-    crop = Grid(xs[0] - gsd / 2, ys[0] + gsd / 2, gsd, len(xs), len(ys))
-    todo = [mask]
-    while todo and len(priors) < _MAX_PARTS:
-        region = todo.pop(0)
-        covered = rasterize_on(union_outline(priors), crop)
-        ind = covered.astype(np.float64)
-        var = float(np.mean(ind**2) - np.mean(ind) ** 2)
-        for part in leftover_parts(region, covered, var, options.lambda_, options.rho,
-                                   min_cells):  # fmt: skip
-            p, _ = compete_priors(segment_frame(part, xs, ys, gsd), options.families,
-                                  options.min_part_m, options.lambda_)  # fmt: skip
-            if p is not None and len(priors) < _MAX_PARTS:
-                priors.append(p)
+    covered = rasterize_on(first.polygon(), crop)
+    ind = covered.astype(np.float64)
+    var = float(np.mean(ind**2) - np.mean(ind) ** 2)
+    for part in leftover_parts(mask, covered, var, options.lambda_, options.rho, min_cells):
+        p, _ = compete_priors(segment_frame(part, xs, ys, gsd), options.families,
+                              options.min_part_m, options.lambda_)  # fmt: skip
+        if p is not None and len(priors) < _MAX_PARTS:
+            priors.append(p)
     return priors, energies
 
 
-def rasterize_on(shape, grid: Grid) -> np.ndarray:
-    """(h, w) bool cells whose centre ``shape`` covers."""
-    if shape.is_empty:
+def rasterize_on(geom, grid: Grid) -> np.ndarray:
+    """(h, w) bool cells whose centre ``geom`` covers."""
+    if geom.is_empty:
         return np.zeros(grid.shape, bool)
-    return rasterio.features.rasterize([(shape, 1)], out_shape=grid.shape,
+    return rasterio.features.rasterize([(geom, 1)], out_shape=grid.shape,
                                        transform=grid.transform, fill=0,
                                        dtype=np.uint8).astype(bool)  # fmt: skip
 
@@ -361,14 +359,13 @@ def model_heights(wings, X, Y) -> np.ndarray:
     return np.where(np.isfinite(z), z, np.nan)
 
 
-def stack_tiers(priors, wings, X, Y, dsm, inside, options, gsd, min_cells) -> list:
+def stack_tiers(wings, X, Y, dsm, inside, crop: Grid, options, min_cells) -> list:
     """Parts of the roof standing ``tier_step_m`` above the fitted roof over at least
     ``min_cells``: each a prior and a fitted wing of its own, on top (a multi-level
-    building's upper tiers), up to ``_MAX_TIERS``."""
-    from scipy import ndimage
-
+    building's upper tiers), up to ``_MAX_TIERS``. X, Y : (h, w) cell centres of
+    ``crop``."""
+    gsd = crop.gsd
     extra: list = []
-    crop = Grid(X[0, 0] - gsd / 2, Y[0, 0] + gsd / 2, gsd, X.shape[1], X.shape[0])
     for _ in range(_MAX_TIERS):
         above = inside & (np.nan_to_num(dsm - model_heights(wings + extra, X, Y), nan=0.0)
                           > options.tier_step_m)  # fmt: skip
@@ -405,8 +402,6 @@ def building_roof_type(wings: list[Wing], tier_step_m: float) -> str:
 def prior_pull(results: list[SegmentResult], grid: Grid, options: ParametricOptions):
     """Eq. 8's pull for the next round: H_eps of the registered priors' signed distance,
     and mu / sigma^2 (the template variance over the grid) where a prior lies near."""
-    from shapely.geometry import shape
-
     shapes = [(shape(o), 1) for x in results for o in x.outlines]
     if not shapes:
         return None

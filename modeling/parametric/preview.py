@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from shapely.geometry import mapping
 from skimage.segmentation import find_boundaries
 
 from workbench.meshes import concatenate_meshes
@@ -20,15 +21,22 @@ ROOF_COLOURS = {
 }  # fmt: skip
 
 
+def _pixel_rings(geom: dict, grid: Grid) -> list[np.ndarray]:
+    """The rings of a GeoJSON-like (Multi)Polygon as (n, 2) float column, row positions,
+    exterior first."""
+    polys = [geom["coordinates"]] if geom["type"] == "Polygon" else geom["coordinates"]
+    out = []
+    for ring in (r for poly in polys for r in poly):
+        xy = np.asarray(ring, np.float64)
+        out.append(np.column_stack([(xy[:, 0] - grid.xmin) / grid.gsd,
+                                    (grid.ymax - xy[:, 1]) / grid.gsd]))  # fmt: skip
+    return out
+
+
 def _polylines(img: np.ndarray, geoms: list, grid: Grid, colour) -> None:
     for g in geoms:
-        rings = g["coordinates"] if g["type"] == "Polygon" else [
-            r for poly in g["coordinates"] for r in poly]  # fmt: skip
-        for ring in rings:
-            xy = np.asarray(ring, np.float64)
-            col = (xy[:, 0] - grid.xmin) / grid.gsd
-            row = (grid.ymax - xy[:, 1]) / grid.gsd
-            pts = np.round(np.column_stack([col, row]) * 4).astype(np.int32)  # 2 bits of shift
+        for ring in _pixel_rings(g, grid):
+            pts = np.round(ring * 4).astype(np.int32)  # 2 bits of sub-pixel shift
             cv2.polylines(img, [pts], True, colour, 1, cv2.LINE_AA, shift=2)
 
 
@@ -54,19 +62,9 @@ def parametric_preview(
     for b in buildings:
         if b.footprint is None:
             continue
-        from shapely.geometry import mapping
-
-        poly = mapping(b.footprint)
-        rings = poly["coordinates"] if poly["type"] == "Polygon" else [
-            r for p in poly["coordinates"] for r in p]  # fmt: skip
         colour = ROOF_COLOURS.get(b.roof_type, (0, 0, 0))
-        for i, ring in enumerate(rings):
-            xy = np.asarray(ring, np.float64)
-            pts = np.round(
-                np.column_stack(
-                    [(xy[:, 0] - grid.xmin) / grid.gsd, (grid.ymax - xy[:, 1]) / grid.gsd]
-                )
-            ).astype(np.int32)
+        for i, ring in enumerate(_pixel_rings(mapping(b.footprint), grid)):
+            pts = np.round(ring).astype(np.int32)
             cv2.fillPoly(types, [pts], colour if i == 0 else (255, 255, 255))
     row = [(over, "level set, priors"), (types, "roof types")]
     if buildings:

@@ -172,12 +172,16 @@ def _solve(x0, d, z, robust_m, lo, hi, capped: bool) -> RoofFit:
                    int(res.nfev))  # fmt: skip
 
 
+def _side_heights(d: np.ndarray, fit: RoofFit) -> np.ndarray:
+    """(4, N) d_k tan(omega_k) of the snapped planes: infinite for a vertical end."""
+    t = fit.snapped()
+    return np.where(np.isinf(t)[:, None], np.inf, d * np.where(np.isinf(t), 0, t)[:, None])
+
+
 def exact_heights(d: np.ndarray, fit: RoofFit) -> np.ndarray:
     """(N,) roof heights above P_m of the model as meshed: the exact minimum of the
     snapped planes (vertical ends dropped, flat planes at 0) and the cap."""
-    t = fit.snapped()
-    x = np.where(np.isinf(t)[:, None], np.inf, d * np.where(np.isinf(t), 0, t)[:, None])
-    h = x.min(axis=0)
+    h = _side_heights(d, fit).min(axis=0)
     if not np.isfinite(h).all():  # every side vertical: a flat top at the cap or P_m
         h = np.where(np.isfinite(h), h, fit.cap or 0.0)
     return np.minimum(h, fit.cap) if fit.cap is not None else h
@@ -195,9 +199,7 @@ def roof_type(fit: RoofFit, wing: np.ndarray, min_share: float = 0.08) -> str:
     u0, u1, v0, v1 = wing
     uu, vv = np.meshgrid(np.linspace(u0, u1, 41), np.linspace(v0, v1, 41))
     d = side_distances(uu.ravel(), vv.ravel(), wing)
-    t = fit.snapped()
-    x = np.where(np.isinf(t)[:, None], np.inf, d * np.where(np.isinf(t), 0, t)[:, None])
-    owner = np.argmin(x, axis=0)
+    owner = np.argmin(_side_heights(d, fit), axis=0)
     h = exact_heights(d, fit)
     if fit.cap is not None:
         owner = np.where(h >= fit.cap - 1e-6, 4, owner)
