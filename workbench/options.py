@@ -136,6 +136,20 @@ def number(kind: str, cast: type = float) -> Callable[[str], Any]:
     return parse
 
 
+def comma_choices(choices: tuple[str, ...]) -> Callable[[str], tuple[str, ...]]:
+    """An argparse type: a comma-separated list of some of ``choices``, as a tuple."""
+
+    def parse(text: str) -> tuple[str, ...]:
+        names = tuple(t.strip() for t in text.split(",") if t.strip())
+        if not names or any(n not in choices for n in names):
+            raise argparse.ArgumentTypeError(
+                f"a comma-separated list of {', '.join(choices)}, got {text!r}"
+            )
+        return names
+
+    return parse
+
+
 def _with_auto(word: str, inner: Callable[[str], Any]) -> Callable[[str], Any]:
     def parse(text: str):
         return None if text == word else inner(text)

@@ -2,20 +2,11 @@
 
 from __future__ import annotations
 
-import argparse
 from dataclasses import dataclass
 
-from workbench.options import documented, option
+from workbench.options import comma_choices, documented, option
 
 FAMILIES = ("rect", "L", "T", "U", "courtyard")
-
-
-def _families(text: str) -> tuple[str, ...]:
-    names = tuple(t.strip() for t in text.split(",") if t.strip())
-    bad = [n for n in names if n not in FAMILIES]
-    if bad or not names:
-        raise argparse.ArgumentTypeError(f"a comma-separated list of {', '.join(FAMILIES)}")
-    return names
 
 
 @documented
@@ -26,8 +17,8 @@ class ParametricOptions:
     listed in ``docs/parametric.md``)."""
 
     families: tuple[str, ...] = option(
-        FAMILIES, "footprint priors in competition (comma-separated)", parse=_families,
-        metavar="rect,L,T,U,courtyard",
+        FAMILIES, "footprint priors in competition (comma-separated)",
+        parse=comma_choices(FAMILIES), metavar="rect,L,T,U,courtyard",
     )  # fmt: skip
     mu: float = option(1.0, "weight of the shape-prior terms E_2D and E_3D (eq. 7)")
     rho: float = option(
