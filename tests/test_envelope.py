@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from data_samples.roofs import ROOF_TYPES, Wing, wing_roof_faces
-from modeling.shared.roof_envelope import building_mesh
+from modeling.shared.roof_envelope import GRID, _wall_pieces, building_mesh
 
 
 def _o3d(m):
@@ -99,3 +99,11 @@ def test_every_roof_type_is_closed_and_above_the_eave(roof, a, ratio, angle, eav
     assert vol >= (2 * a) * (2 * b) * eave * (1 - 1e-4)
     roof_z = m.vertices[m.triangles[m.part == 0]][..., 2]
     assert roof_z.min() >= eave - 1e-3
+
+
+def test_a_crossing_within_the_grid_of_an_end_is_that_end():
+    """Two sides of an edge that cross a hair from its end (closer than the snapping
+    grid) make no wall: a sliver there would have no partner in the noded cells."""
+    p0, p1 = np.array([0.0, 0.0]), np.array([1.0, 0.0])
+    assert _wall_pieces(p0, p1, 5.0 + GRID / 10, 4.0, 5.0, 5.0) == []
+    assert len(_wall_pieces(p0, p1, 6.0, 4.0, 5.0, 5.0)) == 1  # a real crossing: half a wall

@@ -4,10 +4,19 @@ path end to end from fused rasters, scored by the shared metrics."""
 import json
 
 import numpy as np
+import open3d as o3d
 import pytest
 
-from modeling.parametric.footprint_priors import compete_priors, label_count, segment_frame
+from modeling.parametric.footprint_priors import (
+    SegmentFrame,
+    compete_priors,
+    label_count,
+    register_prior,
+    segment_frame,
+)
+from modeling.parametric.options import ParametricOptions
 from modeling.parametric.part_meshes import building_solid, wing_faces
+from modeling.parametric.path import building_roof_type, rasterize_on, roof_wings
 from modeling.parametric.roof_geometry import (
     RoofFit,
     exact_heights,
@@ -17,8 +26,9 @@ from modeling.parametric.roof_geometry import (
     side_distances,
 )
 from modeling.parametric.segmentation import building_segments, level_set_segmentation
-from tests.conftest import model_and_score, run_cli
+from tests.conftest import SHARED_DATA, model_and_score, run_cli
 from workbench.meshes import is_watertight
+from workbench.raster import Grid
 
 WING = np.array([-6.0, 6.0, -4.0, 4.0])  # 12 m x 8 m
 
@@ -65,6 +75,64 @@ def test_pyramid_needs_a_point_apex():
     fit = RoofFit(3.0, np.radians([40.0] * 4), None, 0, 0, 0)
     assert roof_type(fit, square) == "pyramid"
     assert roof_type(fit, WING) == "hipped"  # the same angles on 12 x 8: a ridge
+
+
+def test_a_ridge_off_the_centre_line_is_an_offset_not_a_dissymmetry():
+    """A gable whose ridge stands 0.6 m off the registered rectangle's centre line (the
+    footprint missed the walls by that much): the fit slides the planes rather than
+    tilting one, so both pitches come back equal and the type is gable."""
+    true = RoofFit(10.0, np.radians([90.0, 35.0, 90.0, 35.0]), None, 0, 0, 0, np.array([0.0, 0.6]))
+    d = _cells()
+    fit = fit_roof(d, 10.0 + exact_heights(d, true), robust_m=0.3)
+    assert abs(fit.offset[1] - 0.6) < 0.05
+    assert np.allclose(np.degrees(fit.omega[[1, 3]]), 35.0, atol=1.0)
+    assert roof_type(fit, WING) == "gable"
+
+
+def test_a_plane_under_another_wing_does_not_make_a_hip():
+    """An L's wing: the end under the other wing is fitted to whatever angle; hidden, it
+    does not turn a gable into a hipped roof."""
+    fit = RoofFit(10.0, np.radians([40.0, 35.0, 89.5, 35.0]), None, 0, 0, 0)
+    assert roof_type(fit, WING) == "hipped"
+    assert roof_type(fit, WING, hidden=(True, False, False, False)) == "gable"
+
+
+def test_registration_turns_a_frame_read_a_few_degrees_off():
+    """Eq. 2's transformation includes the rotation: from a frame 6 degrees off the
+    rectangle's sides, the registered prior comes back square to them."""
+    xs = np.arange(-15, 15, 0.25) + 0.125
+    ys = xs[::-1]
+    X, Y = np.meshgrid(xs, ys)
+    a = np.radians(20.0)
+    u, v = np.cos(a) * X + np.sin(a) * Y, -np.sin(a) * X + np.cos(a) * Y
+    mask = (np.abs(u) <= 9) & (np.abs(v) <= 5)
+    frame = segment_frame(mask, xs, ys, 0.25)
+    off = frame.theta + np.radians(6.0)
+    c, s = np.cos(np.radians(6.0)), np.sin(np.radians(6.0))
+    turned = SegmentFrame(frame.mask, c * frame.u + s * frame.v, -s * frame.u + c * frame.v,
+                          off, frame.origin, frame.step)  # fmt: skip
+    prior = register_prior(turned, "rect", 3.0)
+    err = (np.degrees(prior.theta) - 20.0 + 45.0) % 90.0 - 45.0
+    assert abs(err) < 1.0
+    assert abs(prior.polygon().area - 18 * 10) < 5.0
+
+
+def test_a_tier_on_a_flat_base_is_multi_level_not_a_mansard():
+    """A 20 m x 14 m flat roof at 10 m with an 8 m x 6 m tier at 16 m: the flat base with
+    a tier stacked on it fits better than one roof bridging the two with steep planes."""
+    grid = Grid(-15.0, 12.0, 0.25, 120, 96)
+    xs = grid.xmin + (np.arange(grid.width) + 0.5) * grid.gsd
+    ys = grid.ymax - (np.arange(grid.height) + 0.5) * grid.gsd
+    X, Y = np.meshgrid(xs, ys)
+    inside = (np.abs(X) <= 10) & (np.abs(Y) <= 7)
+    dsm = np.where(inside, 10.0, 0.0) + np.where((np.abs(X) <= 4) & (np.abs(Y) <= 3), 6.0, 0.0)
+    prior, _ = compete_priors(segment_frame(inside, xs, ys, grid.gsd), ("rect",), 3.0, 0.95)
+    outline = rasterize_on(prior.polygon(), grid)
+    options = ParametricOptions()
+    wings = roof_wings([prior], X, Y, dsm, outline, grid, options, 64, 0.0)
+    assert building_roof_type([w for w, _ in wings], options.tier_step_m) == "multi-level"
+    tiers = [w for w, _ in wings if w.tier]
+    assert len(tiers) == 1 and abs(tiers[0].fit.z_main - 16.0) < 0.1
 
 
 def test_smooth_min_gradient_matches_finite_differences():
@@ -146,15 +214,15 @@ def modelled(tiny_scene, tiny_fusion, tmp_path_factory):
 
 
 def test_models_match_the_truth_from_fused_rasters(modelled):
-    """Thresholds a little under what was measured (tiny, seed 0): 2D quality 0.791,
-    3D quality 0.817, 5 of 6 buildings, roof types 0.80, median height error 0.2 %."""
+    """Thresholds a little under what was measured (tiny, seed 0): 2D quality 0.909,
+    3D quality 0.881, 6 of 6 buildings, roof types 1.00, mean height error 0.4 %."""
     out, record, m = modelled
     assert m["complexity"]["watertight_fraction"] == 1.0
-    assert m["footprint_2d"]["quality"] > 0.77
-    assert m["volume_3d"]["quality"] > 0.79
-    assert m["footprint_2d"]["objects"]["found"] >= 5
-    assert m["buildings"]["roof_type_accuracy"] >= 0.8
-    assert m["buildings"]["height_error_pct_median"] < 1.0
+    assert m["footprint_2d"]["quality"] > 0.89
+    assert m["volume_3d"]["quality"] > 0.86
+    assert m["footprint_2d"]["objects"]["found"] == 6
+    assert m["buildings"]["roof_type_accuracy"] > 0.99
+    assert m["buildings"]["height_error_pct_mean"] < 1.0
     b = record["buildings"][0]
     for key in ("family", "parts", "wings", "energy_2d", "energy_3d_rms_m", "iterations",
                 "seconds"):  # fmt: skip
@@ -190,3 +258,26 @@ def test_footprints_outside_the_grid_are_refused(tiny_fusion, tmp_path):
     assert proc.returncode != 0 and "far.geojson" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
     assert not out.exists()
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "ahn3_buildings").is_dir(), reason="no ../shared/data")
+def test_ahn3_cloud_of_one_building_with_all_building(tmp_path):
+    """A LiDAR cloud of one roof (no ground: its DTM lies on the roof): --all-building
+    models it without a level set or the unknown label, closed, floor under the roof,
+    its points at 0.62 m RMS from the building's mesh (measured on cloud 12; a roof missed
+    would be metres off)."""
+    cloud = SHARED_DATA / "ahn3_buildings" / "12.ply"
+    fusion, out = tmp_path / "f", tmp_path / "m"
+    assert run_cli("fusion", "--points", cloud, "-o", fusion).returncode == 0
+    proc = run_cli("model", "parametric", fusion, "-o", out, "--all-building", "--min-area", 5,
+                   "--workers", "1")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    record = json.loads((out / "model.json").read_text())
+    (b,) = record["buildings"]
+    assert b["watertight"] and b["base_z"] < b["eave_z"]
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(
+        o3d.io.read_triangle_mesh(str(out / b["mesh"]))))  # fmt: skip
+    points = np.asarray(o3d.io.read_point_cloud(str(cloud)).points, np.float32)
+    d = scene.compute_distance(o3d.core.Tensor(points)).numpy()
+    assert np.sqrt(np.mean(d**2)) < 0.7

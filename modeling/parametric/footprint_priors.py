@@ -33,7 +33,7 @@ from modeling.shared.outline_regularity import dominant_direction
 
 _EPS_CELLS = 0.5  # width of the prior's smoothed edge, cells of the registration grid
 _REGISTRATION_GSD = 0.5  # metres: registration runs on cells no finer than this
-_MAX_EVALUATIONS = 300  # Powell's function evaluations per prior
+_MAX_EVALUATIONS = 400  # Powell's function evaluations per prior
 _MARGIN = 0.25  # the domain of eq. 4: the segment's box grown by this share of its size
 
 
@@ -72,6 +72,10 @@ class Prior:
         for n in self.notches:
             shape = shape.difference(box(n[0], n[2], n[1], n[3]))
         return _to_world(shape, self.theta, self.origin)
+
+    def frame_polygon(self, rect: np.ndarray) -> Polygon:
+        """A rectangle u0, u1, v0, v1 of the prior's frame, in world metres."""
+        return _to_world(box(rect[0], rect[2], rect[1], rect[3]), self.theta, self.origin)
 
     def wings(self) -> list[np.ndarray]:
         """(4,) rectangles u0, u1, v0, v1 whose union is the outline: the family's arms
@@ -222,6 +226,11 @@ def _initial_params(frame: SegmentFrame, family: str, min_part: float) -> np.nda
     if family == "rect":
         return b
     empty = ~inside & (frame.u > b[0]) & (frame.u < b[1]) & (frame.v > b[2]) & (frame.v < b[3])
+    # an opening narrower than any arm parts a notch from the slivers the segment's
+    # rounded corners leave, which would otherwise join it and touch the wrong sides
+    r = int(np.ceil(0.5 * min_part / frame.step)) - 1
+    if r > 0:
+        empty = ndimage.binary_opening(empty, np.ones((3, 3), bool), iterations=r)
     labels, n = ndimage.label(empty)
     best, best_cells = None, 0
     for k in range(1, n + 1):
@@ -239,10 +248,11 @@ def _initial_params(frame: SegmentFrame, family: str, min_part: float) -> np.nda
             other = [j for j in range(1, n + 1) if j != k]
             right = [j for j in other if abs(frame.u[labels == j].max() - b[1]) < 1.5 * frame.step
                      and abs(frame.v[labels == j].min() - b[2]) < 1.5 * frame.step]  # fmt: skip
-            if not right:
-                continue
-            r = labels == right[0]
-            q = np.array([ext[1], frame.u[r].min(), 0.5 * (ext[3] + frame.v[r].max()) - b[2]])
+            if right:
+                r = labels == right[0]
+                q = np.array([ext[1], frame.u[r].min(), 0.5 * (ext[3] + frame.v[r].max()) - b[2]])
+            else:  # the other notch too shallow to read: start it one arm wide
+                q = np.array([ext[1], b[1] - min_part, ext[3] - b[2]])
         else:
             continue
         if cells.sum() > best_cells:
@@ -270,6 +280,35 @@ def _feasible(family: str, p: np.ndarray, min_part: float) -> bool:
     return True
 
 
+def _projected(family: str, p: np.ndarray, min_part: float) -> np.ndarray | None:
+    """The nearest pose to ``p`` whose notches leave every arm ``min_part`` wide (a
+    segment's ragged edge can make a notch read off it a little too deep); None when
+    the box itself is too small for the family."""
+    p = p.copy()
+    u0, u1, v0, v1 = p[:4]
+    if u1 - u0 < min_part or v1 - v0 < min_part:
+        return None
+    if family == "L":
+        if min(u1 - u0, v1 - v0) < 2 * min_part:
+            return None
+        p[4] = np.clip(p[4], min_part, u1 - u0 - min_part)
+        p[5] = np.clip(p[5], min_part, v1 - v0 - min_part)
+    elif family in ("T", "U"):
+        if u1 - u0 < 3 * min_part or v1 - v0 < 2 * min_part:
+            return None
+        p[4] = np.clip(p[4], u0 + min_part, u1 - 2 * min_part)
+        p[5] = np.clip(p[5], p[4] + min_part, u1 - min_part)
+        p[6] = np.clip(p[6], min_part, v1 - v0 - min_part)
+    elif family == "courtyard":
+        if min(u1 - u0, v1 - v0) < 3 * min_part:
+            return None
+        p[4] = np.clip(p[4], u0 + min_part, u1 - 2 * min_part)
+        p[5] = np.clip(p[5], p[4] + min_part, u1 - min_part)
+        p[6] = np.clip(p[6], v0 + min_part, v1 - 2 * min_part)
+        p[7] = np.clip(p[7], p[6] + min_part, v1 - min_part)
+    return p
+
+
 def register_prior(frame: SegmentFrame, family: str, min_part: float) -> Prior | None:
     """Eq. 2: the pose and notch sizes of ``family`` that best match the segment, over the
     four quarter turns of its frame; None when the segment leaves no place for the
@@ -279,26 +318,37 @@ def register_prior(frame: SegmentFrame, family: str, min_part: float) -> Prior |
     for quarter in range(4 if family != "rect" and family != "courtyard" else 1):
         f = _rotated(frame, quarter)
         x0 = _initial_params(f, family, min_part)
+        x0 = None if x0 is None else _projected(family, x0, min_part)
         if x0 is None or not _feasible(family, x0, min_part):
             continue
         evaluations = 0
+        # the rotation joins the box and notches as an arc length at the box's half
+        # diagonal, metres, so that one tolerance suits every parameter
+        radius = 0.5 * float(np.hypot(x0[1] - x0[0], x0[3] - x0[2]))
+        # the box stays within the domain: beyond it, where no cell is, growing is free
+        reach = float(np.hypot(f.u, f.v).max()) + f.step
 
-        def energy(p, f=f):
+        def energy(p, f=f, radius=radius, reach=reach):
             nonlocal evaluations
             evaluations += 1
-            if not _feasible(family, p, min_part):
+            if (not _feasible(family, p[1:], min_part) or abs(p[0]) > 0.25 * radius
+                    or np.abs(p[1:5]).max() > reach):  # fmt: skip
                 return 1e6
-            return prior_energy(f.mask, prior_indicator(f.u, f.v, family, p, eps))
+            c, s = np.cos(p[0] / radius), np.sin(p[0] / radius)
+            u, v = c * f.u + s * f.v, -s * f.u + c * f.v
+            return prior_energy(f.mask, prior_indicator(u, v, family, p[1:], eps))
 
-        res = optimize.minimize(energy, x0, method="Powell",
+        start = np.concatenate([[0.0], x0])
+        res = optimize.minimize(energy, start, method="Powell",
                                 options={"maxfev": _MAX_EVALUATIONS, "xtol": 0.05 * f.step,
                                          "ftol": 1e-4})  # fmt: skip
-        p = res.x if res.fun <= energy(x0) else x0
+        p = res.x if res.fun <= energy(start) else start
         e = energy(p)
         if best is None or e < best.energy:
-            b = p[:4]
-            notches = [n.copy() for n in _notches(family, b, p[4:])]
-            best = Prior(family, f.theta, f.origin, b.copy(), notches, e, evaluations)
+            b = p[1:5]
+            notches = [n.copy() for n in _notches(family, b, p[5:])]
+            best = Prior(family, f.theta + p[0] / radius, f.origin, b.copy(), notches, e,
+                         evaluations)  # fmt: skip
     return best
 
 
@@ -318,7 +368,8 @@ def compete_priors(
         if best is None or p.energy < 0.98 * best.energy:
             best = p
     unknown = lambda_**2 * float(frame.mask.mean())
-    energies["unknown"] = round(unknown, 5)
+    if np.isfinite(unknown):  # an infinite lambda: the segment is known to be a building
+        energies["unknown"] = round(unknown, 5)
     if best is None or best.energy > unknown:
         return None, energies
     return best, energies

@@ -66,6 +66,10 @@ class ParametricOptions:
         0.3, "scale of the robust loss of the roof fit (eq. 6): residuals beyond it, walls' "
         "cells and chimneys, weigh less", unit="m", cli=False,
     )  # fmt: skip
+    all_building: bool = option(
+        False, "every cell with a height is building, with no level set (clouds of single "
+        "buildings, such as City3D's building instances, have no ground to segment against)",
+    )  # fmt: skip
     workers: int | None = option(
         None, "buildings modelled at once: worker processes of a local Dask cluster (1: in "
         "this process; the models do not depend on it)", auto="every core",

@@ -29,8 +29,9 @@ def wing_planes(wing: np.ndarray, fit: RoofFit) -> list[np.ndarray]:
     u0, u1, v0, v1 = wing
     t = fit.snapped()
     z = fit.z_main
-    sides = (np.array([1.0, 0.0, -u0]), np.array([0.0, 1.0, -v0]),
-             np.array([-1.0, 0.0, u1]), np.array([0.0, -1.0, v1]))  # fmt: skip
+    du, dv = fit.offset
+    sides = (np.array([1.0, 0.0, du - u0]), np.array([0.0, 1.0, dv - v0]),
+             np.array([-1.0, 0.0, u1 - du]), np.array([0.0, -1.0, v1 - dv]))  # fmt: skip
     planes = [tk * side + np.array([0.0, 0.0, z])
               for tk, side in zip(t, sides, strict=True) if np.isfinite(tk)]  # fmt: skip
     if fit.cap is not None or not planes:

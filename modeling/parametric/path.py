@@ -8,6 +8,7 @@ reads, runs a task per segment (:func:`building_task`) and times them.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -17,11 +18,13 @@ import numpy as np
 import rasterio.features
 from scipy import ndimage
 from shapely.geometry import mapping, shape
+from shapely.ops import unary_union
 
 from modeling.shared.raster_ground import ground_surface, vertex_colours
 from workbench.engine import Engine, ThreadEngine
 from workbench.errors import InputError
 from workbench.fusion_run import read_fusion_run
+from workbench.meshes import is_watertight
 from workbench.model_run import Building, ModelRun, Surface
 from workbench.raster import BUILDING, Grid
 from workbench.records import StageTimer, peak_memory_mb
@@ -37,7 +40,14 @@ from .footprint_priors import (
 from .options import ParametricOptions
 from .part_meshes import building_solid, face_planes, wing_faces
 from .preview import parametric_preview
-from .roof_geometry import RoofFit, exact_heights, fit_roof, roof_type, side_distances
+from .roof_geometry import (
+    RoofFit,
+    exact_heights,
+    fit_roof,
+    flat_fit,
+    roof_type,
+    side_distances,
+)
 from .segmentation import building_segments, heaviside, level_set_segmentation, signed_distance
 
 log = logging.getLogger(__name__)
@@ -68,6 +78,7 @@ class Wing:
     fit: RoofFit
     roof_type: str
     tier: bool = False
+    hidden: tuple = (False, False, False, False)  # sides under the building's other wings
 
     def record(self) -> dict:
         return {
@@ -75,11 +86,13 @@ class Wing:
             "h_main_z": round(self.fit.z_main, 3),
             "omega_deg": [round(float(v), 2) for v in np.degrees(self.fit.omega)],
             "cap_m": None if self.fit.cap is None else round(self.fit.cap, 3),
+            "offset_m": [round(float(v), 3) for v in self.fit.offset],
             "roof_type": self.roof_type,
             "rms_m": round(self.fit.rms, 3),
             "energy_3d": round(self.fit.cost, 5),
             "evaluations": self.fit.evaluations,
             "tier": self.tier,
+            "hidden_sides": [bool(h) for h in self.hidden],
         }
 
 
@@ -122,19 +135,26 @@ def run_parametric(
         fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
         grid = fusion.grid
         dsm, dtm, rgb = fusion.band("dsm"), fusion.band("dtm"), fusion.rgb
-        init, init_source = initial_region(fusion, footprints)
+        if options.all_building:
+            init, init_source = np.isfinite(dsm), "every cell with a height (--all-building)"
+        else:
+            init, init_source = initial_region(fusion, footprints)
         sources = region_sources(fusion, options)
     pull = None
     results: list[SegmentResult] = []
     rounds = []
-    for r in range(options.rounds):
+    for r in range(1 if options.all_building else options.rounds):
         with timer.stage("segmentation" if r == 0 else f"segmentation_{r + 1}"):
             prior, weight = pull if pull is not None else (None, 0.0)
-            mask = level_set_segmentation(
-                sources, init, length_weight=options.length_weight,
-                iterations=options.level_set_iterations, prior=prior, prior_weight=weight,
-            )  # fmt: skip
-            segments = building_segments(mask, grid.gsd, options.opening_m, options.min_area_m2)
+            if options.all_building:
+                mask, opening = init, 0.0
+            else:
+                mask = level_set_segmentation(
+                    sources, init, length_weight=options.length_weight,
+                    iterations=options.level_set_iterations, prior=prior, prior_weight=weight,
+                )  # fmt: skip
+                opening = options.opening_m
+            segments = building_segments(mask, grid.gsd, opening, options.min_area_m2)
             q = int(segments.max())
             inputs = ParametricInputs(grid, dsm, dtm, rgb, segments, segment_boxes(segments, q))
         with timer.stage("priors_and_roofs" if r == 0 else f"priors_and_roofs_{r + 1}"):
@@ -145,7 +165,7 @@ def run_parametric(
         k, nu = label_count(q)
         rounds.append({"segments": q, "labels_k": k, "regions_nu": nu,
                        "buildings": sum(x.building is not None for x in results)})  # fmt: skip
-        if r + 1 < options.rounds:
+        if r + 1 < options.rounds and not options.all_building:
             pull = prior_pull(results, grid, options)
             init = mask
     buildings = [x.building for x in results if x.building is not None]
@@ -217,12 +237,17 @@ def segment_boxes(segments: np.ndarray, q: int) -> np.ndarray:
     rows, cols = np.nonzero(segments)
     ids = segments[rows, cols]
     for k in range(1, q + 1):
-        rr, cc = rows[ids == k], cols[ids == k]
-        mr = int(0.25 * (rr.max() - rr.min())) + 8
-        mc = int(0.25 * (cc.max() - cc.min())) + 8
-        out[k] = [max(rr.min() - mr, 0), min(rr.max() + mr + 1, H),
-                  max(cc.min() - mc, 0), min(cc.max() + mc + 1, W)]  # fmt: skip
+        out[k] = grown_box(rows[ids == k], cols[ids == k], (H, W))
     return out
+
+
+def grown_box(rr: np.ndarray, cc: np.ndarray, shape: tuple) -> list[int]:
+    """r0, r1, c0, c1 of the cells (rr, cc) grown by a quarter of their size and 8 cells
+    (eq. 4's domain: the unknown label's cost is a share of it), within ``shape``."""
+    mr = int(0.25 * (rr.max() - rr.min())) + 8
+    mc = int(0.25 * (cc.max() - cc.min())) + 8
+    return [max(rr.min() - mr, 0), min(rr.max() + mr + 1, shape[0]),
+            max(cc.min() - mc, 0), min(cc.max() + mc + 1, shape[1])]  # fmt: skip
 
 
 def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) -> SegmentResult:
@@ -236,22 +261,28 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     xs = crop.xmin + (np.arange(crop.width) + 0.5) * g.gsd
     ys = crop.ymax - (np.arange(crop.height) + 0.5) * g.gsd
     min_cells = int(np.ceil(max(options.min_part_m**2, 0.5 * options.min_area_m2) / g.gsd**2))
-    priors, energies = decompose_segment(mask, xs, ys, crop, options, min_cells)
+    # a segment of --all-building is a building: no unknown-object label for it
+    lambda_ = np.inf if options.all_building else options.lambda_
+    priors, energies = decompose_segment(mask, xs, ys, crop, options, min_cells, lambda_)
     if not priors:
         return SegmentResult(k, skipped=f"unknown object: no footprint prior explains it "
                              f"(eq. 4 energies {energies})")  # fmt: skip
     X, Y = np.meshgrid(xs, ys)
     outline = union_outline(priors)
     inside = rasterize_on(outline, crop)
-    wings = fit_wings(priors, X, Y, dsm, inside, options, g.gsd)
-    wings += stack_tiers(wings, X, Y, dsm, inside, crop, options, min_cells)
-    if not wings:
-        return SegmentResult(k, skipped="no DSM height on the registered prior")
-    per_wing = [wing_faces(w.rect, w.fit, p.theta, p.origin) for w, p in wings]
-    faces = [f for wf in per_wing for f in wf]
+    if not np.isfinite(dsm[inside]).any():
+        return SegmentResult(k, skipped="the registered prior covers no cell with a height")
     ground = dtm[inside & np.isfinite(dtm)]
     base_z = float(np.min(ground)) if len(ground) else float(np.nanmin(dsm[inside]) - 3.0)
-    solid = building_solid(per_wing, base_z, priors[0].theta, priors[0].origin)
+    ground_z = float(np.median(ground)) if len(ground) else base_z
+    wings = roof_wings(priors, X, Y, dsm, inside, crop, options, min_cells, ground_z)
+    if not wings:
+        return SegmentResult(k, skipped="no DSM height on the registered prior")
+    heights = model_heights(wings, X, Y)
+    # a floor under every roof cell: a cloud of roofs alone has its DTM on the roofs
+    roof_low = min(min(w.fit.z_main for w, _ in wings), float(np.nanmin(heights)))
+    base_z = min(base_z, roof_low - 0.5)
+    wings, faces, solid = closed_solid(wings, base_z, priors[0])
     planes, areas = face_planes(faces)
     heights = model_heights(wings, X, Y)
     record = {
@@ -270,20 +301,39 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
         roof_type=building_roof_type([w for w, _ in wings], options.tier_step_m),
         planes=planes, plane_areas=areas, base_z=base_z,
         eave_z=min(w.fit.z_main for w, _ in wings),
-        ridge_z=float(np.nanmax(np.where(inside, heights, np.nan))), record=record,
+        ridge_z=float(solid.vertices[:, 2].max()), record=record,
     )  # fmt: skip
     return SegmentResult(k, building, outlines=[mapping(p.polygon()) for p in priors])
 
 
-def decompose_segment(mask, xs, ys, crop: Grid, options: ParametricOptions, min_cells: int):
+def closed_solid(wings: list, base_z: float, main: Prior):
+    """The building's mesh (:func:`part_meshes.building_solid` in ``main``'s frame) and
+    its roof faces. Planes offset by a hair from a neighbouring wing's eave can leave
+    slivers that the closedness check (Open3D's) rejects: the mesh is then rebuilt with
+    the planes back on the wings' sides. Returns the wings as meshed, faces, solid."""
+    for attempt in range(2):
+        per_wing = [wing_faces(w.rect, w.fit, p.theta, p.origin) for w, p in wings]
+        solid = building_solid(per_wing, base_z, main.theta, main.origin)
+        if attempt or is_watertight(solid.vertices, solid.triangles):
+            break
+        if not any(np.any(w.fit.offset) for w, _ in wings):
+            break
+        wings = [(dataclasses.replace(w, fit=dataclasses.replace(w.fit, offset=np.zeros(2))), p)
+                 for w, p in wings]  # fmt: skip
+    return wings, [f for wf in per_wing for f in wf], solid
+
+
+def decompose_segment(mask, xs, ys, crop: Grid, options: ParametricOptions, min_cells: int,
+                      lambda_: float):  # fmt: skip
     """Eq. 4 on one segment: the winning prior, then priors for the parts its labelling
     leaves to the data term, up to ``_MAX_PARTS``. Returns the priors and the first
     competition's energies.
 
-    mask : (h, w) bool on ``crop``; xs : (w,), ys : (h,) its cell centres, metres."""
+    mask : (h, w) bool on ``crop``; xs : (w,), ys : (h,) its cell centres, metres;
+    lambda_ : the unknown label's cost (infinite: the segment is a building)."""
     gsd = crop.gsd
     first, energies = compete_priors(segment_frame(mask, xs, ys, gsd), options.families,
-                                     options.min_part_m, options.lambda_)  # fmt: skip
+                                     options.min_part_m, lambda_)  # fmt: skip
     if first is None:
         return [], energies
     priors = [first]
@@ -292,7 +342,7 @@ def decompose_segment(mask, xs, ys, crop: Grid, options: ParametricOptions, min_
     var = float(np.mean(ind**2) - np.mean(ind) ** 2)
     for part in leftover_parts(mask, covered, var, options.lambda_, options.rho, min_cells):
         p, _ = compete_priors(segment_frame(part, xs, ys, gsd), options.families,
-                              options.min_part_m, options.lambda_)  # fmt: skip
+                              options.min_part_m, lambda_)  # fmt: skip
         if p is not None and len(priors) < _MAX_PARTS:
             priors.append(p)
     return priors, energies
@@ -317,11 +367,14 @@ def _in_rect(u, v, rect, pad=0.0):
     return (u >= rect[0] - pad) & (u <= rect[1] + pad) & (v >= rect[2] - pad) & (v <= rect[3] + pad)
 
 
-def fit_wings(priors, X, Y, dsm, inside, options: ParametricOptions, gsd: float) -> list:
+def fit_wings(priors, X, Y, dsm, inside, options: ParametricOptions, gsd: float,
+              flat: bool = False) -> list:  # fmt: skip
     """Eq. 6 on every wing of every part: its cells are those of the outline inside its
     rectangle that no other wing covers (all of its cells where the others cover most),
     less the outermost ring, whose heights the walls blur. The wings share one main
-    height h_m (their median), as the paper's buildings do; tiers get their own."""
+    height h_m (their median), as the paper's buildings do; tiers get their own.
+    ``flat`` holds every angle at 0 (a multi-level building's base)."""
+    fit = (lambda d, z, s, zm, _: flat_fit(d, z, s, zm)) if flat else fit_roof
     rects = [(w, p) for p in priors for w in p.wings()]
     coords = {id(p): _frame_coords(p, X, Y) for p in priors}
     masks = [_in_rect(*coords[id(p)], w) & inside for w, p in rects]
@@ -339,12 +392,60 @@ def fit_wings(priors, X, Y, dsm, inside, options: ParametricOptions, gsd: float)
         if keep.sum() < 10:
             continue
         cells_of.append((rect, p, d[:, keep], z[keep]))
-    fits = [fit_roof(d, z, options.robust_m) for _, _, d, z in cells_of]
+    hidden = hidden_sides([(rect, p) for rect, p, _, _ in cells_of])
+    fits = [fit(d, z, options.robust_m, None, h)
+            for (_, _, d, z), h in zip(cells_of, hidden, strict=True)]  # fmt: skip
     if len(fits) > 1:  # the paper's h_m is one per building: the wings share the median
         z_main = float(np.median([f.z_main for f in fits]))
-        fits = [fit_roof(d, z, options.robust_m, z_main) for _, _, d, z in cells_of]
-    return [(Wing(rect, f, roof_type(f, rect)), p)
-            for (rect, p, _, _), f in zip(cells_of, fits, strict=True)]  # fmt: skip
+        fits = [fit(d, z, options.robust_m, z_main, h)
+                for (_, _, d, z), h in zip(cells_of, hidden, strict=True)]  # fmt: skip
+    return [(Wing(rect, f, roof_type(f, rect, h), hidden=h), p)
+            for (rect, p, _, _), f, h in zip(cells_of, fits, hidden, strict=True)]  # fmt: skip
+
+
+def hidden_sides(rects: list) -> list[tuple[bool, ...]]:
+    """Per wing, whether each side (u0, v0, u1, v1) lies under the building's other
+    wings: the strip along it, half the wing's width deep, at least half covered. A
+    plane rising from such a side (an L's inner corner) never shows in the DSM, so its
+    angle says nothing of the roof's type.
+
+    rects : list of (rect (4,), Prior) in the prior's frame."""
+    polys = [p.frame_polygon(r) for r, p in rects]
+    out = []
+    for i, (r, p) in enumerate(rects):
+        others = unary_union([q for j, q in enumerate(polys) if j != i])
+        if others.is_empty:
+            out.append((False,) * 4)
+            continue
+        u0, u1, v0, v1 = r
+        half = 0.5 * min(u1 - u0, v1 - v0)
+        strips = ([u0, u0 + half, v0, v1], [u0, u1, v0, v0 + half],
+                  [u1 - half, u1, v0, v1], [u0, u1, v1 - half, v1])  # fmt: skip
+        out.append(tuple(
+            bool(s.intersection(others).area >= 0.5 * s.area)
+            for s in (p.frame_polygon(np.array(b)) for b in strips)
+        ))  # fmt: skip
+    return out
+
+
+def roof_wings(priors, X, Y, dsm, inside, crop: Grid, options, min_cells, ground_z) -> list:
+    """The wings' roofs with their tiers: the five-parameter roofs, or flat roofs with
+    tiers stacked on them (a multi-level building, which the roofs would bridge with
+    steep planes), whichever fits the DSM over the outline better (the robust cost). A
+    flat base less than a tier's step above ``ground_z`` (metres) is the ground the
+    outline took in, not a level of the building."""
+    candidates = []
+    for flat in (False, True):
+        wings = fit_wings(priors, X, Y, dsm, inside, options, crop.gsd, flat)
+        if flat and any(w.fit.z_main < ground_z + options.tier_step_m for w, _ in wings):
+            continue
+        wings += stack_tiers(wings, X, Y, dsm, inside, crop, options, min_cells)
+        if wings:
+            r = (model_heights(wings, X, Y) - dsm)[inside]
+            r = r[np.isfinite(r)]
+            s = options.robust_m
+            candidates.append((float(np.mean(2 * s**2 * (np.sqrt(1 + (r / s) ** 2) - 1))), wings))
+    return min(candidates, key=lambda c: c[0])[1] if candidates else []
 
 
 def model_heights(wings, X, Y) -> np.ndarray:
@@ -377,26 +478,36 @@ def stack_tiers(wings, X, Y, dsm, inside, crop: Grid, options, min_cells) -> lis
             break
         for j in big:
             part = labels == j
-            p, _ = compete_priors(segment_frame(part, X[0], Y[:, 0], gsd), ("rect",),
-                                  options.min_part_m, options.lambda_)  # fmt: skip
+            r0, r1, c0, c1 = grown_box(*np.nonzero(part), part.shape)  # the tier's own domain
+            p, _ = compete_priors(segment_frame(part[r0:r1, c0:c1], X[0, c0:c1], Y[r0:r1, 0],
+                                                gsd), ("rect",), options.min_part_m,
+                                  options.lambda_)  # fmt: skip
             if p is None:
                 continue
             cells = rasterize_on(p.polygon(), crop) & inside
             new = fit_wings([p], X, Y, dsm, cells, options, gsd)
-            extra += [(Wing(w.rect, w.fit, w.roof_type, tier=True), q) for w, q in new]
+            extra += [(Wing(w.rect, w.fit, w.roof_type, tier=True, hidden=w.hidden), q)
+                      for w, q in new]  # fmt: skip
     return extra
 
 
 def building_roof_type(wings: list[Wing], tier_step_m: float) -> str:
     """One label per building, as the truth has: multi-level when its flat wings stand
-    at more than one level, else the type of its largest wing."""
+    at more than one level, else the type that covers most of the wings that show an
+    end."""
     flat = [w for w in wings if w.roof_type == "flat"]
     if len(flat) == len(wings):
         levels = sorted(w.fit.z_main + (w.fit.cap or 0.0) for w in wings)
         return "multi-level" if levels[-1] - levels[0] > tier_step_m else "flat"
     main = [w for w in wings if not w.tier] or wings
-    areas = [(w.rect[1] - w.rect[0]) * (w.rect[3] - w.rect[2]) for w in main]
-    return main[int(np.argmax(areas))].roof_type
+    # a wing with both ends under other wings (a U's base) shows no end: gable or hipped
+    # are one to it, so the wings that show an end decide
+    main = [w for w in main if sum(w.hidden) < 2] or main
+    votes: dict[str, float] = {}
+    for w in main:
+        area = float((w.rect[1] - w.rect[0]) * (w.rect[3] - w.rect[2]))
+        votes[w.roof_type] = votes.get(w.roof_type, 0.0) + area
+    return max(votes, key=votes.get)
 
 
 def prior_pull(results: list[SegmentResult], grid: Grid, options: ParametricOptions):

@@ -19,7 +19,7 @@ faces under a flat or nearly flat top; a platform: shallow ones).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import optimize
@@ -31,7 +31,10 @@ FLAT_DEG = 5.0
 STEEP_DEG = 55.0  # a cap over faces this steep is a mansard (gambrel), else a platform
 ASYMMETRY_DEG = 10.0  # opposite sloped sides this different make a dissymmetric roof
 _CAP_GAIN = 0.7  # the cap is kept when it brings the robust cost under this share
+SYMMETRY_COST = 1.1  # opposite planes are tied when the tied fit costs at most this ratio
+MAX_OFFSET_M = 1.0  # how far the planes may slide from the wing's sides (registration)
 _PITCHES = (15.0, 25.0, 35.0, 45.0, 55.0)
+_SAMPLES = 81  # roof_type samples the wing on this many points a side
 _V = MAX_DEG - 1.0
 
 
@@ -48,29 +51,53 @@ def smooth_min(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     return 0.5 * (a + b - s), 0.5 * (1 - (a - b) / s), 0.5 * (1 + (a - b) / s)
 
 
+def _lowest(x: np.ndarray, cap: float | None):
+    """Eq. 12's smooth minimum of the four planes' rises x (4, N) (and the cap): h (N,),
+    dh/dx (4, N), dh/dcap (N,) or None."""
+    m12, a1, a2 = smooth_min(x[0], x[1])
+    m34, a3, a4 = smooth_min(x[2], x[3])
+    h, b12, b34 = smooth_min(m12, m34)
+    dx = np.stack([b12 * a1, b12 * a2, b34 * a3, b34 * a4])
+    if cap is None:
+        return h, dx, None
+    hc, bh, bc = smooth_min(h, np.full_like(h, cap))
+    return hc, dx * bh, bc
+
+
 def roof_heights(d: np.ndarray, omega: np.ndarray, cap: float | None = None):
     """Eq. 5 through eq. 12's smooth minimum: h_r (N,) and dh_r/domega (4, N) (and
     dh_r/dcap (N,) when there is a cap).
 
     d : (4, N) side distances, metres; omega : (4,) radians; cap : metres above h_m."""
-    x = d * np.tan(omega)[:, None]
-    m12, a1, a2 = smooth_min(x[0], x[1])
-    m34, a3, a4 = smooth_min(x[2], x[3])
-    h, b12, b34 = smooth_min(m12, m34)
-    dx = np.stack([b12 * a1, b12 * a2, b34 * a3, b34 * a4])
-    grad = dx * d / np.cos(omega)[:, None] ** 2  # eq. 11: d(d tan w)/dw = d sec^2 w
-    if cap is None:
-        return h, grad, None
-    hc, bh, bc = smooth_min(h, np.full_like(h, cap))
-    return hc, grad * bh, bc
+    h, dx, dcap = _lowest(d * np.tan(omega)[:, None], cap)
+    return h, dx * d / np.cos(omega)[:, None] ** 2, dcap  # eq. 11: d sec^2 w
 
 
-def _residuals(params, d, z, capped):
-    cap = params[5] if capped else None
-    h, grad, dcap = roof_heights(d, params[1:5], cap)
-    r = params[0] + h - z
-    jac = np.column_stack([np.ones_like(r), grad.T, *([dcap] if capped else [])])
-    return r, jac
+# How the roof's offset (du, dv) moves each side's distance: the planes rising from
+# u0 and u1 slide together along u, those from v0 and v1 along v.
+_OFFSET_AXES = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
+
+
+def shifted(d: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """(4, N) side distances of the planes once the roof is offset by (du, dv) metres."""
+    return d + (_OFFSET_AXES @ offset)[:, None]
+
+
+def _residuals(params, d, z, capped, tie=None):
+    """Eq. 6's residuals and their Jacobian in (h_m, omega_1..4, du, dv[, cap]); ``tie``
+    (full, reduced) maps reduced parameters (angles shared by tied planes) to those."""
+    full = params if tie is None else tie @ params
+    cap = full[7] if capped else None
+    omega = full[1:5]
+    dd = shifted(d, full[5:7])
+    t = np.tan(omega)
+    h, dx, dcap = _lowest(dd * t[:, None], cap)
+    r = full[0] + h - z
+    grad_omega = dx * dd / np.cos(omega)[:, None] ** 2
+    grad_offset = (dx * t[:, None]).T @ _OFFSET_AXES
+    jac = np.column_stack([np.ones_like(r), grad_omega.T, grad_offset,
+                           *([dcap] if capped else [])])  # fmt: skip
+    return r, (jac if tie is None else jac @ tie)
 
 
 @dataclass
@@ -85,6 +112,9 @@ class RoofFit:
         Angles of the planes rising from sides u0, v0, u1, v1, radians.
     cap : float or None
         Height of a flat top above P_m, metres (platform, mansard).
+    offset : (2,) float
+        The planes' shift along u and v from the wing's sides, metres: a ridge off the
+        rectangle's centre line, where the footprint's registration missed it.
     rms : float
         Root mean square of the residuals over the fitted cells, metres.
     cost : float
@@ -98,6 +128,7 @@ class RoofFit:
     rms: float
     cost: float
     evaluations: int
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
     def snapped(self) -> np.ndarray:
         """tan(omega) with vertical ends at infinity and flat planes at 0."""
@@ -121,8 +152,16 @@ def _starts() -> list[np.ndarray]:
     return [np.radians(a) for a in out]
 
 
-def fit_roof(d: np.ndarray, z: np.ndarray, robust_m: float, z_main: float | None = None) -> RoofFit:
-    """Eq. 6 minimised for one wing: (h_m, omega_1..4), then with a cap if it pays.
+def fit_roof(
+    d: np.ndarray,
+    z: np.ndarray,
+    robust_m: float,
+    z_main: float | None = None,
+    hidden=(False, False, False, False),
+) -> RoofFit:
+    """Eq. 6 minimised for one wing: (h_m, omega_1..4) and the planes' offset (du, dv)
+    (at most MAX_OFFSET_M), then with a cap if it pays, then with opposite planes tied
+    if the DSM does not tell them apart (:func:`symmetric_fit`).
 
     Parameters
     ----------
@@ -132,6 +171,9 @@ def fit_roof(d: np.ndarray, z: np.ndarray, robust_m: float, z_main: float | None
         Scale of the soft-L1 loss, metres.
     z_main : float, optional
         The main height, held fixed (the paper's h_m is one per building).
+    hidden : (4,) bool
+        Sides under the building's other wings: their planes are not tied to the
+        opposite ones, the DSM never showing them.
     """
     best, best_cost = None, np.inf
     for omega in _starts():  # closed-form starts: the main height is the median offset
@@ -139,41 +181,122 @@ def fit_roof(d: np.ndarray, z: np.ndarray, robust_m: float, z_main: float | None
         zm = float(np.median(z - h)) if z_main is None else z_main
         c = _robust_cost(zm + h - z, robust_m)
         if c < best_cost:
-            best, best_cost = np.concatenate([[zm], omega]), c
-    free = z_main is None
-    lo = np.r_[-np.inf if free else z_main - 1e-6, np.zeros(4)]
-    hi = np.r_[np.inf if free else z_main + 1e-6, np.full(4, np.radians(MAX_DEG))]
-    fit = _solve(best, d, z, robust_m, lo, hi, capped=False)
+            best, best_cost = np.r_[zm, omega, 0.0, 0.0], c
+    angles = [[0], [1], [2], [3], [4]]
+    fit = _fit_groups(best, angles, d, z, robust_m, z_main)
     rise = float(np.percentile(z, 95) - fit.z_main)
     if rise > 2 * robust_m:  # room for a cap
-        starts = [np.r_[fit.z_main, fit.omega, 0.8 * rise],
-                  np.r_[fit.z_main, np.full(4, np.radians(70.0)), 0.8 * rise]]  # fmt: skip
-        lo_c, hi_c = np.r_[lo, 0.0], np.r_[hi, np.inf]
-        capped = min((_solve(s, d, z, robust_m, lo_c, hi_c, capped=True) for s in starts),
+        steep = np.full(4, np.radians(70.0))
+        starts = [np.r_[fit.z_main, fit.omega, 0.0, 0.0, 0.8 * rise],
+                  np.r_[fit.z_main, steep, 0.0, 0.0, 0.8 * rise]]  # fmt: skip
+        capped = min((_fit_groups(x, angles + [[7]], d, z, robust_m, z_main) for x in starts),
                      key=lambda f: f.cost)  # fmt: skip
         if capped.cost < _CAP_GAIN * fit.cost and capped.cap is not None:
             h_free, _, _ = roof_heights(d, capped.omega)
             if np.mean(h_free > capped.cap) >= 0.1:  # the top covers a tenth of the wing
-                return capped
-    return fit
+                fit = capped
+    return symmetric_fit(fit, d, z, robust_m, z_main, hidden)
 
 
-def _solve(x0, d, z, robust_m, lo, hi, capped: bool) -> RoofFit:
+def flat_fit(d: np.ndarray, z: np.ndarray, robust_m: float, z_main: float | None = None) -> RoofFit:
+    """Eq. 6 with every angle at 0: a flat roof at the level of the wing's outer ring
+    (its quarter next to the walls, where a multi-level building's base shows: its
+    upper tiers stand inside), or at ``z_main``."""
+    width = float(min(d[0, 0] + d[2, 0], d[1, 0] + d[3, 0]))
+    ring = d.min(axis=0) <= 0.25 * width
+    if z_main is None and ring.sum() >= 10:
+        start = np.r_[np.median(z[ring]), np.zeros(6)]
+        z_main = _fit_groups(start, [[0]], d[:, ring], z[ring], robust_m, None).z_main
+    if z_main is not None:
+        r = z_main - z
+        return RoofFit(z_main, np.zeros(4), None, float(np.sqrt(np.mean(r**2))),
+                       _robust_cost(r, robust_m), 0)  # fmt: skip
+    return _fit_groups(np.r_[np.median(z), np.zeros(6)], [[0]], d, z, robust_m, None)
+
+
+def _solve(x0, d, z, robust_m, lo, hi, capped: bool, tie=None) -> RoofFit:
     x0 = np.clip(x0, lo + 1e-9, hi - 1e-9)
     res = optimize.least_squares(
-        lambda p: _residuals(p, d, z, capped)[0], x0,
-        jac=lambda p: _residuals(p, d, z, capped)[1], bounds=(lo, hi), loss="soft_l1",
+        lambda p: _residuals(p, d, z, capped, tie)[0], x0,
+        jac=lambda p: _residuals(p, d, z, capped, tie)[1], bounds=(lo, hi), loss="soft_l1",
         f_scale=robust_m, max_nfev=60,
     )  # fmt: skip
-    r = _residuals(res.x, d, z, capped)[0]
-    cap = float(res.x[5]) if capped else None
+    full = res.x if tie is None else tie @ res.x
+    r = _residuals(full, d, z, capped)[0]
+    cap = float(full[7]) if capped else None
     rms = float(np.sqrt(np.mean(r**2)))
-    return RoofFit(float(res.x[0]), res.x[1:5].copy(), cap, rms, _robust_cost(r, robust_m),
-                   int(res.nfev))  # fmt: skip
+    return RoofFit(float(full[0]), full[1:5].copy(), cap, rms, _robust_cost(r, robust_m),
+                   int(res.nfev), full[5:7].copy())  # fmt: skip
+
+
+def _sloped(deg: np.ndarray) -> list[int]:
+    return [k for k in range(4) if FLAT_DEG < deg[k] < VERTICAL_DEG]
+
+
+def symmetric_fit(
+    fit: RoofFit,
+    d: np.ndarray,
+    z: np.ndarray,
+    robust_m: float,
+    z_main: float | None = None,
+    hidden=(False, False, False, False),
+) -> RoofFit:
+    """Where opposite planes both slope: the planes' offset along their axis freed (the
+    ridge off the registered rectangle's centre line), then the planes tied to one
+    angle when the DSM does not tell them apart: all four (a hipped roof's one pitch),
+    both pairs, or one pair (a gable's), the most tied whose robust cost is at most
+    SYMMETRY_COST times the untied one's. A real dissymmetric roof costs clearly more
+    tied and keeps its angles. (A lone sloped plane's offset is the main height's: it
+    stays at 0.)
+
+    d : (4, N) side distances, metres; z : (N,) heights, metres; hidden : (4,) bool,
+    sides whose planes the DSM never shows (neither tied nor offset)."""
+    sloped = [k for k in _sloped(np.degrees(fit.omega)) if not hidden[k]]
+    pairs = [(a, b) for a, b in ((0, 2), (1, 3)) if a in sloped and b in sloped]
+    if not pairs:
+        return fit
+    x = np.r_[fit.z_main, fit.omega, fit.offset, [fit.cap] if fit.cap is not None else []]
+    offsets = [[5 + a] for a, _ in pairs]  # (0, 2) slides along u, (1, 3) along v
+    cap = [[7]] if fit.cap is not None else []
+    free = _fit_groups(x, [[0], [1], [2], [3], [4]] + offsets + cap, d, z, robust_m, z_main)
+    levels = [[pairs]] + ([[[p] for p in pairs]] if len(pairs) == 2 else [])
+    if len(pairs) == 2:  # a hipped roof's one pitch all round comes first
+        levels.insert(0, [[(0, 1, 2, 3)]])
+    for level in levels:  # the most tied first; within a level the cheapest
+        tied = [_fit_groups(x, _angle_groups(ties) + offsets + cap, d, z, robust_m, z_main)
+                for ties in level]  # fmt: skip
+        tied = [f for f in tied if f.cost <= SYMMETRY_COST * free.cost]
+        if tied:
+            return min(tied, key=lambda f: f.cost)
+    return free
+
+
+def _angle_groups(ties: list[tuple]) -> list[list[int]]:
+    """The groups of (h_m, omega_1..4) when the planes in each tuple share one angle."""
+    tied = {k for t in ties for k in t}
+    return [[0]] + [[1 + k for k in t] for t in ties] + [[1 + k] for k in range(4) if k not in tied]
+
+
+def _fit_groups(x: np.ndarray, groups: list, d, z, robust_m: float, z_main) -> RoofFit:
+    """Eq. 6 minimised over groups of the parameters (h_m, omega_1..4, du, dv[, cap]):
+    the parameters of a group share one value, those in no group stay at 0 (an offset)
+    or at ``z_main`` (the main height, when given). x : (7,) or (8,) the start."""
+    capped = len(x) == 8
+    tie = np.zeros((len(x), len(groups)))
+    for j, g in enumerate(groups):
+        tie[g, j] = 1.0
+    x0 = np.array([x[g].mean() for g in groups])
+    bounds = {0: (-np.inf, np.inf) if z_main is None else (z_main - 1e-6, z_main + 1e-6),
+              5: (-MAX_OFFSET_M, MAX_OFFSET_M), 6: (-MAX_OFFSET_M, MAX_OFFSET_M),
+              7: (0.0, np.inf)}  # fmt: skip
+    lo, hi = np.array([bounds.get(g[0], (0.0, np.radians(MAX_DEG))) for g in groups]).T
+    return _solve(x0, d, z, robust_m, lo, hi, capped, tie)
 
 
 def _side_heights(d: np.ndarray, fit: RoofFit) -> np.ndarray:
-    """(4, N) d_k tan(omega_k) of the snapped planes: infinite for a vertical end."""
+    """(4, N) d_k tan(omega_k) of the snapped, offset planes: infinite for a vertical
+    end."""
+    d = shifted(d, fit.offset)
     t = fit.snapped()
     return np.where(np.isinf(t)[:, None], np.inf, d * np.where(np.isinf(t), 0, t)[:, None])
 
@@ -187,25 +310,33 @@ def exact_heights(d: np.ndarray, fit: RoofFit) -> np.ndarray:
     return np.minimum(h, fit.cap) if fit.cap is not None else h
 
 
-def roof_type(fit: RoofFit, wing: np.ndarray, min_share: float = 0.08) -> str:
+def roof_type(
+    fit: RoofFit, wing: np.ndarray, hidden=(False, False, False, False), min_share: float = 0.08
+) -> str:
     """The roof type the angles make (the variational paper, Fig. 2 and section II).
 
     flat: no sloped plane; shed: one; gable: two opposite; hipped: three or four along a
     ridge; pyramid: four meeting in a point; dissymmetric: opposite sloped planes more
     than ASYMMETRY_DEG apart, or two adjacent ones; with a cap: mansard (over faces
     steeper than STEEP_DEG), else platform. A plane counts when it tops at least
-    ``min_share`` of the wing.
+    ``min_share`` of the square on the wing's short side (a hip end of a long, narrow
+    wing tops a quarter of it) and rises from a side not ``hidden`` under another wing
+    of the building, where the DSM never shows it.
     """
     u0, u1, v0, v1 = wing
-    uu, vv = np.meshgrid(np.linspace(u0, u1, 41), np.linspace(v0, v1, 41))
+    uu, vv = np.meshgrid(np.linspace(u0, u1, _SAMPLES), np.linspace(v0, v1, _SAMPLES))
     d = side_distances(uu.ravel(), vv.ravel(), wing)
     owner = np.argmin(_side_heights(d, fit), axis=0)
     h = exact_heights(d, fit)
     if fit.cap is not None:
         owner = np.where(h >= fit.cap - 1e-6, 4, owner)
-    share = np.bincount(owner, minlength=5) / owner.size
+    side_u, side_v = u1 - u0, v1 - v0
+    # each plane's area over the square on the short side
+    share = (
+        np.bincount(owner, minlength=5) / owner.size * side_u * side_v / min(side_u, side_v) ** 2
+    )
     deg = np.degrees(fit.omega)
-    sloped = [k for k in range(4) if share[k] >= min_share and FLAT_DEG < deg[k] < VERTICAL_DEG]
+    sloped = [k for k in _sloped(deg) if share[k] >= min_share and not hidden[k]]
     if not sloped or h.max() - h.min() < 0.3:
         return "flat"
     if fit.cap is not None and share[4] >= min_share:
@@ -218,9 +349,9 @@ def roof_type(fit: RoofFit, wing: np.ndarray, min_share: float = 0.08) -> str:
         return "shed"
     if len(sloped) == 2:
         return "gable" if (sloped[1] - sloped[0]) == 2 else "dissymmetric"
-    if len(sloped) == 4:
-        top = h >= h.max() - 0.05 * max(h.max(), 1e-6)
-        span_u, span_v = np.ptp(uu.ravel()[top]), np.ptp(vv.ravel()[top])
-        if max(span_u, span_v) < 0.15 * max(u1 - u0, v1 - v0):
+    if len(sloped) == 4:  # a pyramid's ridge is a point: shorter than the samples' reach
+        top = h >= h.max() - 1e-3 * max(np.ptp(h), 1e-6)
+        span = max(np.ptp(uu.ravel()[top]), np.ptp(vv.ravel()[top]))
+        if span < 0.05 * max(side_u, side_v) + 2 * max(side_u, side_v) / (_SAMPLES - 1):
             return "pyramid"
     return "hipped"

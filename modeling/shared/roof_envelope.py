@@ -184,6 +184,15 @@ def _wall_pieces(p0, p1, z0, z1, o0, o1):
     """Wall parts along edge p0-p1 where this side (z) is above the other side (o)."""
     tol = 1e-6
     d0, d1 = z0 - o0, z1 - o1
+    if d0 > tol and d1 < -tol or d0 < -tol and d1 > tol:
+        # a crossing within the snapping grid of an end is that end, which the
+        # arrangement has already noded (splitting there would leave a sliver unpaired)
+        length = np.hypot(*(p1 - p0))
+        s = d0 / (d0 - d1) * length
+        if s <= 2 * GRID:
+            d0 = 0.0
+        elif length - s <= 2 * GRID:
+            d1 = 0.0
     if d0 > tol and d1 > tol:
         return [(p0, p1, o0, z0, o1, z1)]
     if d0 > tol and d1 < -tol or d0 < -tol and d1 > tol:
