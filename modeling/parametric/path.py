@@ -45,6 +45,7 @@ from .roof_geometry import (
     exact_heights,
     fit_roof,
     flat_fit,
+    robust_cost,
     roof_type,
     side_distances,
 )
@@ -443,8 +444,7 @@ def roof_wings(priors, X, Y, dsm, inside, crop: Grid, options, min_cells, ground
         if wings:
             r = (model_heights(wings, X, Y) - dsm)[inside]
             r = r[np.isfinite(r)]
-            s = options.robust_m
-            candidates.append((float(np.mean(2 * s**2 * (np.sqrt(1 + (r / s) ** 2) - 1))), wings))
+            candidates.append((robust_cost(r, options.robust_m), wings))
     return min(candidates, key=lambda c: c[0])[1] if candidates else []
 
 

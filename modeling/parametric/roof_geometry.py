@@ -139,7 +139,8 @@ class RoofFit:
         return t
 
 
-def _robust_cost(r: np.ndarray, scale: float) -> float:
+def robust_cost(r: np.ndarray, scale: float) -> float:
+    """Mean soft-L1 cost of residuals ``r`` (metres) at ``scale`` (metres), metres^2."""
     return float(np.mean(2 * scale**2 * (np.sqrt(1 + (r / scale) ** 2) - 1)))
 
 
@@ -179,7 +180,7 @@ def fit_roof(
     for omega in _starts():  # closed-form starts: the main height is the median offset
         h, _, _ = roof_heights(d, omega)
         zm = float(np.median(z - h)) if z_main is None else z_main
-        c = _robust_cost(zm + h - z, robust_m)
+        c = robust_cost(zm + h - z, robust_m)
         if c < best_cost:
             best, best_cost = np.r_[zm, omega, 0.0, 0.0], c
     angles = [[0], [1], [2], [3], [4]]
@@ -210,7 +211,7 @@ def flat_fit(d: np.ndarray, z: np.ndarray, robust_m: float, z_main: float | None
     if z_main is not None:
         r = z_main - z
         return RoofFit(z_main, np.zeros(4), None, float(np.sqrt(np.mean(r**2))),
-                       _robust_cost(r, robust_m), 0)  # fmt: skip
+                       robust_cost(r, robust_m), 0)  # fmt: skip
     return _fit_groups(np.r_[np.median(z), np.zeros(6)], [[0]], d, z, robust_m, None)
 
 
@@ -225,7 +226,7 @@ def _solve(x0, d, z, robust_m, lo, hi, capped: bool, tie=None) -> RoofFit:
     r = _residuals(full, d, z, capped)[0]
     cap = float(full[7]) if capped else None
     rms = float(np.sqrt(np.mean(r**2)))
-    return RoofFit(float(full[0]), full[1:5].copy(), cap, rms, _robust_cost(r, robust_m),
+    return RoofFit(float(full[0]), full[1:5].copy(), cap, rms, robust_cost(r, robust_m),
                    int(res.nfev), full[5:7].copy())  # fmt: skip
 
 
