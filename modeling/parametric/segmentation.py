@@ -11,9 +11,10 @@ as the boundary moves. The boundary's length keeps it smooth; with registered pr
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 from scipy import ndimage
+
+from modeling.shared.opened_parts import opened_parts
 
 _EPS_CELLS = 1.5  # width of the smoothed Heaviside and Dirac, cells
 _BAND_CELLS = 8.0  # phi is kept a signed distance clipped to this many cells
@@ -137,14 +138,7 @@ def building_segments(
     """(H, W) int32 segments 1..q of the object region: opened with a disc of
     ``opening_m`` (which cuts thin bridges between neighbours), connected parts of at
     least ``min_area_m2``, renumbered; 0 elsewhere."""
-    m = mask.astype(np.uint8)
-    r = int(round(opening_m / gsd))
-    if r > 0:
-        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-        m = cv2.morphologyEx(m, cv2.MORPH_OPEN, disc)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=4)
-    keep = stats[:, cv2.CC_STAT_AREA] * gsd**2 >= min_area_m2
-    keep[0] = False
-    new = np.zeros(n, np.int32)
-    new[keep] = np.arange(1, keep.sum() + 1)
-    return new[labels]
+    parts, big = opened_parts(mask, gsd, opening_m, min_area_m2, connectivity=4)
+    new = np.zeros(len(big), np.int32)
+    new[big] = np.arange(1, big.sum() + 1)
+    return new[parts]

@@ -3,8 +3,9 @@ only touch weakly (a morphological opening, as in the LOD paper, section 4.2).""
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
+
+from modeling.shared.opened_parts import opened_parts
 
 
 def split_buildings(
@@ -31,14 +32,7 @@ def split_buildings(
     (N,) int64 building id of every super-pixel, 1..B, 0 for none.
     """
     n = len(building)
-    mask = building[labels].astype(np.uint8)
-    r = int(round(opening_m / gsd))
-    if r > 0:
-        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-        mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, disc)
-    k, parts, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    big = stats[:, cv2.CC_STAT_AREA] * gsd**2 >= min_area_m2
-    big[0] = False
+    parts, big = opened_parts(building[labels], gsd, opening_m, min_area_m2, connectivity=8)
     on = building[labels] & (parts > 0) & big[parts]
     # the part covering most cells of each super-pixel
     pairs = np.stack([labels[on], parts[on]], axis=1)
