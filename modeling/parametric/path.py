@@ -283,9 +283,10 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     # a floor under every roof cell: a cloud of roofs alone has its DTM on the roofs
     roof_low = min(min(w.fit.z_main for w, _ in wings), float(np.nanmin(heights)))
     base_z = min(base_z, roof_low - 0.5)
-    wings, faces, solid = closed_solid(wings, base_z, priors[0])
+    meshed, faces, solid = closed_solid(wings, base_z, priors[0])
+    if meshed is not wings:  # rebuilt without the offsets: the heights as meshed
+        wings, heights = meshed, model_heights(meshed, X, Y)
     planes, areas = face_planes(faces)
-    heights = model_heights(wings, X, Y)
     record = {
         "family": priors[0].family,
         "parts": [p.record() for p in priors],
