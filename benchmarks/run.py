@@ -5,11 +5,12 @@ memory (``peak_memory_mb``: the rusage of a child counts the size of the parent 
 forked from). Medians over ``--repeat`` runs; this machine is noisy.
 
 Measured: sample generation (tiny, small), workbench compare, fusion of small, the
-super-pixel and voxel paths on small (with the voxel paper's robustness experiment), what
-a noise-free sensor would score on small's height metrics (benchmarks/height_floor.py),
-what the super-pixel path's class CRF can reach (benchmarks/crf_ceiling.py), the 50
-AHN3 building clouds (benchmarks/ahn3.py), and terraced blocks from LiDAR tiles, the
-super-pixel path on one building region of ~30,000 cells (benchmarks/terrace.py).
+super-pixel, parametric and voxel paths on small (with the voxel paper's robustness
+experiment), what a noise-free sensor would score on small's height metrics
+(benchmarks/height_floor.py), what the super-pixel path's class CRF can reach
+(benchmarks/crf_ceiling.py), the 50 AHN3 building clouds (benchmarks/ahn3.py), and
+terraced blocks from LiDAR tiles, the super-pixel path on one building region of ~30,000
+cells (benchmarks/terrace.py).
 
 Then every registered path on ``small`` seeds 0-5 (:mod:`seeds`): the defaults were chosen
 on seeds 0-2, seeds 3-5 are held out. Everything printed is also written to
@@ -272,6 +273,70 @@ def print_superpixel(sp: dict) -> None:
         f"{m['buildings'].get('roof_type_accuracy', 0):.2f}; {c['watertight']} of "
         f"{c['buildings']} watertight; {m['complexity']['faces_per_building_median']:.0f} "
         f"triangles per building (median)"
+    )
+
+
+PARAMETRIC_CHILD = r"""
+import json, sys
+from pathlib import Path
+from modeling.parametric.options import ParametricOptions
+from modeling.parametric.path import run_parametric
+from workbench.engine import start_engine
+from workbench.evaluate import evaluate
+from workbench.model_run import write_model_run
+from workbench.runs import load_run
+from workbench.truth import load_scene_truth
+fusion, scene, out = (Path(a) for a in sys.argv[1:4])
+engine = start_engine(preload=("modeling.parametric.path",))  # as the command: every core
+try:
+    r = write_model_run(run_parametric(fusion, ParametricOptions(), engine=engine), out,
+                        overwrite=True)
+finally:
+    engine.close()
+m = evaluate(load_run(out), load_scene_truth(scene)).metrics
+print(json.dumps({"stages": r["stages"], "grid": r["inputs"]["grid"], "counts": r["counts"],
+                  "buildings": len(r["buildings"]),
+                  "seconds_per_building": r["seconds_per_building"],
+                  "metrics": {k: m[k] for k in ("footprint_2d", "volume_3d", "height",
+                                                 "buildings", "complexity") if k in m}}))
+"""
+
+
+def bench_parametric(fusion: Path, scene: Path, repeat: int, work: Path) -> dict:
+    runs = [
+        run_child(PARAMETRIC_CHILD, str(fusion), str(scene), str(work / f"parametric_{i}"))
+        for i in range(repeat)
+    ]
+    res = runs[0][0]
+    total = statistics.median(sum(s["wall_s"] for s in r[0]["stages"].values()) for r in runs)
+    mpx = res["grid"]["width"] * res["grid"]["height"] / 1e6
+    return {
+        "repeat": repeat,
+        "stage_median_s": stage_medians(runs),
+        "total_median_s": total,
+        "s_per_building_median": statistics.median(r[0]["seconds_per_building"] for r in runs),
+        "s_per_mpx": total / mpx,
+        "peak_memory_mib": max(r[2] for r in runs),
+        "buildings": res["buildings"],
+        "metrics": res["metrics"],
+    }
+
+
+def print_parametric(p: dict) -> None:
+    print(f"\nworkbench model parametric on small, median of {p['repeat']}:")
+    print_stages(p["stage_median_s"])
+    m = p["metrics"]
+    print(
+        f"  total {p['total_median_s']:.1f} s = {p['s_per_building_median']:.2f} s per building "
+        f"({p['buildings']} buildings), {p['s_per_mpx']:.1f} s per ortho megapixel; peak "
+        f"memory {p['peak_memory_mib']:.0f} MiB"
+    )
+    print(
+        f"  footprint 2D quality {m['footprint_2d']['quality']:.3f}, volume 3D quality "
+        f"{m['volume_3d']['quality']:.3f}; roof types "
+        f"{m['buildings'].get('roof_type_accuracy', 0):.2f}; building height error mean "
+        f"{m['buildings']['height_error_pct_mean']:.1f} %; watertight "
+        f"{m['complexity']['watertight_fraction']:.0%}"
     )
 
 
@@ -703,12 +768,18 @@ def run_benchmarks(args) -> dict:
             ceiling = crf_ceiling(Path(tmp) / "superpixel_0", scene)
             results["crf_ceiling_small"] = ceiling
             print_ceiling(ceiling)
+            pm = bench_parametric(Path(tmp) / "fusion_0", scene, args.repeat, Path(tmp))
+            results["parametric_small"] = pm
+            print_parametric(pm)
             vx = bench_voxel(scene, Path(tmp) / "fusion_0", args.repeat, Path(tmp))
             results["voxel_small"] = vx
             print_voxel(vx, floor)
             c = bench_compare(
                 scene,
-                [Path(tmp) / "fusion_0", Path(tmp) / "superpixel_0", Path(tmp) / "voxel_0"],
+                [
+                    Path(tmp) / f"{name}_0"
+                    for name in ("fusion", "superpixel", "parametric", "voxel")
+                ],
                 1,
                 Path(tmp),
             )

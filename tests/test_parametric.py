@@ -16,7 +16,19 @@ from modeling.parametric.footprint_priors import (
 )
 from modeling.parametric.options import ParametricOptions
 from modeling.parametric.part_meshes import building_solid, wing_faces
-from modeling.parametric.path import building_roof_type, rasterize_on, roof_wings
+from modeling.parametric.path import (
+    ParametricInputs,
+    Wing,
+    _flat_wing,
+    building_roof_type,
+    building_task,
+    fit_wings,
+    rasterize_on,
+    roof_wings,
+    segment_boxes,
+    stack_tiers,
+    tree_crowns,
+)
 from modeling.parametric.roof_geometry import (
     RoofFit,
     exact_heights,
@@ -133,6 +145,89 @@ def test_a_tier_on_a_flat_base_is_multi_level_not_a_mansard():
     assert building_roof_type([w for w, _ in wings], options.tier_step_m) == "multi-level"
     tiers = [w for w, _ in wings if w.tier]
     assert len(tiers) == 1 and abs(tiers[0].fit.z_main - 16.0) < 0.1
+
+
+def _roof_and_crown(crown_z, seed=0):
+    """A 18 m x 14 m flat roof at 30 m and a crown of radius 4 m centred on its corner:
+    a dome 3 m high from ``crown_z``, leafy (0.5 m of seeded noise); the segment takes
+    both in, as the level set does when the crown stands near the roof's height."""
+    grid = Grid(-20.0, 16.0, 0.25, 160, 128)
+    xs = grid.xmin + (np.arange(grid.width) + 0.5) * grid.gsd
+    ys = grid.ymax - (np.arange(grid.height) + 0.5) * grid.gsd
+    X, Y = np.meshgrid(xs, ys)
+    roof = (np.abs(X) <= 9) & (np.abs(Y) <= 7)
+    r = np.hypot(X - 9.0, Y - 6.0)
+    crown = r <= 4.0
+    noise = np.random.default_rng(seed).normal(0.0, 0.5, X.shape)
+    dome = crown_z + 3.0 * np.sqrt(np.clip(1 - (r / 4.0) ** 2, 0, 1)) + noise
+    dsm = np.where(roof, 30.0, 0.0)
+    dsm = np.where(crown & (dome > dsm), dome, dsm)
+    segments = (roof | crown).astype(np.int32)
+    inputs = ParametricInputs(grid, dsm, np.zeros_like(dsm), np.zeros(dsm.shape + (3,), np.uint8),
+                              segments, segment_boxes(segments, 1))  # fmt: skip
+    return inputs, roof, crown
+
+
+def test_a_crown_beside_the_roof_is_left_to_the_data_term():
+    """A crown below the roof beside its corner: the first fit leaves it unexplained, so
+    eq. 4 gives it to the unknown label and the segment without it is a rectangle."""
+    inputs, roof, _ = _roof_and_crown(14.0)
+    b = building_task(1, inputs, ParametricOptions()).building
+    assert b.record["family"] == "rect"
+    assert abs(b.footprint.area - 18 * 14) < 6.0
+    assert b.record["unknown_object_m2"] > 20.0
+    assert b.roof_type == "flat" and abs(b.ridge_z - 30.0) < 0.1
+
+
+def test_a_crown_over_the_roof_is_no_tier():
+    """A crown standing up to 4 m over the roof's corner is no tier: the planes of a
+    tier explain its cells, a leafy dome's they do not; the roof stays flat at 30 m."""
+    inputs, _, _ = _roof_and_crown(31.0)
+    b = building_task(1, inputs, ParametricOptions()).building
+    assert not any(w["tier"] for w in b.record["wings"])
+    assert b.roof_type == "flat" and abs(b.ridge_z - 30.0) < 0.1
+    assert b.record["unknown_object_m2"] > 20.0
+
+
+def test_a_rough_block_on_the_roof_is_no_tier():
+    """Tiers are roofs: a 6 m square standing 2-6 m over a flat roof at random heights (a
+    hedge of crowns, not a level) is not stacked as a tier, where a planar one is."""
+    grid = Grid(-15.0, 12.0, 0.25, 120, 96)
+    xs = grid.xmin + (np.arange(grid.width) + 0.5) * grid.gsd
+    ys = grid.ymax - (np.arange(grid.height) + 0.5) * grid.gsd
+    X, Y = np.meshgrid(xs, ys)
+    inside = (np.abs(X) <= 10) & (np.abs(Y) <= 7)
+    block = (np.abs(X - 3) <= 3) & (np.abs(Y) <= 3)
+    rough = np.random.default_rng(1).uniform(12.0, 16.0, X.shape)
+    prior, _ = compete_priors(segment_frame(inside, xs, ys, grid.gsd), ("rect",), 3.0, 0.95)
+    outline, options = rasterize_on(prior.polygon(), grid), ParametricOptions()
+    for top, tiers in ((rough, 0), (np.full(X.shape, 14.0), 1)):
+        dsm = np.where(block, top, np.where(inside, 10.0, 0.0))
+        base = fit_wings([prior], X, Y, dsm, outline, options, grid.gsd, flat=True)
+        assert len(stack_tiers(base, X, Y, dsm, outline, grid, options, 64)) == tiers
+
+
+def test_tree_crowns_go_with_their_rim_and_a_green_roof_stays():
+    """The fusion's tree class cuts a crown out of the segment, with the 0.5 m rim it
+    gave to building; a roof classed tree all over is not cut (the classes got it
+    wrong)."""
+    inputs, roof, crown = _roof_and_crown(14.0)
+    X, Y = np.meshgrid(np.arange(inputs.grid.width), np.arange(inputs.grid.height))
+    r, c = np.nonzero(crown)
+    classed_tree = np.hypot(Y - r.mean(), X - c.mean()) * 0.25 < 3.5
+    cut = tree_crowns(roof | crown, classed_tree, 0.25, ParametricOptions(), 160)
+    assert (cut & crown & ~roof).sum() >= 0.95 * (crown & ~roof).sum()
+    assert (cut & roof & ~crown).sum() < 0.02 * (roof & ~crown).sum()
+    assert not tree_crowns(roof, roof, 0.25, ParametricOptions(), 160).any()
+
+
+def test_a_wing_meshed_flat_stands_at_its_roof_median():
+    """The last resort of a mesh that does not close: a gable 35 degrees on an 8 m span
+    is flat at the median of min(d, 8 - d) tan 35, 2 tan 35 = 1.40 m over h_m."""
+    fit = RoofFit(10.0, np.radians([90.0, 35.0, 90.0, 35.0]), None, 0.0, 0.0, 0)
+    flat = _flat_wing(Wing(WING, fit, "gable"))
+    assert abs(flat.fit.z_main - (10.0 + 2 * np.tan(np.radians(35.0)))) < 0.05
+    assert not np.any(flat.fit.omega) and flat.roof_type == "flat"
 
 
 def test_smooth_min_gradient_matches_finite_differences():

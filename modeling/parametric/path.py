@@ -20,13 +20,14 @@ from scipy import ndimage
 from shapely.geometry import mapping, shape
 from shapely.ops import unary_union
 
+from modeling.shared.opened_parts import opened_parts
 from modeling.shared.raster_ground import ground_surface, vertex_colours
 from workbench.engine import Engine, ThreadEngine
 from workbench.errors import InputError
 from workbench.fusion_run import read_fusion_run
 from workbench.meshes import is_watertight
 from workbench.model_run import Building, ModelRun, Surface
-from workbench.raster import BUILDING, Grid
+from workbench.raster import BUILDING, TREE, Grid
 from workbench.records import StageTimer, peak_memory_mb
 
 from .footprint_priors import (
@@ -56,6 +57,12 @@ log = logging.getLogger(__name__)
 FUSION_RASTERS = ("ortho", "dsm", "dtm", "ndsm", "class_prob")
 _MAX_PARTS = 4  # priors per segment: the first and the parts its labelling leaves
 _MAX_TIERS = 3  # tiers stacked on a building (a multi-level building's levels)
+_TIER_RMS = 3.0  # a tier's roof fit leaves at most this many robust scales of RMS
+_MESHED = (
+    "as fitted",
+    "planes on the wings' sides",
+    "flat wings (the planes' mesh was not closed)",
+)
 _LOGIT_CLIP = 0.01  # the building probability's source is its log-odds, clipped here
 
 
@@ -69,6 +76,7 @@ class ParametricInputs:
     rgb: np.ndarray
     segments: np.ndarray
     boxes: np.ndarray  # (q + 1, 4) r0, r1, c0, c1 of each segment with its margin
+    tree: np.ndarray | None = None  # (H, W) bool: the fusion's tree outweighs building
 
 
 @dataclass
@@ -141,6 +149,8 @@ def run_parametric(
         else:
             init, init_source = initial_region(fusion, footprints)
         sources = region_sources(fusion, options)
+        prob = fusion.rasters["class_prob"]
+        tree = np.nan_to_num(prob[TREE - 1]) > np.nan_to_num(prob[BUILDING - 1])
     pull = None
     results: list[SegmentResult] = []
     rounds = []
@@ -157,7 +167,8 @@ def run_parametric(
                 opening = options.opening_m
             segments = building_segments(mask, grid.gsd, opening, options.min_area_m2)
             q = int(segments.max())
-            inputs = ParametricInputs(grid, dsm, dtm, rgb, segments, segment_boxes(segments, q))
+            inputs = ParametricInputs(grid, dsm, dtm, rgb, segments, segment_boxes(segments, q),
+                                      None if options.all_building else tree)  # fmt: skip
         with timer.stage("priors_and_roofs" if r == 0 else f"priors_and_roofs_{r + 1}"):
             shared = engine.share(inputs)
             results = list(engine.map(building_task, list(range(1, q + 1)), shared, options,
@@ -264,27 +275,29 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     min_cells = int(np.ceil(max(options.min_part_m**2, 0.5 * options.min_area_m2) / g.gsd**2))
     # a segment of --all-building is a building: no unknown-object label for it
     lambda_ = np.inf if options.all_building else options.lambda_
-    priors, energies = decompose_segment(mask, xs, ys, crop, options, min_cells, lambda_)
-    if not priors:
-        return SegmentResult(k, skipped=f"unknown object: no footprint prior explains it "
-                             f"(eq. 4 energies {energies})")  # fmt: skip
+    crowns = np.zeros(mask.shape, bool)
+    if inputs.tree is not None:
+        crowns = tree_crowns(mask, inputs.tree[r0:r1, c0:c1], crop.gsd, options, min_cells)
+    found = _segment_roofs(mask & ~crowns, dsm, dtm, xs, ys, crop, options, min_cells, lambda_)
+    unknown = crowns.copy()
+    if not isinstance(found, str):
+        unknown |= unknown_objects(dsm, mask & ~crowns, found[5], crop.gsd, options, min_cells)
+        if unknown.any():  # left to the data term (eq. 4): the segment without them, again
+            again = _segment_roofs(mask & ~unknown, np.where(unknown, np.nan, dsm), dtm, xs,
+                                   ys, crop, options, min_cells, lambda_)  # fmt: skip
+            if isinstance(again, str):
+                unknown[:] = False
+            else:
+                found = again
+    if isinstance(found, str):
+        return SegmentResult(k, skipped=found)
+    priors, energies, outline, wings, inside, heights, base_z = found
     X, Y = np.meshgrid(xs, ys)
-    outline = union_outline(priors)
-    inside = rasterize_on(outline, crop)
-    if not np.isfinite(dsm[inside]).any():
-        return SegmentResult(k, skipped="the registered prior covers no cell with a height")
-    ground = dtm[inside & np.isfinite(dtm)]
-    base_z = float(np.min(ground)) if len(ground) else float(np.nanmin(dsm[inside]) - 3.0)
-    ground_z = float(np.median(ground)) if len(ground) else base_z
-    wings = roof_wings(priors, X, Y, dsm, inside, crop, options, min_cells, ground_z)
-    if not wings:
-        return SegmentResult(k, skipped="no DSM height on the registered prior")
-    heights = model_heights(wings, X, Y)
     # a floor under every roof cell: a cloud of roofs alone has its DTM on the roofs
     roof_low = min(min(w.fit.z_main for w, _ in wings), float(np.nanmin(heights)))
     base_z = min(base_z, roof_low - 0.5)
-    meshed, faces, solid = closed_solid(wings, base_z, priors[0])
-    if meshed is not wings:  # rebuilt without the offsets: the heights as meshed
+    meshed, how, faces, solid = closed_solid(wings, base_z, priors[0])
+    if meshed is not wings:  # rebuilt: the heights and the roof type as meshed
         wings, heights = meshed, model_heights(meshed, X, Y)
     planes, areas = face_planes(faces)
     record = {
@@ -293,7 +306,9 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
         "wings": [w.record() for w, _ in wings],
         "energies_2d": energies,
         "energy_2d": round(float(sum(p.energy for p in priors)), 5),
-        "energy_3d_rms_m": round(float(_rms(heights - dsm, inside)), 3),
+        "energy_3d_rms_m": round(float(_rms(heights - dsm, inside & ~unknown)), 3),
+        "unknown_object_m2": round(float(unknown.sum()) * crop.gsd**2, 2),
+        "meshed": how,
         "iterations": int(sum(p.evaluations for p in priors) + sum(w.fit.evaluations
                                                                   for w, _ in wings)),
         "seconds": round(time.perf_counter() - t0, 3),
@@ -308,21 +323,103 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     return SegmentResult(k, building, outlines=[mapping(p.polygon()) for p in priors])
 
 
+def _segment_roofs(mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells, lambda_):
+    """Eq. 2-6 on one segment's cells: its priors, their outline and the wings' roofs.
+    Returns (priors, energies, outline, wings, inside, heights, base_z), or why the
+    segment is skipped (str)."""
+    priors, energies = decompose_segment(mask, xs, ys, crop, options, min_cells, lambda_)
+    if not priors:
+        return (f"unknown object: no footprint prior explains it (eq. 4 energies "
+                f"{energies})")  # fmt: skip
+    X, Y = np.meshgrid(xs, ys)
+    outline = union_outline(priors)
+    inside = rasterize_on(outline, crop)
+    if not np.isfinite(dsm[inside]).any():
+        return "the registered prior covers no cell with a height"
+    ground = dtm[inside & np.isfinite(dtm)]
+    base_z = float(np.min(ground)) if len(ground) else float(np.nanmin(dsm[inside]) - 3.0)
+    ground_z = float(np.median(ground)) if len(ground) else base_z
+    wings = roof_wings(priors, X, Y, dsm, inside, crop, options, min_cells, ground_z)
+    if not wings:
+        return "no DSM height on the registered prior"
+    return priors, energies, outline, wings, inside, model_heights(wings, X, Y), base_z
+
+
+def tree_crowns(mask, tree, gsd: float, options, min_cells) -> np.ndarray:
+    """(h, w) bool crowns the level set took into the segment ``mask``: the cells the
+    fusion classes tree rather than building (``tree``), in parts wider than the
+    smallest part and of at least ``min_cells``, with what they leave of the segment
+    that is narrower (their rim, which the classes may give to building) or smaller.
+    None when they would leave less than half the segment: a building the classes got
+    wrong (a green roof) stays whole, and the roof fit decides."""
+    crowns = _large_parts(mask & tree, gsd, options, min_cells)
+    if not crowns.any():
+        return crowns
+    kept = _large_parts(mask & ~crowns, gsd, options, min_cells)
+    if kept.sum() < 0.5 * mask.sum():
+        return np.zeros_like(crowns)
+    return mask & ~kept
+
+
+def unknown_objects(dsm, mask, heights, gsd: float, options, min_cells) -> np.ndarray:
+    """(h, w) bool cells of the segment that the fitted roofs do not explain: outside
+    the outline or standing more than a tier's step off the model, in parts wider than
+    the smallest part and of at least ``min_cells``, taken whole, that reach into the
+    outline (none otherwise). A crown over or beside the roof is such an object, which
+    eq. 4 leaves to the data term; the building's own tiers and wings are in the model.
+
+    dsm, heights : (h, w) float, metres; mask : (h, w) bool, the segment."""
+    # the cells the outline leaves out are unexplained too: they make the object whole
+    off = ~np.isfinite(heights) | (np.abs(dsm - heights) > options.tier_step_m)
+    off &= mask & np.isfinite(dsm)
+    core = _large_parts(off, gsd, options, min_cells)
+    labels, _ = ndimage.label(off)  # the objects whole: the opening trims them
+    unknown = np.isin(labels, np.unique(labels[core]))
+    # an object wholly outside the outline is already left to the data term
+    return unknown if (unknown & np.isfinite(heights)).any() else np.zeros_like(unknown)
+
+
+def _large_parts(mask, gsd: float, options, min_cells) -> np.ndarray:
+    """(h, w) bool the parts of ``mask`` opened by a disc of half the smallest part's
+    width and of at least ``min_cells``."""
+    parts, big = opened_parts(mask, gsd, 0.5 * options.min_part_m, min_cells * gsd**2, 8)
+    return big[parts]
+
+
 def closed_solid(wings: list, base_z: float, main: Prior):
     """The building's mesh (:func:`part_meshes.building_solid` in ``main``'s frame) and
     its roof faces. Planes offset by a hair from a neighbouring wing's eave can leave
     slivers that the closedness check (Open3D's) rejects: the mesh is then rebuilt with
-    the planes back on the wings' sides. Returns the wings as meshed, faces, solid."""
-    for attempt in range(2):
-        per_wing = [wing_faces(w.rect, w.fit, p.theta, p.origin) for w, p in wings]
+    the planes back on the wings' sides, and if still not closed, with every wing flat
+    at the median height of its roof (a closed LOD1 block rather than an open LOD2
+    shell). Returns the wings as meshed, how (``_MESHED``), faces, solid."""
+    attempts = [(_MESHED[0], wings)]
+    if any(np.any(w.fit.offset) for w, _ in wings):
+        attempts.append((_MESHED[1], [(_refit(w, offset=np.zeros(2)), p) for w, p in wings]))
+    attempts.append((_MESHED[2], [(_flat_wing(w), p) for w, p in wings]))
+    for attempt in attempts:
+        how, candidate = attempt
+        per_wing = [wing_faces(w.rect, w.fit, p.theta, p.origin) for w, p in candidate]
         solid = building_solid(per_wing, base_z, main.theta, main.origin)
-        if attempt or is_watertight(solid.vertices, solid.triangles):
+        if is_watertight(solid.vertices, solid.triangles):
             break
-        if not any(np.any(w.fit.offset) for w, _ in wings):
-            break
-        wings = [(dataclasses.replace(w, fit=dataclasses.replace(w.fit, offset=np.zeros(2))), p)
-                 for w, p in wings]  # fmt: skip
-    return wings, [f for wf in per_wing for f in wf], solid
+    return candidate, how, [f for wf in per_wing for f in wf], solid
+
+
+def _refit(w: Wing, **changes) -> Wing:
+    return dataclasses.replace(w, fit=dataclasses.replace(w.fit, **changes))
+
+
+def _flat_wing(w: Wing) -> Wing:
+    """The wing with a flat roof at the median height of its fitted roof (at the centres
+    of a 20 x 20 lattice of its rectangle)."""
+    u0, u1, v0, v1 = w.rect
+    t = (np.arange(20) + 0.5) / 20
+    U, V = np.meshgrid(u0 + t * (u1 - u0), v0 + t * (v1 - v0))
+    h = exact_heights(side_distances(U.ravel(), V.ravel(), w.rect), w.fit)
+    z = w.fit.z_main + float(np.median(h))
+    flat = _refit(w, z_main=z, omega=np.zeros(4), offset=np.zeros(2), cap=None)
+    return dataclasses.replace(flat, roof_type="flat")
 
 
 def decompose_segment(mask, xs, ys, crop: Grid, options: ParametricOptions, min_cells: int,
@@ -477,6 +574,7 @@ def stack_tiers(wings, X, Y, dsm, inside, crop: Grid, options, min_cells) -> lis
         big = [j for j in range(1, n + 1) if sizes[j] >= min_cells]
         if not big:
             break
+        before = len(extra)
         for j in big:
             part = labels == j
             r0, r1, c0, c1 = grown_box(*np.nonzero(part), part.shape)  # the tier's own domain
@@ -487,8 +585,11 @@ def stack_tiers(wings, X, Y, dsm, inside, crop: Grid, options, min_cells) -> lis
                 continue
             cells = rasterize_on(p.polygon(), crop) & inside
             new = fit_wings([p], X, Y, dsm, cells, options, gsd)
+            # a tier is a roof: its planes explain its cells (a crown's dome they do not)
             extra += [(Wing(w.rect, w.fit, w.roof_type, tier=True, hidden=w.hidden), q)
-                      for w, q in new]  # fmt: skip
+                      for w, q in new if w.fit.rms <= _TIER_RMS * options.robust_m]  # fmt: skip
+        if len(extra) == before:  # what stands above is no roof: looking again finds it again
+            break
     return extra
 
 
