@@ -226,25 +226,33 @@ print(json.dumps({"stages": r["stages"], "grid": r["inputs"]["grid"], "counts": 
 """
 
 
-def bench_superpixel(fusion: Path, scene: Path, repeat: int, work: Path) -> dict:
-    runs = [
-        run_child(SUPERPIXEL_CHILD, str(fusion), str(scene), str(work / f"superpixel_{i}"))
-        for i in range(repeat)
-    ]
+def timed_path_runs(child: str, name: str, fusion: Path, scene: Path, repeat: int,
+                    work: Path) -> tuple[dict, dict]:  # fmt: skip
+    """``repeat`` runs of a path's child on small: the first run's report, and the medians
+    of its stages, its total and per ortho megapixel, with the peak memory."""
+    runs = [run_child(child, str(fusion), str(scene), str(work / f"{name}_{i}"))
+            for i in range(repeat)]  # fmt: skip
     res = runs[0][0]
-    stages = stage_medians(runs)
     total = statistics.median(sum(s["wall_s"] for s in r[0]["stages"].values()) for r in runs)
     mpx = res["grid"]["width"] * res["grid"]["height"] / 1e6
-    return {
+    summary = {
         "repeat": repeat,
-        "stage_median_s": stages,
+        "stage_median_s": stage_medians(runs),
         "total_median_s": total,
         "s_per_mpx": total / mpx,
         "peak_memory_mib": max(r[2] for r in runs),
-        "counts": res["counts"],
-        "table1": res["table1"],
-        "metrics": res["metrics"],
     }
+    if "seconds_per_building" in res:
+        summary["s_per_building_median"] = statistics.median(
+            r[0]["seconds_per_building"] for r in runs
+        )
+    return res, summary
+
+
+def bench_superpixel(fusion: Path, scene: Path, repeat: int, work: Path) -> dict:
+    res, summary = timed_path_runs(SUPERPIXEL_CHILD, "superpixel", fusion, scene, repeat, work)
+    return {**summary, "counts": res["counts"], "table1": res["table1"],
+            "metrics": res["metrics"]}  # fmt: skip
 
 
 def print_stages(medians: dict) -> None:
@@ -303,23 +311,8 @@ print(json.dumps({"stages": r["stages"], "grid": r["inputs"]["grid"], "counts": 
 
 
 def bench_parametric(fusion: Path, scene: Path, repeat: int, work: Path) -> dict:
-    runs = [
-        run_child(PARAMETRIC_CHILD, str(fusion), str(scene), str(work / f"parametric_{i}"))
-        for i in range(repeat)
-    ]
-    res = runs[0][0]
-    total = statistics.median(sum(s["wall_s"] for s in r[0]["stages"].values()) for r in runs)
-    mpx = res["grid"]["width"] * res["grid"]["height"] / 1e6
-    return {
-        "repeat": repeat,
-        "stage_median_s": stage_medians(runs),
-        "total_median_s": total,
-        "s_per_building_median": statistics.median(r[0]["seconds_per_building"] for r in runs),
-        "s_per_mpx": total / mpx,
-        "peak_memory_mib": max(r[2] for r in runs),
-        "buildings": res["buildings"],
-        "metrics": res["metrics"],
-    }
+    res, summary = timed_path_runs(PARAMETRIC_CHILD, "parametric", fusion, scene, repeat, work)
+    return {**summary, "buildings": res["buildings"], "metrics": res["metrics"]}
 
 
 def print_parametric(p: dict) -> None:

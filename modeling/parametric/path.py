@@ -278,24 +278,23 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     crowns = np.zeros(mask.shape, bool)
     if inputs.tree is not None:
         crowns = tree_crowns(mask, inputs.tree[r0:r1, c0:c1], crop.gsd, options, min_cells)
-    found = _segment_roofs(mask & ~crowns, dsm, dtm, xs, ys, crop, options, min_cells, lambda_)
-    unknown = crowns.copy()
+    unknown = crowns  # left to the data term (eq. 4): out of the segment and of the fits
+    found = segment_roofs(mask & ~unknown, np.where(unknown, np.nan, dsm), dtm, xs, ys, crop,
+                          options, min_cells, lambda_)  # fmt: skip
     if not isinstance(found, str):
-        unknown |= unknown_objects(dsm, mask & ~crowns, found[5], crop.gsd, options, min_cells)
-        if unknown.any():  # left to the data term (eq. 4): the segment without them, again
-            again = _segment_roofs(mask & ~unknown, np.where(unknown, np.nan, dsm), dtm, xs,
-                                   ys, crop, options, min_cells, lambda_)  # fmt: skip
-            if isinstance(again, str):
-                unknown[:] = False
-            else:
-                found = again
+        more = unknown_objects(dsm, mask & ~unknown, found.heights, crop.gsd, options, min_cells)
+        if more.any():  # the segment without them, again
+            again = segment_roofs(mask & ~(unknown | more), np.where(unknown | more, np.nan, dsm),
+                                  dtm, xs, ys, crop, options, min_cells, lambda_)  # fmt: skip
+            if not isinstance(again, str):
+                found, unknown = again, unknown | more
     if isinstance(found, str):
         return SegmentResult(k, skipped=found)
-    priors, energies, outline, wings, inside, heights, base_z = found
+    priors, wings, inside, heights = found.priors, found.wings, found.inside, found.heights
     X, Y = np.meshgrid(xs, ys)
     # a floor under every roof cell: a cloud of roofs alone has its DTM on the roofs
     roof_low = min(min(w.fit.z_main for w, _ in wings), float(np.nanmin(heights)))
-    base_z = min(base_z, roof_low - 0.5)
+    base_z = min(found.base_z, roof_low - 0.5)
     meshed, how, faces, solid = closed_solid(wings, base_z, priors[0])
     if meshed is not wings:  # rebuilt: the heights and the roof type as meshed
         wings, heights = meshed, model_heights(meshed, X, Y)
@@ -304,7 +303,7 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
         "family": priors[0].family,
         "parts": [p.record() for p in priors],
         "wings": [w.record() for w, _ in wings],
-        "energies_2d": energies,
+        "energies_2d": found.energies,
         "energy_2d": round(float(sum(p.energy for p in priors)), 5),
         "energy_3d_rms_m": round(float(_rms(heights - dsm, inside & ~unknown)), 3),
         "unknown_object_m2": round(float(unknown.sum()) * crop.gsd**2, 2),
@@ -314,7 +313,7 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
         "seconds": round(time.perf_counter() - t0, 3),
     }  # fmt: skip
     building = Building(
-        str(k), Surface(solid.vertices, solid.triangles), "2.2", footprint=outline,
+        str(k), Surface(solid.vertices, solid.triangles), "2.2", footprint=found.outline,
         roof_type=building_roof_type([w for w, _ in wings], options.tier_step_m),
         planes=planes, plane_areas=areas, base_z=base_z,
         eave_z=min(w.fit.z_main for w, _ in wings),
@@ -323,10 +322,24 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     return SegmentResult(k, building, outlines=[mapping(p.polygon()) for p in priors])
 
 
-def _segment_roofs(mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells, lambda_):
-    """Eq. 2-6 on one segment's cells: its priors, their outline and the wings' roofs.
-    Returns (priors, energies, outline, wings, inside, heights, base_z), or why the
-    segment is skipped (str)."""
+@dataclass
+class SegmentRoofs:
+    """Eq. 2-6's answer for one segment: its priors and their eq. 4 energies, their
+    outline (and the cells it covers), the wings' roofs, the model's heights on the
+    segment's crop (NaN off the outline) and the lowest ground under it, metres."""
+
+    priors: list
+    energies: dict
+    outline: object
+    inside: np.ndarray
+    wings: list
+    heights: np.ndarray
+    base_z: float
+
+
+def segment_roofs(mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells, lambda_):
+    """Eq. 2-6 on one segment's cells (``mask``; ``dsm`` NaN where it is not to be
+    fitted): a :class:`SegmentRoofs`, or why the segment is skipped (str)."""
     priors, energies = decompose_segment(mask, xs, ys, crop, options, min_cells, lambda_)
     if not priors:
         return (f"unknown object: no footprint prior explains it (eq. 4 energies "
@@ -342,7 +355,8 @@ def _segment_roofs(mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells, lambd
     wings = roof_wings(priors, X, Y, dsm, inside, crop, options, min_cells, ground_z)
     if not wings:
         return "no DSM height on the registered prior"
-    return priors, energies, outline, wings, inside, model_heights(wings, X, Y), base_z
+    return SegmentRoofs(priors, energies, outline, inside, wings, model_heights(wings, X, Y),
+                        base_z)  # fmt: skip
 
 
 def tree_crowns(mask, tree, gsd: float, options, min_cells) -> np.ndarray:
