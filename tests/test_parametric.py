@@ -189,6 +189,19 @@ def test_a_crown_over_the_roof_is_no_tier():
     assert b.record["unknown_object_m2"] > 20.0
 
 
+def test_a_segment_the_fusion_classes_mostly_tree_is_a_tree():
+    """Eq. 4's unknown label on the classes: a segment whose cells the fusion classes
+    mostly tree is skipped as a tree; the same segment with only its crown classed tree
+    is a building."""
+    inputs, roof, crown = _roof_and_crown(14.0)
+    options = ParametricOptions()
+    inputs.tree = crown.copy()
+    assert building_task(1, inputs, options).building is not None
+    inputs.tree = roof | crown
+    result = building_task(1, inputs, options)
+    assert result.building is None and "tree" in result.skipped
+
+
 def test_a_rough_block_on_the_roof_is_no_tier():
     """Tiers are roofs: a 6 m square standing 2-6 m over a flat roof at random heights (a
     hedge of crowns, not a level) is not stacked as a tier, where a planar one is."""

@@ -277,7 +277,10 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     lambda_ = np.inf if options.all_building else options.lambda_
     crowns = np.zeros(mask.shape, bool)
     if inputs.tree is not None:
-        crowns = tree_crowns(mask, inputs.tree[r0:r1, c0:c1], crop.gsd, options, min_cells)
+        tree = inputs.tree[r0:r1, c0:c1]
+        if (mask & tree).sum() > 0.5 * mask.sum():  # eq. 4's unknown label, on the classes
+            return SegmentResult(k, skipped="a tree: the fusion classes most of it tree")
+        crowns = tree_crowns(mask, tree, crop.gsd, options, min_cells)
     unknown = crowns  # left to the data term (eq. 4): out of the segment and of the fits
     found = segment_roofs(mask & ~unknown, np.where(unknown, np.nan, dsm), dtm, xs, ys, crop,
                           options, min_cells, lambda_)  # fmt: skip
