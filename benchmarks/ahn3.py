@@ -1,12 +1,12 @@
 """The 50 AHN3 building clouds: LiDAR in, closed LoD2 models out, scored against the points.
 
 For every cloud of ../shared/data/ahn3_buildings: `workbench fusion --points` then
-`workbench model superpixel --all-building` and `workbench model parametric
---all-building`, in this process, from the same fusion. Prints per building and in median,
-per path: RMS and mean distance from the cloud's points to the model (Open3D distance
-queries), triangles, watertightness and seconds (the fusion's share included); failures
-are counted, not hidden. City3D's figures on the same clouds (same kind of machine) are
-printed beside ours.
+`workbench model superpixel --all-building`, `workbench model parametric --all-building`
+and `workbench model blocks --all-building`, in this process, from the same fusion.
+Prints per building and in median, per path: RMS and mean distance from the cloud's
+points to the model (Open3D distance queries), triangles, watertightness and seconds
+(the fusion's share included); failures are counted, not hidden. City3D's figures on
+the same clouds (same kind of machine) are printed beside ours.
 
 Usage: python benchmarks/ahn3.py [--data DIR] [--out DIR] [--limit N] [--paths P ...]
 """
@@ -26,6 +26,8 @@ import numpy as np
 import open3d as o3d
 
 from fusion.run import run_fusion
+from modeling.blocks.options import BlocksOptions
+from modeling.blocks.path import run_blocks
 from modeling.parametric.options import ParametricOptions
 from modeling.parametric.path import run_parametric
 from modeling.superpixel.options import SuperpixelOptions
@@ -46,6 +48,7 @@ PATHS = {
     "parametric": lambda fusion: run_parametric(
         fusion, ParametricOptions(all_building=True, min_area_m2=5.0)
     ),
+    "blocks": lambda fusion: run_blocks(fusion, BlocksOptions(all_building=True, min_area_m2=5.0)),
 }
 
 

@@ -5,7 +5,7 @@ memory (``peak_memory_mb``: the rusage of a child counts the size of the parent 
 forked from). Medians over ``--repeat`` runs; this machine is noisy.
 
 Measured: sample generation (tiny, small), workbench compare, fusion of small, the
-super-pixel, parametric and voxel paths on small (with the voxel paper's robustness
+super-pixel, parametric, blocks and voxel paths on small (with the voxel paper's robustness
 experiment), what a noise-free sensor would score on small's height metrics
 (benchmarks/height_floor.py), what the super-pixel path's class CRF can reach
 (benchmarks/crf_ceiling.py), the 50 AHN3 building clouds (benchmarks/ahn3.py), and
@@ -230,7 +230,7 @@ def timed_path_runs(child: str, name: str, fusion: Path, scene: Path, repeat: in
                     work: Path) -> tuple[dict, dict]:  # fmt: skip
     """``repeat`` runs of a path's child on small: the first run's report, and the medians
     of its stages, its total and per ortho megapixel, with the peak memory."""
-    runs = [run_child(child, str(fusion), str(scene), str(work / f"{name}_{i}"))
+    runs = [run_child(child, str(fusion), str(scene), str(work / f"{name}_{i}"), name)
             for i in range(repeat)]  # fmt: skip
     res = runs[0][0]
     total = statistics.median(sum(s["wall_s"] for s in r[0]["stages"].values()) for r in runs)
@@ -284,46 +284,50 @@ def print_superpixel(sp: dict) -> None:
     )
 
 
-PARAMETRIC_CHILD = r"""
+TASK_PATH_CHILD = r"""
 import json, sys
 from pathlib import Path
-from modeling.parametric.options import ParametricOptions
-from modeling.parametric.path import run_parametric
+from modeling import PATHS
 from workbench.engine import start_engine
 from workbench.evaluate import evaluate
 from workbench.model_run import write_model_run
 from workbench.runs import load_run
 from workbench.truth import load_scene_truth
 fusion, scene, out = (Path(a) for a in sys.argv[1:4])
-engine = start_engine(preload=("modeling.parametric.path",))  # as the command: every core
+spec = PATHS[sys.argv[4]]
+engine = start_engine(preload=(spec.run.split(":")[0],))  # as the command: every core
 try:
-    r = write_model_run(run_parametric(fusion, ParametricOptions(), engine=engine), out,
-                        overwrite=True)
+    r = write_model_run(spec.load()(fusion, spec.options(), engine=engine), out, overwrite=True)
 finally:
     engine.close()
 m = evaluate(load_run(out), load_scene_truth(scene)).metrics
 print(json.dumps({"stages": r["stages"], "grid": r["inputs"]["grid"], "counts": r["counts"],
                   "buildings": len(r["buildings"]),
                   "seconds_per_building": r["seconds_per_building"],
+                  "iterations_per_second": r.get("iterations_per_second"),
                   "metrics": {k: m[k] for k in ("footprint_2d", "volume_3d", "height",
                                                  "buildings", "complexity") if k in m}}))
 """
 
 
-def bench_parametric(fusion: Path, scene: Path, repeat: int, work: Path) -> dict:
-    res, summary = timed_path_runs(PARAMETRIC_CHILD, "parametric", fusion, scene, repeat, work)
-    return {**summary, "buildings": res["buildings"], "metrics": res["metrics"]}
+def bench_task_path(name: str, fusion: Path, scene: Path, repeat: int, work: Path) -> dict:
+    """A path that runs a task per building (parametric, blocks) timed on small."""
+    res, summary = timed_path_runs(TASK_PATH_CHILD, name, fusion, scene, repeat, work)
+    return {**summary, "buildings": res["buildings"], "metrics": res["metrics"],
+            "iterations_per_second": res["iterations_per_second"]}  # fmt: skip
 
 
-def print_parametric(p: dict) -> None:
-    print(f"\nworkbench model parametric on small, median of {p['repeat']}:")
+def print_task_path(name: str, p: dict) -> None:
+    print(f"\nworkbench model {name} on small, median of {p['repeat']}:")
     print_stages(p["stage_median_s"])
     m = p["metrics"]
     print(
         f"  total {p['total_median_s']:.1f} s = {p['s_per_building_median']:.2f} s per building "
         f"({p['buildings']} buildings), {p['s_per_mpx']:.1f} s per ortho megapixel; peak "
         f"memory {p['peak_memory_mib']:.0f} MiB"
-    )
+        + (f"; {p['iterations_per_second']:.0f} RJMCMC iterations per second"
+           if p.get("iterations_per_second") else "")
+    )  # fmt: skip
     print(
         f"  footprint 2D quality {m['footprint_2d']['quality']:.3f}, volume 3D quality "
         f"{m['volume_3d']['quality']:.3f}; roof types "
@@ -761,9 +765,10 @@ def run_benchmarks(args) -> dict:
             ceiling = crf_ceiling(Path(tmp) / "superpixel_0", scene)
             results["crf_ceiling_small"] = ceiling
             print_ceiling(ceiling)
-            pm = bench_parametric(Path(tmp) / "fusion_0", scene, args.repeat, Path(tmp))
-            results["parametric_small"] = pm
-            print_parametric(pm)
+            for name in ("parametric", "blocks"):
+                pm = bench_task_path(name, Path(tmp) / "fusion_0", scene, args.repeat, Path(tmp))
+                results[f"{name}_small"] = pm
+                print_task_path(name, pm)
             vx = bench_voxel(scene, Path(tmp) / "fusion_0", args.repeat, Path(tmp))
             results["voxel_small"] = vx
             print_voxel(vx, floor)
@@ -771,7 +776,7 @@ def run_benchmarks(args) -> dict:
                 scene,
                 [
                     Path(tmp) / f"{name}_0"
-                    for name in ("fusion", "superpixel", "parametric", "voxel")
+                    for name in ("fusion", "superpixel", "parametric", "blocks", "voxel")
                 ],
                 1,
                 Path(tmp),

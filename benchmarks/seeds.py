@@ -45,6 +45,7 @@ ROWS = {
         ("volume_3d_tolerant.quality", "... within 1 m", 3),
         ("height.rmse_m", "height RMSE on buildings (m)", 2),
         ("height.rmse_off_jumps_m", "... off height jumps (m)", 2),
+        ("height.rmse_on_both_off_jumps_m", "... where both have a building, off jumps (m)", 2),
         ("buildings.height_error_pct_median", "building height error, median (%)", 1),
         ("buildings.height_error_pct_mean", "building height error, mean (%)", 1),
         *(

@@ -21,7 +21,7 @@ from .classifier import save_classifier
 from .options import FusionOptions
 from .outputs import write_fusion
 from .raster_forest import classify_rasters, synthetic_raster_forest
-from .scene_fusion import feature_set, fuse_views
+from .scene_fusion import check_height_source, feature_set, fuse_views
 
 log = logging.getLogger(__name__)
 
@@ -82,6 +82,7 @@ def run_fusion(
         return _write(out, result, crs, inputs, options, truth, save_classifier_to, overwrite,
                       command, t0)  # fmt: skip
     loaded = load_scene(scene)
+    check_height_source(loaded)  # before the workers start: bad input stops at once
     inputs = {"scene": str(loaded.scene_json), "views": len(loaded.views)}
     signature = run_signature(options, {"scene": scene})
     with engine_for(out, signature, workers=options.workers, scheduler=scheduler,

@@ -418,13 +418,21 @@ def _depth_views(scene: Scene, opts: FusionOptions, timer: StageTimer):
         skipped, mode = [], "true orthophoto (depth ray-cast from the scene's DSM)"
     if views and skipped:
         log.warning("%d view(s) without a depth map skipped: %s", len(skipped), ", ".join(skipped))
-    if not views:
+    check_height_source(scene)
+    return views, skipped, mode, given, opts
+
+
+def check_height_source(scene: Scene) -> None:
+    """A one-line error unless some view has a depth map or the scene gives a DSM to
+    ray-cast: called before any worker starts, so that bad input stops at once."""
+    if not any(v.depth_path is not None for v in scene.views) and (
+        scene.dsm is None or not scene.views
+    ):
         raise InputError(
             scene.scene_json,
             "images",
             "no view has a depth map, and no DSM or point cloud is given",
         )
-    return views, skipped, mode, given, opts
 
 
 class ObservationCache:

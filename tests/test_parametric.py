@@ -7,15 +7,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from modeling.parametric.footprint_priors import (
-    SegmentFrame,
-    compete_priors,
-    label_count,
-    register_prior,
-    segment_frame,
-)
 from modeling.parametric.options import ParametricOptions
-from modeling.parametric.part_meshes import building_solid, wing_faces
+from modeling.parametric.part_meshes import wing_faces
 from modeling.parametric.path import (
     ParametricInputs,
     Wing,
@@ -23,7 +16,6 @@ from modeling.parametric.path import (
     building_roof_type,
     building_task,
     fit_wings,
-    rasterize_on,
     roof_wings,
     segment_boxes,
     stack_tiers,
@@ -38,6 +30,15 @@ from modeling.parametric.roof_geometry import (
     side_distances,
 )
 from modeling.parametric.segmentation import building_segments, level_set_segmentation
+from modeling.shared.footprint_priors import (
+    SegmentFrame,
+    compete_priors,
+    label_count,
+    rasterize_on,
+    register_prior,
+    segment_frame,
+)
+from modeling.shared.roof_envelope import building_solid
 from tests.conftest import SHARED_DATA, model_and_score, run_cli
 from workbench.meshes import is_watertight
 from workbench.raster import Grid

@@ -494,6 +494,8 @@ def cmd_demo(args) -> int:
     from data_samples.generate import generate_sample
     from fusion.run import run_fusion
     from modeling import PATHS
+    from modeling.blocks.options import BlocksOptions
+    from modeling.blocks.path import run_blocks
     from modeling.parametric.path import run_parametric
     from modeling.superpixel.options import SuperpixelOptions
     from modeling.superpixel.path import run_superpixel
@@ -508,17 +510,17 @@ def cmd_demo(args) -> int:
     t0 = time.perf_counter()
     scene_dir, fusion_dir, report_dir = args.out / "scene", args.out / "fusion", args.out / "report"
     superpixel_dir, voxel_dir = args.out / "superpixel", args.out / "voxel"
-    parametric_dir = args.out / "parametric"
+    parametric_dir, blocks_dir = args.out / "parametric", args.out / "blocks"
     check_output_dir(args.out, overwrite=args.overwrite)
     args.out.mkdir(parents=True, exist_ok=True)
-    print(f"1/6 generating the tiny sample city (seed {args.seed}) ...", flush=True)
+    print(f"1/7 generating the tiny sample city (seed {args.seed}) ...", flush=True)
     meta = generate_sample(scene_dir, "tiny", args.seed, overwrite=True)
     c = meta["counts"]
     roofs = ", ".join(f"{n} {kind}" for kind, n in c["roof_types"].items())
     print(f"    {c['buildings']} buildings ({roofs}), {c['trees']} trees, {c['views']} views "
           f"with depth maps, calibration error {meta['calibration_error_px_rms']:.2f} px RMS, "
           f"in {meta['timing']['total']:.1f} s")  # fmt: skip
-    print("2/6 fusing the views into ortho, DSM/DTM/nDSM and classes ...", flush=True)
+    print("2/7 fusing the views into ortho, DSM/DTM/nDSM and classes ...", flush=True)
     command = args.command_line
     record = run_fusion(fusion_dir, scene=scene_dir, truth=scene_dir, overwrite=True,
                         command=command)  # fmt: skip
@@ -528,24 +530,29 @@ def cmd_demo(args) -> int:
         f"      mean fusion instead of the median: DSM RMSE {q['dsm_mean_fusion']['rmse_m']:.2f} "
         f"m, ortho MAE {q['ortho_mae_mean_fusion']['mean']:.1f}"
     )
-    print("3/6 super-pixel modeling: Quickshift, class CRF, roof prototypes, LOD2 ...", flush=True)
+    print("3/7 super-pixel modeling: Quickshift, class CRF, roof prototypes, LOD2 ...", flush=True)
     run = run_superpixel(fusion_dir, SuperpixelOptions(seed=args.seed), truth=scene_dir)
     sp = write_model_run(run, superpixel_dir, overwrite=True, command=command)
     print("    " + model_summary(PATHS["superpixel"], sp, superpixel_dir).replace("\n", "\n  "))
-    print("4/6 voxel modeling: photo-consistency proxies, surface graph cut textures ...",
+    print("4/7 voxel modeling: photo-consistency proxies, surface graph cut textures ...",
           flush=True)  # fmt: skip
     run = run_voxel(scene_dir, VoxelOptions(seed=args.seed), fusion_dir=fusion_dir)
     vx = write_model_run(run, voxel_dir, overwrite=True, command=command)
     print("    " + model_summary(PATHS["voxel"], vx, voxel_dir).replace("\n", "\n  "))
-    print("5/6 parametric modeling: level set, footprint priors, five-parameter roofs ...",
+    print("5/7 parametric modeling: level set, footprint priors, five-parameter roofs ...",
           flush=True)  # fmt: skip
     pm = write_model_run(run_parametric(fusion_dir), parametric_dir, overwrite=True,
                          command=command)  # fmt: skip
     print("    " + model_summary(PATHS["parametric"], pm, parametric_dir).replace("\n", "\n  "))
-    print("6/6 scoring the runs against the truth ...", flush=True)
+    print("6/7 block modeling: 2D supports, library of 3D blocks, RJMCMC ...", flush=True)
+    bk = write_model_run(run_blocks(fusion_dir, BlocksOptions(seed=args.seed)), blocks_dir,
+                         overwrite=True, command=command)  # fmt: skip
+    print("    " + model_summary(PATHS["blocks"], bk, blocks_dir).replace("\n", "\n  "))
+    print("7/7 scoring the runs against the truth ...", flush=True)
     doc = compare_runs(
-        [fusion_dir, superpixel_dir, voxel_dir, parametric_dir], load_scene_truth(scene_dir),
-        report_dir, names=["fusion", "superpixel", "voxel", "parametric"], overwrite=True,
+        [fusion_dir, superpixel_dir, voxel_dir, parametric_dir, blocks_dir],
+        load_scene_truth(scene_dir), report_dir,
+        names=["fusion", "superpixel", "voxel", "parametric", "blocks"], overwrite=True,
     )  # fmt: skip
     print()
     print(summary(doc))

@@ -155,6 +155,13 @@ def evaluate(run: Run, truth: Truth, options: EvaluationOptions | None = None) -
         h = metrics.height_errors(layers.surface, t_surface, mask=t_ids > 0)
         if "rmse_m" in h:
             m["height"] = h
+            # the roofs' own error: where both the run and the truth have a building
+            # (the DEM-blocks paper's altimetric RMSE), the outlines' misses apart
+            roofs = metrics.height_errors(layers.surface, t_surface,
+                                          mask=(t_ids > 0) & (layers.building_ids > 0))  # fmt: skip
+            if "rmse_m" in roofs:
+                h["rmse_on_both_m"] = roofs["rmse_m"]
+                h["rmse_on_both_off_jumps_m"] = roofs["rmse_off_jumps_m"]
     rows = per_building(run, truth, layers)
     m["buildings"] = building_summary(rows)
     face_error = None

@@ -1,7 +1,8 @@
 """The parametric path end to end: a fusion run in, a :class:`ModelRun` out.
 
 The steps of the variational paper, each in the module named after it:
-:mod:`.segmentation` (eq. 1 and 8), :mod:`.footprint_priors` (eq. 2-4),
+:mod:`.segmentation` (eq. 1 and 8), :mod:`modeling.shared.footprint_priors` (eq. 2-4,
+shared with the block path's supports),
 :mod:`.roof_geometry` (eq. 5, 6, 11, 12), :mod:`.part_meshes` (the meshes). This module
 reads, runs a task per segment (:func:`building_task`) and times them.
 """
@@ -20,8 +21,18 @@ from scipy import ndimage
 from shapely.geometry import mapping, shape
 from shapely.ops import unary_union
 
+from modeling.shared.footprint_priors import (
+    Prior,
+    compete_priors,
+    decompose_outline,
+    label_count,
+    rasterize_on,
+    segment_frame,
+    union_outline,
+)
 from modeling.shared.opened_parts import opened_parts
 from modeling.shared.raster_ground import ground_surface, vertex_colours
+from modeling.shared.roof_envelope import building_solid, face_planes
 from workbench.engine import Engine, ThreadEngine
 from workbench.errors import InputError
 from workbench.fusion_run import read_fusion_run
@@ -30,16 +41,8 @@ from workbench.model_run import Building, ModelRun, Surface
 from workbench.raster import BUILDING, TREE, Grid
 from workbench.records import StageTimer, peak_memory_mb
 
-from .footprint_priors import (
-    Prior,
-    compete_priors,
-    label_count,
-    leftover_parts,
-    segment_frame,
-    union_outline,
-)
 from .options import ParametricOptions
-from .part_meshes import building_solid, face_planes, wing_faces
+from .part_meshes import wing_faces
 from .preview import parametric_preview
 from .roof_geometry import (
     RoofFit,
@@ -343,7 +346,9 @@ class SegmentRoofs:
 def segment_roofs(mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells, lambda_):
     """Eq. 2-6 on one segment's cells (``mask``; ``dsm`` NaN where it is not to be
     fitted): a :class:`SegmentRoofs`, or why the segment is skipped (str)."""
-    priors, energies = decompose_segment(mask, xs, ys, crop, options, min_cells, lambda_)
+    priors, energies = decompose_outline(mask, xs, ys, crop, options.families,
+                                         options.min_part_m, lambda_, options.rho, min_cells,
+                                         _MAX_PARTS, lambda_label=options.lambda_)  # fmt: skip
     if not priors:
         return (f"unknown object: no footprint prior explains it (eq. 4 energies "
                 f"{energies})")  # fmt: skip
@@ -437,40 +442,6 @@ def _flat_wing(w: Wing) -> Wing:
     z = w.fit.z_main + float(np.median(h))
     flat = _refit(w, z_main=z, omega=np.zeros(4), offset=np.zeros(2), cap=None)
     return dataclasses.replace(flat, roof_type="flat")
-
-
-def decompose_segment(mask, xs, ys, crop: Grid, options: ParametricOptions, min_cells: int,
-                      lambda_: float):  # fmt: skip
-    """Eq. 4 on one segment: the winning prior, then priors for the parts its labelling
-    leaves to the data term, up to ``_MAX_PARTS``. Returns the priors and the first
-    competition's energies.
-
-    mask : (h, w) bool on ``crop``; xs : (w,), ys : (h,) its cell centres, metres;
-    lambda_ : the unknown label's cost (infinite: the segment is a building)."""
-    gsd = crop.gsd
-    first, energies = compete_priors(segment_frame(mask, xs, ys, gsd), options.families,
-                                     options.min_part_m, lambda_)  # fmt: skip
-    if first is None:
-        return [], energies
-    priors = [first]
-    covered = rasterize_on(first.polygon(), crop)
-    ind = covered.astype(np.float64)
-    var = float(np.mean(ind**2) - np.mean(ind) ** 2)
-    for part in leftover_parts(mask, covered, var, options.lambda_, options.rho, min_cells):
-        p, _ = compete_priors(segment_frame(part, xs, ys, gsd), options.families,
-                              options.min_part_m, lambda_)  # fmt: skip
-        if p is not None and len(priors) < _MAX_PARTS:
-            priors.append(p)
-    return priors, energies
-
-
-def rasterize_on(geom, grid: Grid) -> np.ndarray:
-    """(h, w) bool cells whose centre ``geom`` covers."""
-    if geom.is_empty:
-        return np.zeros(grid.shape, bool)
-    return rasterio.features.rasterize([(geom, 1)], out_shape=grid.shape,
-                                       transform=grid.transform, fill=0,
-                                       dtype=np.uint8).astype(bool)  # fmt: skip
 
 
 def _frame_coords(p: Prior, X, Y):

@@ -18,9 +18,14 @@ import numpy as np
 import shapely
 from shapely.geometry import LineString, Polygon
 from shapely.geometry.polygon import orient
+from shapely.ops import unary_union
+
+from workbench.meshes import unpaired_edges
 
 GRID = 1e-4  # metres: coordinates are snapped to this grid so that vertices match exactly
 _EPS = 1e-3  # metres: offset used to probe the cell across an edge
+_MIN_FACE_M2 = 1e-4  # a face smaller than this is a sliver of the clipping
+_TICK = 0.01  # metres: half the piece of line that nodes an edge where two planes cross
 
 
 @dataclass
@@ -51,6 +56,75 @@ class BuildingMesh:
     axis: np.ndarray
 
 
+def clip_convex(poly: np.ndarray, a: float, b: float, c: float) -> np.ndarray:
+    """The part of convex polygon ``poly`` ((n, 2), counter-clockwise) where
+    a u + b v + c <= 0 (Sutherland-Hodgman against one half-plane)."""
+    if not len(poly):
+        return poly
+    out = []
+    f = poly @ np.array([a, b]) + c
+    n = len(poly)
+    for i in range(n):
+        j = (i + 1) % n
+        if f[i] <= 0:
+            out.append(poly[i])
+        if (f[i] < 0 < f[j]) or (f[j] < 0 < f[i]):
+            s = f[i] / (f[i] - f[j])
+            out.append(poly[i] + s * (poly[j] - poly[i]))
+    return np.array(out) if out else np.zeros((0, 2))
+
+
+def lowest_plane_faces(
+    outline: np.ndarray, planes: np.ndarray, theta: float, origin: np.ndarray
+) -> list[RoofFace]:
+    """The faces of a roof that is the minimum of affine functions: for each plane, the
+    part of ``outline`` where it is the lowest, in world coordinates.
+
+    Parameters
+    ----------
+    outline : (n, 2) float
+        A convex polygon, counter-clockwise, in a frame rotated by ``theta`` (radians
+        from east) about ``origin`` ((2,) world metres).
+    planes : (P, 3) float
+        z = a u + b v + c of that frame.
+    """
+    c, s = np.cos(theta), np.sin(theta)
+    out = []
+    for k, p in enumerate(planes):
+        region = outline
+        for j, q in enumerate(planes):
+            if j != k:
+                region = clip_convex(region, *(p - q))  # p <= q
+        if polygon_area(region) < _MIN_FACE_M2:
+            continue
+        xy = np.column_stack([origin[0] + c * region[:, 0] - s * region[:, 1],
+                              origin[1] + s * region[:, 0] + c * region[:, 1]])  # fmt: skip
+        # z = a u + b v + c with u = c(x - ox) + s(y - oy), v = -s(x - ox) + c(y - oy)
+        ax, ay = p[0] * c - p[1] * s, p[0] * s + p[1] * c
+        out.append(RoofFace(xy, np.array([ax, ay, p[2] - ax * origin[0] - ay * origin[1]])))
+    return out
+
+
+def polygon_area(poly: np.ndarray) -> float:
+    """Signed area of a polygon (n, 2), positive counter-clockwise."""
+    if len(poly) < 3:
+        return 0.0
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+
+
+def face_planes(faces: list[RoofFace]) -> tuple[np.ndarray, np.ndarray]:
+    """(P, 4) planes (n, d) with n_z > 0 of the faces, and (P,) their horizontal areas."""
+    planes, areas = [], []
+    for f in faces:
+        a, b, c = f.plane
+        n = np.array([-a, -b, 1.0])
+        norm = np.linalg.norm(n)
+        planes.append(np.r_[n / norm, -c / norm])
+        areas.append(abs(polygon_area(f.xy)))
+    return np.array(planes).reshape(-1, 4), np.array(areas)
+
+
 def _plane_z(plane: np.ndarray, x, y):
     return plane[0] * x + plane[1] * y + plane[2]
 
@@ -67,16 +141,35 @@ def _top_face(faces, polys, x: float, y: float) -> int:
     return best
 
 
+def _crossing_ticks(common, d: np.ndarray) -> list:
+    """Short pieces of the line where two side-by-side faces' planes are equal
+    (d . (x, y, 1) = 0), one where it crosses their common edge ``common``: the wall
+    between the faces changes sides there, so the edge needs a vertex. The pieces
+    node the edge and, dangling, leave the faces whole."""
+    ticks = []
+    n = np.hypot(d[0], d[1])
+    along = np.array([-d[1], d[0]]) / n
+    for line in shapely.get_parts(common):
+        xy = shapely.get_coordinates(line)
+        f = xy @ d[:2] + d[2]
+        for i in range(len(xy) - 1):
+            if f[i] * f[i + 1] < 0 and min(abs(f[i]), abs(f[i + 1])) > 1e-9:
+                p = xy[i] + f[i] / (f[i] - f[i + 1]) * (xy[i + 1] - xy[i])
+                ticks.append(LineString([p - _TICK * along, p + _TICK * along]))
+    return ticks
+
+
 def _arrangement(faces: list[RoofFace], polys: list[Polygon]):
     lines = [p.exterior for p in polys]
     for i in range(len(faces)):
         for j in range(i + 1, len(faces)):
             inter = polys[i].intersection(polys[j])
-            if inter.area < 1e-8:
-                continue
             d = faces[i].plane - faces[j].plane
             n = np.hypot(d[0], d[1])
-            if n < 1e-9:
+            if n < 1e-9 or inter.is_empty:
+                continue
+            if inter.area < 1e-8:  # faces side by side: node their common edge where
+                lines.extend(_crossing_ticks(inter, d))  # their planes cross
                 continue
             # the line d0 x + d1 y + d2 = 0, long enough to cross the overlap
             cx, cy = inter.centroid.x, inter.centroid.y
@@ -257,3 +350,50 @@ def _index(tri_pts: np.ndarray, part: np.ndarray, axis: np.ndarray) -> BuildingM
     tris = inverse.reshape(-1, 3)
     ok = (tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 0] != tris[:, 2])
     return BuildingMesh(verts, tris[ok], part[ok], axis[ok])
+
+
+def building_solid(
+    wing_faces_: list[list[RoofFace]], base_z: float, theta: float, origin: np.ndarray
+) -> BuildingMesh:
+    """One closed mesh of a building's wings (each a list of faces, world metres), down to
+    ``base_z``: the upper envelope of every face.
+
+    The envelope is meshed in the main prior's frame (``theta``, ``origin``), where the
+    wings' sides are axis-aligned and their shared corners exactly equal, and turned back:
+    rotated, they would be snapped to the mesher's grid apart. Where an edge is still
+    left unpaired, each wing keeps the part of its outline no earlier wing covers, so
+    that no faces overlap."""
+    local = [[_to_frame(f, theta, origin) for f in faces] for faces in wing_faces_]
+    mesh = building_mesh([f for faces in local for f in faces], base_z)
+    if len(unpaired_edges(mesh.triangles)):
+        mesh = building_mesh(_exclusive(local), base_z)
+    c, s = np.cos(theta), np.sin(theta)
+    u, v = mesh.vertices[:, 0], mesh.vertices[:, 1]
+    mesh.vertices = np.column_stack([origin[0] + c * u - s * v, origin[1] + s * u + c * v,
+                                     mesh.vertices[:, 2]])  # fmt: skip
+    return mesh
+
+
+def _to_frame(face: RoofFace, theta: float, origin: np.ndarray) -> RoofFace:
+    """A world face in the frame rotated by ``theta`` about ``origin``."""
+    c, s = np.cos(theta), np.sin(theta)
+    dx, dy = face.xy[:, 0] - origin[0], face.xy[:, 1] - origin[1]
+    uv = np.column_stack([c * dx + s * dy, -s * dx + c * dy])
+    a, b, k = face.plane  # z = a x + b y + k, x = ox + c u - s v, y = oy + s u + c v
+    return RoofFace(np.round(uv, 9), np.array([a * c + b * s, -a * s + b * c,
+                                               k + a * origin[0] + b * origin[1]]))  # fmt: skip
+
+
+def _exclusive(wing_faces_: list[list[RoofFace]]) -> list[RoofFace]:
+    """Each wing's faces less what earlier wings cover."""
+    taken, parts = None, []
+    for faces in wing_faces_:
+        outline = unary_union([Polygon(f.xy) for f in faces])
+        for f in faces:
+            region = Polygon(f.xy) if taken is None else Polygon(f.xy).difference(taken)
+            for g in getattr(region, "geoms", [region]):
+                if isinstance(g, Polygon) and g.area > _MIN_FACE_M2:
+                    xy = np.asarray(orient(g, 1.0).exterior.coords)[:-1]
+                    parts.append(RoofFace(xy, f.plane))
+        taken = outline if taken is None else taken.union(outline)
+    return parts

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+import rasterio.features
 from scipy import ndimage, optimize
 from shapely import affinity
 from shapely.geometry import Polygon, box
@@ -30,6 +31,7 @@ from shapely.ops import unary_union
 
 from modeling.shared.graph_cuts import binary_cut
 from modeling.shared.outline_regularity import dominant_direction
+from workbench.raster import Grid
 
 _EPS_CELLS = 0.5  # width of the prior's smoothed edge, cells of the registration grid
 _REGISTRATION_GSD = 0.5  # metres: registration runs on cells no finer than this
@@ -418,3 +420,50 @@ def leftover_parts(
 def union_outline(priors: list[Prior]) -> Polygon:
     """The building's outline: the union of its parts' priors."""
     return unary_union([p.polygon() for p in priors])
+
+
+def decompose_outline(
+    mask: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    grid: Grid,
+    families: tuple[str, ...],
+    min_part: float,
+    lambda_: float,
+    rho: float,
+    min_cells: int,
+    max_parts: int = 4,
+    lambda_label: float | None = None,
+) -> tuple[list[Prior], dict]:
+    """Eq. 4 on one segment: the winning prior, then priors for the parts its labelling
+    leaves to the data term, up to ``max_parts`` priors. Returns the priors (none: the
+    unknown label won) and the first competition's energies.
+
+    mask : (h, w) bool on ``grid``; xs : (w,), ys : (h,) its cell centres, metres;
+    lambda_ : the unknown label's cost in the competition (infinite: the segment is a
+    building); lambda_label : its cost in the labelling of the leftover parts (default
+    ``lambda_``); rho : the labelling's boundary weight; min_cells : smallest part."""
+    gsd = grid.gsd
+    first, energies = compete_priors(segment_frame(mask, xs, ys, gsd), families, min_part,
+                                     lambda_)  # fmt: skip
+    if first is None:
+        return [], energies
+    priors = [first]
+    covered = rasterize_on(first.polygon(), grid)
+    ind = covered.astype(np.float64)
+    var = float(np.mean(ind**2) - np.mean(ind) ** 2)
+    label_cost = lambda_ if lambda_label is None else lambda_label
+    for part in leftover_parts(mask, covered, var, label_cost, rho, min_cells):
+        p, _ = compete_priors(segment_frame(part, xs, ys, gsd), families, min_part, lambda_)
+        if p is not None and len(priors) < max_parts:
+            priors.append(p)
+    return priors, energies
+
+
+def rasterize_on(geom, grid: Grid) -> np.ndarray:
+    """(h, w) bool cells of ``grid`` whose centre ``geom`` covers."""
+    if geom.is_empty:
+        return np.zeros(grid.shape, bool)
+    return rasterio.features.rasterize([(geom, 1)], out_shape=grid.shape,
+                                       transform=grid.transform, fill=0,
+                                       dtype=np.uint8).astype(bool)  # fmt: skip

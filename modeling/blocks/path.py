@@ -1,0 +1,366 @@
+"""The block path end to end: a fusion run in, a :class:`ModelRun` out.
+
+The steps of the DEM-blocks paper, each in the module named after it:
+:mod:`.supports` (section 2), :mod:`.library` (3.1), :mod:`.energy` (3.2, eq. 1-5),
+:mod:`.rjmcmc` (3.3, eq. 6 and the annealing), :mod:`.block_meshes` (the meshes). This
+module reads, runs a task per building (:func:`building_task`) and times them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import shapely
+from scipy import ndimage as ndi
+from shapely.geometry import mapping
+from shapely.ops import unary_union
+
+from modeling.shared.footprint_priors import rasterize_on
+from modeling.shared.opened_parts import opened_parts
+from modeling.shared.raster_ground import ground_surface, vertex_colours
+from modeling.shared.roof_envelope import building_solid, face_planes
+from workbench.engine import Engine, ThreadEngine
+from workbench.errors import InputError
+from workbench.fusion_run import read_fusion_run
+from workbench.meshes import is_watertight
+from workbench.model_run import Building, ModelRun, Surface
+from workbench.raster import BUILDING, TREE, Grid
+from workbench.records import StageTimer, peak_memory_mb
+
+from .block_meshes import block_faces
+from .energy import STEP_M
+from .library import Block, block_heights
+from .options import BlocksOptions
+from .preview import blocks_preview
+from .rjmcmc import Pair, SupportData, anneal
+from .supports import (
+    Support,
+    automatic_supports,
+    junction_sides,
+    mid_wall_region,
+    neighbour_pairs,
+    support_cells,
+    supports_from_file,
+)
+
+FUSION_RASTERS = ("ortho", "dsm", "dtm", "ndsm", "class_prob")
+_MIN_CELLS = 10  # a support with fewer cells of DSM carries no block
+_OVERLAP_M = 0.02
+_MESH_FRAMES = 3  # frames tried for the envelope before the supports are grown
+#: the truth's roof types of the library's forms (the rest are their own)
+_ROOF_TYPE = {"half-hipped": "hipped", "gambrel": "mansard"}
+
+
+@dataclass
+class BlocksInputs:
+    """What every building's task reads."""
+
+    grid: Grid
+    dsm: np.ndarray  # (H, W) metres, NaN unknown and under the fusion's trees
+    dtm: np.ndarray
+    boxes: np.ndarray  # (q + 1, 4) r0, r1, c0, c1 of each building with a margin
+    segments: np.ndarray | None = None  # (H, W) int: the buildings (automatic supports)
+    given: list = field(default_factory=list)  # per building its supports from a file
+
+
+@dataclass
+class BuildingResult:
+    """A task's answer: the building or why it was skipped, and what the preview draws."""
+
+    key: int
+    building: Building | None = None
+    skipped: str | None = None
+    supports: list = field(default_factory=list)  # GeoJSON-like polygons
+    forms: list = field(default_factory=list)
+    trace: list = field(default_factory=list)
+
+
+def run_blocks(
+    fusion_dir: Path,
+    options: BlocksOptions | None = None,
+    *,
+    supports: Path | None = None,
+    engine: Engine | None = None,
+) -> ModelRun:
+    """The DEM-blocks path on the DSM of ``workbench fusion``.
+
+    Parameters
+    ----------
+    fusion_dir : path
+        A fusion run folder (ortho, dsm, dtm, ndsm, class_prob), from images or points.
+    options : BlocksOptions
+    supports : path, optional
+        2D supports (convex quadrilaterals or triangles, any vector file GDAL reads);
+        default: extracted from the DSM and the building class.
+    engine : Engine, optional
+        Runs the buildings' tasks (default: this process, one after another).
+    """
+    options = options or BlocksOptions()
+    engine = engine or ThreadEngine(1)
+    timer = StageTimer()
+    t_start = time.perf_counter()
+    with timer.stage("read"):
+        fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
+        grid = fusion.grid
+        dsm, dtm, rgb = fusion.band("dsm"), fusion.band("dtm"), fusion.rgb
+        prob = np.nan_to_num(fusion.rasters["class_prob"].astype(np.float64))
+        if not options.all_building:  # crowns are no roof: left out of every likelihood
+            dsm = np.where(prob[TREE - 1] > prob[BUILDING - 1], np.nan, dsm)
+    with timer.stage("supports"):
+        if supports is not None:
+            inputs = _given_supports(supports, fusion, grid, dsm, dtm)
+            source = "file"
+        else:
+            mask = np.isfinite(dsm) if options.all_building else prob[BUILDING - 1] > 0.5
+            mask &= np.isfinite(dsm)
+            segments, big = opened_parts(mask, grid.gsd, 0.0 if options.all_building else
+                                         options.opening_m, options.min_area_m2, 4)  # fmt: skip
+            renumber = np.zeros(len(big), np.int32)
+            renumber[big] = np.arange(1, big.sum() + 1)
+            segments = renumber[segments]
+            if not segments.any():
+                raise InputError(Path(fusion_dir) / "class_prob.tif", None, "no building "
+                                 "cells of at least --min-area: nothing to model")  # fmt: skip
+            margin = int(np.ceil(options.outline_reach_m / grid.gsd)) + 4
+            inputs = BlocksInputs(grid, dsm, dtm, _boxes(segments, margin), segments)
+            source = "automatic (footprint priors of the height regions)"
+    keys = list(range(1, len(inputs.boxes)))
+    with timer.stage("blocks"):
+        shared = engine.share(inputs)
+        results = list(engine.map(building_task, keys, shared, options, stage="buildings",
+                                  keys=[str(k) for k in keys]))  # fmt: skip
+    buildings = [x.building for x in results if x.building is not None]
+    skipped = [{"building": str(x.key), "reason": x.skipped} for x in results if x.skipped]
+    for b in buildings:
+        b.mesh.vertex_colors = vertex_colours(b.mesh.vertices, rgb, grid)
+    with timer.stage("preview"):
+        preview = blocks_preview(rgb, grid, results, buildings)
+    seconds = time.perf_counter() - t_start
+    iterations = sum(b.record["iterations"] for b in buildings)
+    anneal_s = sum(b.record["annealing_seconds"] for b in buildings)
+    return ModelRun(
+        "blocks", options, buildings, crs=fusion.crs, grid=grid, dtm=dtm,
+        ground=ground_surface(dtm, rgb, grid), preview=preview, stages=timer.stages,
+        inputs={"fusion": str(Path(fusion_dir).absolute()),
+                "supports": str(Path(supports).absolute()) if supports else None,
+                "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd}},
+        counts={"candidates": len(keys), "skipped": len(skipped)},
+        record={
+            "supports_from": source,
+            "skipped": skipped,
+            **engine.describe(),
+            "iterations_per_second": round(iterations / max(anneal_s, 1e-9), 1),
+            "seconds_per_building": round(seconds / max(len(buildings), 1), 3),
+            "seconds_per_megapixel": round(seconds / (grid.width * grid.height / 1e6), 3),
+            "peak_memory_mb": round(peak_memory_mb(), 1),
+        },
+    )  # fmt: skip
+
+
+def _boxes(segments: np.ndarray, margin: int) -> np.ndarray:
+    """(q + 1, 4) r0, r1, c0, c1 of each segment grown by ``margin`` cells (row 0
+    unused)."""
+    q = int(segments.max())
+    out = np.zeros((q + 1, 4), np.int64)
+    H, W = segments.shape
+    for k, sl in enumerate(ndi.find_objects(segments), start=1):
+        if sl is not None:
+            out[k] = [max(sl[0].start - margin, 0), min(sl[0].stop + margin, H),
+                      max(sl[1].start - margin, 0), min(sl[1].stop + margin, W)]  # fmt: skip
+    return out
+
+
+def _given_supports(path: Path, fusion, grid: Grid, dsm, dtm) -> BlocksInputs:
+    """The supports of a vector file grouped into buildings, with their boxes."""
+    from workbench.footprints import read_footprints
+
+    items = read_footprints(path, crs=fusion.crs, extent=grid.bounds)
+    groups = supports_from_file(path, [f.polygon for f in items], grid)
+    boxes = [np.zeros(4, np.int64)]
+    for group in groups:
+        xmin, ymin, xmax, ymax = unary_union([s.polygon for s in group]).bounds
+        r0, c0 = grid.world_to_cell(np.array([xmin]), np.array([ymax]))
+        r1, c1 = grid.world_to_cell(np.array([xmax]), np.array([ymin]))
+        r0, r1, c0, c1 = int(r0[0]), int(r1[0]), int(c0[0]), int(c1[0])
+        boxes.append(np.array([max(r0 - 4, 0), min(r1 + 5, grid.height),
+                               max(c0 - 4, 0), min(c1 + 5, grid.width)]))  # fmt: skip
+    return BlocksInputs(grid, dsm, dtm, np.array(boxes), None, groups)
+
+
+def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> BuildingResult:
+    """Task: the supports, the annealing of their blocks and the mesh of building ``k``."""
+    t0 = time.perf_counter()
+    r0, r1, c0, c1 = inputs.boxes[k]
+    g = inputs.grid
+    crop = g.window(slice(r0, r1), slice(c0, c1))
+    dsm, dtm = inputs.dsm[r0:r1, c0:c1], inputs.dtm[r0:r1, c0:c1]
+    xs = crop.xmin + (np.arange(crop.width) + 0.5) * g.gsd
+    ys = crop.ymax - (np.arange(crop.height) + 0.5) * g.gsd
+    min_cells = int(np.ceil(max(options.min_part_m**2, 0.5 * options.min_area_m2) / g.gsd**2))
+    if inputs.segments is not None:
+        seg = inputs.segments[r0:r1, c0:c1]
+        if options.all_building:  # a cloud of one building: no ground to find walls against
+            mask = seg == k
+        else:
+            mask = mid_wall_region(seg == k, dsm - dtm, (seg > 0) & (seg != k), g.gsd,
+                                   options.outline_reach_m) & np.isfinite(dsm)  # fmt: skip
+        supports, regions, steps = automatic_supports(mask, dsm, xs, ys, crop,
+                                                      options.min_part_m, min_cells,
+                                                      options.step_m)  # fmt: skip
+    else:
+        supports = inputs.given[k - 1]
+        mask = rasterize_on(unary_union([s.polygon for s in supports]), crop) & np.isfinite(dsm)
+        regions, steps = np.zeros(mask.shape, np.int32), np.zeros(mask.shape, bool)
+    cells = support_cells(supports, mask, regions, crop)
+    # the walls blur the DSM next to them: those cells are left out of the likelihood
+    clear = ndi.distance_transform_edt(mask & ~steps) * g.gsd > options.wall_blur_m
+    cells = [c & clear if (c & clear).sum() >= _MIN_CELLS else c for c in cells]
+    kept = [i for i, c in enumerate(cells) if c.sum() >= _MIN_CELLS]
+    if not kept:
+        return BuildingResult(k, skipped="no 2D support with a DSM: the outline fits no "
+                              f"rectangle of {options.min_part_m} m or more")  # fmt: skip
+    supports, cells = [supports[i] for i in kept], [cells[i] for i in kept]
+    ends = junction_sides(supports)
+    pairs = [Pair(i, j, e) for i, j, e in neighbour_pairs(supports)]
+    X, Y = np.meshgrid(xs, ys)
+    data = []
+    for s, c, e in zip(supports, cells, ends, strict=True):
+        u, v = s.frame.to_frame(X[c], Y[c])
+        data.append(SupportData(s.frame, e, u, v, dsm[c]))
+    t_anneal = time.perf_counter()
+    result = anneal(data, pairs, alpha=options.alpha, beta=options.beta,
+                    form_cost=options.form_cost,
+                    iterations=options.iterations * len(supports),
+                    seed=[options.seed, k])  # fmt: skip
+    anneal_s = time.perf_counter() - t_anneal
+    blocks = result.blocks
+    ground = dtm[mask & np.isfinite(dtm)]
+    roof_low = min(min(float(d.z.min()) for d in data), min(b.gutter for b in blocks))
+    base_z = min(float(np.min(ground)) if len(ground) else roof_low - 3.0, roof_low - 0.5)
+    how, faces, solid, closed = closed_solid(blocks, supports, ends, base_z)
+    planes, areas = face_planes([f for fs in faces for f in fs])
+    residual = np.concatenate([d.heights(b) - d.z for d, b in zip(data, blocks, strict=True)])
+    warnings = []
+    if result.adjustment_from is None:
+        warnings.append(f"the annealing did not reach its adjustment stage (fewer than 5 % "
+                        f"of proposals accepted) in {result.iterations} iterations: the "
+                        "blocks may be far from the optimum; give more --iterations")  # fmt: skip
+    record = {
+        "supports": [
+            dict(s.record(), block=b.record(), junction_sides=[bool(x) for x in e])
+            for s, b, e in zip(supports, blocks, ends, strict=True)
+        ],  # fmt: skip
+        "neighbours": [[p.i, p.j] for p in pairs],
+        "face_blocks": face_blocks(solid, supports, blocks, ends),
+        "meshed": how,
+        "energy": round(result.energy, 4),
+        "likelihood": round(float(sum(result.likelihoods)), 4),
+        "prior": round(result.prior, 4),
+        "rms_m": round(float(np.sqrt(np.mean(residual**2))), 3),
+        "iterations": result.iterations,
+        "adjustment_stage_from": result.adjustment_from,
+        "temperature": {"initial": round(result.t_start, 6), "final": round(result.t_end, 8)},
+        "proposed": result.proposed,
+        "accepted": result.accepted,
+        "acceptance_rate": {
+            k: round(result.accepted[k] / max(result.proposed[k], 1), 4) for k in result.proposed
+        },  # fmt: skip
+        "energy_trace": [list(t) for t in result.trace],
+        "warnings": warnings,
+        "annealing_seconds": round(anneal_s, 3),
+        "seconds": round(time.perf_counter() - t0, 3),
+    }
+    outline = unary_union([s.polygon for s in supports])
+    building = Building(
+        str(k), Surface(solid.vertices, solid.triangles),
+        "1.3" if all(b.form == "flat" for b in blocks) else "2.2", footprint=outline,
+        roof_type=building_roof_type(blocks, [s.polygon.area for s in supports]),
+        planes=planes, plane_areas=areas, base_z=base_z,
+        eave_z=min(b.gutter for b in blocks), ridge_z=float(solid.vertices[:, 2].max()),
+        watertight=closed, record=record,
+    )  # fmt: skip
+    return BuildingResult(k, building, supports=[mapping(s.polygon) for s in supports],
+                          forms=[b.form for b in blocks], trace=result.trace)  # fmt: skip
+
+
+def closed_solid(blocks: list[Block], supports: list[Support], ends, base_z: float):
+    """The building's mesh: every block's faces on its support, their upper envelope
+    down to ``base_z`` (:func:`modeling.shared.roof_envelope.building_solid`), meshed in
+    a support's frame, where its sides are axis-aligned. Supports that meet a hair off
+    their common edge (cut from different priors, or read from a file) can leave that
+    envelope open: it is then meshed in the next support's frame, and at last with
+    every support grown by ``_OVERLAP_M`` so that neighbours overlap and the upper roof
+    covers the seam. Returns how it was meshed, the faces, the mesh and whether it is
+    closed."""
+    for grow in (0.0, _OVERLAP_M):
+        grown = supports if grow == 0 else [
+            dataclasses.replace(s, polygon=s.polygon.buffer(grow, join_style="mitre"))
+            for s in supports]  # fmt: skip
+        faces = [block_faces(b, s, e) for b, s, e in zip(blocks, grown, ends, strict=True)]
+        for k, s in enumerate(supports[:_MESH_FRAMES]):
+            solid = building_solid(faces, base_z, s.frame.theta, np.asarray(s.frame.origin))
+            if is_watertight(solid.vertices, solid.triangles):
+                how = f"in the frame of support {k}" + (f", supports grown by {grow} m"
+                                                         if grow else "")  # fmt: skip
+                return how, faces, solid, True
+    return "not closed", faces, solid, False
+
+
+def face_blocks(solid, supports: list[Support], blocks: list[Block], ends) -> list[int]:
+    """Per triangle of the mesh, the index of the block whose roof it is (-1: a wall or
+    the floor): the support under its centre whose block's height there is closest."""
+    V, T = solid.vertices, solid.triangles
+    centre = V[T].mean(axis=1)
+    out = np.full(len(T), -1)
+    roof = np.flatnonzero(solid.part == 0)
+    best = np.full(len(roof), np.inf)
+    for i, (s, b, e) in enumerate(zip(supports, blocks, ends, strict=True)):
+        x, y, z = centre[roof, 0], centre[roof, 1], centre[roof, 2]
+        inside = shapely.contains_xy(s.polygon.buffer(1e-3), x, y)
+        if not inside.any():
+            continue
+        u, v = s.frame.to_frame(x[inside], y[inside])
+        d = np.abs(block_heights(b, u, v, s.frame, e) - z[inside])
+        idx = np.flatnonzero(inside)
+        better = d < best[idx]
+        best[idx[better]] = d[better]
+        out[roof[idx[better]]] = i
+    return out.tolist()
+
+
+def building_roof_type(blocks: list[Block], areas: list[float]) -> str:
+    """One label per building, as the truth has: multi-level when its blocks are flat at
+    more than one level (a step of more than :data:`STEP_M`), else the roof type of the
+    forms covering the most area (half-hipped counted hipped, gambrel mansard)."""
+    if all(b.form == "flat" for b in blocks):
+        levels = [b.gutter for b in blocks]
+        return "multi-level" if max(levels) - min(levels) > STEP_M else "flat"
+    votes: dict[str, float] = {}
+    for b, a in zip(blocks, areas, strict=True):
+        if b.form == "flat" and len(blocks) > 1:
+            continue  # a flat wing beside pitched ones: the pitched roof names the building
+        t = _ROOF_TYPE.get(b.form, b.form)
+        votes[t] = votes.get(t, 0.0) + a
+    return max(votes, key=votes.get)
+
+
+def summary_lines(record: dict) -> list[str]:
+    """What ``workbench model blocks`` prints beside the counts."""
+    forms: dict[str, int] = {}
+    warned = 0
+    for b in record["buildings"]:
+        for s in b["supports"]:
+            forms[s["block"]["form"]] = forms.get(s["block"]["form"], 0) + 1
+        warned += bool(b["warnings"])
+    return [
+        f"  supports: {record['supports_from']}; {sum(forms.values())} blocks, "
+        f"{record['iterations_per_second']:.0f} iterations/s, "
+        f"{record['seconds_per_building']} s per building",
+        "  blocks: " + ", ".join(f"{k} {v}" for k, v in sorted(forms.items())),
+        *([f"  {warned} buildings did not converge (see warnings in model.json)"]
+          if warned else []),
+    ]  # fmt: skip

@@ -1,0 +1,330 @@
+"""RJMCMC with simulated annealing (the DEM-blocks paper, section 3.3): the block of one
+support changes at each iteration, by one of three kernels.
+
+- Q1, uniform jumps: a form, a variant and parameters drawn uniformly;
+- Q2, data-driven jumps: a form drawn uniformly, its gutter and top heights from
+  N(H_g, 1 m) and N(H_t, 1 m), H_g and H_t estimated from the support's DSM; half of
+  them switch the form keeping the parameters it shares with the current block (a
+  gambrel becomes a mansard of the same heights and inset), the dimension-matching
+  jump between nested forms;
+- Q3, regularisation jumps: a form drawn uniformly among the neighbours' (and the
+  block's own), its parameters from a Gaussian mixture centred on theirs.
+
+The density is h^(1 / T_t) with a geometric decrease of T_t from White's initial
+temperature (the spread of the energy's changes at infinite temperature). The
+exploration stage draws Q2 mostly (q = 0.1, 0.8, 0.1); once fewer than 5 % of the
+uniform and data-driven proposals of 1,000 iterations are accepted (the paper's
+footnote 4 counts every kernel's; the regularisation kernel's small steps are accepted
+long after the exploration is over) the adjustment stage draws Q3 mostly (0.1, 0.1,
+0.8). The kernels are taken as symmetric: the acceptance ratio is the
+density's alone (a departure, ``docs/blocks.md``), which under annealing changes the
+path the chain takes, not the optimum it is driven to.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import optimize
+
+from .energy import likelihood, max_distance, pair_energy
+from .library import (
+    FORMS,
+    Block,
+    Frame,
+    block_heights,
+    orientation_free,
+    parameter_ranges,
+    ridge_frame,
+    valid_params,
+)
+
+KERNELS = ("uniform", "data-driven", "regularisation")
+_EXPLORE = (0.1, 0.8, 0.1)  # the paper's q_i in the exploration stage
+_ADJUST = (0.1, 0.1, 0.8)  # and once the acceptance rate falls below _STAGE_RATE
+_STAGE_RATE = 0.05
+_WINDOW = 1000  # iterations over which the acceptance rate is computed
+_DATA_SIGMA = 1.0  # metres: the data-driven kernel's spread (the paper's sigma)
+_SWITCH = 0.5  # data-driven jumps that keep the parameters the new form shares
+_MIXTURE_SIGMAS = (0.5, 0.1, 0.02)  # metres: the regularisation kernel's components
+_COOLING_SPAN = 1e-4  # the final temperature as a share of the initial one
+_WHITE_PROBES = 200  # proposals from the initial state that estimate T_0
+_TRACE_EVERY = 50
+_POLISH_EVALUATIONS = 300  # Powell's evaluations per block at the end
+
+
+@dataclass
+class SupportData:
+    """One support and the DSM on it.
+
+    frame : the support's frame; ends : (4,) bool, its sides u0, v0, u1, v1 that are
+    junctions; u, v, z : (n,) its cells in the frame and their DSM heights, metres."""
+
+    frame: Frame
+    ends: tuple[bool, bool, bool, bool]
+    u: np.ndarray
+    v: np.ndarray
+    z: np.ndarray
+
+    def __post_init__(self):
+        z = self.z
+        self.z_lo = float(np.percentile(z, 1)) - 1.0
+        self.z_hi = float(np.percentile(z, 99)) + 1.0
+        self.gutter_hat = float(np.percentile(z, 10))  # H_g: the eaves are the lowest roof
+        self.top_hat = float(np.percentile(z, 95))  # H_t: the ridge the highest
+
+    def ranges(self, form: str, along: int) -> np.ndarray:
+        L, W, _ = ridge_frame(self.frame, along, self.ends)
+        return parameter_ranges(form, L, W, self.z_lo, self.z_hi)
+
+    def heights(self, block: Block) -> np.ndarray:
+        return block_heights(block, self.u, self.v, self.frame, self.ends)
+
+
+@dataclass
+class Pair:
+    """Two neighbouring supports i < j and the unit vector of their common edge."""
+
+    i: int
+    j: int
+    edge: np.ndarray
+
+
+@dataclass
+class Annealing:
+    """What the sampler returns: the best configuration met, its energy, the trace
+    (iteration, temperature, energy every ``_TRACE_EVERY`` iterations), the proposals
+    and acceptances per kernel, and when the adjustment stage began (None: never, the
+    schedule did not converge in the iterations given)."""
+
+    blocks: list[Block]
+    energy: float
+    likelihoods: list[float]
+    prior: float
+    iterations: int
+    trace: list = field(default_factory=list)
+    proposed: dict = field(default_factory=dict)
+    accepted: dict = field(default_factory=dict)
+    adjustment_from: int | None = None
+    t_start: float = 0.0
+    t_end: float = 0.0
+    polish_evaluations: int = 0
+
+
+def initial_blocks(supports: list[SupportData]) -> list[Block]:
+    """x_0: every support a flat block at its DSM's median."""
+    return [Block("flat", 0, False, (float(np.median(s.z)),)) for s in supports]
+
+
+class _Chain:
+    """The configuration and its energy terms, updated one support at a time."""
+
+    def __init__(self, supports, pairs, blocks, alpha, beta, form_cost=0.0):
+        self.supports, self.pairs, self.alpha, self.beta = supports, pairs, alpha, beta
+        self.form_cost = form_cost
+        self.blocks = list(blocks)
+        self.of = [[] for _ in supports]
+        for k, p in enumerate(pairs):
+            self.of[p.i].append(k)
+            self.of[p.j].append(k)
+        self.lik = [self.likelihood(i, b) for i, b in enumerate(self.blocks)]
+        self.pair = [self.pair_term(p, self.blocks[p.i], self.blocks[p.j]) for p in pairs]
+
+    def likelihood(self, i: int, block: Block) -> float:
+        """Gamma_i, raised by ``form_cost`` (a share) per parameter beyond one."""
+        s = self.supports[i]
+        occam = 1.0 + self.form_cost * (len(block.params) - 1)
+        return likelihood(s.heights(block), s.z, self.alpha) * occam
+
+    def ridge(self, i: int, block: Block) -> np.ndarray:
+        return self.supports[i].frame.axis(block.along)
+
+    def pair_term(self, p: Pair, a: Block, b: Block) -> float:
+        if a.form != b.form:
+            return 0.0
+        d_max = max_distance(self.supports[p.i].ranges(a.form, a.along),
+                             self.supports[p.j].ranges(b.form, b.along))  # fmt: skip
+        return pair_energy(a, b, self.ridge(p.i, a), self.ridge(p.j, b), p.edge, d_max,
+                           self.beta)  # fmt: skip
+
+    @property
+    def energy(self) -> float:
+        return float(sum(self.lik) + sum(self.pair))
+
+    def change(self, i: int, block: Block) -> tuple[float, float, dict]:
+        """Delta U of giving support i ``block``, with the new terms."""
+        lik = self.likelihood(i, block)
+        new_pairs = {}
+        for k in self.of[i]:
+            p = self.pairs[k]
+            a = block if p.i == i else self.blocks[p.i]
+            b = block if p.j == i else self.blocks[p.j]
+            new_pairs[k] = self.pair_term(p, a, b)
+        delta = lik - self.lik[i] + sum(new_pairs[k] - self.pair[k] for k in new_pairs)
+        return delta, lik, new_pairs
+
+    def accept(self, i: int, block: Block, lik: float, new_pairs: dict) -> None:
+        self.blocks[i], self.lik[i] = block, lik
+        for k, e in new_pairs.items():
+            self.pair[k] = e
+
+
+def _uniform(rng, s: SupportData, _chain, _i) -> Block:
+    form = str(rng.choice(list(FORMS)))
+    along = 0 if orientation_free(form) else int(rng.integers(2))
+    r = s.ranges(form, along)
+    params = valid_params(form, rng.uniform(r[:, 0], r[:, 1]), r)
+    return Block(form, along, bool(rng.random() < 0.5), tuple(params))
+
+
+def _data_driven(rng, s: SupportData, chain: _Chain, i: int) -> Block:
+    form = str(rng.choice(list(FORMS)))
+    along = 0 if orientation_free(form) else int(rng.integers(2))
+    r = s.ranges(form, along)
+    p = rng.uniform(r[:, 0], r[:, 1])
+    names = FORMS[form][1]
+    p[0] = rng.normal(s.gutter_hat, _DATA_SIGMA)
+    if "h_top" in names:
+        p[names.index("h_top")] = rng.normal(s.top_hat, _DATA_SIGMA)
+        for mid in ("h_hip", "h_break"):  # between the two estimates
+            if mid in names:
+                lo, hi = sorted((p[0], p[names.index("h_top")]))
+                p[names.index(mid)] = rng.uniform(lo, hi)
+    elif form == "flat":
+        p[0] = rng.normal(float(np.median(s.z)), _DATA_SIGMA)
+    own = chain.blocks[i]
+    if form != own.form and rng.random() < _SWITCH:  # a switch: the shared parameters kept
+        along = own.along if not orientation_free(form) else 0
+        r = s.ranges(form, along)
+        had = dict(zip(FORMS[own.form][1], own.params, strict=True))
+        p = np.array([had.get(n, v) for n, v in zip(names, p, strict=True)])
+    return Block(form, along, bool(rng.random() < 0.5), tuple(valid_params(form, p, r)))
+
+
+def _regularisation(rng, s: SupportData, chain: _Chain, i: int) -> Block:
+    own = chain.blocks[i]
+    sources = [own] + [chain.blocks[p.j if p.i == i else p.i] for p in
+                       (chain.pairs[k] for k in chain.of[i])]  # fmt: skip
+    k = int(rng.integers(len(sources)))
+    src = sources[k]
+    if k == 0:
+        along = own.along
+    else:  # the ridge aligned with the neighbour's
+        j = chain.pairs[chain.of[i][k - 1]]
+        ridge = chain.ridge(j.j if j.i == i else j.i, src)
+        along = int(abs(s.frame.axis(1) @ ridge) > abs(s.frame.axis(0) @ ridge))
+    if orientation_free(src.form):
+        along = 0
+    r = s.ranges(src.form, along)
+    sigma = _MIXTURE_SIGMAS[int(rng.integers(len(_MIXTURE_SIGMAS)))]
+    step = rng.normal(0.0, sigma, len(src.params))
+    if k == 0 and rng.random() < 0.5:  # the block's own: one parameter at a time, half the
+        step[np.arange(len(step)) != rng.integers(len(step))] = 0.0  # time (coupled ones)
+    p = np.asarray(src.params) + step
+    return Block(src.form, along, src.flip, tuple(valid_params(src.form, p, r)))
+
+
+_PROPOSE = (_uniform, _data_driven, _regularisation)
+
+
+def polish(chain: _Chain) -> int:
+    """The annealing's end at zero temperature: each block's parameters descended to the
+    nearest minimum of the energy (Powell's method, its form and variant kept, its
+    neighbours fixed). Random steps crawl along the narrow valleys where parameters
+    trade against each other (a mansard's gutter, break and inset); the paper names
+    jump-diffusion as its future work for the same reason. Returns the evaluations."""
+    evaluations = 0
+    for i, s in enumerate(chain.supports):
+        b = chain.blocks[i]
+        r = s.ranges(b.form, b.along)
+
+        def energy(p, b=b, r=r, i=i):
+            params = tuple(valid_params(b.form, np.asarray(p), r))
+            return chain.change(i, Block(b.form, b.along, b.flip, params))[0]
+
+        res = optimize.minimize(energy, np.asarray(b.params), method="Powell", options={
+            "xtol": 1e-3, "ftol": 1e-6, "maxfev": _POLISH_EVALUATIONS})  # fmt: skip
+        evaluations += res.nfev
+        if res.fun < 0:
+            new = Block(b.form, b.along, b.flip, tuple(valid_params(b.form, res.x, r)))
+            chain.accept(i, new, *chain.change(i, new)[1:])
+    return evaluations
+
+
+def anneal(
+    supports: list[SupportData],
+    pairs: list[Pair],
+    *,
+    alpha: float,
+    beta: float,
+    iterations: int,
+    seed,
+    form_cost: float = 0.0,
+) -> Annealing:
+    """Simulated annealing of the blocks of one building's supports.
+
+    Parameters
+    ----------
+    supports : list of SupportData
+    pairs : list of Pair
+        The neighbouring supports (a common edge).
+    alpha : float
+        Eq. 3's exponent.
+    beta : float
+        Eq. 4's weight of the prior.
+    iterations : int
+        The most iterations (the schedule cools from T_0 to T_0 * 1e-4 over them).
+    seed : int or sequence of int
+    form_cost : float
+        Share by which each parameter of a form beyond the first raises its support's
+        likelihood energy (0: the paper's energy).
+
+    Returns
+    -------
+    Annealing
+    """
+    rng = np.random.default_rng(seed)
+    chain = _Chain(supports, pairs, initial_blocks(supports), alpha, beta, form_cost)
+    n = len(supports)
+    probes = []
+    for _ in range(_WHITE_PROBES):  # White: T_0 from the energy's spread at T = infinity
+        i = int(rng.integers(n))
+        kernel = _PROPOSE[int(rng.integers(2))]
+        probes.append(chain.change(i, kernel(rng, supports[i], chain, i))[0])
+    t0 = max(float(np.std(probes)), 1e-6)
+    cooling = _COOLING_SPAN ** (1.0 / max(iterations, 1))
+    temperature = t0
+    best_blocks, best_energy = list(chain.blocks), chain.energy
+    proposed = dict.fromkeys(KERNELS, 0)
+    accepted = dict.fromkeys(KERNELS, 0)
+    q = _EXPLORE
+    adjustment_from = None
+    window = 0
+    trace = [(0, round(t0, 6), round(chain.energy, 4))]
+    for it in range(1, iterations + 1):
+        k = int(rng.choice(3, p=q))
+        i = int(rng.integers(n))
+        block = _PROPOSE[k](rng, supports[i], chain, i)
+        delta, lik, new_pairs = chain.change(i, block)
+        proposed[KERNELS[k]] += 1
+        if delta <= 0 or rng.random() < np.exp(-delta / temperature):
+            chain.accept(i, block, lik, new_pairs)
+            accepted[KERNELS[k]] += 1
+            window += k < 2  # the exploration kernels' acceptances mark the stage
+            e = chain.energy
+            if e < best_energy:
+                best_blocks, best_energy = list(chain.blocks), e
+        if it % _WINDOW == 0:
+            if adjustment_from is None and window < _STAGE_RATE * _WINDOW * sum(q[:2]):
+                adjustment_from, q = it, _ADJUST
+            window = 0
+        if it % _TRACE_EVERY == 0:
+            trace.append((it, round(temperature, 6), round(chain.energy, 4)))
+        temperature *= cooling
+    final = _Chain(supports, pairs, best_blocks, alpha, beta, form_cost)
+    evaluations = polish(final)
+    trace.append((iterations + evaluations, 0.0, round(final.energy, 4)))
+    return Annealing(final.blocks, final.energy, final.lik, float(sum(final.pair)), iterations,
+                     trace, proposed, accepted, adjustment_from, t0, temperature,
+                     evaluations)  # fmt: skip

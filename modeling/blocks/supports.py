@@ -1,0 +1,290 @@
+"""2D supports (the DEM-blocks paper, section 2): per building a set of connected,
+non-overlapping quadrilaterals, each the ground plan of one block.
+
+Automatic extraction: the building's cells split where the DSM steps by more than a
+storey (:func:`height_regions`: a block's roof has no step, so a multi-level building's
+tiers are supports of their own), each region's outline decomposed into rectangles by the
+footprint priors in competition (:func:`modeling.shared.footprint_priors.decompose_outline`:
+rectangle, L, T, U and courtyard registered to the region, the parts they leave
+decomposed in turn), and each prior's arms cut where they overlap
+(:func:`connected_rectangles`), so that an L is two rectangles sharing an edge. This is
+the deterministic rectangle decomposition the issue allows in place of Ortner's marked
+point process: the priors are fitted to the outline by least squares, not drawn, and
+their arms meet on common edges by construction.
+
+``--supports FILE``: the quadrilaterals (or triangles) of a vector file, the paper's
+interactive mode; supports that touch form one building.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import shapely
+from scipy import ndimage
+from shapely.geometry import Polygon, box
+from shapely.ops import unary_union
+
+from modeling.shared.footprint_priors import Prior, decompose_outline, rasterize_on
+from workbench.errors import InputError
+from workbench.raster import Grid
+
+from .library import Frame
+
+_FAMILIES = ("rect", "L", "T", "U", "courtyard")
+_MAX_PARTS = 4  # priors per height region
+_EDGE_TOLERANCE = 0.1  # metres: sides this close are one common edge
+_MIN_EDGE_M = 1.0  # a common edge shorter than this makes no neighbours
+_STEP_DISTANCE_M = 0.5  # the step is measured between cells this far apart
+
+
+@dataclass
+class Support:
+    """A 2D support: its polygon (world metres), the frame of its bounding rectangle,
+    and the height region it was cut from (supports of one region may be junctions)."""
+
+    polygon: Polygon
+    frame: Frame
+    region: int = 0
+
+    def record(self) -> dict:
+        return {
+            "polygon_m": [
+                [round(float(x), 3), round(float(y), 3)]
+                for x, y in self.polygon.exterior.coords[:-1]
+            ],  # fmt: skip
+            "rotation_deg": round(float(np.degrees(self.frame.theta)), 3),
+        }
+
+
+def mid_wall_region(
+    segment: np.ndarray, ndsm: np.ndarray, others: np.ndarray, gsd: float, reach_m: float
+) -> np.ndarray:
+    """(h, w) bool the building's cells as its DSM draws them: the cells within
+    ``reach_m`` of ``segment`` (and not of ``others``) standing above the ground by more
+    than half its eaves' height (the 10th percentile of its nDSM), connected to it.
+
+    The building class's edge wanders by a cell or two where the classifier is unsure;
+    a DSM blurs a wall over a cell or two too, and its mid-height is where the wall
+    stands. ndsm : (h, w) metres, NaN unknown."""
+    low = float(np.nanpercentile(ndsm[segment], 10)) if np.isfinite(ndsm[segment]).any() else 0.0
+    r = max(1, int(round(reach_m / gsd)))
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    near = cv2.dilate(segment.astype(np.uint8), disc).astype(bool) & ~others
+    high = near & (np.nan_to_num(ndsm, nan=-np.inf) > 0.5 * low)
+    # the majority of each 3 x 3: a DSM's noise leaves single cells in and out of the
+    # edge, whose staircase would outweigh the sides in the outline's direction
+    high = cv2.medianBlur(high.astype(np.uint8) * 255, 3) > 0
+    labels, _ = ndimage.label(high)
+    keep = np.unique(labels[segment & high])
+    return np.isin(labels, keep[keep > 0])
+
+
+def height_regions(
+    mask: np.ndarray, dsm: np.ndarray, gsd: float, step_m: float, min_cells: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(h, w) int regions 1..n of ``mask`` that no height step crosses, 0 elsewhere; and
+    (h, w) bool the step cells.
+
+    A cell is on a step where the DSM (3 x 3 median) differs by more than ``step_m``
+    from a cell ``_STEP_DISTANCE_M`` away along a row or column (a wall; a roof of 70
+    degrees rises 1.4 m over that distance). Regions smaller than ``min_cells`` and the
+    step cells join the region nearest to them."""
+    z = ndimage.median_filter(np.where(np.isfinite(dsm), dsm, np.nanmin(dsm)), size=3)
+    k = max(1, int(round(_STEP_DISTANCE_M / gsd)))
+    step = np.zeros(mask.shape, bool)
+    for axis in (0, 1):
+        d = np.abs(np.diff(z, n=1, axis=axis) if k == 1 else _shifted(z, k, axis))
+        jump = d > step_m
+        lo = [slice(None)] * 2
+        hi = [slice(None)] * 2
+        lo[axis], hi[axis] = slice(0, -k), slice(k, None)
+        step[tuple(lo)] |= jump
+        step[tuple(hi)] |= jump
+    labels, n = ndimage.label(mask & ~step)
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)
+    keep = sizes >= min_cells
+    keep[0] = False
+    if not keep.any():
+        return mask.astype(np.int32), step & mask
+    new = np.zeros(n + 1, np.int32)
+    new[keep] = np.arange(1, keep.sum() + 1)
+    labels = new[labels]
+    # every other cell of the mask to the nearest kept region
+    _, (ri, ci) = ndimage.distance_transform_edt(labels == 0, return_indices=True)
+    return np.where(mask, labels[ri, ci], 0).astype(np.int32), step & mask
+
+
+def _shifted(z: np.ndarray, k: int, axis: int) -> np.ndarray:
+    a = [slice(None)] * 2
+    b = [slice(None)] * 2
+    a[axis], b[axis] = slice(k, None), slice(0, -k)
+    return z[tuple(a)] - z[tuple(b)]
+
+
+def connected_rectangles(prior: Prior) -> list[np.ndarray]:
+    """(4,) rectangles u0, u1, v0, v1 of the prior's frame: its arms, each less the
+    earlier ones, so that they do not overlap and meet on common edges."""
+    taken = None
+    out = []
+    for wing in prior.wings():
+        r = box(wing[0], wing[2], wing[1], wing[3])
+        rest = r if taken is None else r.difference(taken)
+        if rest.area > 1e-6:
+            u0, v0, u1, v1 = rest.bounds
+            if rest.area >= 0.98 * (u1 - u0) * (v1 - v0):  # still a rectangle
+                out.append(np.array([u0, u1, v0, v1]))
+        taken = r if taken is None else taken.union(r)
+    return out
+
+
+def automatic_supports(
+    mask: np.ndarray,
+    dsm: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    grid: Grid,
+    min_part_m: float,
+    min_cells: int,
+    step_m: float,
+) -> tuple[list[Support], np.ndarray, np.ndarray]:
+    """The supports of one building: its height regions, each decomposed into the
+    rectangles of its footprint priors.
+
+    mask : (h, w) bool the building's cells on ``grid``; dsm : (h, w) metres;
+    xs : (w,), ys : (h,) cell centres. Returns the supports, the regions and the step
+    cells."""
+    regions, steps = height_regions(mask, dsm, grid.gsd, step_m, min_cells)
+    out: list[Support] = []
+    for r in range(1, int(regions.max()) + 1):
+        priors, _ = decompose_outline(regions == r, xs, ys, grid, _FAMILIES, min_part_m,
+                                      np.inf, 1.0, min_cells, _MAX_PARTS,
+                                      lambda_label=0.95)  # fmt: skip
+        for p in priors:
+            for rect in connected_rectangles(p):
+                frame = Frame(float(p.theta), (float(p.origin[0]), float(p.origin[1])),
+                              tuple(float(v) for v in rect))  # fmt: skip
+                poly = p.frame_polygon(rect)
+                if poly.area >= min_cells * grid.gsd**2:
+                    out.append(Support(poly, frame, r))
+    return out, regions, steps
+
+
+def support_cells(supports: list[Support], mask: np.ndarray, regions: np.ndarray,
+                  grid: Grid) -> list[np.ndarray]:  # fmt: skip
+    """(h, w) bool cells of each support: the building's cells of its region (any
+    region, for supports read from a file) whose centre it covers and no earlier
+    support took."""
+    taken = np.zeros(mask.shape, bool)
+    out = []
+    for s in supports:
+        cells = rasterize_on(s.polygon, grid) & mask & ~taken
+        if s.region:
+            cells &= regions == s.region
+        taken |= cells
+        out.append(cells)
+    return out
+
+
+def junction_sides(supports: list[Support]) -> list[tuple[bool, bool, bool, bool]]:
+    """Per support, whether each side of its rectangle (u0, v0, u1, v1) is a junction:
+    at least half of it a common edge with supports of the same height region."""
+    out = []
+    for i, s in enumerate(supports):
+        others = [t.polygon for j, t in enumerate(supports) if j != i and t.region == s.region]
+        near = unary_union(others).buffer(_EDGE_TOLERANCE) if others else None
+        u0, u1, v0, v1 = s.frame.rect
+        corners = [(u0, v0), (u1, v0), (u1, v1), (u0, v1)]
+        sides = []
+        for a, b in ((3, 0), (0, 1), (1, 2), (2, 3)):  # u0, v0, u1, v1
+            xa, ya = s.frame.to_world(np.array(corners[a][0]), np.array(corners[a][1]))
+            xb, yb = s.frame.to_world(np.array(corners[b][0]), np.array(corners[b][1]))
+            side = shapely.LineString([(float(xa), float(ya)), (float(xb), float(yb))])
+            shared = 0.0 if near is None else side.intersection(near).length
+            sides.append(shared >= 0.5 * side.length)
+        out.append(tuple(sides))
+    return out
+
+
+def neighbour_pairs(supports: list[Support]) -> list[tuple[int, int, np.ndarray]]:
+    """(i, j, unit vector of the common edge) for supports with a common edge of at
+    least ``_MIN_EDGE_M``."""
+    out = []
+    for i in range(len(supports)):
+        for j in range(i + 1, len(supports)):
+            a, b = supports[i].polygon, supports[j].polygon
+            common = a.boundary.intersection(b.buffer(_EDGE_TOLERANCE))
+            if common.length < _MIN_EDGE_M:
+                continue
+            pts = np.asarray(shapely.get_coordinates(common))
+            d = pts[np.argmax(((pts - pts[0]) ** 2).sum(axis=1))] - pts[0]
+            out.append((i, j, d / max(np.hypot(*d), 1e-9)))
+    return out
+
+
+def supports_from_file(path, polygons: list[Polygon], grid: Grid) -> list[list[Support]]:
+    """The supports of a vector file, grouped into buildings (supports that touch).
+
+    Raises
+    ------
+    InputError
+        Naming the file and the feature: a support that is not a quadrilateral or a
+        triangle, lies outside the grid, or overlaps another."""
+    xmin, ymin, xmax, ymax = grid.bounds
+    extent = box(xmin, ymin, xmax, ymax)
+    supports = []
+    for k, poly in enumerate(polygons):
+        field = f"features[{k}]"
+        if not isinstance(poly, Polygon) or poly.is_empty:
+            raise InputError(path, field, "not a polygon: a 2D support is a quadrilateral")
+        ring = shapely.simplify(poly, grid.gsd * 1e-3).exterior
+        n = len(ring.coords) - 1
+        if n not in (3, 4) or not poly.equals_exact(poly.convex_hull, 1e-6) and \
+                poly.convex_hull.area > poly.area * 1.001:  # fmt: skip
+            raise InputError(path, field, f"a polygon of {n} corners: a 2D support is a convex "
+                             "quadrilateral or triangle")  # fmt: skip
+        if not extent.contains(poly):
+            raise InputError(path, field, "outside the fusion's grid")
+        supports.append(Support(poly, rectangle_frame(poly), 0))
+    for i in range(len(supports)):
+        for j in range(i + 1, len(supports)):
+            overlap = supports[i].polygon.intersection(supports[j].polygon).area
+            if overlap > 0.01 * min(supports[i].polygon.area, supports[j].polygon.area):
+                raise InputError(path, f"features[{j}]", f"overlaps features[{i}] by "
+                                 f"{overlap:.1f} m²: supports must not overlap")  # fmt: skip
+    supports = snapped_together(supports)
+    groups = unary_union([s.polygon.buffer(_EDGE_TOLERANCE) for s in supports])
+    buildings = []
+    for g in getattr(groups, "geoms", [groups]):
+        buildings.append([s for s in supports if g.contains(s.polygon.representative_point())])
+    return buildings
+
+
+def snapped_together(supports: list[Support]) -> list[Support]:
+    """The supports with every vertex within ``_EDGE_TOLERANCE`` of another support's
+    boundary moved onto it (GEOS snapping, in order): supports drawn by hand or rounded
+    in a file meet a millimetre apart, and the mesh of their common edge needs them to
+    meet exactly."""
+    out = list(supports)
+    for i, s in enumerate(out):
+        others = [t.polygon for j, t in enumerate(out) if j != i]
+        if others:
+            snapped = shapely.snap(s.polygon, unary_union(others).boundary, _EDGE_TOLERANCE)
+            if isinstance(snapped, Polygon) and snapped.is_valid:
+                out[i] = Support(snapped, s.frame, s.region)
+    return out
+
+
+def rectangle_frame(poly: Polygon) -> Frame:
+    """The frame of a polygon's minimum rotated rectangle, u along its longer side."""
+    rect = np.asarray(poly.minimum_rotated_rectangle.exterior.coords)[:4]
+    e1, e2 = rect[1] - rect[0], rect[2] - rect[1]
+    axis = e1 if np.hypot(*e1) >= np.hypot(*e2) else e2
+    theta = float(np.arctan2(axis[1], axis[0]))
+    c = np.asarray(poly.centroid.coords[0])
+    frame = Frame(theta, (float(c[0]), float(c[1])), (0.0, 0.0, 0.0, 0.0))
+    u, v = frame.to_frame(rect[:, 0], rect[:, 1])
+    return Frame(theta, frame.origin, (float(u.min()), float(u.max()), float(v.min()),
+                                       float(v.max())))  # fmt: skip

@@ -1,0 +1,244 @@
+"""`workbench model blocks`: the DEM-blocks paper's library, energy and sampler on hand-made
+cases, and the path end to end from fused rasters, scored by the shared metrics."""
+
+import json
+
+import numpy as np
+import pytest
+from shapely.geometry import Polygon, box
+
+from modeling.blocks.block_meshes import block_faces
+from modeling.blocks.energy import joinable, likelihood, pair_energy, parameter_distance
+from modeling.blocks.library import Block, Frame, block_heights, parameter_ranges
+from modeling.blocks.path import closed_solid
+from modeling.blocks.rjmcmc import Pair, SupportData, anneal
+from modeling.blocks.supports import (
+    Support,
+    connected_rectangles,
+    junction_sides,
+    neighbour_pairs,
+    supports_from_file,
+)
+from modeling.shared.footprint_priors import Prior
+from modeling.shared.roof_envelope import building_solid
+from tests.conftest import model_and_score, run_cli
+from workbench.errors import InputError
+from workbench.meshes import is_watertight
+from workbench.raster import Grid
+
+FREE = (False, False, False, False)
+FRAME = Frame(0.0, (0.0, 0.0), (0.0, 10.0, 0.0, 6.0))  # 10 m along u, 6 m along v
+
+
+def _heights(block, u, v, ends=FREE, frame=FRAME):
+    return block_heights(block, np.asarray(u, float), np.asarray(v, float), frame, ends)
+
+
+def test_roof_forms_by_hand():
+    """Heights at the points each form's geometry fixes (a 10 x 6 m support)."""
+    gable = Block("gable", 0, False, (10.0, 13.0))
+    assert np.allclose(_heights(gable, [5, 5, 5, 0], [0, 3, 1.5, 3]), [10, 13, 11.5, 13])
+    hipped = Block("hipped", 0, False, (10.0, 13.0, 3.0))  # hips 3 m long
+    assert np.allclose(_heights(hipped, [0, 3, 5, 10, 1.5], [3, 3, 3, 3, 3]),
+                       [10, 13, 13, 10, 11.5])  # fmt: skip
+    pyramid = Block("pyramid", 0, False, (10.0, 14.0))
+    assert np.allclose(_heights(pyramid, [5, 0, 10, 2.5], [3, 0, 6, 3]), [14, 10, 10, 12])
+    # a mansard: 70-degree-like lower band 1 m deep up to 12.5, then up to 13.5 at the ridge
+    mansard = Block("mansard", 0, False, (10.0, 12.5, 13.5, 1.0))
+    assert np.allclose(_heights(mansard, [5, 5, 5, 0.5], [0, 1, 3, 3]), [10, 12.5, 13.5, 11.25])
+    gambrel = Block("gambrel", 0, False, (10.0, 12.5, 13.5, 1.0))  # no hipped ends
+    assert np.allclose(_heights(gambrel, [0, 0], [3, 1]), [13.5, 12.5])
+    half = Block("half-hipped", 0, False, (10.0, 13.0, 12.0, 1.0))  # hip from 12 m, 1 m long
+    assert np.allclose(_heights(half, [0, 1, 0], [3, 3, 0]), [12, 13, 10])
+    shed = Block("shed", 1, True, (10.0, 12.0))  # ridge along v: t is u, low at u = 10
+    assert np.allclose(_heights(shed, [0, 10, 5], [3, 3, 3]), [12, 10, 11])
+    vault = Block("semi-elliptic", 0, False, (10.0, 13.0))
+    phi = np.pi / 4  # a chord vertex: on the ellipse
+    assert np.allclose(_heights(vault, [5, 5, 5], [3, 0, 3 * (1 - np.cos(phi))]),
+                       [13, 10, 10 + 3 * np.sin(phi)])  # fmt: skip
+
+
+def test_junction_end_has_no_hip():
+    """A ridge end on a common edge runs on into the neighbour: no end plane there."""
+    hipped = Block("hipped", 0, False, (10.0, 13.0, 3.0))
+    joined = (False, False, True, False)  # the u1 side is a junction
+    assert _heights(hipped, [10], [3], joined)[0] == pytest.approx(13.0)
+    assert _heights(hipped, [0], [3], joined)[0] == pytest.approx(10.0)
+
+
+def test_likelihood_is_eq3():
+    model, dsm = np.array([1.0, 2.0, 3.0]), np.array([0.0, 4.0, 3.0])
+    assert likelihood(model, dsm, 1.5) == pytest.approx((1.0 + 2.0**1.5) ** (1 / 1.5))
+    assert likelihood(model, dsm, 2.0) == pytest.approx(np.sqrt(5.0))
+
+
+def test_joinable_prior():
+    """Eq. 4-5: same form, a ridge into the common edge, no step: beta (D / D_max - 1)."""
+    a = Block("gable", 0, False, (10.0, 13.0))
+    b = Block("gable", 0, False, (10.2, 13.4))
+    u, v = np.array([1.0, 0.0]), np.array([0.0, 1.0])
+    assert joinable(a, b, u, u, v)  # both ridges run into an edge along v ("-")
+    assert joinable(a, b, u, v, v)  # one does (an "L")
+    assert not joinable(a, b, v, v, v)  # side by side along the edge: a valley
+    assert not joinable(a, Block("hipped", 0, False, (10.0, 13.0, 3.0)), u, u, v)
+    assert not joinable(a, Block("gable", 0, False, (12.0, 15.0)), u, u, v)  # a storey's step
+    assert parameter_distance(a, b, 6.0) == pytest.approx(0.6 / 6.0 - 1.0)
+    assert pair_energy(a, b, u, u, v, 6.0, beta=5.0) == pytest.approx(5.0 * (0.1 - 1.0))
+    assert pair_energy(a, b, v, v, v, 6.0, beta=5.0) == 0.0
+
+
+def _support_data(block, frame=FRAME, ends=FREE, noise=0.1, seed=0):
+    u0, u1, v0, v1 = frame.rect
+    U, V = np.meshgrid(np.arange(u0 + 0.125, u1, 0.25), np.arange(v0 + 0.125, v1, 0.25))
+    z = _heights(block, U.ravel(), V.ravel(), ends, frame)
+    z = z + np.random.default_rng(seed).normal(0.0, noise, z.shape)
+    return SupportData(frame, ends, U.ravel(), V.ravel(), z)
+
+
+@pytest.mark.parametrize(
+    "truth",
+    [
+        Block("gable", 0, False, (10.0, 13.0)),
+        Block("hipped", 0, False, (20.0, 23.0, 3.0)),
+        Block("shed", 1, True, (15.0, 17.0)),
+        Block("mansard", 0, False, (10.0, 12.5, 13.5, 1.2)),
+        Block("flat", 0, False, (31.0,)),
+    ],
+    ids=lambda b: b.form,
+)
+def test_annealing_finds_the_block_of_a_dsm(truth):
+    """A DSM of one block with 10 cm of noise: the sampler returns its form and its
+    parameters within 5 cm (measured: within 2 cm), the same for the same seed."""
+    data = _support_data(truth)
+    run = anneal([data], [], alpha=1.5, beta=5.0, iterations=4000, seed=3, form_cost=0.05)
+    found = run.blocks[0]
+    assert found.form == truth.form
+    if truth.form != "flat" and truth.form != "pyramid":
+        assert found.along == truth.along
+    assert np.allclose(found.params, truth.params, atol=0.05)
+    again = anneal([data], [], alpha=1.5, beta=5.0, iterations=4000, seed=3, form_cost=0.05)
+    assert again.blocks == run.blocks and again.trace == run.trace
+    assert run.adjustment_from is not None  # reached the adjustment stage
+    assert run.trace[-1][2] <= run.trace[0][2]
+
+
+def test_neighbours_are_drawn_together_by_the_prior():
+    """Two supports of one gable roof ("-" junction), one of them with a noisy DSM: the
+    prior's pull gives them the same heights (within 5 cm) and makes them joinable."""
+    left = Frame(0.0, (0.0, 0.0), (0.0, 8.0, 0.0, 6.0))
+    right = Frame(0.0, (0.0, 0.0), (8.0, 16.0, 0.0, 6.0))
+    truth = Block("gable", 0, False, (10.0, 13.0))
+    a = _support_data(truth, left, (False, False, True, False), noise=0.05, seed=1)
+    b = _support_data(truth, right, (True, False, False, False), noise=0.4, seed=2)
+    run = anneal([a, b], [Pair(0, 1, np.array([0.0, 1.0]))], alpha=1.5, beta=5.0,
+                 iterations=4000, seed=0, form_cost=0.05)  # fmt: skip
+    x, y = run.blocks
+    assert x.form == y.form == "gable"
+    assert np.allclose(x.params, y.params, atol=0.05)
+    assert run.prior < -0.9 * 5.0
+
+
+def test_prior_arms_become_connected_rectangles():
+    """An L prior's two arms, cut where they overlap, share an edge and cover it."""
+    prior = Prior("L", 0.3, np.array([5.0, 7.0]), np.array([-10.0, 10.0, -6.0, 6.0]),
+                  [np.array([-10.0, 2.0, -6.0, 0.0])])  # fmt: skip
+    rects = connected_rectangles(prior)
+    assert len(rects) == 2
+    polys = [prior.frame_polygon(r) for r in rects]
+    assert polys[0].intersection(polys[1]).area < 1e-6
+    assert polys[0].union(polys[1]).area == pytest.approx(prior.polygon().area)
+    frames = [Frame(0.3, (5.0, 7.0), tuple(r)) for r in rects]
+    supports = [Support(p, f, 1) for p, f in zip(polys, frames, strict=True)]
+    pairs = neighbour_pairs(supports)
+    assert len(pairs) == 1 and abs(pairs[0][2] @ [np.cos(0.3), np.sin(0.3)]) > 0.99
+    ends = junction_sides(supports)
+    assert ends[0] == FREE and ends[1] == (False, False, False, True)  # the arm's v1 end
+
+
+def test_side_by_side_blocks_close_where_their_roofs_cross():
+    """An L of a gable ending on another's eave: the two roofs cross along their common
+    edge, and the mesh needs a vertex where they do (it was open without one)."""
+    a = Support(box(0, 6, 12, 12), Frame(0.0, (0.0, 0.0), (0.0, 12.0, 6.0, 12.0)))
+    b = Support(box(7, 0, 12, 6), Frame(0.0, (0.0, 0.0), (7.0, 12.0, 0.0, 6.0)))
+    blocks = [Block("gable", 0, False, (10.0, 13.0)), Block("gable", 1, False, (9.8, 12.0))]
+    ends = [FREE, (False, False, False, True)]
+    faces = [block_faces(x, s, e) for x, s, e in zip(blocks, [a, b], ends, strict=True)]
+    solid = building_solid(faces, 0.0, 0.0, np.zeros(2))
+    assert is_watertight(solid.vertices, solid.triangles)
+    how, _, _, closed = closed_solid(blocks, [a, b], ends, 0.0)
+    assert closed and how == "in the frame of support 0"
+
+
+def test_supports_from_a_file_are_checked():
+    grid = Grid.from_bounds(0.0, 0.0, 50.0, 50.0, 0.25)
+    ok = [box(1, 1, 10, 10), box(10, 1, 20, 10), box(30, 30, 40, 40)]
+    buildings = supports_from_file("s.geojson", ok, grid)
+    assert sorted(len(b) for b in buildings) == [1, 2]  # touching supports: one building
+    with pytest.raises(InputError, match=r"features\[1\]: overlaps features\[0\]"):
+        supports_from_file("s.geojson", [box(1, 1, 10, 10), box(5, 1, 20, 10)], grid)
+    pentagon = Polygon([(1, 1), (10, 1), (12, 5), (10, 10), (1, 10)])
+    with pytest.raises(InputError, match=r"features\[0\]: a polygon of 5 corners"):
+        supports_from_file("s.geojson", [pentagon], grid)
+    with pytest.raises(InputError, match=r"features\[0\]: outside the fusion's grid"):
+        supports_from_file("s.geojson", [box(45, 45, 60, 60)], grid)
+
+
+def test_parameter_ranges_keep_hips_hips():
+    """A hip end is at most twice as steep as the sides (shorter is a shaved gable end)."""
+    r = parameter_ranges("hipped", 12.0, 8.0, 10.0, 20.0)
+    assert r[2].tolist() == [2.0, 6.0]
+
+
+@pytest.fixture(scope="module")
+def blocks_run(tiny_fusion, tiny_scene, tmp_path_factory):
+    root = tmp_path_factory.mktemp("blocks")
+    return model_and_score(root, tiny_scene, "blocks", tiny_fusion)
+
+
+def test_blocks_end_to_end_from_fused_rasters(blocks_run):
+    """From `workbench fusion` of tiny, as a user runs it (measured: 2D quality 0.916,
+    3D 0.878, roof types 4 of 6, mean height error 0.9 %, every mesh closed)."""
+    out, model, metrics = blocks_run
+    assert metrics["footprint_2d"]["quality"] > 0.89
+    assert metrics["volume_3d"]["quality"] > 0.85
+    assert metrics["buildings"]["missed_over_50m2"] == 0
+    assert metrics["buildings"]["roof_type_accuracy"] >= 0.6
+    assert metrics["buildings"]["height_error_pct_mean"] < 1.5
+    assert metrics["complexity"]["watertight_fraction"] == 1.0
+    b = model["buildings"][0]
+    assert b["energy_trace"][-1][2] < b["energy_trace"][0][2]
+    assert set(b["acceptance_rate"]) == {"uniform", "data-driven", "regularisation"}
+    assert len(b["face_blocks"]) == b["faces"]
+    assert all(s["block"]["form"] for s in b["supports"])
+    assert model["iterations_per_second"] > 0
+
+
+def test_blocks_from_given_supports(blocks_run, tiny_fusion, tmp_path):
+    """--supports: the automatic run's supports written as a GeoJSON give back one
+    building per group of touching supports, every one closed."""
+    out, model, _ = blocks_run
+    rings = [s["polygon_m"] + s["polygon_m"][:1] for b in model["buildings"] for s in b["supports"]]
+    features = [{"type": "Feature", "properties": {},
+                 "geometry": {"type": "Polygon", "coordinates": [r]}} for r in rings]  # fmt: skip
+    path = tmp_path / "supports.geojson"
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": features}))
+    proc = run_cli("model", "blocks", tiny_fusion, "--supports", path, "-o", tmp_path / "m")
+    assert proc.returncode == 0, proc.stderr
+    again = json.loads((tmp_path / "m" / "model.json").read_text())
+    assert len(again["buildings"]) == len(model["buildings"])
+    assert all(b["watertight"] for b in again["buildings"])
+
+
+def test_blocks_bad_input_is_one_line(tiny_fusion, tmp_path):
+    """A missing fusion folder, supports far off the grid: one line, exit 2, no output."""
+    far = tmp_path / "far.geojson"
+    square = [[[1e6, 1e6], [1e6 + 9, 1e6], [1e6 + 9, 1e6 + 9], [1e6, 1e6 + 9], [1e6, 1e6]]]
+    far.write_text(json.dumps({"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {}, "geometry": {"type": "Polygon",
+                                                          "coordinates": square}}]}))  # fmt: skip
+    for args, says in (((tmp_path / "nowhere",), "no such fusion folder"),
+                       ((tiny_fusion, "--supports", far), "far.geojson")):  # fmt: skip
+        proc = run_cli("model", "blocks", *args, "-o", tmp_path / "o")
+        assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+        assert says in proc.stderr
+        assert not (tmp_path / "o").exists()
