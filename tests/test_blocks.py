@@ -10,8 +10,8 @@ from shapely.geometry import Polygon, box
 from modeling.blocks.block_meshes import block_faces
 from modeling.blocks.energy import joinable, likelihood, pair_energy, parameter_distance
 from modeling.blocks.library import Block, Frame, block_heights, parameter_ranges
-from modeling.blocks.path import closed_solid
-from modeling.blocks.rjmcmc import Pair, SupportData, anneal
+from modeling.blocks.path import closed_solid, flat_block
+from modeling.blocks.rjmcmc import Pair, SupportData, _Chain, anneal
 from modeling.blocks.supports import (
     Support,
     connected_rectangles,
@@ -138,6 +138,33 @@ def test_neighbours_are_drawn_together_by_the_prior():
     assert run.prior < -0.9 * 5.0
 
 
+def test_an_arm_carries_its_roof_into_the_valleys():
+    """An L of two gables whose DSM has the valleys of a real L (the arm's roof running on
+    into the other's up to its ridge, 15 cm of noise): with the arm's roof carried over
+    the other's near half, the valley costs nothing, and both blocks come back within
+    5 cm."""
+    a_frame = Frame(0.0, (0.0, 0.0), (0.0, 12.0, 6.0, 12.0))  # the main arm, ridge along u
+    b_frame = Frame(0.0, (0.0, 0.0), (7.0, 12.0, 0.0, 6.0))  # the other, ridge along v
+    a_true = Block("gable", 0, False, (10.0, 13.0))
+    b_true = Block("gable", 1, False, (10.0, 13.0))
+    b_ends = (False, False, False, True)  # its v1 side is the junction
+    a = _support_data(a_true, a_frame, FREE, noise=0.15, seed=0)
+    b = _support_data(b_true, b_frame, b_ends, noise=0.15, seed=1)
+    carried = (a.v <= 9.0) & (a.u >= 7.0)  # the main arm's near half, the other's width
+    a.z[carried] = np.maximum(a.z[carried], _heights(b_true, a.u[carried], a.v[carried],
+                                                     b_ends, b_frame))  # fmt: skip
+    pairs = [Pair(0, 1, np.array([1.0, 0.0]))]
+    plain = _Chain([a, b], pairs, [a_true, b_true], 1.5, 5.0).energy
+    idx = np.flatnonzero(carried)
+    b.strips[3] = (0, idx, a.u[idx], a.v[idx])
+    assert _Chain([a, b], pairs, [a_true, b_true], 1.5, 5.0).energy < 0.5 * plain
+    run = anneal([a, b], pairs, alpha=1.5, beta=5.0, iterations=4000, seed=0, form_cost=0.05)
+    x, y = run.blocks
+    assert (x.form, x.along, y.form, y.along) == ("gable", 0, "gable", 1)
+    assert np.allclose(x.params, a_true.params, atol=0.05)
+    assert np.allclose(y.params, b_true.params, atol=0.05)
+
+
 def test_prior_arms_become_connected_rectangles():
     """An L prior's two arms, cut where they overlap, share an edge and cover it."""
     prior = Prior("L", 0.3, np.array([5.0, 7.0]), np.array([-10.0, 10.0, -6.0, 6.0]),
@@ -165,8 +192,15 @@ def test_side_by_side_blocks_close_where_their_roofs_cross():
     faces = [block_faces(x, s, e) for x, s, e in zip(blocks, [a, b], ends, strict=True)]
     solid = building_solid(faces, 0.0, 0.0, np.zeros(2))
     assert is_watertight(solid.vertices, solid.triangles)
-    how, _, _, closed = closed_solid(blocks, [a, b], ends, 0.0)
+    how, _, _, _, closed = closed_solid(blocks, [a, b], ends, 0.0)
     assert closed and how == "in the frame of support 0"
+
+
+def test_flat_fallback_is_the_roofs_median():
+    """The last mesh attempt's block: flat at the median of the roof over its support."""
+    support = Support(box(0, 0, 10, 6), FRAME)
+    flat = flat_block(Block("gable", 0, False, (10.0, 13.0)), support, FREE)
+    assert flat.form == "flat" and flat.params[0] == pytest.approx(11.5, abs=0.08)
 
 
 def test_supports_from_a_file_are_checked():

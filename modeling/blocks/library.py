@@ -37,6 +37,8 @@ FORMS: dict[str, tuple[str, tuple[str, ...]]] = {
 }
 #: forms whose roof does not depend on the ridge's direction on a square support
 _ORIENTATION_FREE = ("flat", "pyramid")
+#: forms with a ridge that a junction can carry on into the neighbour
+RIDGED = ("shed", "gable", "hipped", "half-hipped", "mansard", "gambrel", "semi-elliptic")
 _ARC_CHORDS = 8  # chords of the semi-elliptic vault (its mesh and its surface)
 _MIN_LENGTH = 0.5  # metres: the shortest hip or inset
 #: metres: the least rise of a pitched roof (and between its gutter, break or hip height

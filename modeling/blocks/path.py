@@ -33,14 +33,16 @@ from workbench.records import StageTimer, peak_memory_mb
 
 from .block_meshes import block_faces
 from .energy import STEP_M
-from .library import Block, block_heights
+from .library import RIDGED, Block, block_heights
 from .options import BlocksOptions
 from .preview import blocks_preview
 from .rjmcmc import Pair, SupportData, anneal
 from .supports import (
     Support,
     automatic_supports,
+    carried_polygon,
     junction_sides,
+    junction_strips,
     mid_wall_region,
     neighbour_pairs,
     support_cells,
@@ -231,6 +233,11 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
     for s, c, e in zip(supports, cells, ends, strict=True):
         u, v = s.frame.to_frame(X[c], Y[c])
         data.append(SupportData(s.frame, e, u, v, dsm[c]))
+    strips = junction_strips(supports, ends)
+    for (i, side), (j, strip) in strips.items():
+        u, v = supports[i].frame.to_frame(X[cells[j]], Y[cells[j]])
+        on = np.flatnonzero((u >= strip[0]) & (u <= strip[1]) & (v >= strip[2]) & (v <= strip[3]))
+        data[i].strips[side] = (j, on, u[on], v[on])
     t_anneal = time.perf_counter()
     result = anneal(data, pairs, alpha=options.alpha, beta=options.beta,
                     form_cost=options.form_cost,
@@ -241,7 +248,7 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
     ground = dtm[mask & np.isfinite(dtm)]
     roof_low = min(min(float(d.z.min()) for d in data), min(b.gutter for b in blocks))
     base_z = min(float(np.min(ground)) if len(ground) else roof_low - 3.0, roof_low - 0.5)
-    how, faces, solid, closed = closed_solid(blocks, supports, ends, base_z)
+    how, meshed, faces, solid, closed = closed_solid(blocks, supports, ends, base_z, strips)
     planes, areas = face_planes([f for fs in faces for f in fs])
     residual = np.concatenate([d.heights(b) - d.z for d, b in zip(data, blocks, strict=True)])
     warnings = []
@@ -255,7 +262,7 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
             for s, b, e in zip(supports, blocks, ends, strict=True)
         ],  # fmt: skip
         "neighbours": [[p.i, p.j] for p in pairs],
-        "face_blocks": face_blocks(solid, supports, blocks, ends),
+        "face_blocks": face_blocks(solid, supports, meshed, ends),
         "meshed": how,
         "energy": round(result.energy, 4),
         "likelihood": round(float(sum(result.likelihoods)), 4),
@@ -277,8 +284,8 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
     outline = unary_union([s.polygon for s in supports])
     building = Building(
         str(k), Surface(solid.vertices, solid.triangles),
-        "1.3" if all(b.form == "flat" for b in blocks) else "2.2", footprint=outline,
-        roof_type=building_roof_type(blocks, [s.polygon.area for s in supports]),
+        "1.3" if all(b.form == "flat" for b in meshed) else "2.2", footprint=outline,
+        roof_type=building_roof_type(meshed, [s.polygon.area for s in supports]),
         planes=planes, plane_areas=areas, base_z=base_z,
         eave_z=min(b.gutter for b in blocks), ridge_z=float(solid.vertices[:, 2].max()),
         watertight=closed, record=record,
@@ -287,27 +294,48 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
                           forms=[b.form for b in blocks], trace=result.trace)  # fmt: skip
 
 
-def closed_solid(blocks: list[Block], supports: list[Support], ends, base_z: float):
-    """The building's mesh: every block's faces on its support, their upper envelope
-    down to ``base_z`` (:func:`modeling.shared.roof_envelope.building_solid`), meshed in
-    a support's frame, where its sides are axis-aligned. Supports that meet a hair off
-    their common edge (cut from different priors, or read from a file) can leave that
-    envelope open: it is then meshed in the next support's frame, and at last with
-    every support grown by ``_OVERLAP_M`` so that neighbours overlap and the upper roof
-    covers the seam. Returns how it was meshed, the faces, the mesh and whether it is
-    closed."""
-    for grow in (0.0, _OVERLAP_M):
-        grown = supports if grow == 0 else [
-            dataclasses.replace(s, polygon=s.polygon.buffer(grow, join_style="mitre"))
-            for s in supports]  # fmt: skip
-        faces = [block_faces(b, s, e) for b, s, e in zip(blocks, grown, ends, strict=True)]
+def closed_solid(blocks: list[Block], supports: list[Support], ends, base_z: float,
+                 strips: dict | None = None):  # fmt: skip
+    """The building's mesh: every block's faces on its support (grown over the strips
+    its ridge carries its roof on), their upper envelope down to ``base_z``
+    (:func:`modeling.shared.roof_envelope.building_solid`), meshed in a support's frame,
+    where its sides are axis-aligned.
+
+    Faces that meet a hair off a common edge (supports cut from different priors or
+    read from a file, a carried roof crossing a neighbour's ridge) can leave that
+    envelope open. It is then meshed in the next support's frame; then without the
+    carried roofs; then with every support grown by ``_OVERLAP_M``, so that neighbours
+    overlap and the upper roof covers the seam; at last with every block flat at its
+    median height (a closed LOD1 block rather than an open LOD2 shell). Returns how it
+    was meshed, the blocks as meshed, the faces, the mesh and whether it is closed."""
+    carried = []
+    for i, (b, s) in enumerate(zip(blocks, supports, strict=True)):
+        mine = [st for (k, side), (_, st) in (strips or {}).items()
+                if k == i and b.form in RIDGED and side % 2 == b.along]  # fmt: skip
+        carried.append(dataclasses.replace(s, polygon=carried_polygon(s, mine)) if mine else s)
+    grown = [dataclasses.replace(s, polygon=s.polygon.buffer(_OVERLAP_M, join_style="mitre"))
+             for s in supports]  # fmt: skip
+    flat = [flat_block(b, s, e) for b, s, e in zip(blocks, supports, ends, strict=True)]
+    attempts = [("", blocks, carried), (", roofs not carried over junctions", blocks, supports),
+                (f", supports grown by {_OVERLAP_M} m", blocks, grown),
+                (", every block flat at its median height", flat, supports)]  # fmt: skip
+    for note, bs, ss in attempts:
+        faces = [block_faces(b, s, e) for b, s, e in zip(bs, ss, ends, strict=True)]
         for k, s in enumerate(supports[:_MESH_FRAMES]):
             solid = building_solid(faces, base_z, s.frame.theta, np.asarray(s.frame.origin))
             if is_watertight(solid.vertices, solid.triangles):
-                how = f"in the frame of support {k}" + (f", supports grown by {grow} m"
-                                                         if grow else "")  # fmt: skip
-                return how, faces, solid, True
-    return "not closed", faces, solid, False
+                return f"in the frame of support {k}{note}", bs, faces, solid, True
+    return "not closed", blocks, faces, solid, False
+
+
+def flat_block(block: Block, support: Support, ends) -> Block:
+    """The block flat at the median of its roof's heights over a 20 x 20 lattice of its
+    support's rectangle."""
+    u0, u1, v0, v1 = support.frame.rect
+    t = (np.arange(20) + 0.5) / 20
+    U, V = np.meshgrid(u0 + t * (u1 - u0), v0 + t * (v1 - v0))
+    z = block_heights(block, U.ravel(), V.ravel(), support.frame, ends)
+    return Block("flat", 0, False, (float(np.median(z)),))
 
 
 def face_blocks(solid, supports: list[Support], blocks: list[Block], ends) -> list[int]:

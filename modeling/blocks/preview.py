@@ -45,8 +45,9 @@ def energy_plot(traces: list[list]) -> np.ndarray:
         cv2.polylines(img, [np.column_stack([x, y]).round().astype(np.int32)], False, colour, 1,
                       cv2.LINE_AA)  # fmt: skip
     font = cv2.FONT_HERSHEY_SIMPLEX
-    cv2.putText(img, "U/U0 1", (m + 2, 20), font, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(img, "0.01", (m + 2, _PLOT - m - 4), font, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+    # on the right: the contact sheet's title covers the top left
+    cv2.putText(img, "U / U0 = 1", (_PLOT - 80, 20), font, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(img, "0.01", (_PLOT - 40, _PLOT - m - 4), font, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
     cv2.putText(img, "iterations ->", (_PLOT // 2 - 30, _PLOT - 8), font, 0.35, (0, 0, 0), 1,
                 cv2.LINE_AA)  # fmt: skip
     return img

@@ -31,6 +31,7 @@ from scipy import optimize
 from .energy import likelihood, max_distance, pair_energy
 from .library import (
     FORMS,
+    RIDGED,
     Block,
     Frame,
     block_heights,
@@ -59,13 +60,17 @@ class SupportData:
     """One support and the DSM on it.
 
     frame : the support's frame; ends : (4,) bool, its sides u0, v0, u1, v1 that are
-    junctions; u, v, z : (n,) its cells in the frame and their DSM heights, metres."""
+    junctions; u, v, z : (n,) its cells in the frame and their DSM heights, metres;
+    strips : {side: (j, idx, u, v)} for each junction side, the neighbour j it leads to
+    and the cells of j (indices into j's, and their u, v in this frame) over which a
+    ridge running into that side carries the roof on."""
 
     frame: Frame
     ends: tuple[bool, bool, bool, bool]
     u: np.ndarray
     v: np.ndarray
     z: np.ndarray
+    strips: dict = field(default_factory=dict)
 
     def __post_init__(self):
         z = self.z
@@ -118,7 +123,12 @@ def initial_blocks(supports: list[SupportData]) -> list[Block]:
 
 
 class _Chain:
-    """The configuration and its energy terms, updated one support at a time."""
+    """The configuration and its energy terms, updated one support at a time.
+
+    A block whose ridge runs into a junction carries its roof on over the neighbour's
+    half next to it (:attr:`SupportData.strips`), as an L's arm runs on into the other
+    arm's roof up to the valleys: the neighbour's cells see the higher of the two roofs,
+    so changing a block changes its neighbours' likelihoods too."""
 
     def __init__(self, supports, pairs, blocks, alpha, beta, form_cost=0.0):
         self.supports, self.pairs, self.alpha, self.beta = supports, pairs, alpha, beta
@@ -128,14 +138,36 @@ class _Chain:
         for k, p in enumerate(pairs):
             self.of[p.i].append(k)
             self.of[p.j].append(k)
-        self.lik = [self.likelihood(i, b) for i, b in enumerate(self.blocks)]
+        self.into = [sorted({i for i, s in enumerate(supports) for j, *_ in s.strips.values()
+                             if j == t}) for t in range(len(supports))]  # fmt: skip
+        self.base = [s.heights(b) for s, b in zip(supports, self.blocks, strict=True)]
+        self.ext = {}
+        for i, b in enumerate(self.blocks):
+            self.ext.update(self.extensions(i, b))
+        self.lik = [self.likelihood(j, self.base[j], self.blocks[j], self.ext)
+                    for j in range(len(supports))]  # fmt: skip
         self.pair = [self.pair_term(p, self.blocks[p.i], self.blocks[p.j]) for p in pairs]
 
-    def likelihood(self, i: int, block: Block) -> float:
-        """Gamma_i, raised by ``form_cost`` (a share) per parameter beyond one."""
+    def extensions(self, i: int, block: Block) -> dict:
+        """{(i, j): (n_j,) the block's roof carried on over support j's cells (-inf off
+        it)} for every neighbour j a junction of support i leads to."""
         s = self.supports[i]
+        out = {}
+        for side, (j, idx, u, v) in s.strips.items():
+            arr = out.setdefault((i, j), np.full(len(self.supports[j].z), -np.inf))
+            if block.form in RIDGED and side % 2 == block.along:  # the ridge runs into it
+                arr[idx] = block_heights(block, u, v, s.frame, s.ends)
+        return out
+
+    def likelihood(self, j: int, base: np.ndarray, block: Block, ext: dict) -> float:
+        """Gamma_j of the higher of support j's roof and those carried over it, raised by
+        ``form_cost`` (a share) per parameter of its form beyond one."""
+        model = base
+        for i in self.into[j]:
+            if (i, j) in ext:
+                model = np.maximum(model, ext[(i, j)])
         occam = 1.0 + self.form_cost * (len(block.params) - 1)
-        return likelihood(s.heights(block), s.z, self.alpha) * occam
+        return likelihood(model, self.supports[j].z, self.alpha) * occam
 
     def ridge(self, i: int, block: Block) -> np.ndarray:
         return self.supports[i].frame.axis(block.along)
@@ -152,20 +184,30 @@ class _Chain:
     def energy(self) -> float:
         return float(sum(self.lik) + sum(self.pair))
 
-    def change(self, i: int, block: Block) -> tuple[float, float, dict]:
+    def change(self, i: int, block: Block) -> tuple[float, tuple, dict]:
         """Delta U of giving support i ``block``, with the new terms."""
-        lik = self.likelihood(i, block)
+        base = self.supports[i].heights(block)
+        new_ext = self.extensions(i, block)
+        ext = {**self.ext, **new_ext} if new_ext else self.ext
+        liks = {i: self.likelihood(i, base, block, ext)}
+        for _, j in new_ext:
+            liks[j] = self.likelihood(j, self.base[j], self.blocks[j], ext)
         new_pairs = {}
         for k in self.of[i]:
             p = self.pairs[k]
             a = block if p.i == i else self.blocks[p.i]
             b = block if p.j == i else self.blocks[p.j]
             new_pairs[k] = self.pair_term(p, a, b)
-        delta = lik - self.lik[i] + sum(new_pairs[k] - self.pair[k] for k in new_pairs)
-        return delta, lik, new_pairs
+        delta = sum(v - self.lik[k] for k, v in liks.items())
+        delta += sum(new_pairs[k] - self.pair[k] for k in new_pairs)
+        return delta, (base, new_ext, liks), new_pairs
 
-    def accept(self, i: int, block: Block, lik: float, new_pairs: dict) -> None:
-        self.blocks[i], self.lik[i] = block, lik
+    def accept(self, i: int, block: Block, state: tuple, new_pairs: dict) -> None:
+        base, new_ext, liks = state
+        self.blocks[i], self.base[i] = block, base
+        self.ext.update(new_ext)
+        for k, v in liks.items():
+            self.lik[k] = v
         for k, e in new_pairs.items():
             self.pair[k] = e
 

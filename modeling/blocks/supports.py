@@ -208,6 +208,50 @@ def junction_sides(supports: list[Support]) -> list[tuple[bool, bool, bool, bool
     return out
 
 
+def junction_strips(supports: list[Support], ends: list) -> dict:
+    """{(i, side): (j, strip)}: for each junction side of each automatic support, the
+    neighbour j across it and the rectangle (u0, u1, v0, v1 of i's frame) over which a
+    ridge running into that side carries its roof on: i's width, half of j's depth (up to
+    where an L's valleys meet the other arm's ridge)."""
+    out = {}
+    for i, s in enumerate(supports):
+        if not s.region:
+            continue
+        u0, u1, v0, v1 = s.frame.rect
+        for side in range(4):
+            if not ends[i][side]:
+                continue
+            best, j_best = 0.0, None
+            for j, t in enumerate(supports):
+                if j != i and t.region == s.region:
+                    shared = t.polygon.buffer(_EDGE_TOLERANCE).intersection(s.polygon).area
+                    if shared > best:
+                        best, j_best = shared, j
+            if j_best is None:
+                continue
+            xy = np.asarray(supports[j_best].polygon.exterior.coords)
+            u, v = s.frame.to_frame(xy[:, 0], xy[:, 1])
+            if side == 0:
+                strip = (u0 - 0.5 * (u0 - u.min()), u0, v0, v1)
+            elif side == 2:
+                strip = (u1, u1 + 0.5 * (u.max() - u1), v0, v1)
+            elif side == 1:
+                strip = (u0, u1, v0 - 0.5 * (v0 - v.min()), v0)
+            else:
+                strip = (u0, u1, v1, v1 + 0.5 * (v.max() - v1))
+            out[(i, side)] = (j_best, np.array(strip))
+    return out
+
+
+def carried_polygon(support: Support, strips: list[np.ndarray]) -> Polygon:
+    """The support's rectangle grown over the strips its ridge carries its roof on."""
+    u0, u1, v0, v1 = support.frame.rect
+    for s in strips:
+        u0, u1, v0, v1 = min(u0, s[0]), max(u1, s[1]), min(v0, s[2]), max(v1, s[3])
+    x, y = support.frame.to_world(np.array([u0, u1, u1, u0]), np.array([v0, v0, v1, v1]))
+    return Polygon(np.column_stack([x, y]))
+
+
 def neighbour_pairs(supports: list[Support]) -> list[tuple[int, int, np.ndarray]]:
     """(i, j, unit vector of the common edge) for supports with a common edge of at
     least ``_MIN_EDGE_M``."""
