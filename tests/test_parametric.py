@@ -29,7 +29,7 @@ from modeling.parametric.roof_geometry import (
     roof_type,
     side_distances,
 )
-from modeling.parametric.segmentation import building_segments, level_set_segmentation
+from modeling.parametric.segmentation import level_set_segmentation
 from modeling.shared.footprint_priors import (
     SegmentFrame,
     compete_priors,
@@ -38,6 +38,7 @@ from modeling.shared.footprint_priors import (
     register_prior,
     segment_frame,
 )
+from modeling.shared.opened_parts import building_segments
 from modeling.shared.roof_envelope import building_solid
 from tests.conftest import SHARED_DATA, model_and_score, run_cli
 from workbench.meshes import is_watertight

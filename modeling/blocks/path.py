@@ -20,7 +20,7 @@ from shapely.geometry import mapping
 from shapely.ops import unary_union
 
 from modeling.shared.footprint_priors import rasterize_on
-from modeling.shared.opened_parts import opened_parts
+from modeling.shared.opened_parts import building_segments
 from modeling.shared.raster_ground import ground_surface, vertex_colours
 from modeling.shared.roof_envelope import building_solid, face_planes
 from workbench.engine import Engine, ThreadEngine
@@ -119,11 +119,8 @@ def run_blocks(
         else:
             mask = np.isfinite(dsm) if options.all_building else prob[BUILDING - 1] > 0.5
             mask &= np.isfinite(dsm)
-            segments, big = opened_parts(mask, grid.gsd, 0.0 if options.all_building else
-                                         options.opening_m, options.min_area_m2, 4)  # fmt: skip
-            renumber = np.zeros(len(big), np.int32)
-            renumber[big] = np.arange(1, big.sum() + 1)
-            segments = renumber[segments]
+            opening = 0.0 if options.all_building else options.opening_m
+            segments = building_segments(mask, grid.gsd, opening, options.min_area_m2)
             if not segments.any():
                 raise InputError(Path(fusion_dir) / "class_prob.tif", None, "no building "
                                  "cells of at least --min-area: nothing to model")  # fmt: skip
@@ -254,8 +251,9 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
     warnings = []
     if result.adjustment_from is None:
         warnings.append(f"the annealing did not reach its adjustment stage (fewer than 5 % "
-                        f"of proposals accepted) in {result.iterations} iterations: the "
-                        "blocks may be far from the optimum; give more --iterations")  # fmt: skip
+                        f"of uniform and data-driven proposals accepted) in "
+                        f"{result.iterations} iterations: the blocks may be far from the "
+                        "optimum; give more --iterations")  # fmt: skip
     record = {
         "supports": [
             dict(s.record(), block=b.record(), junction_sides=[bool(x) for x in e])

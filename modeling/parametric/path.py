@@ -30,7 +30,7 @@ from modeling.shared.footprint_priors import (
     segment_frame,
     union_outline,
 )
-from modeling.shared.opened_parts import opened_parts
+from modeling.shared.opened_parts import building_segments, opened_parts
 from modeling.shared.raster_ground import ground_surface, vertex_colours
 from modeling.shared.roof_envelope import building_solid, face_planes
 from workbench.engine import Engine, ThreadEngine
@@ -53,7 +53,7 @@ from .roof_geometry import (
     roof_type,
     side_distances,
 )
-from .segmentation import building_segments, heaviside, level_set_segmentation, signed_distance
+from .segmentation import heaviside, level_set_segmentation, signed_distance
 
 log = logging.getLogger(__name__)
 

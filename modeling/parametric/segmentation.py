@@ -14,8 +14,6 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from modeling.shared.opened_parts import opened_parts
-
 _EPS_CELLS = 1.5  # width of the smoothed Heaviside and Dirac, cells
 _BAND_CELLS = 8.0  # phi is kept a signed distance clipped to this many cells
 _REINIT_EVERY = 10  # steps between re-initialisations and re-estimated statistics
@@ -144,15 +142,3 @@ def level_set_segmentation(
             break
         phi = phi + step * min(1.0, 0.5 / top)  # at most half a cell per step
     return phi > 0
-
-
-def building_segments(
-    mask: np.ndarray, gsd: float, opening_m: float, min_area_m2: float
-) -> np.ndarray:
-    """(H, W) int32 segments 1..q of the object region: opened with a disc of
-    ``opening_m`` (which cuts thin bridges between neighbours), connected parts of at
-    least ``min_area_m2``, renumbered; 0 elsewhere."""
-    parts, big = opened_parts(mask, gsd, opening_m, min_area_m2, connectivity=4)
-    new = np.zeros(len(big), np.int32)
-    new[big] = np.arange(1, big.sum() + 1)
-    return new[parts]
