@@ -311,13 +311,18 @@ def closed_solid(blocks: list[Block], supports: list[Support], ends, base_z: flo
         mine = [st for (k, side), (_, st) in (strips or {}).items()
                 if k == i and b.form in RIDGED and side % 2 == b.along]  # fmt: skip
         carried.append(dataclasses.replace(s, polygon=carried_polygon(s, mine)) if mine else s)
-    grown = [dataclasses.replace(s, polygon=s.polygon.buffer(_OVERLAP_M, join_style="mitre"))
-             for s in supports]  # fmt: skip
-    flat = [flat_block(b, s, e) for b, s, e in zip(blocks, supports, ends, strict=True)]
-    attempts = [("", blocks, carried), (", roofs not carried over junctions", blocks, supports),
-                (f", supports grown by {_OVERLAP_M} m", blocks, grown),
-                (", every block flat at its median height", flat, supports)]  # fmt: skip
-    for note, bs, ss in attempts:
+
+    def attempts():  # made only when the ones before did not close
+        yield "", blocks, carried
+        yield ", roofs not carried over junctions", blocks, supports
+        yield f", supports grown by {_OVERLAP_M} m", blocks, [
+            dataclasses.replace(s, polygon=s.polygon.buffer(_OVERLAP_M, join_style="mitre"))
+            for s in supports]  # fmt: skip
+        yield ", every block flat at its median height", [
+            flat_block(b, s, e) for b, s, e in zip(blocks, supports, ends, strict=True)
+        ], supports  # fmt: skip
+
+    for note, bs, ss in attempts():
         faces = [block_faces(b, s, e) for b, s, e in zip(bs, ss, ends, strict=True)]
         for k, s in enumerate(supports[:_MESH_FRAMES]):
             solid = building_solid(faces, base_z, s.frame.theta, np.asarray(s.frame.origin))
@@ -344,8 +349,8 @@ def face_blocks(solid, supports: list[Support], blocks: list[Block], ends) -> li
     out = np.full(len(T), -1)
     roof = np.flatnonzero(solid.part == 0)
     best = np.full(len(roof), np.inf)
+    x, y, z = centre[roof, 0], centre[roof, 1], centre[roof, 2]
     for i, (s, b, e) in enumerate(zip(supports, blocks, ends, strict=True)):
-        x, y, z = centre[roof, 0], centre[roof, 1], centre[roof, 2]
         inside = shapely.contains_xy(s.polygon.buffer(1e-3), x, y)
         if not inside.any():
             continue

@@ -96,8 +96,7 @@ def height_regions(
     k = max(1, int(round(_STEP_DISTANCE_M / gsd)))
     step = np.zeros(mask.shape, bool)
     for axis in (0, 1):
-        d = np.abs(np.diff(z, n=1, axis=axis) if k == 1 else _shifted(z, k, axis))
-        jump = d > step_m
+        jump = np.abs(_shifted(z, k, axis)) > step_m
         lo = [slice(None)] * 2
         hi = [slice(None)] * 2
         lo[axis], hi[axis] = slice(0, -k), slice(k, None)
@@ -285,24 +284,30 @@ def supports_from_file(path, polygons: list[Polygon], grid: Grid) -> list[list[S
             raise InputError(path, field, "not a polygon: a 2D support is a quadrilateral")
         ring = shapely.simplify(poly, grid.gsd * 1e-3).exterior
         n = len(ring.coords) - 1
-        if n not in (3, 4) or not poly.equals_exact(poly.convex_hull, 1e-6) and \
-                poly.convex_hull.area > poly.area * 1.001:  # fmt: skip
+        if n not in (3, 4) or poly.convex_hull.area > poly.area * 1.001:
             raise InputError(path, field, f"a polygon of {n} corners: a 2D support is a convex "
                              "quadrilateral or triangle")  # fmt: skip
         if not extent.contains(poly):
             raise InputError(path, field, "outside the fusion's grid")
         supports.append(Support(poly, rectangle_frame(poly), 0))
-    for i in range(len(supports)):
-        for j in range(i + 1, len(supports)):
-            overlap = supports[i].polygon.intersection(supports[j].polygon).area
-            if overlap > 0.01 * min(supports[i].polygon.area, supports[j].polygon.area):
-                raise InputError(path, f"features[{j}]", f"overlaps features[{i}] by "
-                                 f"{overlap:.1f} m²: supports must not overlap")  # fmt: skip
+    polys = [s.polygon for s in supports]
+    # a spatial index keeps a city's file linear, not quadratic, in its supports
+    first, second = shapely.STRtree(polys).query(polys, predicate="intersects")
+    for i, j in sorted(zip(first.tolist(), second.tolist(), strict=True)):
+        if i >= j:
+            continue
+        overlap = polys[i].intersection(polys[j]).area
+        if overlap > 0.01 * min(polys[i].area, polys[j].area):
+            raise InputError(path, f"features[{j}]", f"overlaps features[{i}] by "
+                             f"{overlap:.1f} m²: supports must not overlap")  # fmt: skip
     supports = snapped_together(supports)
     groups = unary_union([s.polygon.buffer(_EDGE_TOLERANCE) for s in supports])
-    buildings = []
-    for g in getattr(groups, "geoms", [groups]):
-        buildings.append([s for s in supports if g.contains(s.polygon.representative_point())])
+    groups = list(getattr(groups, "geoms", [groups]))
+    points = [s.polygon.representative_point() for s in supports]
+    which, group = shapely.STRtree(groups).query(points, predicate="within")
+    buildings = [[] for _ in groups]
+    for k, g in sorted(zip(which.tolist(), group.tolist(), strict=True)):
+        buildings[g].append(supports[k])
     return buildings
 
 
@@ -312,8 +317,13 @@ def snapped_together(supports: list[Support]) -> list[Support]:
     in a file meet a millimetre apart, and the mesh of their common edge needs them to
     meet exactly."""
     out = list(supports)
+    # only supports this near can reach within the tolerance once snapped themselves
+    first, second = shapely.STRtree([s.polygon for s in supports]).query(
+        [s.polygon for s in supports], predicate="dwithin", distance=2 * _EDGE_TOLERANCE
+    )
+    near = [sorted(second[(first == i) & (second != i)].tolist()) for i in range(len(out))]
     for i, s in enumerate(out):
-        others = [t.polygon for j, t in enumerate(out) if j != i]
+        others = [out[j].polygon for j in near[i]]
         if others:
             snapped = shapely.snap(s.polygon, unary_union(others).boundary, _EDGE_TOLERANCE)
             if isinstance(snapped, Polygon) and snapped.is_valid:
