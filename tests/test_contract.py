@@ -4,6 +4,8 @@ checked against what `workbench compare` and other tools rely on."""
 
 import json
 
+import cityjson_lib
+import cjio.cityjson
 import numpy as np
 import pytest
 from rasterio.crs import CRS
@@ -12,6 +14,7 @@ from shapely.geometry import shape
 from modeling import PATHS
 from modeling.shared.roof_types import ROOF_TYPES
 from tests.conftest import run_cli
+from workbench.cityjson_check import check_city_model
 from workbench.meshes import is_watertight, read_mesh
 from workbench.model_run import BUILDING_KEYS, SCHEMA
 from workbench.options import options_record
@@ -80,6 +83,25 @@ def test_the_folder_holds_scene_ground_dtm_and_preview(path_run, tiny_scene):
     r, c = tgrid.cell_index(X.ravel(), Y.ravel(), clip=True)
     err = dtm[0].ravel() - true_dtm[0][r, c]
     assert np.nanmedian(np.abs(err)) < 0.3
+
+
+def test_model_city_json_is_cityjson_every_reader_takes(path_run):
+    spec, out, record = path_run
+    path = out / "model.city.json"
+    doc = json.loads(path.read_text())
+    assert check_city_model(doc) == []  # every solid closed, outward, planar, not crossing
+    cityjson_lib.CityModel.parse_document_bytes(path.read_bytes())  # a strict reader
+    info = "\n".join(cjio.cityjson.reader(path.open()).get_info(long=True))
+    assert f"Building ({len(record['buildings'])})" in info
+    assert "semantics surfaces = ['GroundSurface', 'RoofSurface', 'WallSurface']" in info
+    for b in record["buildings"]:
+        obj = doc["CityObjects"][f"{spec.name}-{b['id']}"]
+        assert [g["lod"] for g in obj["geometry"]] == ["0", "1.2", b["lod"]]
+        a = obj["attributes"]
+        assert a["roofType"] == b["roof_type"] and a["ridge_z"] == b["ridge_z"]
+        assert b["base_z"] < a["lod1_z"] <= b["ridge_z"]
+        if spec.name != "voxel":  # the raster paths: the model's distance to the DSM
+            assert 0 < a["rmse_m"] < 2.0
 
 
 def test_compare_scores_the_run(path_run, tiny_scene, tmp_path):

@@ -5,8 +5,10 @@ import json
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from tests.conftest import run_cli
+from workbench.cityjson_check import check_city_model
 from workbench.raster import read_raster
 from workbench.raycast import cast, occluded, raycasting_scene, unsigned_distance
 from workbench.scene import load_scene
@@ -64,6 +66,15 @@ def test_every_command_gives_the_same_city_at_utm(tiny_scene, tiny_fusion, tmp_p
         assert len(ma["buildings"]) == len(mb["buildings"])
         for ba, bb in zip(ma["buildings"], mb["buildings"], strict=True):
             assert bb["ridge_z"] == pytest.approx(ba["ridge_z"], abs=0.02)
+    # CityJSON: the same millimetres from an origin moved by the offset, the CRS a URL
+    ca, cb = (json.loads((runs[k]["sp"] / "model.city.json").read_text()) for k in ("local", "utm"))
+    assert cb["metadata"]["referenceSystem"].endswith("/EPSG/0/32631")
+    moved = np.subtract(cb["transform"]["translate"], ca["transform"]["translate"])
+    assert moved[:2] == pytest.approx(UTM) and check_city_model(cb) == []
+    va, vb = np.asarray(ca["vertices"]), np.asarray(cb["vertices"])
+    # the same vertices but for rounding (at UTM one pair of corners merged in the grid)
+    assert abs(len(va) - len(vb)) <= 0.01 * len(va)
+    assert max(cKDTree(vb).query(va)[0].max(), cKDTree(va).query(vb)[0].max()) <= 20  # mm
     for run in ("fusion", "superpixel", "voxel"):
         la, ub = runs["local"]["metrics"][run], runs["utm"]["metrics"][run]
         assert ub["footprint_2d"]["quality"] == pytest.approx(

@@ -4,6 +4,8 @@ run folder on disk, written by :func:`write_model_run` whatever the path.
 A run folder holds::
 
     model.json              one schema for every path (SCHEMA), read by `workbench compare`
+    model.city.json         the buildings as CityJSON 2.0 (LOD0, LOD1.2 and the path's
+                            mesh with semantic surfaces; :mod:`workbench.cityjson`)
     buildings/<id>.ply      each building, world metres, vertex colours (the scored mesh)
     buildings/<id>.obj|.mtl the same, with its texture atlas <id>.png where the path makes one
     scene.ply, scene.obj    every building and the ground in one mesh (+ scene.mtl)
@@ -27,6 +29,7 @@ import numpy as np
 from shapely.geometry import mapping
 
 from .atomic import atomic_output_dir
+from .cityjson import write_city_model
 from .imageio import write_rgb
 from .meshes import concatenate_meshes, is_watertight
 from .meshio import write_mtl, write_obj, write_ply
@@ -150,6 +153,9 @@ class ModelRun:
         The grid of ``dtm`` and ``rasters``.
     dtm : (H, W) float or None
         The ground the buildings stand on, metres, NaN unknown.
+    dsm : (H, W) float or None
+        The heights the path modelled, metres, NaN unknown: each building's ``rmse_m`` in
+        model.city.json is the model's RMS distance to them, vertically.
     ground : Surface or None
         The ground as a mesh (default: none written).
     rasters : {name: ((H, W) or (B, H, W) array, nodata)}
@@ -172,6 +178,7 @@ class ModelRun:
     crs: object = None
     grid: Grid | None = None
     dtm: np.ndarray | None = None
+    dsm: np.ndarray | None = None
     ground: Surface | None = None
     rasters: dict = field(default_factory=dict)
     preview: np.ndarray | None = None
@@ -246,6 +253,7 @@ def _write_files(run: ModelRun, tmp: Path) -> None:
         write_raster(tmp / "dtm.tif", run.dtm.astype(np.float32), run.grid, run.crs)
     for name, (data, nodata) in run.rasters.items():
         write_raster(tmp / f"{name}.tif", data, run.grid, run.crs, nodata=nodata)
+    write_city_model(tmp / "model.city.json", run, run.dsm)
     preview = run.preview if run.preview is not None else np.full((64, 64, 3), 255, np.uint8)
     write_rgb(tmp / "preview.png", preview)
 

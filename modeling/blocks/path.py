@@ -142,7 +142,7 @@ def run_blocks(
     iterations = sum(b.record["iterations"] for b in buildings)
     anneal_s = sum(b.record["annealing_seconds"] for b in buildings)
     return ModelRun(
-        "blocks", options, buildings, crs=fusion.crs, grid=grid, dtm=dtm,
+        "blocks", options, buildings, crs=fusion.crs, grid=grid, dtm=dtm, dsm=fusion.band("dsm"),
         ground=ground_surface(dtm, rgb, grid), preview=preview, stages=timer.stages,
         inputs={"fusion": str(Path(fusion_dir).absolute()),
                 "supports": str(Path(supports).absolute()) if supports else None,

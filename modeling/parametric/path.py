@@ -193,7 +193,7 @@ def run_parametric(
             results, segments, grid))  # fmt: skip
     seconds = time.perf_counter() - t_start
     return ModelRun(
-        "parametric", options, buildings, crs=fusion.crs, grid=grid, dtm=dtm,
+        "parametric", options, buildings, crs=fusion.crs, grid=grid, dtm=dtm, dsm=dsm,
         ground=ground_surface(dtm, rgb, grid), preview=preview, stages=timer.stages,
         rasters={"segments": (segments.astype(np.int32), 0)},
         inputs={"fusion": str(Path(fusion_dir).absolute()),

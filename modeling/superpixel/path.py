@@ -91,7 +91,7 @@ def run_superpixel(
             truth, grid, fusion.band("class"), sp_argmax.astype(np.uint8), crf_class
         )
     return ModelRun(
-        "superpixel", options, buildings, crs=fusion.crs, grid=grid, dtm=dtm,
+        "superpixel", options, buildings, crs=fusion.crs, grid=grid, dtm=dtm, dsm=dsm,
         ground=ground_surface(dtm, fusion.rgb, grid),
         rasters={"class": (crf_class, 0), "superpixels": (labels.astype(np.int32), None)},
         preview=preview, stages=timer.stages, parameters=decided, record=record,
