@@ -37,6 +37,8 @@ def write_fusion(out: Path, result, crs, record: dict) -> None:
         nodata=None,
         descriptions=["observations per cell (-1: interpolated small hole)"],
     )
+    if result.normal is not None:
+        write_raster(out / "normal.tif", result.normal, g, crs, descriptions=["nx", "ny", "nz"])
     (out / "fusion.json").write_text(json.dumps(record, indent=1, default=_jsonable) + "\n")
     write_rgb(
         out / "preview.png",

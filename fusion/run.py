@@ -32,6 +32,7 @@ def run_fusion(
     *,
     scene: Path | None = None,
     points: Path | list[Path] | None = None,
+    mesh: Path | None = None,
     crs: str | None = None,
     truth: Path | None = None,
     save_classifier_to: Path | None = None,
@@ -47,10 +48,11 @@ def run_fusion(
     out : path
         The run folder (written atomically).
     options : FusionOptions
-    scene, points : path, or paths for ``points``
-        Exactly one: a scene folder, or LAS/LAZ/PLY clouds (tiles, or folders of them).
+    scene, points, mesh : path, or paths for ``points``
+        Exactly one: a scene folder, LAS/LAZ/PLY clouds (tiles, or folders of them), or a
+        surface mesh (sampled by vertical rays, :mod:`fusion.mesh_sampling`).
     crs : str, optional
-        CRS of clouds that carry none (EPSG code or WKT).
+        CRS of clouds or a mesh that carry none (EPSG code or WKT).
     truth : path, optional
         A scene with truth/: the products' scores go into fusion.json.
     save_classifier_to : path, optional
@@ -67,11 +69,17 @@ def run_fusion(
     -------
     The fusion.json record.
     """
-    if (scene is None) == (points is None):
-        raise WorkbenchError("fusion: give either SCENE or --points CLOUD")
+    if sum(x is not None for x in (scene, points, mesh)) != 1:
+        raise WorkbenchError("fusion: give one of SCENE, --points CLOUD and --mesh MESH")
     check_output_dir(out, overwrite=overwrite)  # before the long work
     options = options or FusionOptions()
     t0 = time.perf_counter()
+    if mesh is not None:
+        from .mesh_sampling import fuse_mesh
+
+        result, crs, inputs = fuse_mesh(mesh, options, crs=crs)
+        return _write(out, result, crs, inputs, options, truth, save_classifier_to, overwrite,
+                      command, t0)  # fmt: skip
     if points is not None:
         from .points import fuse_points
 

@@ -105,6 +105,7 @@ class FusionResult:
     ablation: dict = field(default_factory=dict)  # mean-fused colour and height
     record: dict = field(default_factory=dict)
     forest: object = None
+    normal: np.ndarray | None = None  # (3, H, W) float32 unit normals, from a mesh
 
     @property
     def classes(self) -> np.ndarray:

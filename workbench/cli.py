@@ -34,7 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for add in (
         _add_sample, _add_validate, _add_import_colmap, _add_import_odm, _add_fusion,
-        _add_model, _add_compare, _add_demo,
+        _add_mesh, _add_model, _add_compare, _add_demo,
     ):  # fmt: skip
         add(sub)
     return parser
@@ -165,7 +165,8 @@ def _add_fusion(sub) -> None:
         "rasters: ortho.tif (vector median colour), dsm.tif (median height), dtm.tif, "
         "ndsm.tif, class_prob.tif, class.tif, count.tif, plus fusion.json and preview.png. "
         "With --points, rasterise LAS/LAZ/PLY tiles (files or folders of them, merged) into "
-        "the same products.",
+        "the same products; with --mesh, sample a surface mesh by one vertical ray per cell "
+        "(the LOD paper's orthogonal grid sampling) into them and normal.tif.",
     )
     p.add_argument("scene", type=Path, nargs="?", metavar="SCENE", help="scene folder")
     p.add_argument(
@@ -173,8 +174,13 @@ def _add_fusion(sub) -> None:
         help="LAS, LAZ or PLY point clouds, or folders of them: the tiles of one survey, "
         "merged (their CRSs must agree)",
     )  # fmt: skip
+    p.add_argument(
+        "--mesh", type=Path, metavar="MESH",
+        help="a surface mesh (PLY, OBJ with its textures, ...), e.g. from `workbench mesh` "
+        "or an MVS tool",
+    )  # fmt: skip
     p.add_argument("-o", "--out", type=Path, required=True, metavar="OUT", help="output folder")
-    p.add_argument("--crs", help="CRS of point clouds that carry none (EPSG code or WKT)")
+    p.add_argument("--crs", help="CRS of point clouds or a mesh that carry none (EPSG or WKT)")
     p.add_argument(
         "--truth", type=Path, metavar="SCENE",
         help="score the products against SCENE/truth into fusion.json",
@@ -187,6 +193,25 @@ def _add_fusion(sub) -> None:
     _add_engine_arguments(p)
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     p.set_defaults(func=cmd_fusion)
+
+
+def _add_mesh(sub) -> None:
+    p = sub.add_parser(
+        "mesh",
+        help="a coloured surface mesh of a scene from its views' depth maps (TSDF)",
+        description="Integrate the depth maps and images of SCENE's calibrated views into a "
+        "truncated signed distance field (Open3D) and extract its surface by marching "
+        "cubes: a dense, vertex-coloured mesh as an MVS tool gives, written as binary PLY "
+        "(float64 positions, the CRS in a header comment) for `workbench fusion --mesh`.",
+    )
+    p.add_argument("scene", type=Path, metavar="SCENE", help="scene folder")
+    p.add_argument("-o", "--out", type=Path, required=True, metavar="MESH.ply")
+    p.add_argument("--voxel", type=number("positive"), metavar="M",
+                   help="voxel edge, metres (default: the scene's gsd, else 0.25)")  # fmt: skip
+    p.add_argument("--trunc", type=number("positive"), default=4.0, metavar="VOXELS",
+                   help="truncation of the signed distance, voxels (default: 4)")  # fmt: skip
+    p.add_argument("--overwrite", action="store_true", help="replace MESH.ply if it exists")
+    p.set_defaults(func=cmd_mesh)
 
 
 def _add_engine_arguments(p) -> None:
@@ -384,11 +409,38 @@ def cmd_fusion(args) -> int:
 
     record = run_fusion(
         args.out, options_from_args(FusionOptions, args), scene=args.scene, points=args.points,
-        crs=args.crs, truth=args.truth, save_classifier_to=args.save_classifier,
+        mesh=args.mesh, crs=args.crs, truth=args.truth, save_classifier_to=args.save_classifier,
         overwrite=args.overwrite, command=args.command_line, scheduler=args.scheduler,
         resume=args.resume,
     )  # fmt: skip
     print(fusion_summary(record, args.out))
+    return 0
+
+
+def cmd_mesh(args) -> int:
+    from fusion.scene_mesh import integrate_views
+    from workbench.meshio import write_ply
+    from workbench.model_run import _crs_text
+    from workbench.scene import load_scene
+
+    out = args.out
+    if out.suffix.lower() != ".ply":
+        raise WorkbenchError(f"{out}: the mesh is written as PLY (name it .ply)")
+    if out.exists() and not args.overwrite:
+        raise WorkbenchError(f"{out}: exists (give --overwrite to replace it)")
+    t0 = time.perf_counter()
+    scene = load_scene(args.scene)
+    mesh = integrate_views(scene, args.voxel, args.trunc)
+    partial = out.with_name(f".{out.name}.partial")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_ply(partial, mesh.vertices, mesh.triangles, vertex_colors=mesh.colors,
+              comments=[f"crs {_crs_text(scene.crs)}"])  # fmt: skip
+    partial.replace(out)
+    r = mesh.record
+    print(
+        f"wrote {out}: {r['triangles']:,} triangles, {r['vertices']:,} vertices from "
+        f"{r['views']} views at {r['voxel_m']:g} m voxels, {time.perf_counter() - t0:.1f} s"
+    )
     return 0
 
 

@@ -20,8 +20,9 @@ def write_ply(
     *,
     vertex_colors: np.ndarray | None = None,
     face_properties: dict[str, np.ndarray] | None = None,
+    comments: list[str] | None = None,
 ) -> None:
-    """Write a triangle mesh.
+    """Write a triangle mesh (binary PLY, float64 positions).
 
     Parameters
     ----------
@@ -31,6 +32,8 @@ def write_ply(
         Vertex indices, counter-clockwise seen from outside.
     vertex_colors : (V, 3) uint8, optional
     face_properties : dict of name -> (T,) uint8 or int32 array, optional
+    comments : list of str, optional
+        Header comment lines (one line each, such as ``crs EPSG:32631``).
     """
     face_properties = face_properties or {}
     V, T = len(vertices), len(triangles)
@@ -56,6 +59,7 @@ def write_ply(
         "ply",
         "format binary_little_endian 1.0",
         "comment city-workbench",
+        *(f"comment {c}" for c in comments or []),
         f"element vertex {V}",
         "property double x",
         "property double y",

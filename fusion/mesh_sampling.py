@@ -1,0 +1,309 @@
+"""A surface mesh (an MVS tool's, or `workbench mesh`'s) sampled into the ortho products:
+the LOD paper's orthogonal grid sampling (section 4).
+
+One vertical ray is cast from above through every cell centre; the first surface it hits
+gives the cell its colour (the vertex colours or the texture at the hit), its height and
+its normal: ``ortho.tif``, ``dsm.tif`` and ``normal.tif``. The DTM follows from the DSM
+by the progressive morphological filter, and the classes from the forest for label-free
+rasters, as for a cloud without classes; every modeling path then runs on the result.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+
+from workbench.errors import InputError
+from workbench.raster import Grid, parse_crs
+from workbench.raycast import cast, raycasting_scene
+from workbench.records import StageTimer
+
+from .ground import dtm_from_dsm
+from .interpolate import push_pull_fill, small_holes
+from .options import FusionOptions
+from .raster_forest import classify_rasters, synthetic_raster_forest
+from .scene_fusion import FILLED, HOLE_CELLS, FusionResult, check_memory
+
+log = logging.getLogger(__name__)
+
+NON_MANIFOLD_SHARE = 0.001  # more non-manifold edges than this: not a surface
+ROWS_PER_CHUNK_CELLS = 1 << 20  # rays cast at once (flat memory on a city's grid)
+CRS_COMMENT = "crs "  # a PLY header line "comment crs <EPSG:... or WKT>"
+
+
+@dataclass
+class SurfaceMesh:
+    """A triangle mesh to sample.
+
+    Attributes
+    ----------
+    path : Path
+    vertices : (V, 3) float64, world
+    triangles : (T, 3) int64
+    colors : (V, 3) uint8 or None
+    uvs : (T, 3, 2) float or None
+        Texture coordinates of each triangle's corners (u right, v up).
+    textures : list of (h, w, 3) uint8
+    material : (T,) int or None
+        Which texture each triangle takes.
+    crs : rasterio CRS or None
+    normals : (V, 3) float or None
+        Unit vertex normals (computed when first needed).
+    """
+
+    path: Path
+    vertices: np.ndarray
+    triangles: np.ndarray
+    colors: np.ndarray | None
+    uvs: np.ndarray | None
+    textures: list
+    material: np.ndarray | None
+    crs: object
+    normals: np.ndarray | None = None
+
+
+def read_surface_mesh(path, crs: str | None = None) -> SurfaceMesh:
+    """Read a surface mesh (PLY, OBJ with its MTL and textures, anything Open3D reads) and
+    check that it is one.
+
+    Parameters
+    ----------
+    path : path
+    crs : str, optional
+        Its CRS (EPSG code or WKT); default: a ``comment crs`` line of a PLY header, as
+        ``workbench mesh`` writes.
+
+    Raises
+    ------
+    InputError
+        No such file; no triangles; vertices that are not finite; more than 0.1 % of the
+        edges shared by more than two triangles; coordinates outside the CRS's area of
+        use. A mesh without a CRS is read, with a warning.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, None, "no such mesh file")
+    mesh = o3d.io.read_triangle_mesh(os.fspath(path), enable_post_processing=True,
+                                     print_progress=False)  # fmt: skip
+    V = np.asarray(mesh.vertices, np.float64)
+    T = np.asarray(mesh.triangles, np.int64)
+    if not len(T):
+        raise InputError(path, "faces", "no triangles: a surface mesh is needed")
+    bad = ~np.isfinite(V).all(axis=1)
+    if bad.any():
+        raise InputError(path, "vertices", f"{int(bad.sum())} vertices are not finite (NaN)")
+    share = non_manifold_share(T)
+    if share > NON_MANIFOLD_SHARE:
+        raise InputError(path, "faces", f"{share:.1%} of the edges are shared by more than "
+                         "two triangles: not a surface")  # fmt: skip
+    colors = None
+    if mesh.has_vertex_colors():
+        colors = np.clip(np.asarray(mesh.vertex_colors) * 255 + 0.5, 0, 255).astype(np.uint8)
+    uvs, textures, material = None, [], None
+    if mesh.has_triangle_uvs() and mesh.has_textures():
+        uvs = np.asarray(mesh.triangle_uvs, np.float64).reshape(-1, 3, 2)
+        textures = [np.asarray(t)[..., :3] for t in mesh.textures]
+        material = np.zeros(len(T), np.int64)
+        if mesh.has_triangle_material_ids():
+            material = np.asarray(mesh.triangle_material_ids, np.int64)
+    text = crs or ply_crs(path)
+    crs_obj = parse_crs(text, path=path) if text else None
+    if crs_obj is None:
+        log.warning("%s: no CRS (give --crs): the rasters are written without one", path)
+    else:
+        check_in_area_of_use(path, V, crs_obj)
+    return SurfaceMesh(path, V, T, colors, uvs, textures, material, crs_obj)
+
+
+def non_manifold_share(triangles: np.ndarray) -> float:
+    """Share of the undirected edges used by more than two triangles."""
+    e = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]],
+                                triangles[:, [2, 0]]]), axis=1)  # fmt: skip
+    key = e[:, 0] * (int(triangles.max()) + 1) + e[:, 1]
+    _, counts = np.unique(key, return_counts=True)
+    return float((counts > 2).sum() / max(len(counts), 1))
+
+
+def ply_crs(path: Path) -> str | None:
+    """The CRS a PLY header names in a ``comment crs ...`` line, if any."""
+    if path.suffix.lower() != ".ply":
+        return None
+    with open(path, "rb") as f:
+        for raw in f:
+            line = raw.decode("ascii", "replace").strip()
+            if line == "end_header":
+                return None
+            if line.startswith("comment " + CRS_COMMENT):
+                return line[len("comment " + CRS_COMMENT) :].strip()
+    return None
+
+
+def check_in_area_of_use(path: Path, vertices: np.ndarray, crs) -> None:
+    """Refuse a mesh whose bounding box lies wholly outside its CRS's area of use (a mesh
+    in a local frame, or given the wrong CRS)."""
+    from pyproj import CRS as ProjCRS
+    from pyproj import Transformer
+
+    epsg = crs.to_epsg()
+    proj = ProjCRS.from_epsg(epsg) if epsg else ProjCRS.from_user_input(crs.to_wkt())
+    area = proj.area_of_use
+    if area is None or not proj.is_projected:
+        return
+    to_crs = Transformer.from_crs("EPSG:4326", proj, always_xy=True)
+    x0, y0, x1, y1 = to_crs.transform_bounds(area.west, area.south, area.east, area.north)
+    lo, hi = vertices[:, :2].min(axis=0), vertices[:, :2].max(axis=0)
+    if hi[0] < x0 or lo[0] > x1 or hi[1] < y0 or lo[1] > y1:
+        raise InputError(path, "vertices", f"x {lo[0]:.0f}..{hi[0]:.0f}, y {lo[1]:.0f}.."
+                         f"{hi[1]:.0f} lie outside {crs.to_string()}'s area of use "
+                         f"({x0:.0f}..{x1:.0f}, {y0:.0f}..{y1:.0f}): a local frame, or "
+                         "another CRS?")  # fmt: skip
+
+
+def default_gsd(mesh: SurfaceMesh) -> float:
+    """The median edge length of the mesh's triangles, to two significant digits: a cell
+    per vertex, about."""
+    V, T = mesh.vertices, mesh.triangles
+    sample = T[:: max(1, len(T) // 200_000)]
+    edges = np.linalg.norm(V[sample[:, 1]] - V[sample[:, 0]], axis=1)
+    gsd = float(np.median(edges[edges > 0])) if (edges > 0).any() else 1.0
+    return float(f"{gsd:.2g}")
+
+
+def orthogonal_sampling(mesh: SurfaceMesh, grid: Grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cast a vertical ray down through every cell centre; keep the first hit.
+
+    Returns
+    -------
+    ortho : (H, W, 3) uint8
+        The hit's colour (texture, else vertex colours interpolated, else grey); 0 where
+        no hit.
+    dsm : (H, W) float32
+        The hit's height, metres, NaN where the ray missed.
+    normal : (3, H, W) float32
+        The unit normal at the hit (vertex normals interpolated), turned up (n_z >= 0),
+        NaN where missed.
+    """
+    scene = raycasting_scene(mesh.vertices, mesh.triangles)
+    top = float(mesh.vertices[:, 2].max()) + 10.0
+    n = grid.width * grid.height
+    ortho = np.zeros((n, 3), np.uint8)
+    dsm = np.full(n, np.nan, np.float32)
+    normal = np.full((3, n), np.nan, np.float32)
+    rows = max(1, ROWS_PER_CHUNK_CELLS // grid.width)
+    for r0 in range(0, grid.height, rows):
+        r1 = min(grid.height, r0 + rows)
+        X, Y = grid.window(slice(r0, r1), slice(0, grid.width)).cell_centers()
+        origins = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, top)])
+        hits = cast(scene, origins, np.tile([0.0, 0.0, -1.0], (X.size, 1)))
+        at = np.arange(r0 * grid.width, r1 * grid.width)
+        hit = hits.tri >= 0
+        dsm[at[hit]] = hits.points[hit, 2]
+        normal[:, at[hit]] = hit_normals(mesh, hits.tri[hit], hits.bary[hit]).T
+        ortho[at[hit]] = hit_colours(mesh, hits.tri[hit], hits.bary[hit])
+    return ortho.reshape(*grid.shape, 3), dsm.reshape(grid.shape), normal.reshape(3, *grid.shape)
+
+
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(V, 3) unit normals at the vertices: the area-weighted mean of their triangles'."""
+    V, T = vertices - vertices.mean(axis=0), triangles
+    face = np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]])  # length: twice the area
+    n = np.zeros_like(V)
+    for k in range(3):
+        np.add.at(n, T[:, k], face)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
+def hit_normals(mesh: SurfaceMesh, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """(N, 3) unit normals at hits, interpolated from the vertex normals (the smooth
+    shading of the mesh: a marching-cubes surface's own facets tilt by tens of degrees
+    on flat ground), turned up."""
+    if mesh.normals is None:
+        mesh.normals = vertex_normals(mesh.vertices, mesh.triangles)
+    w = np.column_stack([1.0 - bary[:, 0] - bary[:, 1], bary[:, 0], bary[:, 1]])
+    n = np.einsum("nk,nkj->nj", w, mesh.normals[mesh.triangles[tri]])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    return np.where(n[:, 2:] < 0, -n, n)
+
+
+def hit_colours(mesh: SurfaceMesh, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """(N, 3) uint8 colour at hits on triangles ``tri`` (N,) with barycentric (u, v)."""
+    w = np.column_stack([1.0 - bary[:, 0] - bary[:, 1], bary[:, 0], bary[:, 1]])
+    if mesh.uvs is not None and mesh.textures:
+        uv = np.einsum("nk,nkj->nj", w, mesh.uvs[tri])
+        out = np.zeros((len(tri), 3), np.uint8)
+        mat = mesh.material[tri]
+        for k, image in enumerate(mesh.textures):
+            sel = mat == k
+            h, wdt = image.shape[:2]
+            c = np.clip((uv[sel, 0] % 1.0) * wdt, 0, wdt - 1).astype(np.int64)
+            r = np.clip((1.0 - uv[sel, 1] % 1.0) * h, 0, h - 1).astype(np.int64)
+            out[sel] = image[r, c]
+        return out
+    if mesh.colors is not None:
+        c = np.einsum("nk,nkj->nj", w, mesh.colors[mesh.triangles[tri]].astype(np.float64))
+        return np.clip(c + 0.5, 0, 255).astype(np.uint8)
+    return np.full((len(tri), 3), 128, np.uint8)
+
+
+def fuse_mesh(path, opts: FusionOptions | None = None, *, crs: str | None = None):
+    """Sample a surface mesh into a :class:`FusionResult` (with ``normal``).
+
+    Returns
+    -------
+    result : FusionResult
+    crs : CRS or None
+    inputs : dict summary of the mesh
+    """
+    opts = opts or FusionOptions()
+    timer = StageTimer()
+    t0 = time.perf_counter()
+    with timer.stage("read"):
+        mesh = read_surface_mesh(path, crs)
+    gsd = opts.gsd or default_gsd(mesh)
+    if opts.bounds is not None:
+        grid = Grid.from_bounds(*opts.bounds, gsd)
+    else:
+        lo, hi = mesh.vertices[:, :2].min(axis=0), mesh.vertices[:, :2].max(axis=0)
+        grid = Grid.from_bounds(lo[0], lo[1], hi[0] + 1e-6, hi[1] + 1e-6, gsd)
+    if min(grid.width, grid.height) < 3:
+        raise InputError(mesh.path, None, f"a {grid.width} x {grid.height} grid at --gsd "
+                         f"{gsd:g}: give a finer --gsd for a mesh this small")  # fmt: skip
+    check_memory(grid, opts, 1)
+    with timer.stage("sampling"):
+        ortho, dsm, normal = orthogonal_sampling(mesh, grid)
+        hit = np.isfinite(dsm)
+        holes = small_holes(~hit, HOLE_CELLS)
+        dsm = np.where(holes, push_pull_fill(dsm, hit), dsm).astype(np.float32)
+    with timer.stage("ground"):
+        dtm, _ = dtm_from_dsm(dsm, grid.gsd)
+        dtm = np.where(np.isfinite(dsm), np.minimum(dtm, dsm), np.nan).astype(np.float32)
+        ndsm = (dsm - dtm).astype(np.float32)
+    with timer.stage("classes"):
+        prob = classify_rasters(synthetic_raster_forest(), dsm, dtm, ortho, grid.gsd)
+    count = hit.astype(np.int16)
+    count[holes] = FILLED
+    inputs = {
+        "mesh": str(mesh.path.absolute()),
+        "vertices": len(mesh.vertices), "triangles": len(mesh.triangles),
+        "crs": mesh.crs.to_string() if mesh.crs is not None else None,
+        "colour": "texture" if mesh.uvs is not None else
+                  "vertex colours" if mesh.colors is not None else "none (grey)",
+    }  # fmt: skip
+    record = {
+        "mode": "mesh",
+        "dtm_source": "progressive morphological filter",
+        "class_source": "a forest trained on the synthetic city's rasters (nDSM, slope, "
+        "roughness, curvature, brightness, greenness): no training labels",
+        "missed_cells": int((~hit).sum()), "filled_cells": int(holes.sum()),
+        "seconds_per_million_triangles": round(
+            (time.perf_counter() - t0) / max(len(mesh.triangles) / 1e6, 1e-6), 2),
+        "stages": timer.stages,
+    }  # fmt: skip
+    result = FusionResult(grid, ortho, dsm, dtm, ndsm, prob, count, {}, record, None, normal)
+    return result, mesh.crs, inputs

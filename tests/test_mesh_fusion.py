@@ -1,0 +1,150 @@
+"""A surface mesh from the views (`workbench mesh`, TSDF) and its orthogonal grid sampling
+(`workbench fusion --mesh`): hand-computed planes, a texture, the tiny city against its
+truth, a modeling path run from it, and bad meshes refused in one line."""
+
+import json
+
+import numpy as np
+import pytest
+
+from fusion.mesh_sampling import SurfaceMesh, orthogonal_sampling, read_surface_mesh
+from tests.conftest import run_cli
+from workbench.imageio import write_rgb
+from workbench.meshio import write_mtl, write_obj, write_ply
+from workbench.raster import Grid, read_raster
+
+
+def slope_mesh(colors=True) -> SurfaceMesh:
+    """z = 0.5 x + 2 over [0, 10]², red at x = 0 to blue at x = 10; and a flat square at
+    z = 1 beneath it, which no vertical ray reaches first."""
+    V = np.array([[0, 0, 2], [10, 0, 7], [10, 10, 7], [0, 10, 2],
+                  [0, 0, 1], [10, 0, 1], [10, 10, 1], [0, 10, 1]], float)  # fmt: skip
+    T = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    C = np.array([[255, 0, 0], [0, 0, 255], [0, 0, 255], [255, 0, 0]] * 2, np.uint8)
+    return SurfaceMesh(None, V, T, C if colors else None, None, [], None, None)
+
+
+def test_one_vertical_ray_per_cell_gives_the_top_surface_its_colour_and_normal():
+    grid = Grid(0.0, 10.0, 1.0, 10, 10)
+    ortho, dsm, normal = orthogonal_sampling(slope_mesh(), grid)
+    X, _ = grid.cell_centers()
+    assert dsm == pytest.approx(0.5 * X + 2, abs=1e-4)  # the upper plane, not the lower
+    n = np.array([-0.5, 0.0, 1.0]) / np.hypot(0.5, 1.0)
+    assert normal.reshape(3, -1).T == pytest.approx(np.tile(n, (100, 1)), abs=1e-5)
+    # colour interpolated along x: red 255 (1 - x / 10), blue 255 x / 10
+    assert ortho[..., 0] == pytest.approx(255 * (1 - X / 10), abs=1)
+    assert ortho[..., 2] == pytest.approx(255 * X / 10, abs=1)
+
+
+def test_cells_beyond_the_mesh_are_nan():
+    grid = Grid(-5.0, 10.0, 1.0, 15, 10)  # a third of the grid west of the mesh
+    ortho, dsm, normal = orthogonal_sampling(slope_mesh(colors=False), grid)
+    assert np.isnan(dsm[:, :5]).all() and np.isfinite(dsm[:, 5:]).all()
+    assert np.isnan(normal[:, :, :5]).all() and (ortho[:, :5] == 0).all()
+    assert (ortho[:, 5:] == 128).all()  # no colour: grey
+
+
+def test_a_textured_obj_gives_its_texture(tmp_path):
+    texture = np.zeros((64, 64, 3), np.uint8)
+    texture[:, :32] = (200, 30, 30)  # left half (u < 0.5) red
+    texture[:, 32:] = (30, 30, 200)
+    write_rgb(tmp_path / "t.png", texture)
+    V = np.array([[0, 0, 5], [10, 0, 5], [10, 10, 5], [0, 10, 5]], float)
+    T = np.array([[0, 1, 2], [0, 2, 3]])
+    uvs = V[T][..., :2] / 10.0
+    write_mtl(tmp_path / "m.mtl", {"roof": (255, 255, 255)}, {"roof": "t.png"})
+    write_obj(tmp_path / "m.obj", V, T, material="roof", mtllib="m.mtl", uvs=uvs)
+    mesh = read_surface_mesh(tmp_path / "m.obj")  # no CRS: read, with a warning
+    assert mesh.uvs is not None
+    ortho, dsm, _ = orthogonal_sampling(mesh, Grid(0.0, 10.0, 1.0, 10, 10))
+    assert (ortho[:, :5] == (200, 30, 30)).all() and (ortho[:, 5:] == (30, 30, 200)).all()
+    assert dsm == pytest.approx(np.full((10, 10), 5.0))
+
+
+@pytest.fixture(scope="module")
+def mesh_fusion(tiny_scene, tmp_path_factory):
+    root = tmp_path_factory.mktemp("mesh")
+    proc = run_cli("mesh", tiny_scene, "-o", root / "city.ply")
+    assert proc.returncode == 0, proc.stderr
+    out = root / "fusion"
+    proc = run_cli("fusion", "--mesh", root / "city.ply", "-o", out, "--gsd", "0.25",
+                   "--bounds", "-32", "-32", "32", "32", "--truth", tiny_scene)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    return root, out, json.loads((out / "fusion.json").read_text())
+
+
+def test_the_tiny_city_mesh_sampled_matches_the_truth(mesh_fusion, tiny_scene):
+    root, out, record = mesh_fusion
+    assert record["mode"] == "mesh" and record["inputs"]["colour"] == "vertex colours"
+    q = record["quality"]
+    # measured: 0.140 m off jumps, 90.5 % valid, classes 0.950, ortho MAE 9.2
+    assert q["dsm"]["rmse_off_jumps_m"] < 0.2 and q["dsm"]["valid_fraction"] > 0.88
+    assert q["classification"]["overall_accuracy"] > 0.93
+    assert q["ortho_mae"]["mean"] < 12
+    normal, grid, crs = read_raster(out / "normal.tif")
+    dsm, dgrid, _ = read_raster(out / "dsm.tif")
+    assert normal.shape == (3, grid.height, grid.width) and grid == dgrid
+    assert crs is not None  # from the PLY's header comment
+    length = np.linalg.norm(normal, axis=0)
+    assert np.nanmax(np.abs(length - 1)) < 1e-4 and np.nanmin(normal[2]) >= 0
+    true_class, tgrid, _ = read_raster(tiny_scene / "truth" / "class.tif")
+    ground = true_class[0] == 1  # the same grid: the scene's bounds at its gsd
+    assert tgrid == grid
+    assert np.nanmedian(normal[2][ground]) > 0.99
+
+
+def test_a_path_runs_from_the_mesh_fusion(mesh_fusion, tiny_scene):
+    root, out, _ = mesh_fusion
+    proc = run_cli("model", "superpixel", out, "-o", root / "sp")
+    assert proc.returncode == 0, proc.stderr
+    report = root / "report"
+    proc = run_cli("compare", root / "sp", "--truth", tiny_scene, "-o", report)
+    assert proc.returncode == 0, proc.stderr
+    m = json.loads((report / "metrics.json").read_text())["runs"]["sp"]
+    assert m["footprint_2d"]["objects"]["found"] >= 5  # of the tiny city's 6
+    assert m["footprint_2d"]["quality"] > 0.72  # measured 0.758 (0.92 from the views)
+
+
+def _write(tmp_path, V, T):
+    path = tmp_path / "bad.ply"
+    write_ply(path, np.asarray(V, float), np.asarray(T, np.int64).reshape(-1, 3))
+    return path
+
+
+@pytest.mark.parametrize(
+    "V, T, field",
+    [
+        ([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [], "faces"),
+        ([[0, 0, 0], [1, 0, 0], [np.nan, 1, 0]], [[0, 1, 2]], "vertices"),
+        ([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]],
+         [[0, 1, 2], [1, 0, 3], [0, 1, 4]], "faces"),  # an edge of three triangles
+    ],
+)  # fmt: skip
+def test_a_mesh_that_is_not_a_surface_is_one_line(tmp_path, V, T, field):
+    path = _write(tmp_path, V, T)
+    proc = run_cli("fusion", "--mesh", path, "-o", tmp_path / "out", "--crs", "EPSG:32631")
+    assert proc.returncode == 2 and str(path) in proc.stderr and field in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
+
+
+def test_a_mesh_outside_its_crs_area_is_one_line(tmp_path):
+    path = _write(tmp_path, slope_mesh().vertices, slope_mesh().triangles)  # x 0-10 m
+    proc = run_cli("fusion", "--mesh", path, "-o", tmp_path / "out", "--crs", "EPSG:32631")
+    assert proc.returncode == 2 and "area of use" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
+
+
+def test_too_fine_a_grid_for_the_mesh_is_refused(tmp_path):
+    path = _write(tmp_path, slope_mesh().vertices + [500_000, 5_700_000, 0], slope_mesh().triangles)
+    proc = run_cli("fusion", "--mesh", path, "-o", tmp_path / "out", "--crs", "EPSG:32631",
+                   "--gsd", "0.00005")  # fmt: skip
+    assert proc.returncode == 2 and "GiB" in proc.stderr and not (tmp_path / "out").exists()
+
+
+def test_mesh_refuses_an_existing_file_and_a_view_without_depth(tiny_scene, tmp_path):
+    (tmp_path / "m.ply").write_text("keep")
+    proc = run_cli("mesh", tiny_scene, "-o", tmp_path / "m.ply")
+    assert proc.returncode == 2 and "exists" in proc.stderr
+    assert (tmp_path / "m.ply").read_text() == "keep"
+    proc = run_cli("mesh", tiny_scene, "-o", tmp_path / "m.obj")
+    assert proc.returncode == 2 and "PLY" in proc.stderr
