@@ -7,6 +7,8 @@
   roofs (the variational paper);
 - :mod:`modeling.blocks`: 2D supports, a library of parametric 3D blocks, RJMCMC under
   simulated annealing (the DEM-blocks paper);
+- :mod:`modeling.lod`: MRF labelling, regular roof planes, segment arrangements, LOD0/1/2
+  (the LOD paper);
 - :mod:`modeling.shared`: what more than one path uses (graph cuts, planes, roof meshes,
   outline regularity, roof types). No path imports another path.
 
@@ -14,11 +16,12 @@ To add a path: a folder with an options dataclass, a run function returning a
 ``ModelRun``, and a ``SPEC`` in its ``__init__``; then list it in ``PATHS`` below.
 """
 
-from . import blocks, parametric, superpixel, voxel
+from . import blocks, lod, parametric, superpixel, voxel
 from .registry import Input, PathSpec
 
 PATHS: dict[str, PathSpec] = {
-    spec.name: spec for spec in (superpixel.SPEC, voxel.SPEC, parametric.SPEC, blocks.SPEC)
+    spec.name: spec
+    for spec in (superpixel.SPEC, voxel.SPEC, parametric.SPEC, blocks.SPEC, lod.SPEC)
 }
 
 __all__ = ["PATHS", "Input", "PathSpec"]

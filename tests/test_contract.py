@@ -96,7 +96,8 @@ def test_model_city_json_is_cityjson_every_reader_takes(path_run):
     assert "semantics surfaces = ['GroundSurface', 'RoofSurface', 'WallSurface']" in info
     for b in record["buildings"]:
         obj = doc["CityObjects"][f"{spec.name}-{b['id']}"]
-        assert [g["lod"] for g in obj["geometry"]] == ["0", "1.2", b["lod"]]
+        lods = [g["lod"] for g in obj["geometry"]]
+        assert lods[:2] == ["0", "1.2"] and lods[-1] == b["lod"]  # the LOD path adds 1.3
         a = obj["attributes"]
         assert a["roofType"] == b["roof_type"] and a["ridge_z"] == b["ridge_z"]
         assert b["base_z"] < a["lod1_z"] <= b["ridge_z"]

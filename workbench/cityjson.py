@@ -5,7 +5,8 @@ Each building is a ``Building`` city object with three geometries:
 - LOD0: its footprint at its base height (``MultiSurface``);
 - LOD1.2: the footprint extruded to the height that keeps the model's volume (``Solid``);
 - the path's mesh at the path's level of detail (2.2 with roof planes, 1.3 for flat
-  multi-level tops), its coplanar triangles merged into planar polygons with semantic
+  multi-level tops), after any other level the path makes (the LOD path's 1.3), each
+  mesh's coplanar triangles merged into planar polygons with semantic
   surfaces: ``RoofSurface`` (with slope and azimuth), ``WallSurface``, ``GroundSurface``
   and ``OuterCeilingSurface`` (a downward face above the base).
 
@@ -137,6 +138,10 @@ def _building_object(b, pool: _VertexPool, rms_m: float | None) -> dict:
         if np.isfinite(top_z) and top_z > b.base_z:
             geometry.append(_prism(footprint, b.base_z, top_z, pool))
     base_local = b.base_z - pool.origin[2] if np.isfinite(b.base_z) else local[:, 2].min()
+    for lod, mesh in sorted(b.lods.items()):
+        c, t, _ = weld(mesh.vertices - pool.origin, mesh.triangles, SCALE_M, MERGE_M)
+        if len(t):
+            geometry.append(_mesh_solid(c * SCALE_M, t, pool.add(c), lod, base_local))
     if len(tri):
         geometry.append(_mesh_solid(local, tri, first, b.lod, base_local))
     return {

@@ -420,7 +420,7 @@ def cmd_fusion(args) -> int:
 def cmd_mesh(args) -> int:
     from fusion.scene_mesh import integrate_views
     from workbench.meshio import write_ply
-    from workbench.model_run import _crs_text
+    from workbench.model_run import crs_text
     from workbench.scene import load_scene
 
     out = args.out
@@ -434,7 +434,7 @@ def cmd_mesh(args) -> int:
     partial = out.with_name(f".{out.name}.partial")
     out.parent.mkdir(parents=True, exist_ok=True)
     write_ply(partial, mesh.vertices, mesh.triangles, vertex_colors=mesh.colors,
-              comments=[f"crs {_crs_text(scene.crs)}"])  # fmt: skip
+              comments=[f"crs {crs_text(scene.crs)}"])  # fmt: skip
     partial.replace(out)
     r = mesh.record
     print(
@@ -544,10 +544,13 @@ def cmd_compare(args) -> int:
 
 def cmd_demo(args) -> int:
     from data_samples.generate import generate_sample
+    from fusion.options import FusionOptions
     from fusion.run import run_fusion
+    from fusion.scene_mesh import integrate_views
     from modeling import PATHS
     from modeling.blocks.options import BlocksOptions
     from modeling.blocks.path import run_blocks
+    from modeling.lod.path import run_lod
     from modeling.parametric.path import run_parametric
     from modeling.superpixel.options import SuperpixelOptions
     from modeling.superpixel.path import run_superpixel
@@ -556,23 +559,27 @@ def cmd_demo(args) -> int:
 
     from .atomic import check_output_dir
     from .compare import compare_runs, summary
-    from .model_run import write_model_run
+    from .meshio import write_ply
+    from .model_run import crs_text, write_model_run
+    from .scene import load_scene
     from .truth import load_scene_truth
 
     t0 = time.perf_counter()
     scene_dir, fusion_dir, report_dir = args.out / "scene", args.out / "fusion", args.out / "report"
     superpixel_dir, voxel_dir = args.out / "superpixel", args.out / "voxel"
     parametric_dir, blocks_dir = args.out / "parametric", args.out / "blocks"
+    mesh_path, mesh_fusion_dir, lod_dir = (args.out / "mesh.ply", args.out / "mesh_fusion",
+                                           args.out / "lod")  # fmt: skip
     check_output_dir(args.out, overwrite=args.overwrite)
     args.out.mkdir(parents=True, exist_ok=True)
-    print(f"1/7 generating the tiny sample city (seed {args.seed}) ...", flush=True)
+    print(f"1/8 generating the tiny sample city (seed {args.seed}) ...", flush=True)
     meta = generate_sample(scene_dir, "tiny", args.seed, overwrite=True)
     c = meta["counts"]
     roofs = ", ".join(f"{n} {kind}" for kind, n in c["roof_types"].items())
     print(f"    {c['buildings']} buildings ({roofs}), {c['trees']} trees, {c['views']} views "
           f"with depth maps, calibration error {meta['calibration_error_px_rms']:.2f} px RMS, "
           f"in {meta['timing']['total']:.1f} s")  # fmt: skip
-    print("2/7 fusing the views into ortho, DSM/DTM/nDSM and classes ...", flush=True)
+    print("2/8 fusing the views into ortho, DSM/DTM/nDSM and classes ...", flush=True)
     command = args.command_line
     record = run_fusion(fusion_dir, scene=scene_dir, truth=scene_dir, overwrite=True,
                         command=command)  # fmt: skip
@@ -582,29 +589,43 @@ def cmd_demo(args) -> int:
         f"      mean fusion instead of the median: DSM RMSE {q['dsm_mean_fusion']['rmse_m']:.2f} "
         f"m, ortho MAE {q['ortho_mae_mean_fusion']['mean']:.1f}"
     )
-    print("3/7 super-pixel modeling: Quickshift, class CRF, roof prototypes, LOD2 ...", flush=True)
+    print("3/8 super-pixel modeling: Quickshift, class CRF, roof prototypes, LOD2 ...", flush=True)
     run = run_superpixel(fusion_dir, SuperpixelOptions(seed=args.seed), truth=scene_dir)
     sp = write_model_run(run, superpixel_dir, overwrite=True, command=command)
     print("    " + model_summary(PATHS["superpixel"], sp, superpixel_dir).replace("\n", "\n  "))
-    print("4/7 voxel modeling: photo-consistency proxies, surface graph cut textures ...",
+    print("4/8 voxel modeling: photo-consistency proxies, surface graph cut textures ...",
           flush=True)  # fmt: skip
     run = run_voxel(scene_dir, VoxelOptions(seed=args.seed), fusion_dir=fusion_dir)
     vx = write_model_run(run, voxel_dir, overwrite=True, command=command)
     print("    " + model_summary(PATHS["voxel"], vx, voxel_dir).replace("\n", "\n  "))
-    print("5/7 parametric modeling: level set, footprint priors, five-parameter roofs ...",
+    print("5/8 parametric modeling: level set, footprint priors, five-parameter roofs ...",
           flush=True)  # fmt: skip
     pm = write_model_run(run_parametric(fusion_dir), parametric_dir, overwrite=True,
                          command=command)  # fmt: skip
     print("    " + model_summary(PATHS["parametric"], pm, parametric_dir).replace("\n", "\n  "))
-    print("6/7 block modeling: 2D supports, library of 3D blocks, RJMCMC ...", flush=True)
+    print("6/8 block modeling: 2D supports, library of 3D blocks, RJMCMC ...", flush=True)
     bk = write_model_run(run_blocks(fusion_dir, BlocksOptions(seed=args.seed)), blocks_dir,
                          overwrite=True, command=command)  # fmt: skip
     print("    " + model_summary(PATHS["blocks"], bk, blocks_dir).replace("\n", "\n  "))
-    print("7/7 scoring the runs against the truth ...", flush=True)
+    print("7/8 LOD modeling from the views' mesh: TSDF mesh, orthogonal sampling, MRF "
+          "labelling, regular roof planes, LOD0/1/2 ...", flush=True)  # fmt: skip
+    scene = load_scene(scene_dir)
+    mesh = integrate_views(scene)
+    write_ply(mesh_path, mesh.vertices, mesh.triangles, vertex_colors=mesh.colors,
+              comments=[f"crs {crs_text(scene.crs)}"])  # fmt: skip
+    run_fusion(mesh_fusion_dir, mesh=mesh_path, overwrite=True, command=command,
+               options=FusionOptions(gsd=scene.gsd, bounds=tuple(scene.bounds)))  # fmt: skip
+    ld = write_model_run(run_lod(mesh_fusion_dir, labels=scene_dir / "training" / "labels.tif"),
+                         lod_dir, overwrite=True, command=command)  # fmt: skip
+    print(
+        f"    mesh {mesh.record['triangles']:,} triangles; "
+        + model_summary(PATHS["lod"], ld, lod_dir).replace("\n", "\n  ")
+    )
+    print("8/8 scoring the runs against the truth ...", flush=True)
     doc = compare_runs(
-        [fusion_dir, superpixel_dir, voxel_dir, parametric_dir, blocks_dir],
+        [fusion_dir, superpixel_dir, voxel_dir, parametric_dir, blocks_dir, lod_dir],
         load_scene_truth(scene_dir), report_dir,
-        names=["fusion", "superpixel", "voxel", "parametric", "blocks"], overwrite=True,
+        names=["fusion", "superpixel", "voxel", "parametric", "blocks", "lod"], overwrite=True,
     )  # fmt: skip
     print()
     print(summary(doc))

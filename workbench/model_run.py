@@ -95,6 +95,9 @@ class Building:
         checked it (None: checked when written).
     record : dict
         What else the path says of it (written after the common keys).
+    lods : {lod: Surface}
+        The same building at other levels of detail the path makes (model.city.json
+        writes each beside ``mesh``).
     """
 
     id: str
@@ -109,6 +112,7 @@ class Building:
     ridge_z: float = float("nan")
     watertight: bool | None = None
     record: dict = field(default_factory=dict)
+    lods: dict = field(default_factory=dict)
 
     def common_record(self) -> dict:
         """The keys every path's buildings share in model.json (``BUILDING_KEYS``)."""
@@ -196,7 +200,7 @@ class ModelRun:
             "schema": SCHEMA,
             "method": self.method,
             "provenance": provenance(command),
-            "crs": _crs_text(self.crs),
+            "crs": crs_text(self.crs),
             "parameters": {**options_record(self.options), **self.parameters},
             "inputs": self.inputs,
             "buildings": buildings,
@@ -308,7 +312,7 @@ def _rounded(v: float) -> float | None:
     return round(float(v), 3) if v is not None and np.isfinite(v) else None
 
 
-def _crs_text(crs) -> str | None:
+def crs_text(crs) -> str | None:
     if crs is None:
         return None
     return crs.to_string() if crs.to_epsg() else crs.to_wkt()

@@ -1,0 +1,144 @@
+"""MRF labelling (the LOD paper, section 4.2, eq. 3-6): ground, grass, tree and building
+from the tree probability and a normalised height, the ground height re-estimated from
+each labelling's ground, then an opening and a closing of the buildings."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from modeling.shared.graph_cuts import alpha_expansion
+
+GROUND, GRASS, TREE, BUILDING = 1, 2, 3, 4  # the workbench's class codes
+
+
+def normalised_height(h: np.ndarray, h_ground: np.ndarray, h_trunc: float) -> np.ndarray:
+    """h_n = L(max(h - h_ground, 0)), L(x) = 1 / (1 + exp(-2 (x - h_trunc))) (eq. 3);
+    0.5 where the height is unknown (no preference)."""
+    x = np.maximum(h - h_ground, 0.0)
+    hn = 1.0 / (1.0 + np.exp(-2.0 * (x - h_trunc)))
+    return np.where(np.isfinite(hn), hn, 0.5)
+
+
+def data_term(hn: np.ndarray, t: np.ndarray, paper: bool = False) -> np.ndarray:
+    """(H, W, 4) D(l) for l = ground, grass, tree, building.
+
+    Eq. 4 ranks the labels by the products of h_n and t: ground low and not a tree, grass
+    low and tree-like, tree high and tree-like, building high and not a tree. As costs
+    (``paper``) the products leave ground and grass a margin of h_n |2t - 1| (0.0025 |2t -
+    1| on flat ground) against a pairwise term of up to mu per edge, so the smoothness
+    alone decides between them. Here each label costs the negative logarithm of its
+    product, P(ground) = (1 - h_n)(1 - t), P(grass) = (1 - h_n) t, P(tree) = h_n t,
+    P(building) = h_n (1 - t) (a distribution over the four labels), clipped at 1e-3.
+    """
+    if paper:
+        return np.stack([hn * t, hn * (1 - t), (1 - hn) * (1 - t), (1 - hn) * t], axis=-1)
+    P = np.stack([(1 - hn) * (1 - t), (1 - hn) * t, hn * t, hn * (1 - t)], axis=-1)
+    return -np.log(np.clip(P, 1e-3, 1.0))
+
+
+def grid_edges(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """4-neighbour edges (E, 2) of a (H, W) grid in row-major order and their weights
+    1 - [|h_i - h_j|]_0^1 (eq. 5: a height step of a metre or more costs nothing to cut;
+    unknown heights count as a step of none)."""
+    H, W = h.shape
+    idx = np.arange(H * W).reshape(H, W)
+    pairs, dh = [], []
+    for a, b, da in ((idx[:, :-1], idx[:, 1:], h[:, :-1] - h[:, 1:]),
+                     (idx[:-1], idx[1:], h[:-1] - h[1:])):  # fmt: skip
+        pairs.append(np.column_stack([a.ravel(), b.ravel()]))
+        dh.append(np.nan_to_num(np.abs(da.ravel()), nan=0.0))
+    return np.concatenate(pairs), 1.0 - np.clip(np.concatenate(dh), 0.0, 1.0)
+
+
+def ground_heights(h: np.ndarray, labels: np.ndarray | None, block: int) -> np.ndarray:
+    """h_ground per cell: per block of ``block`` cells, the lowest height (its first
+    percentile, robust to a stray low point) before any labelling, then the mean height
+    of the block's ground cells; interpolated bilinearly between the blocks' centres.
+    A block without ground cells takes the mean of its neighbours'."""
+    H, W = h.shape
+    nb_r, nb_c = max(1, round(H / block)), max(1, round(W / block))
+    rows = np.array_split(np.arange(H), nb_r)
+    cols = np.array_split(np.arange(W), nb_c)
+    g = np.full((nb_r, nb_c), np.nan)
+    for i, r in enumerate(rows):
+        for j, c in enumerate(cols):
+            z = h[np.ix_(r, c)]
+            if labels is None:
+                z = z[np.isfinite(z)]
+                g[i, j] = np.percentile(z, 1) if len(z) else np.nan
+            else:
+                z = z[(labels[np.ix_(r, c)] == GROUND) & np.isfinite(z)]
+                g[i, j] = z.mean() if len(z) else np.nan
+    while np.isnan(g).any() and np.isfinite(g).any():
+        padded = np.pad(g, 1, constant_values=np.nan)
+        near = np.stack([padded[1 + dr : 1 + dr + nb_r, 1 + dc : 1 + dc + nb_c]
+                         for dr in (-1, 0, 1) for dc in (-1, 0, 1)])  # fmt: skip
+        with np.errstate(invalid="ignore"), _quiet():
+            fill = np.nanmean(near, axis=0)
+        g = np.where(np.isnan(g), fill, g)
+    if not np.isfinite(g).any():
+        return np.zeros_like(h)
+    return cv2.resize(g.astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR)
+
+
+def mrf_labelling(
+    h: np.ndarray,
+    t: np.ndarray,
+    h_trunc: float = 3.0,
+    mu: float = 1.0,
+    iterations: int = 3,
+    block: int = 200,
+) -> tuple[np.ndarray, np.ndarray, list[float]]:
+    """Eq. 6 minimised by alpha-expansion, ``iterations`` times, h_ground re-estimated
+    from each labelling's ground cells.
+
+    Parameters
+    ----------
+    h : (H, W) float
+        Heights (the DSM), metres, NaN unknown.
+    t : (H, W) float
+        Tree probability in [0, 1].
+    block : int
+        Side of a ground block, cells.
+
+    Returns
+    -------
+    labels : (H, W) uint8 codes 1-4
+    h_ground : (H, W) float32, the last ground heights
+    mean_ground : list of float, the mean ground height after each iteration (metres):
+        its convergence
+    """
+    edges, weights = grid_edges(h)
+    labels, trace = None, []
+    for _ in range(max(iterations, 1)):
+        h_ground = ground_heights(h, labels, block)
+        unary = data_term(normalised_height(h, h_ground, h_trunc), t).reshape(-1, 4)
+        init = labels.ravel() - 1 if labels is not None else None
+        labels = (alpha_expansion(unary, edges, weights, mu, init=init) + 1).reshape(h.shape)
+        trace.append(round(float(h_ground.mean()), 3))
+    return labels.astype(np.uint8), h_ground, trace
+
+
+def open_close(mask: np.ndarray, radius: int) -> np.ndarray:
+    """A morphological opening (breaks weakly connected buildings) then a closing (fills
+    small holes) by a disc of ``radius`` cells."""
+    if radius <= 0:
+        return mask
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    m = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, disc)
+    return cv2.morphologyEx(m, cv2.MORPH_CLOSE, disc) > 0
+
+
+class _quiet:
+    """Silence NumPy's warning on an all-NaN neighbourhood (filled on a later pass)."""
+
+    def __enter__(self):
+        import warnings
+
+        self._w = warnings.catch_warnings()
+        self._w.__enter__()
+        warnings.simplefilter("ignore", RuntimeWarning)
+
+    def __exit__(self, *exc):
+        return self._w.__exit__(*exc)

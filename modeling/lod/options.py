@@ -1,0 +1,55 @@
+"""The LOD path's options: the one place their defaults are declared."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from workbench.options import comma_choices, documented, option
+
+LODS = ("0", "1", "2")
+
+
+@documented
+@dataclass
+class LodOptions:
+    """Parameters of the LOD path (the LOD paper's values where it gives them: h_trunc
+    3 m, mu 1, three ground iterations, 200 boosting rounds, a collinear threshold of
+    0.5 m, beta 10; the departures are listed in ``docs/lod.md``)."""
+
+    lod: tuple[str, ...] = option(
+        LODS, "levels of detail made: 0 the footprint, 1 each face at its plane's mean "
+        "height, 2 each face on its roof plane; the highest is each building's mesh, the "
+        "others go into model.city.json", parse=comma_choices(LODS), metavar="0,1,2",
+    )  # fmt: skip
+    h_trunc: float = option(
+        3.0, "midpoint of the logistic normalised height (eq. 3): a one-storey building",
+        unit="m",
+    )  # fmt: skip
+    mu: float = option(1.0, "weight of the labelling's smoothness (eq. 6)", kind="non_negative")
+    angle_threshold: float = option(
+        10.0, "angle within which a normal counts for a facade or roof direction (eq. 7-8, "
+        "ang_thre) and a segment is turned onto a facade direction", unit="deg",
+    )  # fmt: skip
+    beta: float = option(
+        10.0, "weight of the face labelling's smoothness (eq. 11)", kind="non_negative"
+    )  # fmt: skip
+    collinear_m: float = option(
+        0.5, "segments of one direction closer than this are merged into one line", unit="m"
+    )  # fmt: skip
+    ground_iterations: int = option(
+        3, "MRF labellings, each re-estimating the ground height from the last's ground",
+    )  # fmt: skip
+    ground_block_m: float = option(
+        50.0, "side of the blocks with one ground height each (the paper's block)", unit="m"
+    )  # fmt: skip
+    boost_rounds: int = option(200, "decision stumps of the tree classifier (eq. 1, T)")
+    plane_inlier_m: float = option(
+        0.3, "a cell belongs to a roof plane within this distance", unit="m"
+    )  # fmt: skip
+    min_plane_m2: float = option(4.0, "smallest roof plane detected", unit="m2")
+    min_area_m2: float = option(20.0, "smallest building kept", unit="m2", flag="--min-area")
+    opening_m: float = option(
+        1.0, "radius of the opening (then closing) of the building class", unit="m",
+        kind="non_negative",
+    )  # fmt: skip
+    seed: int = option(0, "seed of the RANSACs and the classifier", kind="non_negative")

@@ -1,0 +1,200 @@
+"""The LOD path: each paper step on a hand-made case, then the path end to end from the
+tiny city's mesh (`workbench mesh`, `fusion --mesh`), as a user runs it."""
+
+import json
+
+import numpy as np
+import pytest
+
+from modeling.lod.arrangement import arrangement_faces, label_faces, planarity_weight
+from modeling.lod.facades import facade_directions
+from modeling.lod.labelling import (
+    BUILDING,
+    GRASS,
+    GROUND,
+    TREE,
+    mrf_labelling,
+    normalised_height,
+)
+from modeling.lod.segments import regularise_segments
+from modeling.lod.shapes import roof_directions, roof_planes, snap_to_facades
+from modeling.lod.tree_probability import train_tree_classifier, tree_features, tree_probability
+from tests.conftest import run_cli
+from workbench.cityjson_check import check_city_model
+
+
+def test_normalised_height_is_a_logistic_about_h_trunc():
+    h = np.array([10.0, 13.0, 14.0, 5.0, np.nan])
+    hn = normalised_height(h, np.full(5, 10.0), 3.0)
+    assert hn[1] == pytest.approx(0.5)
+    assert hn[2] == pytest.approx(1 / (1 + np.exp(-2.0)))
+    assert hn[0] == hn[3] == pytest.approx(1 / (1 + np.exp(6.0)))  # below ground: 0 m
+    assert hn[4] == 0.5
+
+
+def test_mrf_labels_the_four_quadrants_and_finds_the_ground():
+    # ground 20 m; left half low, right half 8 m up; top half tree-like
+    h = np.full((40, 40), 20.0)
+    h[:, 20:] = 28.0
+    t = np.zeros((40, 40))
+    t[:20] = 0.9
+    t[20:] = 0.1
+    labels, h_ground, trace = mrf_labelling(h, t, block=40)
+    assert (labels[:20, :20] == GRASS).all() and (labels[:20, 20:] == TREE).all()
+    assert (labels[20:, :20] == GROUND).all() and (labels[20:, 20:] == BUILDING).all()
+    assert trace[-1] == pytest.approx(20.0)  # the mean of the ground cells
+
+
+def test_facade_directions_from_noisy_wall_normals():
+    rng = np.random.default_rng(0)
+    angles = np.radians(np.r_[np.full(60, 30.0), np.full(40, 120.0), np.full(40, 210.0)])
+    angles += rng.normal(0, np.radians(2), angles.size)
+    outliers = rng.uniform(0, 2 * np.pi, 20)
+    a = np.r_[angles, outliers]
+    theta, share = facade_directions(np.column_stack([np.cos(a), np.sin(a)]), 10.0)
+    assert np.degrees(theta) == pytest.approx(30.0, abs=0.5)
+    assert share == pytest.approx(140 / 160, abs=0.04)
+
+
+def test_segments_near_the_facades_are_turned_and_merged():
+    theta = np.radians(30.0)
+    u = np.array([np.cos(theta), -np.sin(theta)])  # image axes: rows run south
+    v = np.array([-u[1], u[0]])
+    a = np.r_[10 * u + 0.0 * v, 30 * u + 0.3 * v]  # 1 degree off, 20 cells
+    b = np.r_[35 * u + 0.2 * v, 50 * u + 0.2 * v]  # collinear within 0.5, beyond it
+    c = np.r_[0, 0, 10, 10]  # 45 degrees off both: kept as it is (14 cells)
+    seg, regular = regularise_segments(np.array([a, b, c]), theta, 5.0, 0.5, 5.0)
+    assert regular.tolist() == [True, False]
+    d = seg[0, 2:] - seg[0, :2]
+    assert np.degrees(np.arctan2(-d[1], d[0])) == pytest.approx(30.0, abs=1e-9)
+    assert np.hypot(*d) == pytest.approx(40.0, abs=0.2)  # the union of both extents
+
+
+def gable_points(theta_deg=20.0, slope_deg=30.0, noise=0.02, seed=0):
+    """A gable roof 12 x 8 m, ridge along theta, cells of 0.25 m: points and normals."""
+    rng = np.random.default_rng(seed)
+    t = np.radians(theta_deg)
+    u, w = np.array([np.cos(t), np.sin(t)]), np.array([-np.sin(t), np.cos(t)])
+    s, r = np.meshgrid(np.arange(-6, 6, 0.25), np.arange(-4, 4, 0.25))
+    xy = s.ravel()[:, None] * u + r.ravel()[:, None] * w
+    k = np.tan(np.radians(slope_deg))
+    z = 20.0 - k * np.abs(r.ravel()) + rng.normal(0, noise, r.size)
+    side = np.sign(r.ravel() + 1e-9)
+    n = np.column_stack([side[:, None] * k * w, np.ones(r.size)])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    n[:, :2] += rng.normal(0, 0.02, (r.size, 2))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return np.column_stack([xy, z]), n
+
+
+def test_roof_planes_are_z_symmetric_along_the_facades():
+    points, normals = gable_points()
+    theta = np.radians(20.0)
+    dirs = roof_directions(normals, theta, 10.0, 20)
+    assert len(dirs) == 1  # one direction and its twin
+    planes = roof_planes(points, normals, dirs, 10.0, 0.3, 20)
+    assert len(planes) == 2
+    assert planes[0, :2] == pytest.approx(-planes[1, :2])  # z-symmetric by construction
+    slope = np.degrees(np.arccos(planes[:, 2]))
+    assert slope == pytest.approx([30.0, 30.0], abs=1.5)
+    # each normal lies in the vertical plane of a facade direction
+    assert snap_to_facades(planes[:, :3], theta) == pytest.approx(planes[:, :3])
+
+
+def test_a_flat_roof_gives_the_horizontal_plane():
+    s, r = np.meshgrid(np.arange(0, 5, 0.25), np.arange(0, 5, 0.25))
+    points = np.column_stack([s.ravel(), r.ravel(), np.full(s.size, 12.0)])
+    normals = np.tile([0.0, 0.0, 1.0], (s.size, 1))
+    dirs = roof_directions(normals, 0.0, 10.0, 20)
+    planes = roof_planes(points, normals, dirs, 10.0, 0.3, 20)
+    assert planes.tolist() == [[0.0, 0.0, 1.0, -12.0]]
+
+
+def test_a_segment_slices_a_square_and_the_faces_take_their_planes():
+    mask = np.zeros((20, 20), bool)
+    mask[2:18, 2:18] = True
+    faces = arrangement_faces(mask, np.array([[10.0, 0.0, 10.0, 19.0]]), 1.0)
+    assert faces.max() == 2 and (faces[mask] > 0).all()
+    # west half on z = 10 + 0.5 x, east half flat at 15
+    X, Y = np.meshgrid(np.arange(20.0), np.arange(20.0))
+    Z = np.where(X < 10, 10 + 0.5 * X, 15.0)
+    pts = np.dstack([X, Y, Z])
+    n1 = np.array([-0.5, 0.0, 1.0]) / np.hypot(0.5, 1)
+    planes = np.array([[*n1, -10 * n1[2]], [0, 0, 1, -15.0]])
+    west = faces[10, 5] - 1
+    labels = label_faces(faces, pts, planes, beta=10.0, gsd=1.0)
+    assert labels[west] == 0 and labels[1 - west] == 1
+
+
+def test_planarity_weight_is_one_in_a_plane_and_less_off_it():
+    rng = np.random.default_rng(0)
+    flat = np.column_stack([rng.uniform(0, 5, (50, 2)), np.zeros(50)])
+    blob = rng.normal(0, 1, (1000, 3))
+    assert planarity_weight(flat[:25], flat[25:]) == pytest.approx(1.0)
+    assert planarity_weight(blob[:500], blob[500:]) < 0.1
+
+
+def test_the_tree_classifier_learns_green_crowns_from_strokes():
+    rng = np.random.default_rng(0)
+    img = np.full((60, 60, 3), 120, np.uint8)
+    img[:, 30:] = (40, 110, 40)  # east half green, textured
+    img[:, 30:] += rng.integers(0, 40, (60, 30, 1)).astype(np.uint8)
+    strokes = np.zeros((60, 60), np.int64)
+    strokes[5:10, 5:25] = 1  # ground
+    strokes[5:10, 35:55] = 3  # tree
+    F = tree_features(img)
+    assert F.shape == (60, 60, 26)
+    t = tree_probability(train_tree_classifier(F, strokes, rounds=20), F)
+    assert t[40:, 35:55].mean() > 0.8 and t[40:, 5:25].mean() < 0.2
+
+
+@pytest.fixture(scope="module")
+def lod_run(tiny_scene, tmp_path_factory):
+    root = tmp_path_factory.mktemp("lod")
+    for args in (("mesh", tiny_scene, "-o", root / "city.ply"),
+                 ("fusion", "--mesh", root / "city.ply", "-o", root / "fusion", "--gsd", "0.25",
+                  "--bounds", "-32", "-32", "32", "32"),
+                 ("model", "lod", root / "fusion", "-o", root / "lod", "--labels",
+                  tiny_scene / "training" / "labels.tif"),
+                 ("compare", root / "lod", "--truth", tiny_scene, "-o",
+                  root / "report")):  # fmt: skip
+        proc = run_cli(*args)
+        assert proc.returncode == 0, proc.stderr
+    metrics = json.loads((root / "report" / "metrics.json").read_text())["runs"]["lod"]
+    return root, json.loads((root / "lod" / "model.json").read_text()), metrics
+
+
+def test_lod_end_to_end_from_the_mesh(lod_run):
+    root, record, m = lod_run
+    # measured on the tiny city: classes 0.926, 2D 0.770, 6 of 6, plane angle 0.8 deg
+    assert m["classification"]["overall_accuracy"] > 0.9
+    assert m["footprint_2d"]["objects"]["found"] == 6
+    assert m["footprint_2d"]["quality"] > 0.72
+    assert m["roofs"]["plane_angle_median_deg"] < 2.0
+    assert m["complexity"]["watertight_fraction"] == 1.0
+    b = record["buildings"][0]
+    assert b["facade_inlier_share"] > 0.3 and b["planes_detected"] >= 1
+    assert record["labelling"]["tree_probability"].startswith("AdaBoost")
+    assert (root / "lod" / "class.tif").exists()
+
+
+def test_lod_city_json_holds_every_level(lod_run):
+    root, record, _ = lod_run
+    doc = json.loads((root / "lod" / "model.city.json").read_text())
+    assert check_city_model(doc) == []
+    for obj in doc["CityObjects"].values():
+        assert [g["lod"] for g in obj["geometry"]] == ["0", "1.2", "1.3", "2.2"]
+
+
+def test_lod_bad_input_is_one_line(tmp_path, lod_run):
+    root, _, _ = lod_run
+    proc = run_cli("model", "lod", root / "fusion", "-o", tmp_path / "out", "--lod", "0")
+    assert proc.returncode == 2 and "--lod" in proc.stderr and not (tmp_path / "out").exists()
+    bad = tmp_path / "labels.tif"
+    from workbench.raster import read_raster, write_raster
+
+    data, grid, crs = read_raster(root / "fusion" / "dsm.tif")
+    write_raster(bad, np.full(data.shape[1:], 7, np.uint8), grid, crs, nodata=None)
+    proc = run_cli("model", "lod", root / "fusion", "-o", tmp_path / "out2", "--labels", bad)
+    assert proc.returncode == 2 and str(bad) in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "out2").exists()
