@@ -226,3 +226,31 @@ def test_summary_marks_every_tied_best_run():
 def test_bar_chart_draws_one_bar_per_value():
     svg = bar_chart_svg(["1", "2"], {"a": [5.0, -3.0], "b": [None, 1.0]}, "%")
     assert svg.startswith("<svg") and svg.count("<rect") == 3 + 2  # bars + legend keys
+
+
+def test_outline_regularity_counts_edges_on_the_facade_directions():
+    from shapely import affinity
+    from shapely.geometry import Polygon, box
+
+    from workbench.metrics import outline_regularity
+
+    rect = affinity.rotate(box(0, 0, 20, 10), 30, origin=(0, 0))
+    assert outline_regularity([rect])["edges_within_2deg"] == pytest.approx(1.0)
+    # one side of five 10 degrees off: the other four hold the directions
+    bent = Polygon([(0, 0), (20, 0), (20, 10), (10, 10), (0, 10 - 10 * np.tan(np.radians(10)))])
+    r = outline_regularity([bent, None])
+    assert r["edges"] == 5 and r["edges_within_2deg"] == pytest.approx(4 / 5)
+
+
+def test_symmetric_plane_pairs_need_the_same_slope_facing_away():
+    from workbench.metrics import symmetric_plane_pairs
+
+    def n(slope, azimuth):
+        s, a = np.radians(slope), np.radians(azimuth)
+        return [np.sin(s) * np.sin(a), np.sin(s) * np.cos(a), np.cos(s)]
+
+    gable = [n(30, 90), n(30, 270)]
+    skewed = [n(30, 90), n(35, 270), [0, 0, 1.0]]  # 5 degrees apart; a flat plane
+    hipped = [n(30, 0), n(30, 90), n(30, 180), n(30, 270)]  # 2 facing pairs, 4 side by side
+    r = symmetric_plane_pairs([gable, skewed, hipped])
+    assert r["pairs"] == 1 + 1 + 2 and r["pairs_within_2deg"] == pytest.approx(3 / 4)

@@ -108,6 +108,37 @@ def check_shell(shell: list, vertices: np.ndarray) -> list[str]:
     return problems
 
 
+def lod_meshes(doc: dict, skip: tuple[str, ...] = ()) -> dict:
+    """Every level of detail of a CityJSON document as one triangle mesh: {lod: (vertices
+    (V, 3) float64 world metres, triangles (T, 3) int64)}, its polygons triangulated
+    (constrained Delaunay on their own vertices); surfaces whose semantic type is in
+    ``skip`` (such as "GroundSurface") left out."""
+    t = doc["transform"]
+    vertices = np.asarray(doc["vertices"], np.float64).reshape(-1, 3) * t["scale"] + t["translate"]
+    out: dict[str, list] = {}
+    for obj in doc.get("CityObjects", {}).values():
+        for g in obj.get("geometry", []):
+            depth = DEPTH.get(g.get("type"))
+            if depth is None:
+                continue
+            surfaces = _surfaces(g["boundaries"], depth - 2)
+            sem = g.get("semantics")
+            if sem and skip:
+                kinds = [sem["surfaces"][v]["type"] if v is not None else None
+                         for v in _leaves(sem["values"])]  # fmt: skip
+                surfaces = [sf for sf, k in zip(surfaces, kinds, strict=True) if k not in skip]
+            tris = [_triangulate(sf, vertices) for sf in surfaces]
+            out.setdefault(str(g["lod"]), []).extend(tr for tr in tris if len(tr))
+    return {lod: (vertices, np.concatenate(tris)) for lod, tris in out.items() if tris}
+
+
+def _surfaces(boundaries: list, depth: int) -> list:
+    """The surfaces (lists of rings) ``depth`` levels down a boundaries array."""
+    if depth == 1:
+        return list(boundaries)
+    return [s for item in boundaries for s in _surfaces(item, depth - 1)]
+
+
 def _check_semantics(g: dict, kind: str) -> list[str]:
     sem = g.get("semantics")
     if sem is None:

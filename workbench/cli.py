@@ -274,6 +274,11 @@ def _add_compare(sub) -> None:
     p.add_argument("-o", "--out", type=Path, required=True, metavar="REPORT", help="report folder")
     p.add_argument("--names", nargs="+", metavar="NAME", help="run names (default: folder names)")
     p.add_argument(
+        "--mesh", type=Path, metavar="MESH",
+        help="the surface mesh the runs were made from: each run's levels of detail are "
+        "scored by their RMS distance to it and their triangles (the LOD paper's Table 1)",
+    )  # fmt: skip
+    p.add_argument(
         "--tolerance",
         type=number("positive"),
         default=1.0,
@@ -535,7 +540,13 @@ def cmd_compare(args) -> int:
         tolerance_m=args.tolerance, max_error_m=args.max_error, seed=args.seed
     )
     doc = compare_runs(
-        args.runs, truth, args.out, names=args.names, options=options, overwrite=args.overwrite
+        args.runs,
+        truth,
+        args.out,
+        names=args.names,
+        options=options,
+        overwrite=args.overwrite,
+        mesh=args.mesh,
     )
     print(summary(doc))
     print(f"report: {args.out / 'report.html'}")

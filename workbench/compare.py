@@ -10,11 +10,13 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_output_dir
+from .cityjson_check import lod_meshes
 from .errors import InputError, WorkbenchError
 from .evaluate import Evaluation, EvaluationOptions, evaluate, stacked_meshes
 from .imageio import write_rgb
-from .meshes import concatenate_meshes, raster_mesh
+from .meshes import concatenate_meshes, raster_mesh, read_mesh, sample_surface, triangle_areas
 from .pictures import colorize_classes, colorize_error, colorize_height
+from .raycast import raycasting_scene, unsigned_distance
 from .render import render_mesh, viewpoints
 from .report import report_html, summary_text
 from .runs import Run, load_run
@@ -33,9 +35,12 @@ def compare_runs(
     names: list[str] | None = None,
     options: EvaluationOptions | None = None,
     overwrite: bool = False,
+    mesh: Path | None = None,
 ) -> dict:
     """Score every run folder against ``truth`` and write ``out/metrics.json``,
-    ``out/report.html`` and ``out/figures/*.png``.
+    ``out/report.html`` and ``out/figures/*.png``. With ``mesh`` (the surface mesh the
+    runs were made from), each model run's levels of detail in model.city.json are scored
+    by their RMS distance to it and their triangles (the LOD paper's Table 1).
 
     Returns
     -------
@@ -54,6 +59,12 @@ def compare_runs(
             t0 = time.perf_counter()
             evaluations[run.name] = evaluate(run, truth, options)
             log.info("scored %s in %.1f s", run.name, time.perf_counter() - t0)
+        if mesh is not None:
+            scene = raycasting_scene(*read_mesh(mesh))
+            for run in runs:
+                lods = lod_accuracy(run, scene, options.seed)
+                if lods:
+                    evaluations[run.name].metrics["lods"] = lods
         doc = {
             "schema_version": SCHEMA_VERSION,
             "truth": {"grid": _grid_info(truth), "sources": truth.sources},
@@ -81,6 +92,32 @@ def compare_runs(
         )
         (tmp / "report.html").write_text(page)
     return doc
+
+
+def lod_accuracy(run: Run, scene, seed: int = 0, spacing_m: float = 0.5) -> dict:
+    """{lod: {"rms_to_mesh_m", "mean_to_mesh_m", "triangles"}} of a model run's
+    model.city.json: the distance from points spread over each level's surfaces (one per
+    ``spacing_m`` squared, at most 200,000) to the input mesh ``scene`` (a RayScene). The
+    solids' ground surfaces are left out: a surface mesh has no floor under a building, so
+    they would count their distance to its walls; the triangles are the whole model's."""
+    path = run.folder / "model.city.json"
+    if run.kind != "model" or not path.exists():
+        return {}
+    rng = np.random.default_rng(seed)
+    out = {}
+    doc = json.loads(path.read_text())
+    whole = lod_meshes(doc)
+    for lod, (V, T) in sorted(lod_meshes(doc, skip=("GroundSurface",)).items()):
+        area = float(triangle_areas(V, T).sum())
+        n = int(min(200_000, max(1000, area / spacing_m**2)))
+        points, _ = sample_surface(V, T, n, rng)
+        d = unsigned_distance(scene, points)
+        out[lod] = {
+            "rms_to_mesh_m": round(float(np.sqrt(np.mean(d**2))), 4),
+            "mean_to_mesh_m": round(float(d.mean()), 4),
+            "triangles": int(len(whole[lod][1])),
+        }
+    return out
 
 
 def summary(doc: dict) -> str:

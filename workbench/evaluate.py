@@ -180,6 +180,12 @@ def evaluate(run: Run, truth: Truth, options: EvaluationOptions | None = None) -
                     "plane_angle_median_deg": float(np.median(ang)),
                     "cells": int(both.sum()),
                 }
+        m["regularity"] = {
+            **metrics.outline_regularity([_footprint(b) for b in run.buildings]),
+            **metrics.symmetric_plane_pairs(
+                [[p["normal"] for p in b.record.get("planes") or []] for b in run.buildings]
+            ),
+        }
         texture = texture_costs(run, truth)
         if texture:
             m["texture"] = texture
@@ -337,3 +343,11 @@ def _obj_files(run: Run) -> list:
 
 def _drop_empty(d: dict) -> dict:
     return {k: v for k, v in d.items() if not (isinstance(v, dict) and not v)}
+
+
+def _footprint(b):
+    """A model building's footprint (model.json's GeoJSON), None without one."""
+    from shapely.geometry import shape
+
+    fp = b.record.get("footprint")
+    return shape(fp) if fp else None

@@ -367,3 +367,61 @@ def cost(stages: dict) -> dict:
     if mem:
         out["peak_memory_mb"] = float(max(mem))
     return out
+
+
+def outline_regularity(footprints: list, tol_deg: float = 2.0) -> dict:
+    """The share of outline edges within ``tol_deg`` of their building's facade
+    directions (the LOD paper's regularity), over every building.
+
+    A building's facade direction is the length-weighted circular mean of its edges'
+    directions modulo 90 degrees (its pair of orthogonal directions).
+
+    Parameters
+    ----------
+    footprints : list of shapely Polygon or MultiPolygon (or None)
+    """
+    within = total = 0
+    for fp in footprints:
+        if fp is None or fp.is_empty:
+            continue
+        polys = fp.geoms if hasattr(fp, "geoms") else [fp]
+        d = np.concatenate([np.diff(np.asarray(r.coords)[:, :2], axis=0) for p in polys
+                            for r in (p.exterior, *p.interiors)])  # fmt: skip
+        length = np.hypot(d[:, 0], d[:, 1])
+        d, length = d[length > 1e-6], length[length > 1e-6]
+        if not len(d):
+            continue
+        phi = np.arctan2(d[:, 1], d[:, 0])
+        theta = np.angle(np.sum(length * np.exp(4j * phi))) / 4.0
+        off = np.mod(phi - theta, np.pi / 2)
+        off = np.degrees(np.minimum(off, np.pi / 2 - off))
+        within += int((off <= tol_deg).sum())
+        total += len(off)
+    return {"edges_within_2deg": within / total if total else None, "edges": total}
+
+
+def symmetric_plane_pairs(planes: list[np.ndarray], tol_deg: float = 2.0) -> dict:
+    """The share of a building's facing roof-plane pairs (sloped planes whose downhill
+    directions differ by more than 135 degrees) whose normals are z-symmetric within
+    ``tol_deg``: same slope, opposite azimuth (the LOD paper's regularity).
+
+    Parameters
+    ----------
+    planes : list of (P, 3) arrays, the unit normals (n_z > 0) of each building's roof
+        planes
+    """
+    within = total = 0
+    for p in planes:
+        n = np.asarray(p, np.float64).reshape(-1, 3) if len(p) else np.zeros((0, 3))
+        n = n[n[:, 2] < np.cos(np.radians(5.0))]  # sloped
+        for i in range(len(n)):
+            for j in range(i + 1, len(n)):
+                h_i, h_j = n[i, :2], n[j, :2]
+                cos_az = h_i @ h_j / max(np.linalg.norm(h_i) * np.linalg.norm(h_j), 1e-12)
+                if cos_az > np.cos(np.radians(135.0)):
+                    continue
+                twin = n[j] * [-1.0, -1.0, 1.0]
+                angle = np.degrees(np.arccos(np.clip(n[i] @ twin, -1.0, 1.0)))
+                within += int(angle <= tol_deg)
+                total += 1
+    return {"pairs_within_2deg": within / total if total else None, "pairs": total}

@@ -31,6 +31,8 @@ SUMMARY_ROWS = [
     ("building height error, mean |%|", "buildings.height_error_pct_mean", "{:.1f}", -1),
     ("roof type accuracy", "buildings.roof_type_accuracy", "{:.2f}", 1),
     ("roof plane angle, median (deg)", "roofs.plane_angle_median_deg", "{:.1f}", -1),
+    ("outline edges within 2 deg of the facades", "regularity.edges_within_2deg", "{:.2f}", 1),
+    ("roof-plane pairs within 2 deg of symmetric", "regularity.pairs_within_2deg", "{:.2f}", 1),
     ("mean surface distance (m)", "surface.mean_distance_m", "{:.2f}", -1),
     ("RMS surface distance (m)", "surface.rms_distance_m", "{:.2f}", -1),
     ("Hausdorff distance (m)", "surface.hausdorff_m", "{:.2f}", -1),
@@ -45,6 +47,10 @@ SUMMARY_ROWS = [
     ("DSM median |error| (m)", "dsm.median_abs_m", "{:.3f}", -1),
     ("DSM valid cells", "dsm.valid_fraction", "{:.1%}", 1),
     ("ortho MAE (0-255)", "ortho.mae", "{:.1f}", -1),
+    *[
+        (f"LoD {lod}: RMS to the input mesh (m) / triangles", ("lods", lod), "lod", -1)
+        for lod in ("0", "1.2", "1.3", "2.2")
+    ],  # fmt: skip
     ("wall time (s)", "cost.wall_s", "{:.1f}", -1),
     ("peak memory (MiB)", "cost.peak_memory_mb", "{:.0f}", -1),
 ]
@@ -52,9 +58,10 @@ SUMMARY_ROWS = [
 RUN_COLORS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2"]
 
 
-def lookup(d: dict, path: str):
-    """``d["a"]["b"]`` for ``path`` ``"a.b"``, None when absent."""
-    for key in path.split("."):
+def lookup(d: dict, path: str | tuple):
+    """``d["a"]["b"]`` for ``path`` ``"a.b"`` (or ``("a", "b")``, for keys with a dot),
+    None when absent."""
+    for key in path.split(".") if isinstance(path, str) else path:
         if not isinstance(d, dict) or key not in d:
             return None
         d = d[key]
@@ -66,6 +73,8 @@ def format_value(value, fmt: str) -> str:
         return ""
     if fmt == "objects":
         return f"{value['found']} / {value['truth_buildings']}"
+    if fmt == "lod":
+        return f"{value['rms_to_mesh_m']:.2f} / {value['triangles']}"
     if fmt == "{:d}":
         return f"{int(value):d}"
     return fmt.format(value)

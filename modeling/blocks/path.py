@@ -20,7 +20,7 @@ from shapely.geometry import mapping
 from shapely.ops import unary_union
 
 from modeling.shared.footprint_priors import rasterize_on
-from modeling.shared.opened_parts import building_segments
+from modeling.shared.opened_parts import building_segments, mid_wall_region
 from modeling.shared.raster_ground import ground_surface, vertex_colours
 from modeling.shared.roof_envelope import building_solid, face_planes
 from workbench.engine import Engine, ThreadEngine
@@ -43,7 +43,6 @@ from .supports import (
     carried_polygon,
     junction_sides,
     junction_strips,
-    mid_wall_region,
     neighbour_pairs,
     support_cells,
     supports_from_file,

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import shapely
 from scipy import ndimage
@@ -57,29 +56,6 @@ class Support:
             ],  # fmt: skip
             "rotation_deg": round(float(np.degrees(self.frame.theta)), 3),
         }
-
-
-def mid_wall_region(
-    segment: np.ndarray, ndsm: np.ndarray, others: np.ndarray, gsd: float, reach_m: float
-) -> np.ndarray:
-    """(h, w) bool the building's cells as its DSM draws them: the cells within
-    ``reach_m`` of ``segment`` (and not of ``others``) standing above the ground by more
-    than half its eaves' height (the 10th percentile of its nDSM), connected to it.
-
-    The building class's edge wanders by a cell or two where the classifier is unsure;
-    a DSM blurs a wall over a cell or two too, and its mid-height is where the wall
-    stands. ndsm : (h, w) metres, NaN unknown."""
-    low = float(np.nanpercentile(ndsm[segment], 10)) if np.isfinite(ndsm[segment]).any() else 0.0
-    r = max(1, int(round(reach_m / gsd)))
-    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    near = cv2.dilate(segment.astype(np.uint8), disc).astype(bool) & ~others
-    high = near & (np.nan_to_num(ndsm, nan=-np.inf) > 0.5 * low)
-    # the majority of each 3 x 3: a DSM's noise leaves single cells in and out of the
-    # edge, whose staircase would outweigh the sides in the outline's direction
-    high = cv2.medianBlur(high.astype(np.uint8) * 255, 3) > 0
-    labels, _ = ndimage.label(high)
-    keep = np.unique(labels[segment & high])
-    return np.isin(labels, keep[keep > 0])
 
 
 def height_regions(

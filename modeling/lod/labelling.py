@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from scipy import ndimage as ndi
 
 from modeling.shared.graph_cuts import alpha_expansion
 
@@ -80,6 +81,25 @@ def ground_heights(h: np.ndarray, labels: np.ndarray | None, block: int) -> np.n
     if not np.isfinite(g).any():
         return np.zeros_like(h)
     return cv2.resize(g.astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR)
+
+
+def fill_from_below(h: np.ndarray, max_steps: int = 200) -> np.ndarray:
+    """``h`` with its unknown cells given the lowest known height among their neighbours,
+    layer by layer from the holes' edges inwards.
+
+    A mesh's holes are mostly occluded ground beside a wall: filled from below they stay
+    ground, where an average would raise them halfway up the wall; a hole inside a roof
+    has only roof around it and takes the roof's height.
+    """
+    out = np.array(h, np.float64, copy=True)
+    for _ in range(max_steps):
+        unknown = np.isnan(out)
+        if not unknown.any() or unknown.all():
+            break
+        low = ndi.grey_erosion(np.where(unknown, np.inf, out), size=3)
+        take = unknown & np.isfinite(low)
+        out[take] = low[take]
+    return out
 
 
 def mrf_labelling(

@@ -48,6 +48,11 @@ class LodOptions:
     )  # fmt: skip
     min_plane_m2: float = option(4.0, "smallest roof plane detected", unit="m2")
     min_area_m2: float = option(20.0, "smallest building kept", unit="m2", flag="--min-area")
+    outline_reach_m: float = option(
+        1.0, "a building's outline may move this far from the labelling's edge to where its "
+        "DSM's walls stand at half its eaves' height (0: the labelling's edge)", unit="m",
+        kind="non_negative",
+    )  # fmt: skip
     opening_m: float = option(
         1.0, "radius of the opening (then closing) of the building class", unit="m",
         kind="non_negative",

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage as ndi
 
+from modeling.shared.opened_parts import mid_wall_region
 from modeling.shared.raster_ground import ground_surface, vertex_colours
 from modeling.shared.roof_model import closed_roof_model
 from workbench.errors import InputError, WorkbenchError
@@ -30,7 +31,7 @@ from workbench.records import StageTimer, peak_memory_mb
 
 from .arrangement import arrangement_faces, label_faces
 from .facades import facade_directions, wall_normals
-from .labelling import BUILDING, GRASS, TREE, mrf_labelling, open_close
+from .labelling import BUILDING, GRASS, TREE, fill_from_below, mrf_labelling, open_close
 from .options import LodOptions
 from .segments import (
     detect_segments,
@@ -55,6 +56,7 @@ class LodInputs:
     grid: Grid
     rgb: np.ndarray
     dsm: np.ndarray
+    filled: np.ndarray  # the DSM's holes filled from below (outlines)
     dtm: np.ndarray
     normal: np.ndarray | None
 
@@ -97,14 +99,15 @@ def run_lod(
             t_source = "the fusion's grass and tree probabilities (no --labels)"
     with timer.stage("labelling"):
         block = max(1, round(options.ground_block_m / grid.gsd))
-        classes, h_ground, trace = mrf_labelling(dsm, t, options.h_trunc, options.mu,
+        filled = fill_from_below(dsm)
+        classes, h_ground, trace = mrf_labelling(filled, t, options.h_trunc, options.mu,
                                                  options.ground_iterations, block)  # fmt: skip
         radius = round(options.opening_m / grid.gsd)
         building = open_close(classes == BUILDING, radius)
         parts, n = ndi.label(building)
         sizes = np.bincount(parts.ravel(), minlength=n + 1) * grid.gsd**2
         keep = [k for k in range(1, n + 1) if sizes[k] >= options.min_area_m2]
-    inputs = LodInputs(grid, rgb, dsm, dtm, normal)
+    inputs = LodInputs(grid, rgb, dsm, filled, dtm, normal)
     buildings, painted = [], np.zeros(grid.shape, np.int64)
     with timer.stage("buildings"):
         boxes = ndi.find_objects(parts)
@@ -151,8 +154,14 @@ def building_lod(
     c0, c1 = max(box[1].start - MARGIN_CELLS, 0), min(box[1].stop + MARGIN_CELLS, W)
     win = (slice(r0, r1), slice(c0, c1))
     crop = g.window(*win)
-    mask = parts[r0:r1, c0:c1] == k
     dsm, dtm = inputs.dsm[r0:r1, c0:c1], inputs.dtm[r0:r1, c0:c1]
+    seg = parts[r0:r1, c0:c1]
+    # the outline where the mesh's rounded walls stand at mid-height
+    filled = inputs.filled[r0:r1, c0:c1]
+    mask = mid_wall_region(seg == k, filled - dtm, (seg > 0) & (seg != k), g.gsd,
+                           options.outline_reach_m)  # fmt: skip
+    if mask.sum() * g.gsd**2 < options.min_area_m2:
+        return None, np.zeros(mask.shape, np.int64), win
     normal = _normals(inputs.normal, dsm, g.gsd, win)
     X, Y = crop.cell_centers()
     points = np.dstack([X, Y, dsm])

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 FLAT_DEG = 5.0  # a normal within this of the vertical is a flat roof's
+STEEPEST_DEG = 70.0  # a surface steeper than this is a wall, not a roof
 
 
 def snap_to_facades(n: np.ndarray, theta: float) -> np.ndarray:
@@ -45,7 +46,8 @@ def roof_directions(
     """Roof directions by RANSAC (eq. 8): a hypothesis, snapped to the facades' vertical
     planes, counts the normals within ``angle_deg`` of it or of its z-symmetric twin; the
     largest consensus is kept, its inliers removed, and again while one holds at least
-    ``min_count``. The vertical (flat roofs) comes first when it holds that many.
+    ``min_count``. The vertical (flat roofs) comes first when it holds that many. Normals
+    steeper than ``STEEPEST_DEG`` are a wall's (a mesh rounds its eaves) and take no part.
 
     Parameters
     ----------
@@ -58,6 +60,7 @@ def roof_directions(
     rng = np.random.default_rng(seed)
     cos_tol = np.cos(np.radians(angle_deg))
     left = normals[np.isfinite(normals).all(axis=1)]
+    left = left[left[:, 2] >= np.cos(np.radians(STEEPEST_DEG))]  # the walls' rounded tops
     out = []
     flat = left[:, 2] >= np.cos(np.radians(FLAT_DEG))
     if flat.sum() >= min_count:
