@@ -6,7 +6,8 @@ forked from). Medians over ``--repeat`` runs; this machine is noisy.
 
 Measured: sample generation (tiny, small), workbench compare, fusion of small, the
 super-pixel, parametric, blocks and voxel paths on small (with the voxel paper's robustness
-experiment), what a noise-free sensor would score on small's height metrics
+experiment), the TSDF mesh of small's views, its orthogonal sampling and the LOD path on
+it, what a noise-free sensor would score on small's height metrics
 (benchmarks/height_floor.py), what the super-pixel path's class CRF can reach
 (benchmarks/crf_ceiling.py), the 50 AHN3 building clouds (benchmarks/ahn3.py), and
 terraced blocks from LiDAR tiles, the super-pixel path on one building region of ~30,000
@@ -308,6 +309,96 @@ print(json.dumps({"stages": r["stages"], "grid": r["inputs"]["grid"], "counts": 
                   "metrics": {k: m[k] for k in ("footprint_2d", "volume_3d", "height",
                                                  "buildings", "complexity") if k in m}}))
 """
+
+
+MESH_CHILD = r"""
+import json, sys, time
+from pathlib import Path
+from fusion.options import FusionOptions
+from fusion.run import run_fusion
+from fusion.scene_mesh import integrate_views
+from workbench.meshio import write_ply
+from workbench.model_run import crs_text
+from workbench.records import peak_memory_mb
+from workbench.scene import load_scene
+scene_dir, out = Path(sys.argv[1]), Path(sys.argv[2])
+scene = load_scene(scene_dir)
+t = time.perf_counter()
+mesh = integrate_views(scene)
+mesh_s = time.perf_counter() - t
+mesh_peak = peak_memory_mb()
+out.mkdir(parents=True, exist_ok=True)
+write_ply(out / "mesh.ply", mesh.vertices, mesh.triangles, vertex_colors=mesh.colors,
+          comments=[f"crs {crs_text(scene.crs)}"])
+t = time.perf_counter()
+r = run_fusion(out / "fusion", FusionOptions(gsd=scene.gsd, bounds=tuple(scene.bounds)),
+               mesh=out / "mesh.ply", truth=scene_dir, overwrite=True)
+print(json.dumps({"mesh_s": mesh_s, "mesh_peak_mib": mesh_peak, "record": mesh.record,
+                  "sampling_s": time.perf_counter() - t, "stages": r["stages"],
+                  "quality": r["quality"]}))
+"""
+
+
+def bench_mesh(scene: Path, repeat: int, work: Path) -> dict:
+    """``workbench mesh`` and ``workbench fusion --mesh`` on small: medians of their
+    times, seconds per million triangles, peak memory, the sampled rasters' quality."""
+    runs = [run_child(MESH_CHILD, str(scene), str(work / f"mesh_{i}")) for i in range(repeat)]
+    res = runs[0][0]
+    mesh_s = statistics.median(r[0]["mesh_s"] for r in runs)
+    sampling_s = statistics.median(r[0]["sampling_s"] for r in runs)
+    tri = res["record"]["triangles"]
+    return {"repeat": repeat, "mesh_median_s": mesh_s, "sampling_median_s": sampling_s,
+            "triangles": tri, "views": res["record"]["views"],
+            "mesh_s_per_million_triangles": mesh_s / (tri / 1e6),
+            "sampling_s_per_million_triangles": sampling_s / (tri / 1e6),
+            "mesh_peak_memory_mib": max(r[0]["mesh_peak_mib"] for r in runs),
+            "peak_memory_mib": max(r[2] for r in runs), "quality": res["quality"]}  # fmt: skip
+
+
+def print_mesh(m: dict) -> None:
+    q = m["quality"]
+    print(f"\nworkbench mesh and fusion --mesh on small, median of {m['repeat']}:")
+    print(
+        f"  TSDF mesh of {m['views']} views: {m['mesh_median_s']:.1f} s, {m['triangles']:,} "
+        f"triangles ({m['mesh_s_per_million_triangles']:.1f} s per million), peak memory "
+        f"{m['mesh_peak_memory_mib']:.0f} MiB"
+    )
+    print(
+        f"  orthogonal sampling and products: {m['sampling_median_s']:.1f} s "
+        f"({m['sampling_s_per_million_triangles']:.1f} s per million triangles); DSM RMSE "
+        f"{q['dsm']['rmse_m']:.2f} m ({q['dsm']['rmse_off_jumps_m']:.2f} off height jumps), "
+        f"valid {q['dsm']['valid_fraction']:.1%}; classes "
+        f"{q['classification']['overall_accuracy']:.3f}"
+    )
+
+
+LOD_CHILD = r"""
+import json, sys
+from pathlib import Path
+from modeling.lod.path import run_lod
+from workbench.evaluate import evaluate
+from workbench.model_run import write_model_run
+from workbench.runs import load_run
+from workbench.truth import load_scene_truth
+fusion, scene, out = (Path(a) for a in sys.argv[1:4])
+r = write_model_run(run_lod(fusion, labels=scene / "training" / "labels.tif"), out,
+                    overwrite=True)
+m = evaluate(load_run(out), load_scene_truth(scene)).metrics
+print(json.dumps({"stages": r["stages"], "grid": r["inputs"]["grid"], "counts": r["counts"],
+                  "buildings": len(r["buildings"]),
+                  "seconds_per_building": r["seconds_per_building"],
+                  "iterations_per_second": None,
+                  "metrics": {k: m[k] for k in ("classification", "footprint_2d", "volume_3d",
+                                                 "height", "buildings", "complexity",
+                                                 "regularity") if k in m}}))
+"""
+
+
+def bench_lod(fusion: Path, scene: Path, repeat: int, work: Path) -> dict:
+    """The LOD path on small's mesh fusion, timed like the task paths."""
+    res, summary = timed_path_runs(LOD_CHILD, "lod", fusion, scene, repeat, work)
+    return {**summary, "buildings": res["buildings"], "metrics": res["metrics"],
+            "iterations_per_second": None}  # fmt: skip
 
 
 def bench_task_path(name: str, fusion: Path, scene: Path, repeat: int, work: Path) -> dict:
@@ -769,6 +860,12 @@ def run_benchmarks(args) -> dict:
                 pm = bench_task_path(name, Path(tmp) / "fusion_0", scene, args.repeat, Path(tmp))
                 results[f"{name}_small"] = pm
                 print_task_path(name, pm)
+            ms = bench_mesh(scene, args.repeat, Path(tmp))
+            results["mesh_small"] = ms
+            print_mesh(ms)
+            ld = bench_lod(Path(tmp) / "mesh_0" / "fusion", scene, args.repeat, Path(tmp))
+            results["lod_small"] = ld
+            print_task_path("lod", ld)
             vx = bench_voxel(scene, Path(tmp) / "fusion_0", args.repeat, Path(tmp))
             results["voxel_small"] = vx
             print_voxel(vx, floor)
@@ -776,7 +873,7 @@ def run_benchmarks(args) -> dict:
                 scene,
                 [
                     Path(tmp) / f"{name}_0"
-                    for name in ("fusion", "superpixel", "parametric", "blocks", "voxel")
+                    for name in ("fusion", "superpixel", "parametric", "blocks", "voxel", "lod")
                 ],
                 1,
                 Path(tmp),

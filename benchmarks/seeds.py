@@ -3,9 +3,11 @@
 For each seed of the ``small`` city: ``workbench sample``, ``workbench fusion --truth``,
 ``workbench model NAME`` for every registered path (on the fusion run, as a user runs
 it), the voxel path without the fusion run (photo-consistency alone, as in its paper),
-``workbench compare`` of them all against the truth. Defaults were chosen on seeds
-0-2; seeds 3-5 are held out: no choice may look at them. The table gives each seed and
-the median of each group.
+``workbench mesh`` and ``workbench fusion --mesh`` (the paths of ``MESH_PATHS``, the LOD
+path, run on that mesh's fusion, with the scene's training strokes), ``workbench compare``
+of them all against the truth, with ``--mesh`` (every LoD's distance to the mesh).
+Defaults were chosen on seeds 0-2; seeds 3-5 are held out: no choice may look at them.
+The table gives each seed and the median of each group.
 
 Usage: python benchmarks/seeds.py [--seeds 0 1 2 3 4 5] [--out bench_out/seeds]
 """
@@ -24,6 +26,8 @@ from modeling import PATHS
 
 TUNED, HELD_OUT = (0, 1, 2), (3, 4, 5)
 PHOTO_ALONE = "voxel_photo_alone"
+MESH_FUSION = "fusion_mesh"
+MESH_PATHS = ("lod",)  # run on the mesh's fusion, as their paper has it
 ROOF_TYPES = ("flat", "shed", "gable", "hipped", "pyramid", "mansard", "multi-level")
 ROWS = {
     "fusion": (
@@ -55,6 +59,16 @@ ROWS = {
         ("buildings.roof_type_accuracy", "roof types as the truth's", 2),
         ("roofs.plane_angle_median_deg", "roof plane angle, median (deg)", 1),
         ("complexity.watertight_fraction", "watertight fraction", 2),
+        ("regularity.edges_within_2deg", "outline edges within 2 deg of the facades", 2),
+        ("regularity.pairs_within_2deg", "roof-plane pairs within 2 deg of symmetric", 2),
+        *(
+            (f"lods.{lod}.rms_to_mesh_m", f"LoD {lod}: RMS to the mesh (m)", 2)
+            for lod in ("0", "1.2", "1.3", "2.2")
+        ),
+        *(
+            (f"lods.{lod}.triangles", f"LoD {lod}: triangles", 0)
+            for lod in ("0", "1.2", "1.3", "2.2")
+        ),
         ("texture.seam_cost", "seam cost, graph cut", 2),
         ("texture.seam_cost_projective", "seam cost, projective", 2),
         ("cost.wall_s", "wall time (s)", 1),
@@ -82,11 +96,22 @@ def run_seed(seed: int, work: Path, preset: str = "small") -> dict:
     t0 = time.perf_counter()
     _cli("fusion", scene, "-o", fusion, "--truth", scene, "--overwrite")
     seconds["fusion"] = time.perf_counter() - t0
-    runs = [fusion]
+    mesh, mesh_fusion = work / f"mesh{seed}" / "mesh.ply", work / f"meshfusion{seed}"
+    t0 = time.perf_counter()
+    _cli("mesh", scene, "-o", mesh, "--overwrite")
+    seconds["mesh"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    doc = json.loads((scene / "scene.json").read_text())
+    _cli("fusion", "--mesh", mesh, "-o", mesh_fusion, "--gsd", doc["gsd"], "--bounds",
+         *doc["bounds"], "--truth", scene, "--overwrite")  # fmt: skip
+    seconds[MESH_FUSION] = time.perf_counter() - t0
+    runs = [fusion, mesh_fusion]
     for name, spec in PATHS.items():
         out = work / f"{name}{seed}"
         t0 = time.perf_counter()
         given = {"scene_dir": scene, "fusion_dir": fusion, "truth": scene}
+        if name in MESH_PATHS:
+            given.update(fusion_dir=mesh_fusion, labels=scene / "training" / "labels.tif")
         _cli("model", name, *spec.arguments(given), "-o", out, "--overwrite")
         seconds[name] = time.perf_counter() - t0
         runs.append(out)
@@ -97,18 +122,27 @@ def run_seed(seed: int, work: Path, preset: str = "small") -> dict:
     seconds[PHOTO_ALONE] = time.perf_counter() - t0
     runs.append(out)
     report = work / f"report{seed}"
-    names = ["fusion", *PATHS, PHOTO_ALONE]
-    _cli("compare", *runs, "--truth", scene, "-o", report, "--names", *names, "--overwrite")
+    names = ["fusion", MESH_FUSION, *PATHS, PHOTO_ALONE]
+    _cli("compare", *runs, "--truth", scene, "-o", report, "--names", *names, "--mesh", mesh,
+         "--overwrite")  # fmt: skip
     metrics = json.loads((report / "metrics.json").read_text())["runs"]
     return {"metrics": metrics, "command_s": seconds}
 
 
 def _get(d: dict, dotted: str):
-    for key in dotted.split("."):
+    for key in _keys(dotted):
         if not isinstance(d, dict) or key not in d:
             return None
         d = d[key]
     return d
+
+
+def _keys(dotted: str) -> list[str]:
+    """The keys of a dotted path; a LoD ("1.2") after "lods" is one key."""
+    parts = dotted.split(".")
+    if parts[0] == "lods" and len(parts) > 2 and parts[2].isdigit():
+        parts = [parts[0], f"{parts[1]}.{parts[2]}", *parts[3:]]
+    return parts
 
 
 def _median(values: list) -> float | None:
@@ -120,10 +154,10 @@ def tables(results: dict[int, dict]) -> str:
     """Markdown: one table per run, a column per seed and the two groups' medians."""
     seeds = sorted(results)
     lines = []
-    for name in ["fusion", *PATHS, PHOTO_ALONE]:
+    for name in ["fusion", MESH_FUSION, *PATHS, PHOTO_ALONE]:
         if not any(name in results[s]["metrics"] for s in seeds):
             continue
-        kind = "fusion" if name == "fusion" else "model"
+        kind = "fusion" if name in ("fusion", MESH_FUSION) else "model"
         tuned = [s for s in seeds if s in TUNED]
         held = [s for s in seeds if s in HELD_OUT]
         head = [f"seed {s}" for s in seeds]
@@ -153,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     results = {}
     for seed in args.seeds:
-        print(f"seed {seed}: sample, fusion, {', '.join(PATHS)}, compare ...", flush=True)
+        print(f"seed {seed}: sample, fusion, mesh, {', '.join(PATHS)}, compare ...", flush=True)
         results[seed] = run_seed(seed, args.out, args.preset)
         times = ", ".join(f"{k} {v:.0f} s" for k, v in results[seed]["command_s"].items())
         print(f"  {times}", flush=True)

@@ -127,6 +127,7 @@ def run_lod(
         ground=ground_surface(dtm, rgb, grid), preview=preview, stages=timer.stages,
         rasters={"class": (classes, 0), "tree_probability": (t.astype(np.float32), None)},
         inputs={"fusion": str(Path(fusion_dir).absolute()),
+                "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd},
                 "labels": str(Path(labels).absolute()) if labels else None,
                 "normal_map": "normal.tif" if normal is not None else "from the DSM"},
         counts={"candidates": len(keep)},
