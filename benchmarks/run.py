@@ -296,18 +296,24 @@ from workbench.runs import load_run
 from workbench.truth import load_scene_truth
 fusion, scene, out = (Path(a) for a in sys.argv[1:4])
 spec = PATHS[sys.argv[4]]
-engine = start_engine(preload=(spec.run.split(":")[0],))  # as the command: every core
+kwargs = {}
+if spec.tasks:  # as the command: every core
+    kwargs["engine"] = start_engine(preload=(spec.run.split(":")[0],))
+if any(i.name == "labels" for i in spec.inputs):  # the scene's training strokes
+    kwargs["labels"] = scene / "training" / "labels.tif"
 try:
-    r = write_model_run(spec.load()(fusion, spec.options(), engine=engine), out, overwrite=True)
+    r = write_model_run(spec.load()(fusion, spec.options(), **kwargs), out, overwrite=True)
 finally:
-    engine.close()
+    if "engine" in kwargs:
+        kwargs["engine"].close()
 m = evaluate(load_run(out), load_scene_truth(scene)).metrics
 print(json.dumps({"stages": r["stages"], "grid": r["inputs"]["grid"], "counts": r["counts"],
                   "buildings": len(r["buildings"]),
                   "seconds_per_building": r["seconds_per_building"],
                   "iterations_per_second": r.get("iterations_per_second"),
-                  "metrics": {k: m[k] for k in ("footprint_2d", "volume_3d", "height",
-                                                 "buildings", "complexity") if k in m}}))
+                  "metrics": {k: m[k] for k in ("classification", "footprint_2d", "volume_3d",
+                                                 "height", "buildings", "complexity",
+                                                 "regularity") if k in m}}))
 """
 
 
@@ -372,37 +378,9 @@ def print_mesh(m: dict) -> None:
     )
 
 
-LOD_CHILD = r"""
-import json, sys
-from pathlib import Path
-from modeling.lod.path import run_lod
-from workbench.evaluate import evaluate
-from workbench.model_run import write_model_run
-from workbench.runs import load_run
-from workbench.truth import load_scene_truth
-fusion, scene, out = (Path(a) for a in sys.argv[1:4])
-r = write_model_run(run_lod(fusion, labels=scene / "training" / "labels.tif"), out,
-                    overwrite=True)
-m = evaluate(load_run(out), load_scene_truth(scene)).metrics
-print(json.dumps({"stages": r["stages"], "grid": r["inputs"]["grid"], "counts": r["counts"],
-                  "buildings": len(r["buildings"]),
-                  "seconds_per_building": r["seconds_per_building"],
-                  "iterations_per_second": None,
-                  "metrics": {k: m[k] for k in ("classification", "footprint_2d", "volume_3d",
-                                                 "height", "buildings", "complexity",
-                                                 "regularity") if k in m}}))
-"""
-
-
-def bench_lod(fusion: Path, scene: Path, repeat: int, work: Path) -> dict:
-    """The LOD path on small's mesh fusion, timed like the task paths."""
-    res, summary = timed_path_runs(LOD_CHILD, "lod", fusion, scene, repeat, work)
-    return {**summary, "buildings": res["buildings"], "metrics": res["metrics"],
-            "iterations_per_second": None}  # fmt: skip
-
-
 def bench_task_path(name: str, fusion: Path, scene: Path, repeat: int, work: Path) -> dict:
-    """A path that runs a task per building (parametric, blocks) timed on small."""
+    """A path timed on small as its command runs it (parametric, blocks: a task per
+    building on every core; lod: with the scene's training strokes)."""
     res, summary = timed_path_runs(TASK_PATH_CHILD, name, fusion, scene, repeat, work)
     return {**summary, "buildings": res["buildings"], "metrics": res["metrics"],
             "iterations_per_second": res["iterations_per_second"]}  # fmt: skip
@@ -863,7 +841,8 @@ def run_benchmarks(args) -> dict:
             ms = bench_mesh(scene, args.repeat, Path(tmp))
             results["mesh_small"] = ms
             print_mesh(ms)
-            ld = bench_lod(Path(tmp) / "mesh_0" / "fusion", scene, args.repeat, Path(tmp))
+            ld = bench_task_path("lod", Path(tmp) / "mesh_0" / "fusion", scene, args.repeat,
+                                 Path(tmp))  # fmt: skip
             results["lod_small"] = ld
             print_task_path("lod", ld)
             vx = bench_voxel(scene, Path(tmp) / "fusion_0", args.repeat, Path(tmp))
