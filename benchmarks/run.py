@@ -322,9 +322,7 @@ import json, sys, time
 from pathlib import Path
 from fusion.options import FusionOptions
 from fusion.run import run_fusion
-from fusion.scene_mesh import integrate_views
-from workbench.meshio import write_ply
-from workbench.model_run import crs_text
+from fusion.scene_mesh import integrate_views, write_scene_mesh
 from workbench.records import peak_memory_mb
 from workbench.scene import load_scene
 scene_dir, out = Path(sys.argv[1]), Path(sys.argv[2])
@@ -333,9 +331,7 @@ t = time.perf_counter()
 mesh = integrate_views(scene)
 mesh_s = time.perf_counter() - t
 mesh_peak = peak_memory_mb()
-out.mkdir(parents=True, exist_ok=True)
-write_ply(out / "mesh.ply", mesh.vertices, mesh.triangles, vertex_colors=mesh.colors,
-          comments=[f"crs {crs_text(scene.crs)}"])
+write_scene_mesh(out / "mesh.ply", mesh, scene.crs)
 t = time.perf_counter()
 r = run_fusion(out / "fusion", FusionOptions(gsd=scene.gsd, bounds=tuple(scene.bounds)),
                mesh=out / "mesh.ply", truth=scene_dir, overwrite=True)

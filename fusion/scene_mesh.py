@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -145,6 +146,21 @@ def integrate_views(
     if not len(triangles):
         raise WorkbenchError("mesh: the views' depth maps gave no surface inside the bounds")
     return SceneMesh(vertices, triangles, colors, record)
+
+
+def write_scene_mesh(path, mesh: SceneMesh, crs) -> None:
+    """Write ``mesh`` as binary PLY (float64 positions, vertex colours, the CRS in a
+    ``comment crs`` header line, which ``workbench fusion --mesh`` reads), whole or not
+    at all: it is written beside ``path`` and moved into place."""
+    from workbench.meshio import write_ply
+    from workbench.model_run import crs_text
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.name}.partial")
+    write_ply(partial, mesh.vertices, mesh.triangles, vertex_colors=mesh.colors,
+              comments=[f"crs {crs_text(crs)}"] if crs is not None else None)  # fmt: skip
+    partial.replace(path)
 
 
 def local_extrinsic(camera, origin: np.ndarray) -> np.ndarray:

@@ -24,6 +24,8 @@ import math
 
 import numpy as np
 import shapely
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from shapely.geometry import Polygon
 from shapely.geometry.polygon import orient
 
@@ -213,9 +215,6 @@ def _semantic(face, local, base_z, surfaces: list, kinds: dict) -> int:
 
 def _parts(tri: np.ndarray) -> list[np.ndarray]:
     """Triangle indices of each vertex-connected part, largest first."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     n = int(tri.max()) + 1
     rows = np.repeat(np.arange(len(tri)), 3)
     graph = coo_matrix((np.ones(rows.size), (rows, tri.ravel())), shape=(len(tri), n))

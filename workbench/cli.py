@@ -423,9 +423,7 @@ def cmd_fusion(args) -> int:
 
 
 def cmd_mesh(args) -> int:
-    from fusion.scene_mesh import integrate_views
-    from workbench.meshio import write_ply
-    from workbench.model_run import crs_text
+    from fusion.scene_mesh import integrate_views, write_scene_mesh
     from workbench.scene import load_scene
 
     out = args.out
@@ -436,11 +434,7 @@ def cmd_mesh(args) -> int:
     t0 = time.perf_counter()
     scene = load_scene(args.scene)
     mesh = integrate_views(scene, args.voxel, args.trunc)
-    partial = out.with_name(f".{out.name}.partial")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_ply(partial, mesh.vertices, mesh.triangles, vertex_colors=mesh.colors,
-              comments=[f"crs {crs_text(scene.crs)}"])  # fmt: skip
-    partial.replace(out)
+    write_scene_mesh(out, mesh, scene.crs)
     r = mesh.record
     print(
         f"wrote {out}: {r['triangles']:,} triangles, {r['vertices']:,} vertices from "
@@ -557,7 +551,7 @@ def cmd_demo(args) -> int:
     from data_samples.generate import generate_sample
     from fusion.options import FusionOptions
     from fusion.run import run_fusion
-    from fusion.scene_mesh import integrate_views
+    from fusion.scene_mesh import integrate_views, write_scene_mesh
     from modeling import PATHS
     from modeling.blocks.options import BlocksOptions
     from modeling.blocks.path import run_blocks
@@ -570,8 +564,7 @@ def cmd_demo(args) -> int:
 
     from .atomic import check_output_dir
     from .compare import compare_runs, summary
-    from .meshio import write_ply
-    from .model_run import crs_text, write_model_run
+    from .model_run import write_model_run
     from .scene import load_scene
     from .truth import load_scene_truth
 
@@ -622,8 +615,7 @@ def cmd_demo(args) -> int:
           "labelling, regular roof planes, LOD0/1/2 ...", flush=True)  # fmt: skip
     scene = load_scene(scene_dir)
     mesh = integrate_views(scene)
-    write_ply(mesh_path, mesh.vertices, mesh.triangles, vertex_colors=mesh.colors,
-              comments=[f"crs {crs_text(scene.crs)}"])  # fmt: skip
+    write_scene_mesh(mesh_path, mesh, scene.crs)
     run_fusion(mesh_fusion_dir, mesh=mesh_path, overwrite=True, command=command,
                options=FusionOptions(gsd=scene.gsd, bounds=tuple(scene.bounds)))  # fmt: skip
     ld = write_model_run(run_lod(mesh_fusion_dir, labels=scene_dir / "training" / "labels.tif"),
