@@ -100,7 +100,7 @@ def run_lod(
     with timer.stage("labelling"):
         block = max(1, round(options.ground_block_m / grid.gsd))
         filled = fill_from_below(dsm)
-        classes, h_ground, trace = mrf_labelling(filled, t, options.h_trunc, options.mu,
+        classes, _, trace = mrf_labelling(filled, t, options.h_trunc, options.mu,
                                                  options.ground_iterations, block)  # fmt: skip
         radius = round(options.opening_m / grid.gsd)
         building = open_close(classes == BUILDING, radius)
@@ -108,12 +108,14 @@ def run_lod(
         sizes = np.bincount(parts.ravel(), minlength=n + 1) * grid.gsd**2
         keep = [k for k in range(1, n + 1) if sizes[k] >= options.min_area_m2]
     inputs = LodInputs(grid, rgb, dsm, filled, dtm, normal)
-    buildings, painted = [], np.zeros(grid.shape, np.int64)
+    buildings, skipped, painted = [], [], np.zeros(grid.shape, np.int64)
     with timer.stage("buildings"):
         boxes = ndi.find_objects(parts)
         for k in progress(keep, "lod: buildings"):
             b, plane_raster, (rows, cols) = building_lod(k, parts, boxes[k - 1], inputs, options)
-            if b is not None:
+            if isinstance(b, str):
+                skipped.append({"region": int(k), "reason": b})
+            else:
                 b.id = str(len(buildings) + 1)
                 b.mesh.vertex_colors = vertex_colours(b.mesh.vertices, rgb, grid)
                 buildings.append(b)
@@ -130,8 +132,9 @@ def run_lod(
                 "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd},
                 "labels": str(Path(labels).absolute()) if labels else None,
                 "normal_map": "normal.tif" if normal is not None else "from the DSM"},
-        counts={"candidates": len(keep)},
+        counts={"candidates": len(keep), "skipped": len(skipped)},
         record={
+            "skipped": skipped,
             "labelling": {"tree_probability": t_source, "mean_ground_m": trace,
                           "cells": {name: int((classes == c).sum()) for c, name in
                                     ((1, "ground"), (2, "grass"), (3, "tree"),
@@ -145,9 +148,9 @@ def run_lod(
 
 def building_lod(
     k: int, parts: np.ndarray, box: tuple, inputs: LodInputs, options: LodOptions
-) -> tuple[Building | None, np.ndarray, tuple[slice, slice]]:
+) -> tuple[Building | str, np.ndarray, tuple[slice, slice]]:
     """Sections 5.1-5.4 and the LOD generation for the building region ``k``; returns
-    the building (None if no model closes), its cells' plane index + 1 and its window."""
+    the building (or why there is none), its cells' plane index + 1 and its window."""
     t0 = time.perf_counter()
     g = inputs.grid
     H, W = parts.shape
@@ -162,7 +165,7 @@ def building_lod(
     mask = mid_wall_region(seg == k, filled - dtm, (seg > 0) & (seg != k), g.gsd,
                            options.outline_reach_m)  # fmt: skip
     if mask.sum() * g.gsd**2 < options.min_area_m2:
-        return None, np.zeros(mask.shape, np.int64), win
+        return "under --min-area at its walls' mid-height", np.zeros(mask.shape, np.int64), win
     normal = _normals(inputs.normal, dsm, g.gsd, win)
     X, Y = crop.cell_centers()
     points = np.dstack([X, Y, dsm])
@@ -194,14 +197,14 @@ def building_lod(
     if not len(planes):
         z = np.nanmedian(dsm[mask]) if np.isfinite(dsm[mask]).any() else np.nan
         if not np.isfinite(z):
-            return None, np.zeros(mask.shape, np.int64), win
+            return "no height in the DSM", np.zeros(mask.shape, np.int64), win
         planes = np.array([[0.0, 0.0, 1.0, -z]])
     # 5.4 faces labelled with planes
     face_plane = label_faces(faces, points, planes, options.beta, g.gsd)
     plane_raster = np.where(faces > 0, face_plane[np.maximum(faces, 1) - 1] + 1, 0)
     b = lod_models(plane_raster, crop, planes, dsm, dtm, mask, options)
     if b is None:
-        return None, plane_raster, win
+        return "no face gives a polygon", plane_raster, win
     b.record.update({
         "facade_direction_deg": round(float(np.degrees(theta)), 2),
         "facade_inlier_share": round(share, 3),
