@@ -49,6 +49,9 @@ class PathSpec:
         The run function takes ``engine=`` (:mod:`workbench.engine`) and runs its
         buildings as its tasks: the command gives it ``--workers``, ``--scheduler`` and
         ``--resume``.
+    check : str, optional
+        ``"module:function"`` called with the run function's arguments (no engine) before
+        the command starts its workers: bad input stops there, in one line.
     """
 
     name: str
@@ -59,6 +62,7 @@ class PathSpec:
     run: str
     summary: str | None = None
     tasks: bool = False
+    check: str | None = None
 
     def load(self) -> Callable:
         """The run function (imported now: it pulls in the path's dependencies)."""
@@ -74,6 +78,11 @@ class PathSpec:
             elif item.name in given:
                 args += [item.flag, given[item.name]]
         return args
+
+    def check_inputs(self, *positional, **kwargs) -> None:
+        """Run the path's input check, if it has one (before any worker starts)."""
+        if self.check:
+            _load(self.check)(*positional, **kwargs)
 
     def summary_lines(self, record: dict) -> list[str]:
         return _load(self.summary)(record) if self.summary else []

@@ -481,6 +481,7 @@ def cmd_model(args) -> int:
     else:
         from .engine import engine_for, run_signature
 
+        spec.check_inputs(*positional, options, **optional)  # before the workers start
         signature = run_signature(options, {i.name: getattr(args, i.name) for i in spec.inputs})
         module = spec.run.split(":")[0]
         with engine_for(args.out, signature, workers=options.workers, scheduler=args.scheduler,

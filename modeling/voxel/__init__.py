@@ -39,6 +39,7 @@ SPEC = PathSpec(
     run="modeling.voxel.path:run_voxel",
     summary="modeling.voxel.path:summary_lines",
     tasks=True,
+    check="modeling.voxel.inputs:check_inputs",
 )
 
 __all__ = ["SPEC", "VoxelOptions"]

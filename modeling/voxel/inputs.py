@@ -72,6 +72,20 @@ def read_inputs(
     )
 
 
+def check_inputs(
+    scene_dir: Path,
+    options: VoxelOptions,
+    footprints: Path | None = None,
+    fusion_dir: Path | None = None,
+) -> None:
+    """Read what :func:`read_inputs` refuses, before a command starts its workers: the
+    scene, the fusion run and the footprints (a file missing the scene's extent is one
+    line, with no worker's shutdown noise after it)."""
+    scene = load_scene(scene_dir)
+    fusion = _read_fusion(fusion_dir) if fusion_dir else None
+    _footprints(scene, footprints, fusion)
+
+
 def roof_heights(ndsm: np.ndarray, classes: np.ndarray) -> np.ndarray:
     """(H, W) the nDSM where the fusion did not see a tree, metres, NaN elsewhere: a crown
     hanging over a roof is no part of it, and would tilt a roof plane fitted through it
