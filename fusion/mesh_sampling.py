@@ -266,11 +266,7 @@ def fuse_mesh(path, opts: FusionOptions | None = None, *, crs: str | None = None
     with timer.stage("read"):
         mesh = read_surface_mesh(path, crs)
     gsd = opts.gsd or default_gsd(mesh)
-    if opts.bounds is not None:
-        grid = Grid.from_bounds(*opts.bounds, gsd)
-    else:
-        lo, hi = mesh.vertices[:, :2].min(axis=0), mesh.vertices[:, :2].max(axis=0)
-        grid = Grid.from_bounds(lo[0], lo[1], hi[0] + 1e-6, hi[1] + 1e-6, gsd)
+    grid = Grid.covering(mesh.vertices[:, :2], gsd, opts.bounds)
     if min(grid.width, grid.height) < 3:
         raise InputError(mesh.path, None, f"a {grid.width} x {grid.height} grid at --gsd "
                          f"{gsd:g}: give a finer --gsd for a mesh this small")  # fmt: skip

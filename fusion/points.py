@@ -137,11 +137,7 @@ def fuse_points(paths, opts: FusionOptions | None = None, *, crs: str | None = N
     keep = _kept_points(cloud, opts, cloud.source)
     xyz = cloud.xyz[keep]
     gsd = opts.gsd or default_gsd(xyz)
-    if opts.bounds is not None:
-        grid = Grid.from_bounds(*opts.bounds, gsd)
-    else:
-        lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
-        grid = Grid.from_bounds(lo[0], lo[1], hi[0] + 1e-6, hi[1] + 1e-6, gsd)
+    grid = Grid.covering(xyz[:, :2], gsd, opts.bounds)
     check_memory(grid, opts, 1)
     unit = (
         cloud.crs.linear_units_factor[1]

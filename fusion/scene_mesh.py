@@ -12,6 +12,7 @@ bounds' centre, to the kilometre) and the mesh moved back in float64.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -189,12 +190,17 @@ def undistorted(view) -> tuple[np.ndarray, np.ndarray]:
 
 def in_bounds(depth: np.ndarray, camera, bounds) -> np.ndarray:
     """``depth`` (H, W) with 0 where its pixel's point lies outside ``bounds`` (world xmin,
-    ymin, xmax, ymax; None keeps every pixel)."""
+    ymin, xmax, ymax; None keeps every pixel). ``depth`` is undistorted: its pixels are
+    read through ``camera``'s pinhole."""
     if bounds is None:
         return depth
-    h, w = depth.shape
-    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    rays = np.linalg.solve(camera.K, np.stack([u.ravel(), v.ravel(), np.ones(h * w)]))
-    X = camera.R.T @ (rays * depth.ravel() - camera.t[:, None])
-    out = (X[0] < bounds[0]) | (X[0] > bounds[2]) | (X[1] < bounds[1]) | (X[1] > bounds[3])
-    return np.where(out.reshape(h, w), np.float32(0.0), depth)
+    pinhole = dataclasses.replace(camera, distortion=np.zeros(5))
+    origin, dirs = pinhole.pixel_grid_rays()
+    X = origin + dirs * depth.reshape(-1, 1)
+    out = (
+        (X[:, 0] < bounds[0])
+        | (X[:, 0] > bounds[2])
+        | (X[:, 1] < bounds[1])
+        | (X[:, 1] > bounds[3])
+    )
+    return np.where(out.reshape(depth.shape), np.float32(0.0), depth)

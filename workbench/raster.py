@@ -48,6 +48,16 @@ class Grid:
         height = int(np.ceil((ymax - ymin) / gsd - 1e-9))
         return cls(float(xmin), float(ymax), float(gsd), width, height)
 
+    @classmethod
+    def covering(cls, xy: np.ndarray, gsd: float, bounds=None) -> Grid:
+        """The grid of ``bounds`` (xmin, ymin, xmax, ymax) if given, else of cells of size
+        ``gsd`` covering every point of ``xy`` (N, 2), the easternmost and northernmost
+        ones included."""
+        if bounds is not None:
+            return cls.from_bounds(*bounds, gsd)
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        return cls.from_bounds(lo[0], lo[1], hi[0] + 1e-6, hi[1] + 1e-6, gsd)
+
     @property
     def shape(self) -> tuple[int, int]:
         return (self.height, self.width)
