@@ -110,7 +110,7 @@ def crf_ceiling(run_dir: Path, scene: Path) -> dict:
     """The figures of the module docstring for one ``workbench model superpixel`` run."""
     record = json.loads((run_dir / "model.json").read_text())
     omega = record["parameters"]["omega_class"]
-    fusion = read_fusion_run(record["inputs"]["fusion"], ("ortho", "dsm", "class_prob", "class"))
+    fusion = read_fusion_run(record["inputs"]["fusion"], ("ortho", "dsm", "class_prob"))
     rasters, grid = fusion.rasters, fusion.grid
     prob = rasters["class_prob"]
     labels = read_raster(run_dir / "superpixels.tif")[0][0].astype(np.int64)
@@ -141,7 +141,7 @@ def crf_ceiling(run_dir: Path, scene: Path) -> dict:
         confusions[key] = confusions.get(key, 0) + int(cells[k])
     return {
         "omega": omega,
-        "pixel": accuracy(rasters["class"][0]),
+        "pixel": accuracy(np.nan_to_num(prob).argmax(axis=0) + 1),  # the paper's pixel column
         "superpixel": accuracy((graph.class_sum.argmax(axis=1) + 1)[labels]),
         "crf": accuracy(crf[labels]),
         "crf_by_omega": {

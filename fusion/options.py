@@ -59,6 +59,13 @@ class FusionOptions:
         "heights the views see in each cell, beside colour and elevation (off: the "
         "paper's features)",
     )  # fmt: skip
+    class_crf: float = option(
+        8.0, "views: weight omega of the contrast-sensitive Potts model that makes "
+        "class.tif's classes stop at the ortho's colour edges and the DSM's height jumps (0: "
+        "the most probable class of each cell, the paper's, as for clouds and meshes); "
+        "class_prob.tif keeps the confidences",
+        kind="non_negative", metavar="OMEGA",
+    )  # fmt: skip
     raster_prior: bool = option(
         False, "multiply the views' class probabilities by those of a forest on the fused "
         "rasters (nDSM, slope, roughness, colour), trained on the synthetic city; not in the "

@@ -21,7 +21,7 @@ from .classifier import save_classifier
 from .options import FusionOptions
 from .outputs import write_fusion
 from .raster_forest import classify_rasters, synthetic_raster_forest
-from .scene_fusion import check_height_source, feature_set, fuse_views
+from .scene_fusion import check_height_source, class_codes, feature_set, fuse_views
 
 log = logging.getLogger(__name__)
 
@@ -146,6 +146,10 @@ def fusion_quality(result, truth_scene) -> dict:
             q["ortho_mae_mean_fusion"] = colour_mae(np.round(mean), t["ortho"], ok)
     if "class" in t and np.isfinite(result.class_prob).any():
         q["classification"] = classification(result.classes, t["class"])
+        if result.class_map is not None:  # the class CRF's ablation: each cell's argmax
+            q["classification_most_probable"] = classification(
+                class_codes(result.class_prob), t["class"]
+            )
         # what the label-free raster forest alone would give, for comparison
         g = result.grid
         raster = classify_rasters(

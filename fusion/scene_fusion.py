@@ -58,6 +58,7 @@ from workbench.robust import (
 from workbench.scene import Scene, View
 from workbench.truth import sample_to_grid
 
+from .class_crf import contrast_class_crf
 from .classifier import (
     CLASSES,
     elevation_consistent,
@@ -106,11 +107,13 @@ class FusionResult:
     record: dict = field(default_factory=dict)
     forest: object = None
     normal: np.ndarray | None = None  # (3, H, W) float32 unit normals, from a mesh
+    class_map: np.ndarray | None = None  # (H, W) uint8 decided classes (the class CRF's)
 
     @property
     def classes(self) -> np.ndarray:
-        """(H, W) uint8 class codes 1-4, 0 where unseen."""
-        return class_codes(self.class_prob)
+        """(H, W) uint8 class codes 1-4, 0 where unseen: the class CRF's labels where it
+        ran (:mod:`fusion.class_crf`), else the most probable class of each cell."""
+        return self.class_map if self.class_map is not None else class_codes(self.class_prob)
 
 
 def class_codes(class_prob: np.ndarray) -> np.ndarray:
@@ -336,10 +339,9 @@ def fuse_views(
         with timer.stage("colour_and_class"):
             c = colours_and_classes(cache, shared_views, forest is not None, dsm, h, mode, opts,
                                     engine)  # fmt: skip
-    with timer.stage("finish"):
-        dsm, ndsm, class_prob, ortho, count16, crowns, class_source = _finish(
-            c, h, dsm, dtm, spikes, holes, forest, class_source, grid, mode, opts
-        )
+    dsm, ndsm, class_prob, classes, ortho, count16, crowns, class_source = _finish(
+        c, h, dsm, dtm, spikes, holes, forest, class_source, grid, mode, opts, timer
+    )
     observe_s = timer.stages["observations"]["wall_s"] + timer.stages["heights"]["wall_s"]
     record = {
         "mode": mode,
@@ -362,7 +364,8 @@ def fuse_views(
             n_px / 1e6 / timer.stages["classification"]["wall_s"], 3
         )
     ablation = {"dsm_mean": h.dsm_mean, "ortho_mean": c.ortho_mean}
-    return FusionResult(grid, ortho, dsm, dtm, ndsm, class_prob, count16, ablation, record, forest)
+    return FusionResult(grid, ortho, dsm, dtm, ndsm, class_prob, count16, ablation, record, forest,
+                        class_map=classes)  # fmt: skip
 
 
 @contextmanager
@@ -720,9 +723,37 @@ def _finish(
     grid: Grid,
     mode: str,
     opts: FusionOptions,
+    timer: StageTimer,
 ):
-    """Normalised classes with the elevation prior, the crowns' corrections of the DSM
-    (not in the paper), the small holes of the ortho filled, the count flagged."""
+    """Normalised classes with the elevation prior, the class CRF's labels, the crowns'
+    corrections of the DSM (neither in the paper), the small holes of the ortho filled,
+    the count flagged."""
+    with timer.stage("finish"):
+        dsm, ndsm, class_prob, ortho, class_source = _class_confidences(
+            c, h, dsm, dtm, holes, forest, class_source, grid, opts
+        )
+    with timer.stage("class_crf"):
+        classes = contrast_class_crf(class_prob, ortho, dsm, opts.class_crf)
+    if opts.class_crf > 0:
+        class_source += (
+            f"; class.tif: a contrast-sensitive Potts model (omega {opts.class_crf:g}) on "
+            "the ortho's colour and the DSM"
+        )
+    with timer.stage("crowns"):
+        crowns = np.zeros(grid.shape, bool)
+        if mode == "depth maps":
+            h.dsm_upper[spikes | isolated_spikes(h.dsm_upper, h.count)] = np.nan
+            dsm, crowns = crown_tops(dsm, h.dsm_upper, classes, grid.gsd)
+            ndsm = (dsm - dtm).astype(np.float32)
+        count16 = np.minimum(h.count, np.iinfo(np.int16).max).astype(np.int16)
+        count16[holes] = FILLED
+    return dsm, ndsm, class_prob, classes, ortho, count16, crowns, class_source
+
+
+def _class_confidences(c: FusedColours, h: FusedHeights, dsm, dtm, holes, forest,
+                       class_source, grid: Grid, opts: FusionOptions):  # fmt: skip
+    """The accumulated class confidences normalised, with the elevation prior and the
+    raster forest; the DSM with the crowns' sightings; the ortho's small holes filled."""
     seen = h.count > 0
     with np.errstate(invalid="ignore", divide="ignore"):
         class_prob = c.prob_sum / c.prob_sum.sum(axis=0, keepdims=True)
@@ -739,14 +770,7 @@ def _finish(
     ortho = _fill_small_rgb(c.ortho, seen, holes)
     class_prob, class_source = _raster_forest(class_prob, class_source, forest, dsm, dtm, ortho,
                                               grid, opts)  # fmt: skip
-    crowns = np.zeros(grid.shape, bool)
-    if mode == "depth maps":
-        h.dsm_upper[spikes | isolated_spikes(h.dsm_upper, h.count)] = np.nan
-        dsm, crowns = crown_tops(dsm, h.dsm_upper, class_codes(class_prob), grid.gsd)
-        ndsm = (dsm - dtm).astype(np.float32)
-    count16 = np.minimum(h.count, np.iinfo(np.int16).max).astype(np.int16)
-    count16[holes] = FILLED
-    return dsm, ndsm, class_prob, ortho, count16, crowns, class_source
+    return dsm, ndsm, class_prob, ortho, class_source
 
 
 def _raster_forest(class_prob, class_source, forest, dsm, dtm, ortho, grid: Grid, opts):

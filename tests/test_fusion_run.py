@@ -58,7 +58,12 @@ def test_products_are_georeferenced_rasters(fused, tiny_scene):
     seen = np.isfinite(prob[0])
     np.testing.assert_allclose(prob[:, seen].sum(axis=0), 1.0, atol=1e-5)
     cls = read_raster(out / "class.tif")[0][0]
-    np.testing.assert_array_equal(cls[seen], np.argmax(prob[:, seen], axis=0) + 1)
+    # the class CRF moves boundaries, hardly confident cells (measured on tiny: 2.6 % of
+    # the cells changed; 10 of 44,455 cells above 0.99, lone cells against weak edges)
+    argmax = np.argmax(prob[:, seen], axis=0) + 1
+    confident = prob[:, seen].max(axis=0) > 0.99
+    assert np.mean(cls[seen][confident] != argmax[confident]) < 0.001
+    assert 0 < np.mean(cls[seen] != argmax) < 0.05
     assert (cls[~seen] == 0).all()
     dsm, dtm, ndsm = (read_raster(out / f"{n}.tif")[0][0] for n in ("dsm", "dtm", "ndsm"))
     ok = np.isfinite(dsm)
@@ -76,8 +81,11 @@ def test_quality_against_truth(fused):
     assert q["dsm"]["rmse_m"] <= 0.5  # the target (0.52 m before crown_sightings)
     assert q["dsm"]["valid_fraction"] >= 0.90
     assert q["dtm"]["rmse_m"] <= 0.4
-    assert q["classification"]["overall_accuracy"] >= 0.90
+    assert q["classification"]["overall_accuracy"] >= 0.97  # measured 0.976
     assert set(q["classification"]["per_class_accuracy"]) == {"ground", "grass", "tree", "building"}
+    # the class CRF against each cell's most probable class (measured: 0.976 against 0.950)
+    most_probable = q["classification_most_probable"]["overall_accuracy"]
+    assert q["classification"]["overall_accuracy"] > most_probable + 0.02
     assert q["ortho_mae"]["mean"] <= 12.0
 
 
@@ -89,12 +97,14 @@ def test_median_fusion_beats_the_mean(fused):
 
 def test_record_has_stages_and_throughput(fused):
     record = fused[1]
-    for stage in ("heights", "ground", "training", "classification", "colour_and_class"):
+    for stage in ("heights", "ground", "training", "classification", "colour_and_class",
+                  "class_crf"):  # fmt: skip
         assert record["stages"][stage]["wall_s"] >= 0
         assert record["stages"][stage]["peak_memory_mb"] > 0
     assert record["observations"] > 0 and record["observations_per_s"] > 0
     assert "forest trained on" in record["class_source"]
     assert "labelled pixels dropped" in record["class_source"]
+    assert "contrast-sensitive Potts model (omega 8)" in record["class_source"]
     made = record["provenance"]  # what made it: the command, the versions
     assert made["command"].startswith("workbench fusion ") and made["libraries"]["open3d-cpu"]
 

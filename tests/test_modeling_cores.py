@@ -11,7 +11,6 @@ from shapely.geometry import Polygon, box, shape
 from shapely.geometry.polygon import orient
 
 from modeling.shared.affinity_propagation import sparse_affinity_propagation
-from modeling.shared.graph_cuts import alpha_expansion, binary_cut, crf_energy, pairwise_cut
 from modeling.shared.outline_regularity import regularise_outline
 from modeling.shared.planes import plane_heights, ransac_plane
 from modeling.shared.roof_mesh import (
@@ -28,6 +27,7 @@ from modeling.superpixel.options import SuperpixelOptions
 from modeling.superpixel.prototypes import cluster_prototypes, hypothesis_similarity
 from modeling.superpixel.quickshift import colour_height_image, quickshift_superpixels, relief_image
 from modeling.superpixel.rooftop import model_building, observed_faces
+from workbench.graph_cuts import alpha_expansion, binary_cut, crf_energy, pairwise_cut
 from workbench.meshes import is_watertight, unpaired_edges
 from workbench.raster import Grid
 

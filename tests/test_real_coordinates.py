@@ -82,12 +82,18 @@ def test_every_command_gives_the_same_city_at_utm(tiny_scene, tiny_fusion, tmp_p
         )
         assert ub["height"]["rmse_m"] == pytest.approx(la["height"]["rmse_m"], abs=0.01)
     # the texture seams: in float32 at 5.7e6 m the occlusion tests moved the projective
-    # seam cost by 9 %. In a local origin only the rounding of the moved cameras moves
-    # them, through the views whose scores tie at a texel; measured against the
-    # projective cost: the run's own projective 4.5 %, graph cut 1.5 %; as compare
-    # recomputes them from the written textures, 0.2 % and 1.3 %
+    # seam cost by 9 %. In a local origin only the rounding of the moved cameras and of
+    # the fused DSM (0.06 % of its cells) moves them, through the views whose scores tie
+    # at a texel and the faces whose texels split their votes between two views; measured
+    # against the projective cost: the run's own projective 8.0 % (4.5 % with the proxies
+    # before the fusion's class CRF and the roof cap), graph cut 0.6 %; as compare
+    # recomputes them from the written textures, 0.7 % and 0.02 %
     ta, tb = (runs[k]["metrics"]["voxel"]["texture"] for k in ("local", "utm"))
-    for figures, within in ((ta["reported"], tb["reported"]), (ta, tb)):
-        for key in ("seam_cost", "seam_cost_projective"):
-            moved = abs(within[key] - figures[key]) / figures["seam_cost_projective"]
-            assert moved < 0.06, (key, figures, within)
+    moved = {
+        (source, key): abs(within[key] - figures[key]) / figures["seam_cost_projective"]
+        for source, figures, within in (("run", ta["reported"], tb["reported"]),
+                                        ("compare", ta, tb))
+        for key in ("seam_cost", "seam_cost_projective")
+    }  # fmt: skip
+    assert moved["run", "seam_cost"] < 0.02 and moved["compare", "seam_cost"] < 0.02, moved
+    assert max(moved.values()) < 0.10, moved

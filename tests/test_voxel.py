@@ -35,7 +35,13 @@ from modeling.voxel.proxy import (
     voxelise,
 )
 from modeling.voxel.robustness import perturbed_mesh
-from modeling.voxel.roof_planes import RoofFaces, column_medians, flat_planes, roof_faces
+from modeling.voxel.roof_planes import (
+    RoofFaces,
+    capped,
+    column_medians,
+    flat_planes,
+    roof_faces,
+)
 from modeling.voxel.surface_graph import patches, refine_seams, stitch_patches, surface_graph
 from modeling.voxel.texture_atlas import atlas, pack_charts
 from modeling.voxel.view_images import footprint_sigma, hs_chroma
@@ -372,6 +378,31 @@ def test_a_shed_stops_where_nothing_was_seen_above_its_eave():
     assert np.degrees(np.arccos(roof.planes[0, 2])) == pytest.approx(30.0, abs=0.5)
     # the first unseen fine row stands within the tolerance of the highest seen
     assert not (roof.faces[21:] > 0).any() and (roof.faces[:21, 2:14] > 0).all()
+
+
+def test_no_roof_rises_above_what_was_seen():
+    """A 60 degree plane over 3 m rises 5.2 m; capped at 4 m (the highest height seen),
+    its cells above 4 m become a flat face at 4 m, the others keep their plane, and the
+    proxy stays closed."""
+    k, shape = 2, (3, 4)
+    faces = np.ones((shape[0] * k, shape[1] * k), np.int64)
+    steep = np.array([[-np.sin(np.radians(60)), 0.0, np.cos(np.radians(60)), 0.0]])
+    roof = RoofFaces(faces, steep, k, True)
+    h = roof.fine_heights(1.0, 0.0, 0.0)  # tan 60 x (0.25 ... 2.75 m): 0.43 ... 4.76 m
+    out = capped(roof, h, 4.0)
+    heights = out.fine_heights(1.0, 0.0, 0.0)
+    assert heights.max() == pytest.approx(4.0)
+    np.testing.assert_array_equal(out.faces == 2, h > 4.0)
+    np.testing.assert_allclose(heights[h <= 4.0], h[h <= 4.0])
+    assert out.pitched and out.planes[1].tolist() == [0.0, 0.0, 1.0, -4.0]
+    assert capped(roof, h, 10.0) is roof
+    frame = VoxelFrame(np.zeros(2), np.eye(2), 0.0, 0.0, 1.0, (3, 4, 8), 100.0)
+    m = proxy_mesh(frame, out, 0.25)
+    assert is_watertight(m.mesh.vertices, m.mesh.triangles)
+    # the faces are cut at cell edges: the plane's last cells under the cap reach half a
+    # fine cell (0.25 m) past their centres, 0.43 m higher on this slope
+    top = m.mesh.vertices[:, 2].max() - 100.0
+    assert 4.0 <= top <= 4.0 + np.tan(np.radians(60)) * 0.25 + 1e-9
 
 
 def test_fused_roof_columns_join_the_roof_they_touch():

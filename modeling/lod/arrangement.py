@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
-from modeling.shared.graph_cuts import alpha_expansion
+from workbench.graph_cuts import alpha_expansion
 
 
 def arrangement_faces(mask: np.ndarray, segments: np.ndarray, extend: float) -> np.ndarray:

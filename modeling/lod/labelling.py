@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
-from modeling.shared.graph_cuts import alpha_expansion
+from workbench.graph_cuts import alpha_expansion, grid_pairs
 
 GROUND, GRASS, TREE, BUILDING = 1, 2, 3, 4  # the workbench's class codes
 
@@ -42,14 +42,10 @@ def grid_edges(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """4-neighbour edges (E, 2) of a (H, W) grid in row-major order and their weights
     1 - [|h_i - h_j|]_0^1 (eq. 5: a height step of a metre or more costs nothing to cut;
     unknown heights count as a step of none)."""
-    H, W = h.shape
-    idx = np.arange(H * W).reshape(H, W)
-    pairs, dh = [], []
-    for a, b, da in ((idx[:, :-1], idx[:, 1:], h[:, :-1] - h[:, 1:]),
-                     (idx[:-1], idx[1:], h[:-1] - h[1:])):  # fmt: skip
-        pairs.append(np.column_stack([a.ravel(), b.ravel()]))
-        dh.append(np.nan_to_num(np.abs(da.ravel()), nan=0.0))
-    return np.concatenate(pairs), 1.0 - np.clip(np.concatenate(dh), 0.0, 1.0)
+    pairs, _ = grid_pairs(h.shape)
+    flat = h.ravel()
+    dh = np.nan_to_num(np.abs(flat[pairs[:, 0]] - flat[pairs[:, 1]]), nan=0.0)
+    return pairs, 1.0 - np.clip(dh, 0.0, 1.0)
 
 
 def ground_heights(h: np.ndarray, labels: np.ndarray | None, block: int) -> np.ndarray:

@@ -29,8 +29,8 @@ from shapely import affinity
 from shapely.geometry import Polygon, box
 from shapely.ops import unary_union
 
-from modeling.shared.graph_cuts import binary_cut
 from modeling.shared.outline_regularity import dominant_direction
+from workbench.graph_cuts import binary_cut
 from workbench.raster import Grid
 
 _EPS_CELLS = 0.5  # width of the prior's smoothed edge, cells of the registration grid

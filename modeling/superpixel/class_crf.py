@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from modeling.shared.graph_cuts import alpha_expansion
+from workbench.graph_cuts import alpha_expansion
 from workbench.raster import BUILDING, TREE
 
 from .aggregation import SuperpixelGraph

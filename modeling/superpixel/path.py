@@ -34,7 +34,7 @@ from .prototypes import roof_prototypes
 from .quickshift import quickshift_superpixels, relief_image
 from .rooftop import model_building, observed_faces
 
-FUSION_RASTERS = ("ortho", "dsm", "dtm", "class_prob", "class")
+FUSION_RASTERS = ("ortho", "dsm", "dtm", "class_prob")
 BUILDING_STEPS = ("plane_hypotheses", "prototypes", "prototype_crf", "roof_modeling")
 
 
@@ -87,8 +87,11 @@ def run_superpixel(
     record = {"superpixels": graph.n, **crf_choices}
     if truth is not None:
         sp_argmax = np.where(unseen, 0, graph.class_sum.argmax(axis=1)[labels] + 1)
+        # the paper's pixel column: each cell's most probable class (the fusion's class.tif
+        # has its own CRF on the cells)
+        px_argmax = np.where(unseen, 0, np.nan_to_num(fusion.rasters["class_prob"]).argmax(0) + 1)
         record["classification_table"] = classification_table(
-            truth, grid, fusion.band("class"), sp_argmax.astype(np.uint8), crf_class
+            truth, grid, px_argmax.astype(np.uint8), sp_argmax.astype(np.uint8), crf_class
         )
     return ModelRun(
         "superpixel", options, buildings, crs=fusion.crs, grid=grid, dtm=dtm, dsm=dsm,

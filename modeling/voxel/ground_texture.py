@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from modeling.shared.graph_cuts import binary_cut
 from workbench.camera import Camera, framing_cameras
+from workbench.graph_cuts import binary_cut, grid_pairs
 from workbench.meshes import raster_mesh
 from workbench.raster import Grid
 from workbench.texture_seams import ViewSamples, rgb_to_lab, seam_cost, seam_costs, view_samples
@@ -31,17 +31,6 @@ def downward_views(cameras: list[Camera], spread_deg: float = _NADIR_SPREAD_DEG)
     """The views whose optical axis is within ``spread_deg`` of the most downward one."""
     tilt = np.degrees(np.arccos(np.clip([-c.viewing_direction[2] for c in cameras], -1, 1)))
     return [int(k) for k in np.flatnonzero(tilt <= tilt.min() + spread_deg)]
-
-
-def grid_edges(shape: tuple[int, int]) -> np.ndarray:
-    """(E, 2) 4-neighbour pairs of a row-major grid of ``shape``."""
-    idx = np.arange(shape[0] * shape[1]).reshape(shape)
-    return np.concatenate(
-        [
-            np.column_stack([idx[:, :-1].ravel(), idx[:, 1:].ravel()]),
-            np.column_stack([idx[:-1].ravel(), idx[1:].ravel()]),
-        ]
-    )
 
 
 @dataclass
@@ -121,7 +110,7 @@ def ground_cut(
         views, samples = [k for k, s in zip(views, seen, strict=True) if s], samples.columns(seen)
     centres = np.array([cameras[k].center for k in views]).reshape(-1, 3)
     labels = best_views(positions, up, centres, samples)
-    edges = grid_edges(grid.shape)
+    edges, _ = grid_pairs(grid.shape)
     stitched = stitch_patches(edges, positions, labels, samples, overlap_m, min_patch=64)
     cost_cut, _ = seam_cost(edges, stitched.labels, samples)
     cost_proj, _ = seam_cost(edges, labels, samples)
@@ -255,7 +244,7 @@ def ring_cut(
     )
     index = np.full(ground.grid.shape, -1)
     index[ring] = np.arange(len(rows))
-    edges = grid_edges(ground.grid.shape)
+    edges, _ = grid_pairs(ground.grid.shape)
     a, b = index.ravel()[edges[:, 0]], index.ravel()[edges[:, 1]]
     keep = (a >= 0) & (b >= 0)
     e = np.column_stack([a[keep], b[keep]])

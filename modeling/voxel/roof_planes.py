@@ -343,6 +343,29 @@ def roof_faces(
         ]
         worst = int(np.argmax(out_of_range))
         if out_of_range[worst] <= 0:
-            return roof
+            return capped(roof, h, hi)
         planes = np.delete(planes, worst, axis=0)
     return flat
+
+
+def capped(roof: RoofFaces, heights: np.ndarray, top: float) -> RoofFaces:
+    """``roof`` with the cells where their plane rises above ``top`` given to a flat face
+    at ``top``.
+
+    The tenth of a face allowed past its range (:func:`roof_faces`) is a few cells past a
+    ridge on a gentle roof, but on a steep plane carried past a step of a multi-level
+    roof those cells rise metres above everything seen; no roof may.
+
+    Parameters
+    ----------
+    roof : RoofFaces
+    heights : (nx * k, ny * k) float
+        ``roof.fine_heights``, metres above the base.
+    top : float
+        The highest height observed over the roof plus the plane tolerance, metres.
+    """
+    over = (roof.faces > 0) & (heights > top)
+    if not over.any():
+        return roof
+    planes = np.vstack([roof.planes, flat_planes(np.array([top]))])
+    return RoofFaces(np.where(over, len(planes), roof.faces), planes, roof.k, roof.pitched)

@@ -19,7 +19,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from modeling.shared.graph_cuts import pairwise_cut
+from workbench.graph_cuts import pairwise_cut
 from workbench.texture_seams import ViewSamples, seam_costs
 
 _INF = 1e9
@@ -342,7 +342,7 @@ def refine_seams(
     unit of the cosine between a vertex's normal and the direction to its view, so that
     a seam moves only where it pays for the views it gives up. One alpha-expansion move
     per view already used (a single exact cut each,
-    :func:`~modeling.shared.graph_cuts.pairwise_cut`: C is a sum of distances between
+    :func:`~workbench.graph_cuts.pairwise_cut`: C is a sum of distances between
     views, a metric), kept when it lowers E; vertices
     take only views that see them, unseen ones stay unseen.
 

@@ -1,4 +1,5 @@
-"""Conditional random fields on a super-pixel adjacency graph (the super-pixel paper, eq. 2).
+"""Conditional random fields on a graph: super-pixels' adjacency (the super-pixel paper,
+eq. 2) or a grid's neighbours (:func:`grid_pairs`).
 
 E(c) = sum_i D_i(c_i) + omega * sum_(i,j) w_ij [c_i != c_j], minimised with graph cuts
 (PyMaxflow): one exact cut for two labels, alpha-expansion moves for more.
@@ -8,6 +9,32 @@ from __future__ import annotations
 
 import maxflow
 import numpy as np
+
+
+def grid_pairs(shape: tuple[int, int], diagonals: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Neighbour pairs of a row-major grid and the distance between their centres.
+
+    Parameters
+    ----------
+    shape : (H, W)
+    diagonals : bool
+        8-neighbours instead of 4.
+
+    Returns
+    -------
+    pairs : (E, 2) int
+        Flat indices, right and down neighbours first, then the two diagonals.
+    length : (E,) float
+        1 or sqrt(2), in cells.
+    """
+    H, W = shape
+    idx = np.arange(H * W).reshape(H, W)
+    steps = [(idx[:, :-1], idx[:, 1:]), (idx[:-1], idx[1:])]
+    if diagonals:
+        steps += [(idx[:-1, :-1], idx[1:, 1:]), (idx[:-1, 1:], idx[1:, :-1])]
+    pairs = [np.column_stack([a.ravel(), b.ravel()]) for a, b in steps]
+    length = [np.full(len(p), 1.0 if k < 2 else np.sqrt(2.0)) for k, p in enumerate(pairs)]
+    return np.concatenate(pairs), np.concatenate(length)
 
 
 def crf_energy(
