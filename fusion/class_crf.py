@@ -16,10 +16,10 @@ where the colour or the height changes more than is usual in this grid.
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
-from workbench.graph_cuts import alpha_expansion, grid_pairs
+from workbench.graph_cuts import alpha_expansion, grid_pairs, squared_differences
+from workbench.texture_seams import rgb_to_lab
 
 PROB_FLOOR = 1e-4  # -log(1e-4) = 9.2: a confident cell flips only against strong edges
 TILE = 256  # cells per tile side: on seed 0, the labels of 512 and 256, 1.6x faster
@@ -39,11 +39,8 @@ def contrast_terms(ortho: np.ndarray, dsm: np.ndarray, pairs: np.ndarray) -> tup
     -------
     dc2, dh2 : (E,) float64; a pair with an unknown height has NaN ``dh2``.
     """
-    lab = cv2.cvtColor(ortho.astype(np.float32) / 255.0, cv2.COLOR_RGB2Lab).reshape(-1, 3)
-    z = np.asarray(dsm, np.float64).ravel()
-    dc2 = np.sum((lab[pairs[:, 0]].astype(np.float64) - lab[pairs[:, 1]]) ** 2, axis=1)
-    dh2 = (z[pairs[:, 0]] - z[pairs[:, 1]]) ** 2
-    return dc2, dh2
+    dc2 = squared_differences(rgb_to_lab(ortho).reshape(-1, 3), pairs)
+    return dc2, squared_differences(np.ravel(dsm), pairs)
 
 
 def contrast_betas(ortho: np.ndarray, dsm: np.ndarray, seen: np.ndarray) -> tuple[float, float]:
@@ -51,7 +48,7 @@ def contrast_betas(ortho: np.ndarray, dsm: np.ndarray, seen: np.ndarray) -> tupl
     8-neighbours of the grid, so that the weights do not depend on how it is tiled.
     Summed one neighbour direction at a time, on shifted views of the rasters: no index
     arrays, so memory stays a few rasters whatever the grid."""
-    lab = cv2.cvtColor(ortho.astype(np.float32) / 255.0, cv2.COLOR_RGB2Lab)
+    lab = rgb_to_lab(ortho)
     z = np.asarray(dsm, np.float64)
     H, W = seen.shape
     sums = np.zeros(4)  # colour sum, pairs; height sum, pairs with both heights known

@@ -37,6 +37,20 @@ def grid_pairs(shape: tuple[int, int], diagonals: bool = False) -> tuple[np.ndar
     return np.concatenate(pairs), np.concatenate(length)
 
 
+def squared_differences(values: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """(E,) squared difference between the two nodes of each pair, summed over channels.
+
+    Parameters
+    ----------
+    values : (N,) or (N, C) float
+        Per node (a flattened raster).
+    pairs : (E, 2) int
+    """
+    v = np.asarray(values, np.float64)
+    d = v[pairs[:, 0]] - v[pairs[:, 1]]
+    return d**2 if d.ndim == 1 else np.sum(d**2, axis=1)
+
+
 def crf_energy(
     labels: np.ndarray, unary: np.ndarray, edges: np.ndarray, weights: np.ndarray, omega: float
 ) -> float:
