@@ -34,7 +34,7 @@ from modeling.superpixel.aggregation import superpixel_graph
 from modeling.superpixel.class_crf import OMEGA_CANDIDATES, refine_classes
 from workbench import metrics
 from workbench.fusion_run import read_fusion_run
-from workbench.raster import read_raster
+from workbench.raster import class_codes, read_raster
 from workbench.truth import training_cells, truth_rasters
 
 CLASS_NAMES = ("ground", "grass", "tree", "building")
@@ -141,7 +141,7 @@ def crf_ceiling(run_dir: Path, scene: Path) -> dict:
         confusions[key] = confusions.get(key, 0) + int(cells[k])
     return {
         "omega": omega,
-        "pixel": accuracy(np.nan_to_num(prob).argmax(axis=0) + 1),  # the paper's pixel column
+        "pixel": accuracy(class_codes(prob)),  # the paper's pixel column: each cell's argmax
         "superpixel": accuracy((graph.class_sum.argmax(axis=1) + 1)[labels]),
         "crf": accuracy(crf[labels]),
         "crf_by_omega": {

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from workbench.graph_cuts import alpha_expansion, grid_pairs, squared_differences
+from workbench.raster import class_codes
 from workbench.texture_seams import rgb_to_lab
 
 PROB_FLOOR = 1e-4  # -log(1e-4) = 9.2: a confident cell flips only against strong edges
@@ -93,9 +94,8 @@ def contrast_class_crf(
     -------
     (H, W) uint8 codes 1-4, 0 where unseen.
     """
-    seen = np.isfinite(class_prob).all(axis=0)
-    codes = np.where(seen, np.nanargmax(np.where(seen, class_prob, 0), axis=0) + 1, 0)
-    codes = codes.astype(np.uint8)
+    codes = class_codes(class_prob)
+    seen = codes > 0
     if omega <= 0 or not seen.any():
         return codes
     beta_c, beta_h = contrast_betas(ortho, dsm, seen)

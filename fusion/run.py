@@ -13,6 +13,7 @@ from workbench.engine import engine_for, run_signature
 from workbench.errors import WorkbenchError
 from workbench.metrics import classification, colour_mae, height_errors
 from workbench.options import options_record
+from workbench.raster import class_codes
 from workbench.records import provenance
 from workbench.scene import load_scene
 from workbench.truth import truth_rasters
@@ -21,7 +22,7 @@ from .classifier import save_classifier
 from .options import FusionOptions
 from .outputs import write_fusion
 from .raster_forest import classify_rasters, synthetic_raster_forest
-from .scene_fusion import check_height_source, class_codes, feature_set, fuse_views
+from .scene_fusion import check_height_source, feature_set, fuse_views
 
 log = logging.getLogger(__name__)
 

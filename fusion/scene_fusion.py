@@ -47,7 +47,7 @@ import numpy as np
 from workbench.engine import Engine, ThreadEngine
 from workbench.errors import InputError, WorkbenchError
 from workbench.parallel import default_workers
-from workbench.raster import Grid, read_raster
+from workbench.raster import Grid, class_codes, read_raster
 from workbench.records import StageTimer, peak_memory_mb
 from workbench.robust import (
     group_count,
@@ -114,12 +114,6 @@ class FusionResult:
         """(H, W) uint8 class codes 1-4, 0 where unseen: the class CRF's labels where it
         ran (:mod:`fusion.class_crf`), else the most probable class of each cell."""
         return self.class_map if self.class_map is not None else class_codes(self.class_prob)
-
-
-def class_codes(class_prob: np.ndarray) -> np.ndarray:
-    """(H, W) uint8 class codes 1-4 of (4, H, W) probabilities (NaN unseen), 0 where unseen."""
-    seen = np.isfinite(class_prob[0])
-    return np.where(seen, np.argmax(np.nan_to_num(class_prob), axis=0) + 1, 0).astype(np.uint8)
 
 
 class DsmDepthView:

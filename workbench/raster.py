@@ -147,6 +147,13 @@ CLASS_CODES = (0, 1, 2, 3, 4)  # no data, ground, grass, tree, building
 TREE, BUILDING = 3, 4
 
 
+def class_codes(class_prob: np.ndarray) -> np.ndarray:
+    """(H, W) uint8 class codes 1-4 of (4, H, W) probabilities (ground, grass, tree,
+    building; NaN unseen), 0 where unseen: each cell's most probable class."""
+    seen = np.isfinite(class_prob[0])
+    return np.where(seen, np.argmax(np.nan_to_num(class_prob), axis=0) + 1, 0).astype(np.uint8)
+
+
 def check_class_codes(data: np.ndarray, path, field: str | None = None) -> np.ndarray:
     """``data`` unchanged if every value is a class code 0-4, else a one-line error naming
     ``path``, ``field`` and the first codes found outside (a class raster from another

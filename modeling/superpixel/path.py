@@ -20,7 +20,7 @@ from workbench.fusion_run import FusionRun, read_fusion_run
 from workbench.model_run import Building, ModelRun, stage_record
 from workbench.parallel import default_workers
 from workbench.progress import progress
-from workbench.raster import BUILDING, Grid, read_raster
+from workbench.raster import BUILDING, Grid, class_codes, read_raster
 from workbench.records import StageTimer
 
 from .aggregation import SuperpixelGraph, superpixel_graph
@@ -89,10 +89,10 @@ def run_superpixel(
         sp_argmax = np.where(unseen, 0, graph.class_sum.argmax(axis=1)[labels] + 1)
         # the paper's pixel column: each cell's most probable class (the fusion's class.tif
         # has its own CRF on the cells)
-        px_argmax = np.where(unseen, 0, np.nan_to_num(fusion.rasters["class_prob"]).argmax(0) + 1)
         record["classification_table"] = classification_table(
-            truth, grid, px_argmax.astype(np.uint8), sp_argmax.astype(np.uint8), crf_class
-        )
+            truth, grid, class_codes(fusion.rasters["class_prob"]), sp_argmax.astype(np.uint8),
+            crf_class,
+        )  # fmt: skip
     return ModelRun(
         "superpixel", options, buildings, crs=fusion.crs, grid=grid, dtm=dtm, dsm=dsm,
         ground=ground_surface(dtm, fusion.rgb, grid),
