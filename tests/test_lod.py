@@ -45,6 +45,31 @@ def test_mrf_labels_the_four_quadrants_and_finds_the_ground():
     assert trace[-1] == pytest.approx(20.0)  # the mean of the ground cells
 
 
+def test_ground_and_grass_part_at_the_colour_edge_and_roofs_keep_their_shadows():
+    # flat ground at 20 m: paving west of column 24, a lawn east of it; the tree
+    # probability leans to grass two columns early (0.55, 0.6), as its filters blur the
+    # border; a 9 m roof in rows 30-39 with a dark shadow two columns wide that the
+    # colour classifier finds a little tree-like
+    H, W = 40, 48
+    h = np.full((H, W), 20.0)
+    h[30:, 8:40] = 29.0
+    rgb = np.empty((H, W, 3), np.uint8)
+    rgb[:, :24], rgb[:, 24:] = (130, 130, 125), (80, 130, 60)
+    rgb[30:, 8:40] = (150, 90, 80)
+    rgb[30:, 22:24] = (45, 40, 40)
+    t = np.where(np.arange(W) < 24, 0.02, 0.98)[None, :].repeat(H, 0)
+    t[:, 22], t[:, 23] = 0.55, 0.6
+    t[30:, 8:40] = 0.05
+    t[30:, 22:24] = 0.6
+    plain, _, _ = mrf_labelling(h, t, block=48)
+    labels, _, _ = mrf_labelling(h, t, block=48, rgb=rgb)
+    # eq. 5 alone parts ground and grass where t passes 1/2; the colour edge is cheaper
+    assert (plain[:30, 22:] == GRASS).all() and (plain[:30, :22] == GROUND).all()
+    assert (labels[:30, 24:] == GRASS).all() and (labels[:30, :24] == GROUND).all()
+    # up on the roof eq. 5 stays: the shadow's colour edges do not cut it out
+    assert (plain[30:, 8:40] == BUILDING).all() and (labels[30:, 8:40] == BUILDING).all()
+
+
 def test_facade_directions_from_noisy_wall_normals():
     rng = np.random.default_rng(0)
     angles = np.radians(np.r_[np.full(60, 30.0), np.full(40, 120.0), np.full(40, 210.0)])

@@ -8,7 +8,8 @@ import cv2
 import numpy as np
 from scipy import ndimage as ndi
 
-from workbench.graph_cuts import alpha_expansion, grid_pairs
+from workbench.graph_cuts import alpha_expansion, grid_pairs, squared_differences
+from workbench.texture_seams import rgb_to_lab
 
 GROUND, GRASS, TREE, BUILDING = 1, 2, 3, 4  # the workbench's class codes
 
@@ -46,6 +47,14 @@ def grid_edges(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     flat = h.ravel()
     dh = np.nan_to_num(np.abs(flat[pairs[:, 0]] - flat[pairs[:, 1]]), nan=0.0)
     return pairs, 1.0 - np.clip(dh, 0.0, 1.0)
+
+
+def colour_contrast(rgb: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """(E,) exp(-|Lab_i - Lab_j|^2 / (2 <|Lab_i - Lab_j|^2>)) of each pair of cells of the
+    ortho (H, W, 3): near 1 inside a colour region, near 0 across a strong edge (Boykov
+    and Jolly 2001, GrabCut's normalisation; as the fusion's class CRF)."""
+    d2 = squared_differences(rgb_to_lab(rgb).reshape(-1, 3), pairs)
+    return np.exp(-d2 / (2.0 * max(float(d2.mean()), 1e-12))) if len(d2) else d2
 
 
 def ground_heights(h: np.ndarray, labels: np.ndarray | None, block: int) -> np.ndarray:
@@ -105,6 +114,7 @@ def mrf_labelling(
     mu: float = 1.0,
     iterations: int = 3,
     block: int = 200,
+    rgb: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[float]]:
     """Eq. 6 minimised by alpha-expansion, ``iterations`` times, h_ground re-estimated
     from each labelling's ground cells.
@@ -117,6 +127,11 @@ def mrf_labelling(
         Tree probability in [0, 1].
     block : int
         Side of a ground block, cells.
+    rgb : (H, W, 3) uint8, optional
+        The ortho. Between two low cells (h_n < 1/2: below h_trunc) eq. 5's weight is
+        multiplied by their :func:`colour_contrast` (not in the paper): ground and grass
+        are both low and flat, so eq. 5 does not part them, and the tree probability's
+        filters blur their border. Higher up eq. 5 stays: shadows would split roofs.
 
     Returns
     -------
@@ -126,12 +141,18 @@ def mrf_labelling(
         its convergence
     """
     edges, weights = grid_edges(h)
+    contrast = colour_contrast(rgb, edges) if rgb is not None else None
     labels, trace = None, []
     for _ in range(max(iterations, 1)):
         h_ground = ground_heights(h, labels, block)
-        unary = data_term(normalised_height(h, h_ground, h_trunc), t).reshape(-1, 4)
+        hn = normalised_height(h, h_ground, h_trunc)
+        unary = data_term(hn, t).reshape(-1, 4)
+        w = weights
+        if contrast is not None:
+            low = hn.ravel() < 0.5
+            w = np.where(low[edges[:, 0]] & low[edges[:, 1]], weights * contrast, weights)
         init = labels.ravel() - 1 if labels is not None else None
-        labels = (alpha_expansion(unary, edges, weights, mu, init=init) + 1).reshape(h.shape)
+        labels = (alpha_expansion(unary, edges, w, mu, init=init) + 1).reshape(h.shape)
         trace.append(round(float(h_ground.mean()), 3))
     return labels.astype(np.uint8), h_ground, trace
 

@@ -26,6 +26,11 @@ class LodOptions:
         unit="m",
     )  # fmt: skip
     mu: float = option(1.0, "weight of the labelling's smoothness (eq. 6)", kind="non_negative")
+    colour_contrast: bool = option(
+        True, "between two cells below --h-trunc, multiply the labelling's pairwise weight "
+        "(eq. 5) by the ortho's colour contrast, so that ground and grass part at their "
+        "colour edge (off: the paper's eq. 5)",
+    )  # fmt: skip
     angle_threshold: float = option(
         10.0, "angle within which a normal counts for a facade or roof direction (eq. 7-8, "
         "ang_thre) and a segment is turned onto a facade direction", unit="deg",

@@ -101,7 +101,8 @@ def run_lod(
         block = max(1, round(options.ground_block_m / grid.gsd))
         filled = fill_from_below(dsm)
         classes, _, trace = mrf_labelling(filled, t, options.h_trunc, options.mu,
-                                                 options.ground_iterations, block)  # fmt: skip
+                                          options.ground_iterations, block,
+                                          rgb if options.colour_contrast else None)  # fmt: skip
         radius = round(options.opening_m / grid.gsd)
         building = open_close(classes == BUILDING, radius)
         parts, n = ndi.label(building)
