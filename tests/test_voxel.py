@@ -604,7 +604,7 @@ def voxel_run(tiny_scene, tiny_fusion, tmp_path_factory):
 
 def test_voxel_heights_from_fused_rasters(voxel_run):
     """Thresholds a little above what was measured (tiny, seed 0): height error median
-    1.27 %, mean 1.42 %, every roof type at most 2.9 % mean (hipped), 2D quality 0.821
+    1.30 %, mean 1.52 %, every roof type at most 3.3 % mean (hipped), 2D quality 0.823
     (tiny's 20 views miss some walls), every building found."""
     b = voxel_run[2]["buildings"]
     assert b["height_error_pct_median"] < 1.8 and b["height_error_pct_mean"] < 1.8
