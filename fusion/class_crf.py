@@ -16,8 +16,11 @@ where the colour or the height changes more than is usual in this grid.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from workbench.engine import Engine, ThreadEngine
 from workbench.graph_cuts import alpha_expansion, grid_pairs, squared_differences
 from workbench.raster import class_codes
 from workbench.texture_seams import rgb_to_lab
@@ -66,6 +69,23 @@ def contrast_betas(ortho: np.ndarray, dsm: np.ndarray, seen: np.ndarray) -> tupl
     return 1.0 / (2.0 * max(mc, 1e-12)), 1.0 / (2.0 * max(mh, 1e-12))
 
 
+@dataclass
+class CrfProblem:
+    """What every tile's task reads: the grid's confidences (4, H, W), ortho (H, W, 3),
+    DSM and seen cells (H, W), the weight, the contrasts' betas (the whole grid's), the
+    sweeps and the tile side."""
+
+    class_prob: np.ndarray
+    ortho: np.ndarray
+    dsm: np.ndarray
+    seen: np.ndarray
+    omega: float
+    beta_c: float
+    beta_h: float
+    max_sweeps: int
+    tile: int
+
+
 def contrast_class_crf(
     class_prob: np.ndarray,
     ortho: np.ndarray,
@@ -73,6 +93,7 @@ def contrast_class_crf(
     omega: float,
     tile: int = TILE,
     max_sweeps: int = 3,
+    engine: Engine | None = None,
 ) -> np.ndarray:
     """Class codes of the contrast-sensitive Potts model, tile by tile.
 
@@ -89,6 +110,9 @@ def contrast_class_crf(
         it, so memory is that of a tile whatever the grid.
     max_sweeps : int
         Alpha-expansion sweeps.
+    engine : Engine, optional
+        Runs the tiles as the tasks of a stage ``class_crf`` (:mod:`workbench.engine`);
+        by default one after another in this process. The labels do not depend on it.
 
     Returns
     -------
@@ -99,17 +123,29 @@ def contrast_class_crf(
     if omega <= 0 or not seen.any():
         return codes
     beta_c, beta_h = contrast_betas(ortho, dsm, seen)
+    problem = CrfProblem(class_prob, ortho, dsm, seen, omega, beta_c, beta_h, max_sweeps, tile)
     H, W = seen.shape
-    for r0 in range(0, H, tile):
-        for c0 in range(0, W, tile):
-            rs = slice(max(r0 - MARGIN, 0), min(r0 + tile + MARGIN, H))
-            cs = slice(max(c0 - MARGIN, 0), min(c0 + tile + MARGIN, W))
-            labels = _solve(class_prob[:, rs, cs], ortho[rs, cs], dsm[rs, cs], seen[rs, cs],
-                            omega, beta_c, beta_h, max_sweeps)  # fmt: skip
-            core_r = slice(r0 - rs.start, r0 - rs.start + min(tile, H - r0))
-            core_c = slice(c0 - cs.start, c0 - cs.start + min(tile, W - c0))
-            codes[r0 : r0 + tile, c0 : c0 + tile] = labels[core_r, core_c]
+    corners = [(r0, c0) for r0 in range(0, H, tile) for c0 in range(0, W, tile)]
+    engine = engine or ThreadEngine(1)
+    labels = engine.map(crf_tile, corners, engine.share(problem), stage="class_crf")
+    for (r0, c0), core in zip(corners, labels, strict=True):
+        codes[r0 : r0 + core.shape[0], c0 : c0 + core.shape[1]] = core
     return codes
+
+
+def crf_tile(corner: tuple[int, int], problem: CrfProblem) -> np.ndarray:
+    """Task: the labels (uint8 codes, 0 unseen) of the tile whose first cell is
+    ``corner``, solved with ``MARGIN`` cells of context on every side."""
+    r0, c0 = corner
+    H, W = problem.seen.shape
+    t = problem.tile
+    rs = slice(max(r0 - MARGIN, 0), min(r0 + t + MARGIN, H))
+    cs = slice(max(c0 - MARGIN, 0), min(c0 + t + MARGIN, W))
+    labels = _solve(problem.class_prob[:, rs, cs], problem.ortho[rs, cs], problem.dsm[rs, cs],
+                    problem.seen[rs, cs], problem.omega, problem.beta_c, problem.beta_h,
+                    problem.max_sweeps)  # fmt: skip
+    return labels[r0 - rs.start : r0 - rs.start + min(t, H - r0),
+                  c0 - cs.start : c0 - cs.start + min(t, W - c0)]  # fmt: skip
 
 
 def _solve(prob, ortho, dsm, seen, omega, beta_c, beta_h, max_sweeps) -> np.ndarray:

@@ -334,7 +334,7 @@ def fuse_views(
             c = colours_and_classes(cache, shared_views, forest is not None, dsm, h, mode, opts,
                                     engine)  # fmt: skip
     dsm, ndsm, class_prob, classes, ortho, count16, crowns, class_source = _finish(
-        c, h, dsm, dtm, spikes, holes, forest, class_source, grid, mode, opts, timer
+        c, h, dsm, dtm, spikes, holes, forest, class_source, grid, mode, opts, timer, engine
     )
     observe_s = timer.stages["observations"]["wall_s"] + timer.stages["heights"]["wall_s"]
     record = {
@@ -718,6 +718,7 @@ def _finish(
     mode: str,
     opts: FusionOptions,
     timer: StageTimer,
+    engine: Engine,
 ):
     """Normalised classes with the elevation prior, the class CRF's labels, the crowns'
     corrections of the DSM (neither in the paper), the small holes of the ortho filled,
@@ -727,7 +728,7 @@ def _finish(
             c, h, dsm, dtm, holes, forest, class_source, grid, opts
         )
     with timer.stage("class_crf"):
-        classes = contrast_class_crf(class_prob, ortho, dsm, opts.class_crf)
+        classes = contrast_class_crf(class_prob, ortho, dsm, opts.class_crf, engine=engine)
     if opts.class_crf > 0:
         class_source += (
             f"; class.tif: a contrast-sensitive Potts model (omega {opts.class_crf:g}) on "

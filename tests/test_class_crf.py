@@ -6,6 +6,7 @@ import pytest
 from scipy import ndimage
 
 from fusion.class_crf import contrast_betas, contrast_class_crf
+from workbench.engine import ThreadEngine
 from workbench.graph_cuts import grid_pairs
 
 GREY, GREEN = (130, 130, 125), (80, 130, 60)
@@ -81,6 +82,9 @@ def test_tiles_do_not_show():
     tiled = contrast_class_crf(prob, ortho, dsm, omega=8.0, tile=64)
     np.testing.assert_array_equal(one, tiled)
     np.testing.assert_array_equal(one, np.where(lawn, 2, 1))
+    # the tiles as tasks of three threads: the same labels
+    threads = contrast_class_crf(prob, ortho, dsm, omega=8.0, tile=64, engine=ThreadEngine(3))
+    np.testing.assert_array_equal(threads, tiled)
 
 
 def test_betas_are_the_inverse_mean_squared_differences():

@@ -116,6 +116,32 @@ def test_an_unreachable_scheduler_is_one_line(tiny_scene, tmp_path):
     assert not out.exists() and not partial_folder(out).exists()
 
 
+def test_a_second_run_at_once_starts_its_cluster_quietly():
+    """Two runs at once: the first holds the dashboard's default port, 8787; the second's
+    local cluster must not warn about it, since its stderr may be a one-line error (this
+    broke three one-line tests while another run's cluster was up)."""
+    import socket
+    import warnings
+
+    from workbench.engine import local_cluster
+
+    held = socket.socket()
+    try:
+        held.bind(("", 8787))
+        held.listen()
+    except OSError:
+        pass  # taken already: the case itself
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            client, cluster = local_cluster(1)
+            client.close()
+            cluster.close()
+    finally:
+        held.close()
+    assert not [w for w in caught if "already in use" in str(w.message)], caught
+
+
 @pytest.fixture(scope="module")
 def cluster():
     """A local Dask cluster of two worker processes, as `dask scheduler` and two
@@ -123,7 +149,7 @@ def cluster():
     from distributed import LocalCluster
 
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as c:  # fmt: skip
+                      dashboard_address=":0") as c:  # fmt: skip
         yield c
 
 

@@ -424,8 +424,10 @@ def local_cluster(workers: int):
     from distributed import Client, LocalCluster
 
     logging.getLogger("distributed").setLevel(logging.WARNING)  # its INFO is for operators
+    # the dashboard on a free port: None still asks for 8787, and a second run at once
+    # (another user's, or a test beside it) put "Port 8787 is already in use" on stderr
     cluster = LocalCluster(
-        n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+        n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
         silence_logs=logging.ERROR,
     )  # fmt: skip
     return Client(cluster), cluster
