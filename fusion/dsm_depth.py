@@ -64,7 +64,16 @@ class DsmSurface:
     def depth_map(self, camera: Camera, step: int = 1) -> np.ndarray:
         """(H, W) z-depth of the surface seen by every pixel, NaN where the ray misses."""
         origin, dirs = camera.pixel_grid_rays(step)
-        hits = cast(self.scene, origin - self.origin, dirs)
         h = len(range(0, camera.height, step))
         w = len(range(0, camera.width, step))
-        return np.where(np.isfinite(hits.t), hits.t, np.nan).astype(np.float32).reshape(h, w)
+        return self._depths(origin, dirs).reshape(h, w)
+
+    def depth_at(self, camera: Camera, pixels: np.ndarray) -> np.ndarray:
+        """(N,) float32 z-depth of the surface seen by the flat ``pixels`` (row * width +
+        col), NaN where the ray misses: :meth:`depth_map`'s at those pixels."""
+        origin, dirs = camera.pixel_grid_rays()
+        return self._depths(origin, dirs[pixels])
+
+    def _depths(self, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        hits = cast(self.scene, origin - self.origin, dirs)
+        return np.where(np.isfinite(hits.t), hits.t, np.nan).astype(np.float32)

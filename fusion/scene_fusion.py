@@ -72,7 +72,7 @@ from .dsm_depth import DsmSurface
 from .geometry_cues import cue_columns, geometric_cues
 from .ground import dtm_from_dsm
 from .interpolate import push_pull_fill, small_holes
-from .observations import close_neighbours, lift_depth, observe
+from .observations import close_neighbours, grid_window, lift_depth, observe, window_pixels
 from .options import FusionOptions
 from .raster_forest import classify_rasters, synthetic_raster_forest
 from .sigma_points import MEAN_ELEVATION, N_FEATURES, feature_cues, sigma_points
@@ -257,7 +257,7 @@ def elevation_image(obs_pixels, xyz, shape, dtm: np.ndarray, grid: Grid) -> np.n
 
 
 def view_features(
-    view: View, rgb, depth, dtm, grid, patch, surface=None, cues=None
+    view: View, rgb, depth, dtm, grid, patch, surface=None, cues=None, window=None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sigma Points of a view (H*W, 78), with the geometric cues of each pixel's cell
     after them when ``cues`` (G, H, W) are given (:mod:`fusion.geometry_cues`), and its
@@ -267,18 +267,39 @@ def view_features(
     :class:`~fusion.dsm_depth.DsmSurface`) for their elevation cue and their cell: the
     interpolation of their neighbours would lift a shadow beside a tower to the tower's
     height.
+
+    With ``window`` (rows, columns), the features of its pixels only (h*w, F), and the
+    lifted pixels in it, as flat indices in it: the elevation is interpolated over the
+    whole image, the patches read the window alone.
     """
     pixels, xyz = lift_depth(view.camera, depth)
     all_pixels, all_xyz = pixels, xyz
     if surface is not None and len(pixels) < depth.size:
-        filled = np.where(np.isfinite(depth), depth, surface.depth_map(view.camera))
+        unknown = np.flatnonzero(~np.isfinite(depth))  # a few hundredths of the pixels
+        filled = depth.copy()
+        filled.ravel()[unknown] = surface.depth_at(view.camera, unknown)
         all_pixels, all_xyz = lift_depth(view.camera, filled)
     elev = elevation_image(all_pixels, all_xyz, depth.shape, dtm, grid)
+    geometry = None if cues is None else cue_columns(cues, all_pixels, all_xyz, depth.size, grid)
+    if window is not None:
+        rgb, elev = rgb[window], elev[window]
+        if geometry is not None:
+            geometry = geometry.reshape(*depth.shape, -1)[window].reshape(-1, len(cues))
+        pixels, xyz = in_window(window, depth.shape, pixels, xyz)
     feats = sigma_points(feature_cues(rgb, elev), patch).reshape(-1, N_FEATURES)
-    if cues is not None:
-        geometry = cue_columns(cues, all_pixels, all_xyz, depth.size, grid)
+    if geometry is not None:
         feats = np.concatenate([feats, geometry], axis=1)
     return feats, pixels, xyz
+
+
+def in_window(window: tuple[slice, slice], shape: tuple[int, int], pixels, xyz):
+    """The ``pixels`` (flat indices in an image of ``shape``) inside ``window`` as flat
+    indices in it, with their ``xyz``."""
+    rows, cols = window
+    v, u = np.divmod(pixels, shape[1])
+    inside = (v >= rows.start) & (v < rows.stop) & (u >= cols.start) & (u < cols.stop)
+    local = (v[inside] - rows.start) * (cols.stop - cols.start) + (u[inside] - cols.start)
+    return local, xyz[inside]
 
 
 def fuse_views(
@@ -390,12 +411,27 @@ class ViewContext:
     cues: np.ndarray | None
     forest: object = None
 
-    def features(self, v) -> tuple:
-        """The view's image, depth map, Sigma Points (with the cues), pixels and points."""
-        rgb, depth = v.read_image(), v.read_depth()
-        feats, pixels, xyz = view_features(v, rgb, depth, self.dtm, self.grid, self.opts.patch,
-                                           self.surface, self.cues)  # fmt: skip
-        return depth, feats, pixels, xyz
+    def features(self, v, seeing: Grid) -> tuple:
+        """The view's depth map, and the Sigma Points (with the cues), lifted pixels and
+        points of the window of its pixels that see the grid ``seeing``
+        (:func:`~fusion.observations.grid_window`, :func:`view_features`), and the
+        window; None for each but the depth where no pixel does."""
+        depth = v.read_depth()
+        _, rays = v.camera.pixel_grid_rays()
+        window = grid_window(depth, rays, v.camera.center, seeing, feature_margin(self.opts.patch))
+        if window is None:
+            return depth, None, None, None, None
+        feats, pixels, xyz = view_features(
+            v, v.read_image(), depth, self.dtm, self.grid, self.opts.patch, self.surface,
+            self.cues, window,
+        )  # fmt: skip
+        return depth, feats, pixels, xyz, window
+
+
+def feature_margin(patch: int) -> int:
+    """Pixels the Sigma Points of ``patch`` x ``patch`` read around a pixel: half the
+    patch, and one for the derivatives' Sobel kernel."""
+    return patch // 2 + 1
 
 
 def _depth_views(scene: Scene, opts: FusionOptions, timer: StageTimer):
@@ -599,12 +635,17 @@ def classify_views(cache: ObservationCache, ctx: ViewContext | None, forest,
 
 def classify_view(i: int, ctx: ViewContext, folder: Path) -> int:
     """Task: view ``i``'s class probabilities, (H*W, 4) uint8, to ``folder/<i>_probs.npy``;
-    returns the number of pixels classified."""
-    depth, feats, pixels, _ = ctx.features(ctx.views[i])
+    returns the number of pixels classified.
+
+    Only the pixels of the window that sees the grid (:func:`grid_window`) are classified,
+    the others left 0: the colour pass reads the observations' pixels, all inside it."""
+    depth, feats, pixels, _, window = ctx.features(ctx.views[i], ctx.grid)
     probs = np.zeros((depth.size, len(CLASSES)), np.uint8)
-    probs[pixels] = np.round(predict_proba(ctx.forest, feats[pixels]) * 255).astype(np.uint8)
+    if window is not None:
+        p = np.round(predict_proba(ctx.forest, feats[pixels]) * 255).astype(np.uint8)
+        probs[window_pixels(window, pixels, depth.shape[1])] = p
     np.save(folder / f"{i}_probs.npy", probs)
-    return len(pixels)
+    return 0 if window is None else len(pixels)
 
 
 @dataclass
@@ -861,7 +902,9 @@ def labelled_pixels(i: int, ctx: ViewContext, labels: tuple) -> tuple:
     """Task: view ``i``'s labelled pixels: their features and labels, and the number of
     labelled pixels dropped by elevation. ``labels`` is (label raster, its grid)."""
     label_raster, label_grid = labels
-    _, feats, pixels, xyz = ctx.features(ctx.views[i])
+    _, feats, pixels, xyz, window = ctx.features(ctx.views[i], label_grid)
+    if window is None:
+        return np.zeros((0, 0), np.float32), np.zeros(0, np.uint8), 0  # the view sees no label
     r, c = label_grid.cell_index(xyz[:, 0], xyz[:, 1])
     inside = label_grid.contains(r, c)
     lab = np.zeros(len(pixels), np.uint8)

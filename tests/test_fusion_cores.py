@@ -1,5 +1,6 @@
 """The fusion steps as plain functions, on hand-computed cases."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -9,9 +10,11 @@ from fusion.geometry_cues import UNKNOWN, cue_columns, plane_residual, window_ce
 from fusion.ground import dtm_from_dsm
 from fusion.interpolate import push_pull_fill, small_holes
 from fusion.observations import (
+    OBSERVE_MARGIN,
     close_neighbours,
     depth_jumps,
     depth_outliers,
+    grid_window,
     height_weights,
     nearest_depth,
     normal_z_image,
@@ -463,3 +466,91 @@ def test_geometric_cues_reach_each_pixel_through_its_cell():
     assert out[5].tolist() == pytest.approx([0.9, 0.2, UNKNOWN])
     assert out[0].tolist() == pytest.approx([0.1, 0.2, UNKNOWN])
     assert (out[[1, 2, 3, 4, 6, 7]] == UNKNOWN).all()  # pixels not lifted
+
+
+def _oblique_view_of_a_block(width=300, height=200, seed=0):
+    """An oblique camera 60 m above flat ground with a 10 m flat-roofed block, and its
+    noisy depth map with holes and gross errors."""
+    R = look_at_rotation([0, 1, -1])
+    K = np.array([[250.0, 0, (width - 1) / 2], [0, 250.0, (height - 1) / 2], [0, 0, 1]])
+    center = np.array([0.0, -60.0, 60.0])
+    cam = Camera(K, R, -R @ center, width, height)
+    _, dirs = cam.pixel_grid_rays()
+    with np.errstate(divide="ignore"):
+        depth = -center[2] / dirs[:, 2]  # the ground, z = 0 (the rays' camera z is 1)
+        roof = (10.0 - center[2]) / dirs[:, 2]
+    hit = center[:2] + roof[:, None] * dirs[:, :2]
+    on_roof = (np.abs(hit[:, 0]) < 8) & (np.abs(hit[:, 1] - 5) < 6) & (roof > 0)
+    depth = np.where(on_roof, roof, depth).reshape(height, width)
+    rng = np.random.default_rng(seed)
+    depth = depth + rng.normal(0, 0.05, depth.shape)
+    depth[rng.random(depth.shape) < 0.02] *= 0.7  # gross matching errors
+    depth[rng.random(depth.shape) < 0.02] = np.nan  # unmatched pixels
+    depth[depth <= 0] = np.nan  # above the horizon
+    return cam, depth.astype(np.float32)
+
+
+def test_observe_reads_only_the_window_that_sees_the_grid(monkeypatch):
+    import fusion.observations as observations
+
+    cam, depth = _oblique_view_of_a_block()
+    grid = Grid.from_bounds(-15.0, -10.0, 15.0, 20.0, 0.5)
+    window = grid_window(depth, cam.pixel_grid_rays()[1], cam.center, grid, OBSERVE_MARGIN)
+    rows, cols = window
+    assert 0 < (rows.stop - rows.start) * (cols.stop - cols.start) < 0.6 * depth.size
+    windowed = observe(cam, depth, grid)
+    assert len(windowed.cells) > 5000
+    # the same observations, field for field, as from the whole image
+    whole = (slice(0, depth.shape[0]), slice(0, depth.shape[1]))
+    monkeypatch.setattr(observations, "grid_window", lambda *args: whole)
+    everything = observe(cam, depth, grid)
+    for field in ("pixels", "cells", "xyz", "depth", "visible", "normal_z", "near_jump",
+                  "height_weight"):  # fmt: skip
+        np.testing.assert_array_equal(getattr(windowed, field), getattr(everything, field))
+    monkeypatch.undo()
+    # a grid the view does not see: no window, no observation
+    far = Grid.from_bounds(500.0, 500.0, 510.0, 510.0, 0.5)
+    assert grid_window(depth, cam.pixel_grid_rays()[1], cam.center, far, 9) is None
+    assert len(observe(cam, depth, far).cells) == 0
+
+
+def test_view_features_of_a_window_are_those_of_the_whole_image():
+    from types import SimpleNamespace
+
+    from fusion.observations import window_pixels
+    from fusion.scene_fusion import feature_margin, view_features
+
+    cam, depth = _oblique_view_of_a_block()
+    rng = np.random.default_rng(1)
+    rgb = cv2.GaussianBlur(rng.integers(0, 256, depth.shape + (3,), dtype=np.uint8), (0, 0), 2)
+    grid = Grid.from_bounds(-15.0, -10.0, 15.0, 20.0, 0.5)
+    dtm, view = np.zeros(grid.shape), SimpleNamespace(camera=cam)
+    window = grid_window(depth, cam.pixel_grid_rays()[1], cam.center, grid, feature_margin(11))
+    feats, pixels, xyz = view_features(view, rgb, depth, dtm, grid, 11, window=window)
+    all_feats, all_pixels, all_xyz = view_features(view, rgb, depth, dtm, grid, 11)
+    full = window_pixels(window, pixels, depth.shape[1])
+    np.testing.assert_array_equal(xyz, all_xyz[np.isin(all_pixels, full)])
+    # every pixel whose point lands in the grid is in the window, with its features (the
+    # patches' box filters run from another edge: the same but for rounding)
+    r, c = grid.cell_index(all_xyz[:, 0], all_xyz[:, 1])
+    seen = all_pixels[grid.contains(r, c)]
+    assert len(seen) > 5000 and np.isin(seen, full).all()
+    r, c = grid.cell_index(xyz[:, 0], xyz[:, 1])
+    inside = grid.contains(r, c)
+    np.testing.assert_array_equal(full[inside], seen)
+    np.testing.assert_allclose(feats[pixels[inside]], all_feats[seen], rtol=1e-6, atol=1e-6)
+
+
+def test_dsm_surface_depth_at_some_pixels_is_its_depth_map_there():
+    from fusion.dsm_depth import DsmSurface
+
+    grid = Grid.from_bounds(-30.0, -30.0, 30.0, 30.0, 0.5)
+    X, Y = grid.cell_centers()
+    dsm = np.where((np.abs(X) < 8) & (np.abs(Y - 5) < 6), 10.0, 0.02 * X)  # a block on a slope
+    surface = DsmSurface(dsm, grid)
+    cam, _ = _oblique_view_of_a_block()
+    whole = surface.depth_map(cam).ravel()
+    pixels = np.random.default_rng(0).choice(whole.size, 2000, replace=False)
+    np.testing.assert_array_equal(surface.depth_at(cam, pixels), whole[pixels])
+    roof = np.isfinite(whole) & (whole < np.nanmedian(whole) - 5)
+    assert roof.sum() > 1000  # the block's roof is nearer than the ground behind it
