@@ -316,6 +316,16 @@ def window_pixels(window: tuple[slice, slice], pixels: np.ndarray, width: int) -
     return (v + rows.start) * width + (u + cols.start)
 
 
+def in_window(window: tuple[slice, slice], shape: tuple[int, int], pixels, xyz):
+    """The ``pixels`` (flat indices in an image of ``shape``) inside ``window`` as flat
+    indices in it, with their ``xyz``."""
+    rows, cols = window
+    v, u = np.divmod(pixels, shape[1])
+    inside = (v >= rows.start) & (v < rows.stop) & (u >= cols.start) & (u < cols.stop)
+    local = (v[inside] - rows.start) * (cols.stop - cols.start) + (u[inside] - cols.start)
+    return local, xyz[inside]
+
+
 def observe(
     camera: Camera, depth: np.ndarray, grid: Grid, *, tolerance: float = 1.0
 ) -> ViewObservations:

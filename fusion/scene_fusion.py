@@ -72,7 +72,14 @@ from .dsm_depth import DsmSurface
 from .geometry_cues import cue_columns, geometric_cues
 from .ground import dtm_from_dsm
 from .interpolate import push_pull_fill, small_holes
-from .observations import close_neighbours, grid_window, lift_depth, observe, window_pixels
+from .observations import (
+    close_neighbours,
+    grid_window,
+    in_window,
+    lift_depth,
+    observe,
+    window_pixels,
+)
 from .options import FusionOptions
 from .raster_forest import classify_rasters, synthetic_raster_forest
 from .sigma_points import MEAN_ELEVATION, N_FEATURES, feature_cues, sigma_points
@@ -290,16 +297,6 @@ def view_features(
     if geometry is not None:
         feats = np.concatenate([feats, geometry], axis=1)
     return feats, pixels, xyz
-
-
-def in_window(window: tuple[slice, slice], shape: tuple[int, int], pixels, xyz):
-    """The ``pixels`` (flat indices in an image of ``shape``) inside ``window`` as flat
-    indices in it, with their ``xyz``."""
-    rows, cols = window
-    v, u = np.divmod(pixels, shape[1])
-    inside = (v >= rows.start) & (v < rows.stop) & (u >= cols.start) & (u < cols.stop)
-    local = (v[inside] - rows.start) * (cols.stop - cols.start) + (u[inside] - cols.start)
-    return local, xyz[inside]
 
 
 def fuse_views(
