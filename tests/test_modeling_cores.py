@@ -24,6 +24,8 @@ from modeling.superpixel.aggregation import plane_residuals, superpixel_graph
 from modeling.superpixel.buildings import split_buildings
 from modeling.superpixel.class_crf import geometry_factor
 from modeling.superpixel.options import SuperpixelOptions
+from modeling.superpixel.plane_hypotheses import SuperpixelPoints
+from modeling.superpixel.prototype_crf import edges_within, label_prototypes
 from modeling.superpixel.prototypes import cluster_prototypes, hypothesis_similarity
 from modeling.superpixel.quickshift import colour_height_image, quickshift_superpixels, relief_image
 from modeling.superpixel.rooftop import model_building, observed_faces
@@ -265,6 +267,38 @@ def test_prototypes_group_hypotheses_of_one_plane():
     exemplars, assignment = cluster_prototypes(S, 6, -0.25)
     assert len(exemplars) == 2
     assert len(set(assignment[:3])) == 1 and len(set(assignment[3:])) == 1
+
+
+def test_edges_within_groups_the_edges_both_ends_of_a_building_own():
+    owner = np.array([0, 1, 1, 2, 2, 1])
+    edges = np.array([[0, 1], [1, 2], [2, 3], [3, 4], [1, 5], [4, 5], [2, 5]])
+    groups = edges_within(edges, owner)
+    assert [g.tolist() for g in groups] == [[0, 2, 5], [1, 4, 6], [3]]
+
+
+def test_prototype_crf_of_a_building_among_others_by_hand():
+    """Two roof sides of 4 super-pixels each (1..4 and 5..8 on a row, 0 and 9 another
+    building's); the CRF gives each side its plane, whether the building's edges are
+    given or found in the whole graph."""
+    rng = np.random.default_rng(0)
+    pts, starts = [], [0]
+    for k in range(10):
+        x, y = rng.uniform(0, 4, (2, 30)) + [[4 * k], [0]]
+        pts.append(np.column_stack([x, y, (0.5 if k < 5 else -0.5) * y + 3]))
+        starts.append(starts[-1] + 30)
+    points = SuperpixelPoints(np.concatenate(pts), np.array(starts[:-1]), np.array(starts[1:]))
+    edges = np.array([[k, k + 1] for k in range(9)])
+    graph = SimpleNamespace(n=10, edges=edges, boundary=np.full(9, 10.0),
+                            colour_distance=np.zeros(9))  # fmt: skip
+    members = np.arange(1, 9)
+    planes = np.array([_plane(0, 0.5, 3), _plane(0, -0.5, 3)])
+    options = SuperpixelOptions()
+    owner = np.zeros(10, np.int64)
+    owner[members] = 1
+    found = label_prototypes(members, planes, points, graph, options, np.array([2, 7]))
+    given = label_prototypes(members, planes, points, graph, options, np.array([2, 7]),
+                             edges_within(edges, owner)[1])  # fmt: skip
+    assert found.tolist() == given.tolist() == [0, 0, 0, 0, 1, 1, 1, 1]
 
 
 @pytest.mark.parametrize("seed", range(5))

@@ -153,21 +153,23 @@ def write_obj(
     if mtllib:
         lines.append(f"mtllib {mtllib}")
     if vertex_colors is None:
-        lines += [f"v {x:.3f} {y:.3f} {z:.3f}" for x, y, z in vertices]
+        # rows as Python numbers: iterating an array's rows is several times slower
+        lines += [f"v {x:.3f} {y:.3f} {z:.3f}" for x, y, z in np.asarray(vertices).tolist()]
     else:
         c = np.asarray(vertex_colors, np.float64) / 255.0
         lines += [
             f"v {x:.3f} {y:.3f} {z:.3f} {r:.3f} {g:.3f} {b:.3f}"
-            for (x, y, z), (r, g, b) in zip(vertices, c, strict=True)
+            for (x, y, z), (r, g, b) in zip(np.asarray(vertices).tolist(), c.tolist(), strict=True)
         ]
     if uvs is not None:
-        lines += [f"vt {u:.6f} {v:.6f}" for u, v in np.asarray(uvs).reshape(-1, 2)]
+        lines += [f"vt {u:.6f} {v:.6f}" for u, v in np.asarray(uvs).reshape(-1, 2).tolist()]
+    corners = (np.asarray(triangles, np.int64) + 1).tolist()
     if uvs is None:
-        faces = [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in triangles]
+        faces = [f"f {a} {b} {c}" for a, b, c in corners]
     else:
         faces = [
-            f"f {a + 1}/{3 * i + 1} {b + 1}/{3 * i + 2} {c + 1}/{3 * i + 3}"
-            for i, (a, b, c) in enumerate(triangles)
+            f"f {a}/{3 * i + 1} {b}/{3 * i + 2} {c}/{3 * i + 3}"
+            for i, (a, b, c) in enumerate(corners)
         ]
     runs = (
         [(material, len(faces))] if isinstance(material, str) else material or [(None, len(faces))]

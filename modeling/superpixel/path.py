@@ -29,7 +29,7 @@ from .class_crf import choose_omega_class, geometry_factor, refine_classes, stro
 from .options import SuperpixelOptions
 from .plane_hypotheses import SuperpixelPoints, plane_hypotheses, superpixel_points
 from .preview import superpixel_preview
-from .prototype_crf import label_prototypes, refit_planes
+from .prototype_crf import edges_within, label_prototypes, refit_planes
 from .prototypes import roof_prototypes
 from .quickshift import quickshift_superpixels, relief_image
 from .rooftop import model_building, observed_faces
@@ -166,6 +166,7 @@ def model_buildings(
     cell_building = owner[labels]
     boxes = building_boxes(cell_building, int(owner.max()))
     members_of = np.split(np.argsort(owner, kind="stable"), np.cumsum(np.bincount(owner)))
+    inner_edges = edges_within(graph.edges, owner)
     reach = int(round(edge_reach_m / grid.gsd))
     faces = np.zeros(labels.shape, np.int32)
     seconds = dict.fromkeys(BUILDING_STEPS, 0.0)
@@ -183,7 +184,7 @@ def model_buildings(
         if not len(protos):
             continue
         assign = timed("prototype_crf", label_prototypes, members, protos, pts, graph, options,
-                       anchors)  # fmt: skip
+                       anchors, inner_edges[b])  # fmt: skip
         protos = timed("prototype_crf", refit_planes, members, assign, protos, pts, options)
         sp_face = np.zeros(graph.n, np.int32)
         sp_face[members] = assign + 1

@@ -20,6 +20,7 @@ def label_prototypes(
     graph: SuperpixelGraph,
     options: SuperpixelOptions,
     anchors: np.ndarray | None = None,
+    inner_edges: np.ndarray | None = None,
 ) -> np.ndarray:
     """The prototype CRF (section 5.2): each building super-pixel takes a prototype.
 
@@ -33,28 +34,44 @@ def label_prototypes(
     ----------
     anchors : (P,) int, optional
         Super-pixel of each prototype's exemplar; None offers every prototype everywhere.
+    inner_edges : (e,) int, optional
+        Indices, in increasing order, of the ``graph.edges`` between two of ``members``
+        (:func:`edges_within`); found here when not given, which reads every edge of the
+        graph: a city's buildings give them at once instead.
 
     Returns
     -------
     (len(members),) prototype index of each member.
     """
-    index = np.full(graph.n, -1)
-    index[members] = np.arange(len(members))
-    e = graph.edges
-    inside = (index[e[:, 0]] >= 0) & (index[e[:, 1]] >= 0)
-    edges = np.stack([index[e[inside, 0]], index[e[inside, 1]]], axis=1)
+    if inner_edges is None:
+        owner = np.zeros(graph.n, np.int64)
+        owner[members] = 1
+        inner_edges = edges_within(graph.edges, owner)[1]
+    # a node's row is where it sorts among the members
+    sorter = np.argsort(members, kind="stable")
+    edges = sorter[np.searchsorted(members, graph.edges[inner_edges], sorter=sorter)]
     if anchors is None:
         allowed = np.ones((len(members), len(prototypes)), bool)
     else:
-        allowed = prototype_reach(edges, len(members), index[anchors], options.prototype_reach)
+        rows = sorter[np.searchsorted(members, anchors, sorter=sorter)]
+        allowed = prototype_reach(edges, len(members), rows, options.prototype_reach)
     unary = np.full((len(members), len(prototypes)), np.inf)
     for row, i in enumerate(members):
         offered = np.flatnonzero(allowed[row])
         d = point_plane_distances(prototypes[offered], pts.of(i))  # (N_i, offered)
         unary[row, offered] = np.minimum(d, options.truncation_m).sum(axis=0)
-    return alpha_expansion(
-        unary, edges, graph.pairwise[inside], options.omega_roof, allowed=allowed
-    )
+    pairwise = graph.boundary[inner_edges] / (1.0 + graph.colour_distance[inner_edges])
+    return alpha_expansion(unary, edges, pairwise, options.omega_roof, allowed=allowed)
+
+
+def edges_within(edges: np.ndarray, owner: np.ndarray) -> list[np.ndarray]:
+    """Per group 0..G of the nodes, the indices (increasing) of the ``edges`` (E, 2)
+    whose two ends it owns (``owner`` (N,) int, 0 none): one sort of the edges instead
+    of a pass over all of them per group."""
+    a, b = owner[edges[:, 0]], owner[edges[:, 1]]
+    group = np.where(a == b, a, 0)
+    order = np.argsort(group, kind="stable")
+    return np.split(order, np.cumsum(np.bincount(group, minlength=int(owner.max()) + 1))[:-1])
 
 
 def prototype_reach(edges: np.ndarray, n: int, anchors: np.ndarray, rings: int) -> np.ndarray:
