@@ -813,6 +813,10 @@ def run_benchmarks(args) -> dict:
                 f"{fm['dsm_rmse_m']:.2f} m; a perfect model with walls 5 cm off, height RMSE "
                 f"on buildings {walls['0.05']['building_rmse_m']:.2f} m"
             )
+            inside = ", ".join(f"{d} m: {v['building_rmse_off_jumps_m']:.2f} m"
+                               for d, v in floor["outline_inside"].items())  # fmt: skip
+            print(f"  a perfect model with outlines inside the true ones by {inside} (height "
+                  "RMSE on buildings off the jumps)")  # fmt: skip
             cells = floor["cells"]
             print(
                 f"  cells whose true surface some view sees {cells['seen_by_a_view']:.1%}, "

@@ -50,6 +50,7 @@ ROWS = {
         ("height.rmse_m", "height RMSE on buildings (m)", 2),
         ("height.rmse_off_jumps_m", "... off height jumps (m)", 2),
         ("height.rmse_on_both_off_jumps_m", "... where both have a building, off jumps (m)", 2),
+        ("height.missed_share_off_jumps", "... share of it on building cells the run misses", 2),
         ("buildings.height_error_pct_median", "building height error, median (%)", 1),
         ("buildings.height_error_pct_mean", "building height error, mean (%)", 1),
         *(

@@ -196,6 +196,45 @@ def test_side_by_side_blocks_close_where_their_roofs_cross():
     assert closed and how == "in the frame of support 0"
 
 
+def test_a_tower_whose_tiers_cross_at_slivers_closes_from_the_raster():
+    """A tower of the 1 km² city (seed 0, building 559 of the block path): a courtyard of
+    four supports at 55.74 m and a tier at 63.33 m turned 1.2 degrees from them, their
+    edges crossing a few centimetres apart. Their envelope is not a manifold in any
+    support's frame, even flat; on the cells of the building's grid it closes."""
+    ring = Frame(0.006724343477883373, (182.26714754098361, -314.67370491803285), (0, 0, 0, 0))
+    tier = Frame(-0.014704651853685963, (179.2262108262108, -314.6119658119659), (0, 0, 0, 0))
+    corners = [
+        [(191.80355, -323.12233), (191.77618, -319.05241), (170.79102, -319.19352),
+         (170.81839, -323.26344)],
+        [(191.71545, -310.02074), (191.68805, -305.94534), (170.70289, -306.08645),
+         (170.73029, -310.16185)],
+        [(173.79096, -319.17335), (173.73022, -310.14168), (170.73029, -310.16185),
+         (170.79102, -319.19352)],
+        [(191.77618, -319.05241), (191.71545, -310.02074), (185.48385, -310.06264),
+         (185.54458, -319.09431)],
+        [(185.49494, -319.22329), (185.62818, -310.16291), (172.90664, -309.97583),
+         (172.7734, -319.03622)],
+    ]  # fmt: skip
+    supports = []
+    for k, c in enumerate(corners):
+        f = ring if k < 4 else tier
+        u, v = f.to_frame(np.array([x for x, _ in c]), np.array([y for _, y in c]))
+        frame = Frame(f.theta, f.origin, (u.min(), u.max(), v.min(), v.max()))
+        supports.append(Support(Polygon(c), frame, 1 if k < 4 else 2))
+    heights = [55.7398, 55.7371, 55.7475, 55.7371, 63.3277]
+    blocks = [Block("flat", 0, False, (h,)) for h in heights]
+    ends = [FREE, FREE, (False, True, False, True), (False, True, False, True), FREE]
+    how, _, _, _, closed = closed_solid(blocks, supports, ends, 23.16)
+    assert not closed and how == "not closed"
+    grid = Grid(168.0, -303.0, 0.25, 100, 86)
+    how, meshed, _, solid, closed = closed_solid(blocks, supports, ends, 23.16, None, grid)
+    assert closed and how.endswith("meshed from the raster of its support")
+    assert is_watertight(solid.vertices, solid.triangles)
+    # the tier stands on the courtyard: its roof is the highest, the ring's the lowest
+    roof = solid.vertices[np.unique(solid.triangles[solid.part == 0])]
+    assert roof[:, 2].max() == pytest.approx(63.3277) and roof[:, 2].min() == pytest.approx(55.7371)
+
+
 def test_flat_fallback_is_the_roofs_median():
     """The last mesh attempt's block: flat at the median of the roof over its support."""
     support = Support(box(0, 0, 10, 6), FRAME)

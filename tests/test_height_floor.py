@@ -11,7 +11,7 @@ from workbench.raster import Grid
 from workbench.truth import Truth
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from height_floor import height_floor, voxel_proxy_floor  # noqa: E402
+from height_floor import height_floor, outline_inside_floor, voxel_proxy_floor  # noqa: E402
 
 
 def _box(fid, x0, y0, x1, y1):
@@ -56,3 +56,21 @@ def test_floors_of_the_tiny_city(tiny_scene):
     assert 0.85 < cells["observed_by_a_depth_map"] <= cells["seen_by_a_view"] <= 1.0
     c_e = [p["cluster_error"] for p in f["voxel_proxies"]]
     assert c_e == [0.3, 0.05]
+
+
+def test_outlines_inside_the_true_ones_by_hand():
+    """A 10 m tower of 20 x 20 cells on flat ground: an outline one cell inside loses
+    only the ring of 76 cells the height jumps cover; two cells inside, the next ring
+    too, 68 of the 324 cells off the jumps, 10 m off each."""
+    grid = Grid(0.0, 10.0, 0.25, 40, 40)
+    ids = np.zeros(grid.shape, np.int64)
+    ids[10:30, 10:30] = 1
+    dtm = np.zeros(grid.shape)
+    surface = np.where(ids > 0, 10.0, np.nan)
+    truth = Truth(grid, None, dsm=np.where(ids > 0, 10.0, 0.0), dtm=dtm, building_ids=ids,
+                  building_surface=surface)  # fmt: skip
+    f = outline_inside_floor(truth, (0, 1, 2))
+    assert f["0"]["rmse_m"] == 0.0
+    assert f["0.25"]["rmse_off_jumps_m"] == 0.0
+    assert f["0.25"]["rmse_m"] == pytest.approx(10 * np.sqrt(76 / 400))
+    assert f["0.5"]["rmse_off_jumps_m"] == pytest.approx(10 * np.sqrt(68 / 324))

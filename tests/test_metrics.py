@@ -112,6 +112,19 @@ def test_height_errors_by_hand_and_off_the_jumps():
     assert e["rmse_off_jumps_m"] == pytest.approx(np.sqrt(0.25 / 15))
 
 
+def test_error_share_off_jumps_by_hand():
+    t = np.full((6, 6), np.nan)
+    t[:, :5] = 10.0  # a building over columns 0-4, its outline at column 4
+    model = t.copy()
+    model[0:2, 1] = 0.0  # two cells off the jumps the run has no building on: 10 m each
+    model[3, 1] += 1.0  # a roof cell 1 m off
+    missed = np.zeros(t.shape, bool)
+    missed[0:2, 1] = True
+    share = metrics.error_share_off_jumps(model, t, np.isfinite(t), missed)
+    assert share == pytest.approx(200 / 201)
+    assert metrics.error_share_off_jumps(t, t, np.isfinite(t), missed) is None
+
+
 def test_building_heights_and_percent_errors():
     ids = np.array([[1, 1, 2, 0]])
     ground = np.array([[100.0, 100.0, 50.0, 0.0]])

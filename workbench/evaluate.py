@@ -162,6 +162,10 @@ def evaluate(run: Run, truth: Truth, options: EvaluationOptions | None = None) -
             if "rmse_m" in roofs:
                 h["rmse_on_both_m"] = roofs["rmse_m"]
                 h["rmse_on_both_off_jumps_m"] = roofs["rmse_off_jumps_m"]
+            share = metrics.error_share_off_jumps(layers.surface, t_surface, t_ids > 0,
+                                                  layers.building_ids == 0)  # fmt: skip
+            if share is not None:
+                h["missed_share_off_jumps"] = share
     rows = per_building(run, truth, layers)
     m["buildings"] = building_summary(rows)
     face_error = None

@@ -117,6 +117,22 @@ def height_errors(model: np.ndarray, truth: np.ndarray, mask: np.ndarray | None 
     return out
 
 
+def error_share_off_jumps(
+    model: np.ndarray, truth: np.ndarray, mask: np.ndarray, part: np.ndarray
+) -> float | None:
+    """Share of the summed squared height error over the ``mask`` cells off the truth's
+    jumps (:func:`height_jumps`) that falls on the ``part`` cells: for a model over the
+    true building cells and ``part`` the cells it has no building on, how much of its
+    ``rmse_off_jumps_m`` its outlines cost rather than its roofs. None without error.
+
+    model, truth : (H, W) float, metres, NaN unknown; mask, part : (H, W) bool.
+    """
+    ok = mask & np.isfinite(model) & np.isfinite(truth) & ~height_jumps(truth)
+    e2 = np.where(ok, (np.asarray(model, np.float64) - truth) ** 2, 0.0)
+    total = float(e2.sum())
+    return float(e2[part].sum() / total) if total > 0 else None
+
+
 def colour_mae(model: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict:
     """Mean absolute colour error per channel (0-255) over ``mask``.
 

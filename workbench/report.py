@@ -26,6 +26,7 @@ SUMMARY_ROWS = [
     ("height RMSE on buildings (m)", "height.rmse_m", "{:.2f}", -1),
     ("height RMSE on buildings, off walls (m)", "height.rmse_off_jumps_m", "{:.2f}", -1),
     ("... where both have a building (m)", "height.rmse_on_both_off_jumps_m", "{:.2f}", -1),
+    ("... share of it on cells the run misses", "height.missed_share_off_jumps", "{:.2f}", -1),
     ("height MAE on buildings (m)", "height.mae_m", "{:.2f}", -1),
     ("building height error, median |%|", "buildings.height_error_pct_median", "{:.1f}", -1),
     ("building height error, mean |%|", "buildings.height_error_pct_mean", "{:.1f}", -1),

@@ -34,6 +34,7 @@ SPEC = PathSpec(
     run="modeling.blocks.path:run_blocks",
     summary="modeling.blocks.path:summary_lines",
     tasks=True,
+    check="modeling.blocks.path:check_inputs",
 )
 
 __all__ = ["SPEC", "BlocksOptions"]

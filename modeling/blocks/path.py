@@ -22,7 +22,8 @@ from shapely.ops import unary_union
 from modeling.shared.footprint_priors import rasterize_on
 from modeling.shared.opened_parts import building_segments, mid_wall_region
 from modeling.shared.raster_ground import ground_surface, vertex_colours
-from modeling.shared.roof_envelope import building_solid, face_planes
+from modeling.shared.roof_envelope import BuildingMesh, building_solid, face_planes
+from modeling.shared.roof_model import closed_roof_model
 from workbench.engine import Engine, ThreadEngine
 from workbench.errors import InputError
 from workbench.fusion_run import read_fusion_run
@@ -159,6 +160,15 @@ def run_blocks(
     )  # fmt: skip
 
 
+def check_inputs(fusion_dir: Path, options: BlocksOptions, supports: Path | None = None) -> None:
+    """Read what :func:`run_blocks` refuses, before a command starts its workers: the
+    fusion run's rasters and the supports' file (one line, with no worker's shutdown
+    noise after it)."""
+    fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
+    if supports is not None:
+        _given_supports(supports, fusion, fusion.grid, None, None)
+
+
 def _boxes(segments: np.ndarray, margin: int) -> np.ndarray:
     """(q + 1, 4) r0, r1, c0, c1 of each segment grown by ``margin`` cells (row 0
     unused)."""
@@ -244,7 +254,7 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
     ground = dtm[mask & np.isfinite(dtm)]
     roof_low = min(min(float(d.z.min()) for d in data), min(b.gutter for b in blocks))
     base_z = min(float(np.min(ground)) if len(ground) else roof_low - 3.0, roof_low - 0.5)
-    how, meshed, faces, solid, closed = closed_solid(blocks, supports, ends, base_z, strips)
+    how, meshed, faces, solid, closed = closed_solid(blocks, supports, ends, base_z, strips, crop)
     planes, areas = face_planes([f for fs in faces for f in fs])
     residual = np.concatenate([d.heights(b) - d.z for d, b in zip(data, blocks, strict=True)])
     warnings = []
@@ -292,7 +302,7 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
 
 
 def closed_solid(blocks: list[Block], supports: list[Support], ends, base_z: float,
-                 strips: dict | None = None):  # fmt: skip
+                 strips: dict | None = None, grid: Grid | None = None):  # fmt: skip
     """The building's mesh: every block's faces on its support (grown over the strips
     its ridge carries its roof on), their upper envelope down to ``base_z``
     (:func:`modeling.shared.roof_envelope.building_solid`), meshed in a support's frame,
@@ -302,9 +312,11 @@ def closed_solid(blocks: list[Block], supports: list[Support], ends, base_z: flo
     read from a file, a carried roof crossing a neighbour's ridge) can leave that
     envelope open. It is then meshed in the next support's frame; then without the
     carried roofs; then with every support grown by ``_OVERLAP_M``, so that neighbours
-    overlap and the upper roof covers the seam; at last with every block flat at its
-    median height (a closed LOD1 block rather than an open LOD2 shell). Returns how it
-    was meshed, the blocks as meshed, the faces, the mesh and whether it is closed."""
+    overlap and the upper roof covers the seam; then with every block flat at its
+    median height (a closed LOD1 block rather than an open LOD2 shell); at last, given
+    the building's ``grid``, those flat blocks meshed from the raster of their supports
+    (:func:`raster_solid`), as the raster paths mesh their roofs. Returns how it was
+    meshed, the blocks as meshed, the faces, the mesh and whether it is closed."""
     carried = []
     for i, (b, s) in enumerate(zip(blocks, supports, strict=True)):
         mine = [st for (k, side), (_, st) in (strips or {}).items()
@@ -327,7 +339,39 @@ def closed_solid(blocks: list[Block], supports: list[Support], ends, base_z: flo
             solid = building_solid(faces, base_z, s.frame.theta, np.asarray(s.frame.origin))
             if is_watertight(solid.vertices, solid.triangles):
                 return f"in the frame of support {k}{note}", bs, faces, solid, True
+    if grid is not None:
+        raster = raster_solid(bs, ss, base_z, grid)
+        if raster is not None and is_watertight(raster.vertices, raster.triangles):
+            return ("every block flat at its median height, meshed from the raster of its "
+                    "support", bs, faces, raster, True)  # fmt: skip
     return "not closed", blocks, faces, solid, False
+
+
+def raster_solid(flat: list[Block], supports: list[Support], base_z: float,
+                 grid: Grid) -> BuildingMesh | None:  # fmt: skip
+    """Flat blocks meshed from the raster of their supports on ``grid`` (a cell takes the
+    highest block whose support covers its centre), by the mesher of the raster paths
+    (:func:`modeling.shared.roof_model.closed_roof_model`, closed by construction).
+
+    Supports of a building's tiers, each regularised to its own direction, cross at
+    slivers a few centimetres wide whose envelope is no manifold (six towers of the
+    1 km² city); on the cells they vanish. None when no cell is covered."""
+    faces = np.zeros(grid.shape, np.int64)
+    top = np.full(grid.shape, -np.inf)
+    for i, (b, s) in enumerate(zip(flat, supports, strict=True)):
+        higher = rasterize_on(s.polygon, grid) & (b.gutter > top)
+        faces[higher], top[higher] = i + 1, b.gutter
+    if not faces.any():
+        return None
+    planes = np.array([[0.0, 0.0, 1.0, -b.gutter] for b in flat])
+    model = closed_roof_model(faces, grid, planes, base_z, grid.gsd)
+    if model is None:
+        return None
+    V, T = model.mesh.vertices, model.mesh.triangles
+    n = np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]])
+    nz = n[:, 2] / np.maximum(np.linalg.norm(n, axis=1), 1e-300)
+    part = np.where(nz > 0.5, 0, np.where(nz < -0.5, 2, 1)).astype(np.uint8)
+    return BuildingMesh(V, T, part, np.zeros((len(T), 2)))
 
 
 def flat_block(block: Block, support: Support, ends) -> Block:

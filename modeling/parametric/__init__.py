@@ -33,6 +33,7 @@ SPEC = PathSpec(
     run="modeling.parametric.path:run_parametric",
     summary="modeling.parametric.path:summary_lines",
     tasks=True,
+    check="modeling.parametric.path:check_inputs",
 )
 
 __all__ = ["SPEC", "ParametricOptions"]

@@ -211,6 +211,17 @@ def run_parametric(
     )  # fmt: skip
 
 
+def check_inputs(
+    fusion_dir: Path, options: ParametricOptions, footprints: Path | None = None
+) -> None:
+    """Read what :func:`run_parametric` refuses, before a command starts its workers: the
+    fusion run's rasters and the footprints (one line, with no worker's shutdown noise
+    after it)."""
+    fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
+    if footprints is not None and not options.all_building:
+        initial_region(fusion, footprints)
+
+
 def initial_region(fusion, footprints: Path | None) -> tuple[np.ndarray, str]:
     """(H, W) bool initial object region: the footprints rasterised, or the cells whose
     fused building probability exceeds one half."""
