@@ -339,7 +339,7 @@ def closed_solid(blocks: list[Block], supports: list[Support], ends, base_z: flo
             solid = building_solid(faces, base_z, s.frame.theta, np.asarray(s.frame.origin))
             if is_watertight(solid.vertices, solid.triangles):
                 return f"in the frame of support {k}{note}", bs, faces, solid, True
-    if grid is not None:
+    if grid is not None:  # the last attempt's flat blocks on the supports as they are
         raster = raster_solid(bs, ss, base_z, grid)
         if raster is not None and is_watertight(raster.vertices, raster.triangles):
             return ("every block flat at its median height, meshed from the raster of its "
