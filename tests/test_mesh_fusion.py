@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from fusion.mesh_sampling import SurfaceMesh, orthogonal_sampling, read_surface_mesh
+from fusion.scene_mesh import canonical_order
 from tests.conftest import run_cli
 from workbench.imageio import write_rgb
 from workbench.meshio import write_mtl, write_obj, write_ply
@@ -148,3 +149,29 @@ def test_mesh_refuses_an_existing_file_and_a_view_without_depth(tiny_scene, tmp_
     assert (tmp_path / "m.ply").read_text() == "keep"
     proc = run_cli("mesh", tiny_scene, "-o", tmp_path / "m.obj")
     assert proc.returncode == 2 and "PLY" in proc.stderr
+
+
+def test_canonical_order_ignores_the_order_a_mesher_gave():
+    """A closed box shuffled (vertices and triangles, each triangle turned): the same
+    arrays after canonical_order, and every triangle keeps its winding."""
+    import open3d as o3d
+
+    box = o3d.geometry.TriangleMesh.create_box(2.0, 3.0, 5.0)
+    V, T = np.asarray(box.vertices), np.asarray(box.triangles)
+    rng = np.random.default_rng(0)
+    perm = rng.permutation(len(V))
+    inverse = np.empty_like(perm)
+    inverse[perm] = np.arange(len(perm))
+    T2 = inverse[T][rng.permutation(len(T))]
+    T2 = np.array([np.roll(t, k) for t, k in zip(T2, rng.integers(0, 3, len(T2)), strict=True)])
+    V2 = V[perm]
+    o1, t1 = canonical_order(V, T)
+    o2, t2 = canonical_order(V2, T2)
+    assert np.array_equal(V[o1], V2[o2]) and np.array_equal(t1, t2)
+
+    # winding: the same directed edges, by their ends' positions
+    def directed(vertices, triangles):
+        return {tuple(np.r_[vertices[a], vertices[b]].round(6))
+                for t in triangles for a, b in zip(t, np.roll(t, -1), strict=True)}  # fmt: skip
+
+    assert directed(V, T) == directed(V[o1], t1)
