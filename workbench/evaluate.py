@@ -152,18 +152,20 @@ def evaluate(run: Run, truth: Truth, options: EvaluationOptions | None = None) -
         m["volume_3d"] = metrics.volume_3d(pred_h, true_h)
         m["volume_3d_tolerant"] = metrics.volume_3d(pred_h, true_h, options.tolerance_m)
     if t_surface is not None:
-        h = metrics.height_errors(layers.surface, t_surface, mask=t_ids > 0)
+        jumps = metrics.height_jumps(t_surface)
+        h = metrics.height_errors(layers.surface, t_surface, mask=t_ids > 0, jumps=jumps)
         if "rmse_m" in h:
             m["height"] = h
             # the roofs' own error: where both the run and the truth have a building
             # (the DEM-blocks paper's altimetric RMSE), the outlines' misses apart
             roofs = metrics.height_errors(layers.surface, t_surface,
-                                          mask=(t_ids > 0) & (layers.building_ids > 0))  # fmt: skip
+                                          mask=(t_ids > 0) & (layers.building_ids > 0),
+                                          jumps=jumps)  # fmt: skip
             if "rmse_m" in roofs:
                 h["rmse_on_both_m"] = roofs["rmse_m"]
                 h["rmse_on_both_off_jumps_m"] = roofs["rmse_off_jumps_m"]
             share = metrics.error_share_off_jumps(layers.surface, t_surface, t_ids > 0,
-                                                  layers.building_ids == 0)  # fmt: skip
+                                                  layers.building_ids == 0, jumps)  # fmt: skip
             if share is not None:
                 h["missed_share_off_jumps"] = share
     rows = per_building(run, truth, layers)

@@ -75,7 +75,12 @@ def height_jumps(truth: np.ndarray, step: float = JUMP_M) -> np.ndarray:
     return out
 
 
-def height_errors(model: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> dict:
+def height_errors(
+    model: np.ndarray,
+    truth: np.ndarray,
+    mask: np.ndarray | None = None,
+    jumps: np.ndarray | None = None,
+) -> dict:
     """Errors of a height raster against the truth, metres.
 
     Beside a wall the truth read at a cell centre is the wall's height away from the
@@ -90,6 +95,8 @@ def height_errors(model: np.ndarray, truth: np.ndarray, mask: np.ndarray | None 
         Heights, NaN where unknown.
     mask : (H, W) bool, optional
         Cells to score (default: every cell where the truth is known).
+    jumps : (H, W) bool, optional
+        :func:`height_jumps` of ``truth``, when the caller has them already.
 
     Returns
     -------
@@ -108,7 +115,7 @@ def height_errors(model: np.ndarray, truth: np.ndarray, mask: np.ndarray | None 
             mae_m=float(np.mean(np.abs(e))),
             median_abs_m=float(np.median(np.abs(e))),
         )
-        jumps = height_jumps(truth)
+        jumps = height_jumps(truth) if jumps is None else jumps
         off = ok & ~jumps
         out["jump_fraction"] = float((ok & jumps).sum() / ok.sum())
         if off.any():
@@ -118,16 +125,22 @@ def height_errors(model: np.ndarray, truth: np.ndarray, mask: np.ndarray | None 
 
 
 def error_share_off_jumps(
-    model: np.ndarray, truth: np.ndarray, mask: np.ndarray, part: np.ndarray
+    model: np.ndarray,
+    truth: np.ndarray,
+    mask: np.ndarray,
+    part: np.ndarray,
+    jumps: np.ndarray | None = None,
 ) -> float | None:
     """Share of the summed squared height error over the ``mask`` cells off the truth's
     jumps (:func:`height_jumps`) that falls on the ``part`` cells: for a model over the
     true building cells and ``part`` the cells it has no building on, how much of its
     ``rmse_off_jumps_m`` its outlines cost rather than its roofs. None without error.
 
-    model, truth : (H, W) float, metres, NaN unknown; mask, part : (H, W) bool.
+    model, truth : (H, W) float, metres, NaN unknown; mask, part : (H, W) bool; jumps :
+    (H, W) bool, :func:`height_jumps` of ``truth`` if the caller has them.
     """
-    ok = mask & np.isfinite(model) & np.isfinite(truth) & ~height_jumps(truth)
+    jumps = height_jumps(truth) if jumps is None else jumps
+    ok = mask & np.isfinite(model) & np.isfinite(truth) & ~jumps
     e2 = np.where(ok, (np.asarray(model, np.float64) - truth) ** 2, 0.0)
     total = float(e2.sum())
     return float(e2[part].sum() / total) if total > 0 else None
