@@ -1,6 +1,8 @@
-"""A whole preset end to end, as a user runs it: ``workbench sample``, ``fusion``, both
-modeling paths and ``compare``, each a command of its own; wall time, throughput and the
-peak memory of every process (the command's, and each Dask worker's).
+"""A whole preset end to end, as a user runs it: ``workbench sample``, ``fusion``, the
+modeling paths that run from a scene or a fusion (super-pixel, voxel, parametric, blocks;
+the LOD path needs ``workbench mesh``, whose TSDF grid does not fit a city in memory yet)
+and ``compare``, each a command of its own; wall time, throughput and the peak memory of
+every process (the command's, and each Dask worker's).
 
 ``make bench BENCH_ARGS="--preset city"`` runs it on the 1 km² city (about 40 minutes on
 2 cores); ``--preset small`` gives the same table on the everyday sample, to set beside
@@ -69,8 +71,7 @@ def city_run(
     """Every stage on one preset and seed; the figures of each. ``reuse`` keeps an
     existing sample scene; ``reuse_runs`` also the runs whose logs are there."""
     out.mkdir(parents=True, exist_ok=True)
-    scene, fusion = out / "scene", out / "fusion"
-    sp, vx, report = out / "superpixel", out / "voxel", out / "report"
+    scene, fusion, report = out / "scene", out / "fusion", out / "report"
     w = ["--workers", str(workers)] if workers else []
     res: dict = {"preset": preset, "seed": seed, "workers": workers}
     if not (reuse and (scene / "scene.json").exists()):
@@ -95,10 +96,12 @@ def city_run(
         "engine": rec.get("engine"), "workers": rec.get("workers"),
         "quality": rec.get("quality", {}),
     }  # fmt: skip
-    for name, folder, args in (
-        ("superpixel", sp, ["superpixel", fusion]),
-        ("voxel", vx, ["voxel", scene, "--fusion", fusion, *w]),
-    ):
+    paths = {"superpixel": ["superpixel", fusion],
+             "voxel": ["voxel", scene, "--fusion", fusion, *w],
+             "parametric": ["parametric", fusion, *w],
+             "blocks": ["blocks", fusion, *w]}  # fmt: skip
+    for name, args in paths.items():
+        folder = out / name
         kept = _recorded_s(folder / "model.json") if reuse_runs else None
         wall, peak = run("model", *args, "-o", folder, "--overwrite", log=out / f"{name}.log",
                          kept=kept)  # fmt: skip
@@ -112,8 +115,8 @@ def city_run(
             "worker_peak_mb": rec.get("worker_peak_memory_mb"),
         }  # fmt: skip
     kept = 0.0 if reuse_runs and (report / "metrics.json").exists() else None
-    wall, peak = run("compare", fusion, sp, vx, "--truth", scene, "-o", report, "--overwrite",
-                     log=out / "compare.log", kept=kept)  # fmt: skip
+    wall, peak = run("compare", fusion, *(out / name for name in paths), "--truth", scene,
+                     "-o", report, "--overwrite", log=out / "compare.log", kept=kept)  # fmt: skip
     res["compare"] = {"wall_s": wall, "peak_mb": peak}
     res["total_s"] = sum(v["wall_s"] for v in res.values() if isinstance(v, dict) and
                          "wall_s" in v)  # fmt: skip
@@ -147,10 +150,13 @@ def print_city(r: dict) -> None:
     m = r["superpixel"]
     print(f"  superpixel  {m['wall_s']:8.1f} s  {peaks(m)}; {m['buildings']} buildings, "
           f"{m['wall_s'] / (f['cells'] / 1e6):.1f} s per ortho megapixel")  # fmt: skip
-    m = r["voxel"]
-    print(f"  voxel       {m['wall_s']:8.1f} s  {peaks(m)}; {m['buildings']} buildings, "
-          f"{m['seconds_per_building']:.2f} s per building")  # fmt: skip
-    print("              " + ", ".join(f"{k} {v:.1f}" for k, v in m["stages"].items()))
+    for name in ("voxel", "parametric", "blocks"):
+        if name not in r:  # a record from before the path was benched
+            continue
+        m = r[name]
+        print(f"  {name:<11} {m['wall_s']:8.1f} s  {peaks(m)}; {m['buildings']} buildings, "
+              f"{m['seconds_per_building']:.2f} s per building")  # fmt: skip
+        print("              " + ", ".join(f"{k} {v:.1f}" for k, v in m["stages"].items()))
     print(f"  compare     {r['compare']['wall_s']:8.1f} s  {peaks(r['compare'])}")
     print(f"  total       {r['total_s']:8.1f} s")
     q = f.get("quality", {})

@@ -715,7 +715,7 @@ def run_city(args) -> dict:
                                    reuse_runs=args.reuse_runs)  # fmt: skip
         print_city(results[preset])
     small, city = results["small"], results["city"]
-    for stage in ("fusion", "superpixel", "voxel"):
+    for stage in ("fusion", "superpixel", "voxel", "parametric", "blocks"):
         a, b = small[stage], city[stage]
         print(f"  {stage}: peak memory city / small {b['peak_mb'] / a['peak_mb']:.2f} (largest "
               "process)"

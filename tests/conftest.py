@@ -56,6 +56,36 @@ def tiny_fusion(tiny_scene, tmp_path_factory) -> Path:
     return out
 
 
+@pytest.fixture(scope="session")
+def tiny_fusion_one_process(tiny_scene, tmp_path_factory) -> Path:
+    """``workbench fusion --workers 1`` of the tiny city (no cluster: the command's own
+    process), once per session: what the runs on other engines are compared with."""
+    out = tmp_path_factory.mktemp("tiny_fusion_one") / "fusion"
+    proc = run_cli("fusion", tiny_scene, "-o", out, "--workers", "1")
+    assert proc.returncode == 0, proc.stderr
+    return out
+
+
+@pytest.fixture(scope="session")
+def tiny_models(tiny_scene, tiny_fusion, tmp_path_factory):
+    """``tiny_models(NAME)``: modeling path NAME run on the tiny city as a user runs it
+    (the scene and ``workbench fusion``'s rasters, default options) and scored by
+    ``workbench compare``, once per session for every test that reads it: the model
+    folder, its model.json and its metrics (:func:`model_and_score`)."""
+    from modeling import PATHS
+
+    runs = {}
+
+    def run(name: str) -> tuple[Path, dict, dict]:
+        if name not in runs:
+            given = {"scene_dir": tiny_scene, "fusion_dir": tiny_fusion}
+            root = tmp_path_factory.mktemp(f"tiny_{name}")
+            runs[name] = model_and_score(root, tiny_scene, name, *PATHS[name].arguments(given))
+        return runs[name]
+
+    return run
+
+
 def rewrite_raster(path: Path, data=None, **changes) -> None:
     """Rewrite a raster as a plain GeoTIFF, as another tool would, with ``data`` and
     profile ``changes`` (crs, transform) in place of its own."""

@@ -21,7 +21,7 @@ from modeling.blocks.supports import (
 )
 from modeling.shared.footprint_priors import Prior
 from modeling.shared.roof_envelope import building_solid
-from tests.conftest import model_and_score, run_cli
+from tests.conftest import run_cli
 from workbench.errors import InputError
 from workbench.meshes import is_watertight
 from workbench.raster import Grid
@@ -263,9 +263,8 @@ def test_parameter_ranges_keep_hips_hips():
 
 
 @pytest.fixture(scope="module")
-def blocks_run(tiny_fusion, tiny_scene, tmp_path_factory):
-    root = tmp_path_factory.mktemp("blocks")
-    return model_and_score(root, tiny_scene, "blocks", tiny_fusion)
+def blocks_run(tiny_models):
+    return tiny_models("blocks")
 
 
 def test_blocks_end_to_end_from_fused_rasters(blocks_run):

@@ -23,18 +23,14 @@ from workbench.scene import load_scene
 
 
 @pytest.fixture(scope="module", params=sorted(PATHS))
-def path_run(request, tiny_scene, tiny_fusion, tmp_path_factory):
-    spec = PATHS[request.param]
-    out = tmp_path_factory.mktemp(spec.name) / "run"
+def path_run(request, tiny_models):
     # every input the tiny city has, the truth apart: the paths run as a user runs them
-    given = {"scene_dir": tiny_scene, "fusion_dir": tiny_fusion}
-    proc = run_cli("model", spec.name, *spec.arguments(given), "-o", out)
-    assert proc.returncode == 0, proc.stderr
-    return spec, out, json.loads((out / "model.json").read_text())
+    out, record, metrics = tiny_models(request.param)
+    return PATHS[request.param], out, record, metrics
 
 
 def test_model_json_follows_the_schema(path_run, tiny_scene):
-    spec, _, record = path_run
+    spec, _, record, _ = path_run
     assert record["schema"] == SCHEMA and record["method"] == spec.name
     made = record["provenance"]
     assert made["command"].startswith(f"workbench model {spec.name} ")
@@ -49,7 +45,7 @@ def test_model_json_follows_the_schema(path_run, tiny_scene):
 
 
 def test_every_building_is_a_closed_mesh_with_its_common_record(path_run):
-    _, out, record = path_run
+    _, out, record, _ = path_run
     for b in record["buildings"]:
         assert list(b)[: len(BUILDING_KEYS)] == list(BUILDING_KEYS)
         vertices, triangles = read_mesh(out / b["mesh"])
@@ -68,7 +64,7 @@ def test_every_building_is_a_closed_mesh_with_its_common_record(path_run):
 
 
 def test_the_folder_holds_scene_ground_dtm_and_preview(path_run, tiny_scene):
-    _, out, record = path_run
+    _, out, record, _ = path_run
     for name in ("scene.ply", "scene.obj", "scene.mtl", "ground.ply", "ground.obj",
                  "preview.png"):  # fmt: skip
         assert (out / name).exists(), name
@@ -86,7 +82,7 @@ def test_the_folder_holds_scene_ground_dtm_and_preview(path_run, tiny_scene):
 
 
 def test_model_city_json_is_cityjson_every_reader_takes(path_run):
-    spec, out, record = path_run
+    spec, out, record, _ = path_run
     path = out / "model.city.json"
     doc = json.loads(path.read_text())
     assert check_city_model(doc) == []  # every solid closed, outward, planar, not crossing
@@ -112,11 +108,8 @@ def test_model_city_json_is_cityjson_every_reader_takes(path_run):
             assert 0 < a["rmse_m"] < 2.0
 
 
-def test_compare_scores_the_run(path_run, tiny_scene, tmp_path):
-    spec, out, _ = path_run
-    proc = run_cli("compare", out, "--truth", tiny_scene, "-o", tmp_path / "report")
-    assert proc.returncode == 0, proc.stderr
-    m = json.loads((tmp_path / "report" / "metrics.json").read_text())["runs"]["run"]
+def test_compare_scores_the_run(path_run):
+    spec, _, _, m = path_run  # scored by `workbench compare OUT --truth SCENE`
     assert m["method"] == spec.name and m["complexity"]["watertight_fraction"] == 1.0
     assert m["footprint_2d"]["objects"]["found"] >= 4
 

@@ -300,12 +300,10 @@ def test_tiles_give_the_same_rasters_as_one_tile(tiny_scene):
     np.testing.assert_array_equal(one.classes, many.classes)
 
 
-def test_workers_do_not_change_the_products(fused, tiny_scene, tmp_path):
+def test_workers_do_not_change_the_products(fused, tiny_fusion_one_process):
     out, record, _ = fused
     assert record["workers"] == 3
-    one = tmp_path / "one"
-    proc = run_cli("fusion", tiny_scene, "-o", one, "--workers", "1")
-    assert proc.returncode == 0, proc.stderr
+    one = tiny_fusion_one_process
     assert json.loads((one / "fusion.json").read_text())["workers"] == 1
     for name in ("dsm.tif", "ortho.tif", "class_prob.tif", "count.tif"):
         a, _, _ = read_raster(out / name)

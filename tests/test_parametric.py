@@ -40,7 +40,7 @@ from modeling.shared.footprint_priors import (
 )
 from modeling.shared.opened_parts import building_segments
 from modeling.shared.roof_envelope import building_solid
-from tests.conftest import SHARED_DATA, model_and_score, run_cli
+from tests.conftest import SHARED_DATA, run_cli
 from workbench.meshes import is_watertight
 from workbench.raster import Grid
 
@@ -317,10 +317,9 @@ def test_l_shaped_hipped_solid_is_closed():
 
 
 @pytest.fixture(scope="module")
-def modelled(tiny_scene, tiny_fusion, tmp_path_factory):
+def modelled(tiny_models):
     """The path as a user runs it: from ``workbench fusion``'s rasters of the tiny city."""
-    root = tmp_path_factory.mktemp("parametric")
-    return model_and_score(root, tiny_scene, "parametric", tiny_fusion, "--workers", "1")
+    return tiny_models("parametric")
 
 
 def test_models_match_the_truth_from_fused_rasters(modelled):

@@ -51,7 +51,7 @@ from workbench.meshio import write_obj
 from workbench.raster import Grid
 from workbench.texture_seams import ViewSamples, seam_cost, seam_costs, source_views
 
-from .conftest import model_and_score, run_cli
+from .conftest import run_cli
 
 
 def _volume(v, t):
@@ -596,10 +596,9 @@ def test_perturbed_proxy_grows_and_shrinks():
 
 
 @pytest.fixture(scope="module")
-def voxel_run(tiny_scene, tiny_fusion, tmp_path_factory):
+def voxel_run(tiny_models):
     """The path as a user runs it: the scene's views and ``workbench fusion``'s rasters."""
-    root = tmp_path_factory.mktemp("voxel")
-    return model_and_score(root, tiny_scene, "voxel", tiny_scene, "--fusion", tiny_fusion)
+    return tiny_models("voxel")
 
 
 def test_voxel_heights_from_fused_rasters(voxel_run):
