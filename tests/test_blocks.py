@@ -268,14 +268,14 @@ def blocks_run(tiny_models):
 
 
 def test_blocks_end_to_end_from_fused_rasters(blocks_run):
-    """From `workbench fusion` of tiny, as a user runs it (measured: 2D quality 0.916,
-    3D 0.878, roof types 4 of 6, mean height error 0.9 %, every mesh closed)."""
+    """From `workbench fusion` of tiny, as a user runs it (measured: 2D quality 0.900,
+    3D 0.863, roof types 6 of 6, mean height error 0.33 %, every mesh closed)."""
     out, model, metrics = blocks_run
     assert metrics["footprint_2d"]["quality"] > 0.89
     assert metrics["volume_3d"]["quality"] > 0.85
     assert metrics["buildings"]["missed_over_50m2"] == 0
-    assert metrics["buildings"]["roof_type_accuracy"] >= 0.6
-    assert metrics["buildings"]["height_error_pct_mean"] < 1.5
+    assert metrics["buildings"]["roof_type_accuracy"] >= 0.8  # the mansard's slopes: 4 of 6
+    assert metrics["buildings"]["height_error_pct_mean"] < 0.6
     assert metrics["complexity"]["watertight_fraction"] == 1.0
     b = model["buildings"][0]
     assert b["energy_trace"][-1][2] < b["energy_trace"][0][2]

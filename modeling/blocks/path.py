@@ -64,6 +64,9 @@ class BlocksInputs:
     grid: Grid
     dsm: np.ndarray  # (H, W) metres, NaN unknown and under the fusion's trees
     dtm: np.ndarray
+    # (H, W) metres, the fusion's whole DSM (trees kept), or None for ``dsm``: where the
+    # outline stands (a roof's steep slopes can be classed tree)
+    dsm_all: np.ndarray | None
     boxes: np.ndarray  # (q + 1, 4) r0, r1, c0, c1 of each building with a margin
     segments: np.ndarray | None = None  # (H, W) int: the buildings (automatic supports)
     given: list = field(default_factory=list)  # per building its supports from a file
@@ -110,6 +113,7 @@ def run_blocks(
         grid = fusion.grid
         dsm, dtm, rgb = fusion.band("dsm"), fusion.band("dtm"), fusion.rgb
         prob = np.nan_to_num(fusion.rasters["class_prob"].astype(np.float64))
+        dsm_all = dsm
         if not options.all_building:  # crowns are no roof: left out of every likelihood
             dsm = np.where(prob[TREE - 1] > prob[BUILDING - 1], np.nan, dsm)
     with timer.stage("supports"):
@@ -125,7 +129,7 @@ def run_blocks(
                 raise InputError(Path(fusion_dir) / "class_prob.tif", None, "no building "
                                  "cells of at least --min-area: nothing to model")  # fmt: skip
             margin = int(np.ceil(options.outline_reach_m / grid.gsd)) + 4
-            inputs = BlocksInputs(grid, dsm, dtm, _boxes(segments, margin), segments)
+            inputs = BlocksInputs(grid, dsm, dtm, dsm_all, _boxes(segments, margin), segments)
             source = "automatic (footprint priors of the height regions)"
     keys = list(range(1, len(inputs.boxes)))
     with timer.stage("blocks"):
@@ -196,7 +200,7 @@ def _given_supports(path: Path, fusion, grid: Grid, dsm, dtm) -> BlocksInputs:
         r0, r1, c0, c1 = int(r0[0]), int(r1[0]), int(c0[0]), int(c1[0])
         boxes.append(np.array([max(r0 - 4, 0), min(r1 + 5, grid.height),
                                max(c0 - 4, 0), min(c1 + 5, grid.width)]))  # fmt: skip
-    return BlocksInputs(grid, dsm, dtm, np.array(boxes), None, groups)
+    return BlocksInputs(grid, dsm, dtm, None, np.array(boxes), None, groups)
 
 
 def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> BuildingResult:
@@ -211,19 +215,24 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
     min_cells = int(np.ceil(max(options.min_part_m**2, 0.5 * options.min_area_m2) / g.gsd**2))
     if inputs.segments is not None:
         seg = inputs.segments[r0:r1, c0:c1]
+        # the outline and its parts where the whole DSM's walls and steps stand: a
+        # mansard's steep lower slopes, often classed tree, are the building's all the same
+        whole = inputs.dsm_all[r0:r1, c0:c1]
         if options.all_building:  # a cloud of one building: no ground to find walls against
             mask = seg == k
         else:
-            mask = mid_wall_region(seg == k, dsm - dtm, (seg > 0) & (seg != k), g.gsd,
-                                   options.outline_reach_m) & np.isfinite(dsm)  # fmt: skip
-        supports, regions, steps = automatic_supports(mask, dsm, xs, ys, crop,
+            mask = mid_wall_region(seg == k, whole - dtm, (seg > 0) & (seg != k), g.gsd,
+                                   options.outline_reach_m)  # fmt: skip
+        mask &= np.isfinite(whole)
+        supports, regions, steps = automatic_supports(mask, whole, xs, ys, crop,
                                                       options.min_part_m, min_cells,
                                                       options.step_m)  # fmt: skip
     else:
         supports = inputs.given[k - 1]
         mask = rasterize_on(unary_union([s.polygon for s in supports]), crop) & np.isfinite(dsm)
         regions, steps = np.zeros(mask.shape, np.int32), np.zeros(mask.shape, bool)
-    cells = support_cells(supports, mask, regions, crop)
+    # crowns are no roof: their cells stay out of the likelihood
+    cells = [c & np.isfinite(dsm) for c in support_cells(supports, mask, regions, crop)]
     # the walls blur the DSM next to them: those cells are left out of the likelihood
     clear = ndi.distance_transform_edt(mask & ~steps) * g.gsd > options.wall_blur_m
     cells = [c & clear if (c & clear).sum() >= _MIN_CELLS else c for c in cells]
