@@ -49,9 +49,13 @@ def model_and_score(root: Path, truth: Path, *model_args) -> tuple[Path, dict, d
 
 @pytest.fixture(scope="session")
 def tiny_fusion(tiny_scene, tmp_path_factory) -> Path:
-    """``workbench fusion`` of the tiny city, as a user would run it, once per session."""
+    """``workbench fusion`` of the tiny city, as a user would run it (default options),
+    once per session; scored against the truth (``--truth``: the record's quality) and its
+    forest kept beside it (``--save-classifier``: ``forest.joblib``), neither of which
+    changes the rasters."""
     out = tmp_path_factory.mktemp("tiny_fusion") / "fusion"
-    proc = run_cli("fusion", tiny_scene, "-o", out)
+    proc = run_cli("fusion", tiny_scene, "-o", out, "--truth", tiny_scene,
+                   "--save-classifier", out.parent / "forest.joblib")  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     return out
 

@@ -30,15 +30,11 @@ PRODUCTS = (
 
 
 @pytest.fixture(scope="module")
-def fused(tiny_scene, tmp_path_factory):
-    out = tmp_path_factory.mktemp("fusion") / "out"
-    clf = out.parent / "forest.joblib"
-    proc = run_cli(
-        "fusion", tiny_scene, "-o", out, "--truth", tiny_scene, "--save-classifier", clf,
-        "--workers", "3",
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr
-    return out, json.loads((out / "fusion.json").read_text()), clf
+def fused(tiny_fusion):
+    """The session's default fusion of tiny (a local cluster of a worker per core), its
+    record and its saved forest."""
+    record = json.loads((tiny_fusion / "fusion.json").read_text())
+    return tiny_fusion, record, tiny_fusion.parent / "forest.joblib"
 
 
 def test_products_are_georeferenced_rasters(fused, tiny_scene):
@@ -302,7 +298,8 @@ def test_tiles_give_the_same_rasters_as_one_tile(tiny_scene):
 
 def test_workers_do_not_change_the_products(fused, tiny_fusion_one_process):
     out, record, _ = fused
-    assert record["workers"] == 3
+    if record["workers"] == 1:
+        pytest.skip("one core: the default run is one process too")
     one = tiny_fusion_one_process
     assert json.loads((one / "fusion.json").read_text())["workers"] == 1
     for name in ("dsm.tif", "ortho.tif", "class_prob.tif", "count.tif"):

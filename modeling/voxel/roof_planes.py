@@ -327,9 +327,12 @@ def roof_faces(
             faces = assign_cells(region, ij, points, planes)
             planes = refit_planes(faces, ij, points, planes, tolerance)
         faces = assign_cells(region, ij, points, planes)
-        heights = np.stack([plane_heights(q, fx, fy) for q in planes])
-        faces = absorb_small_regions(faces, planes, fine_h, heights, min_region_cells)
-        h = RoofFaces(faces, planes, k, True).fine_heights(r, x0, y0)
+        # a refit on a face's core can stand a plane on end (the cells of a wall): its
+        # heights are infinite, its excess below the largest, and it is dropped below
+        with np.errstate(divide="ignore", invalid="ignore"):
+            heights = np.stack([plane_heights(q, fx, fy) for q in planes])
+            faces = absorb_small_regions(faces, planes, fine_h, heights, min_region_cells)
+            h = RoofFaces(faces, planes, k, True).fine_heights(r, x0, y0)
         # a cell nothing was seen on (the fusion's blind spot behind a high wall) whose
         # plane would rise above everything seen is past the roof's edge, not roof: a
         # shed's plane carried on over them rose 1.4 m above the highest cell seen
