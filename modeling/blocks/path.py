@@ -62,11 +62,11 @@ class BlocksInputs:
     """What every building's task reads."""
 
     grid: Grid
-    dsm: np.ndarray  # (H, W) metres, NaN unknown and under the fusion's trees
+    dsm: np.ndarray  # (H, W) metres, NaN unknown: the fusion's whole DSM
     dtm: np.ndarray
-    # (H, W) metres, the fusion's whole DSM (trees kept), or None for ``dsm``: where the
-    # outline stands (a roof's steep slopes can be classed tree)
-    dsm_all: np.ndarray | None
+    # (H, W) bool, the cells the fusion classes tree rather than building (None: no
+    # crowns): out of the likelihood, not of the outline (a roof's steep slopes can be)
+    crowns: np.ndarray | None
     boxes: np.ndarray  # (q + 1, 4) r0, r1, c0, c1 of each building with a margin
     segments: np.ndarray | None = None  # (H, W) int: the buildings (automatic supports)
     given: list = field(default_factory=list)  # per building its supports from a file
@@ -113,12 +113,11 @@ def run_blocks(
         grid = fusion.grid
         dsm, dtm, rgb = fusion.band("dsm"), fusion.band("dtm"), fusion.rgb
         prob = np.nan_to_num(fusion.rasters["class_prob"].astype(np.float64))
-        dsm_all = dsm
-        if not options.all_building:  # crowns are no roof: left out of every likelihood
-            dsm = np.where(prob[TREE - 1] > prob[BUILDING - 1], np.nan, dsm)
+        # crowns are no roof: left out of every likelihood
+        crowns = None if options.all_building else prob[TREE - 1] > prob[BUILDING - 1]
     with timer.stage("supports"):
         if supports is not None:
-            inputs = _given_supports(supports, fusion, grid, dsm, dtm)
+            inputs = _given_supports(supports, fusion, grid, dsm, dtm, crowns)
             source = "file"
         else:
             mask = np.isfinite(dsm) if options.all_building else prob[BUILDING - 1] > 0.5
@@ -129,7 +128,7 @@ def run_blocks(
                 raise InputError(Path(fusion_dir) / "class_prob.tif", None, "no building "
                                  "cells of at least --min-area: nothing to model")  # fmt: skip
             margin = int(np.ceil(options.outline_reach_m / grid.gsd)) + 4
-            inputs = BlocksInputs(grid, dsm, dtm, dsm_all, _boxes(segments, margin), segments)
+            inputs = BlocksInputs(grid, dsm, dtm, crowns, _boxes(segments, margin), segments)
             source = "automatic (footprint priors of the height regions)"
     keys = list(range(1, len(inputs.boxes)))
     with timer.stage("blocks"):
@@ -170,7 +169,7 @@ def check_inputs(fusion_dir: Path, options: BlocksOptions, supports: Path | None
     noise after it)."""
     fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
     if supports is not None:
-        _given_supports(supports, fusion, fusion.grid, None, None)
+        _given_supports(supports, fusion, fusion.grid, None, None, None)
 
 
 def _boxes(segments: np.ndarray, margin: int) -> np.ndarray:
@@ -186,7 +185,7 @@ def _boxes(segments: np.ndarray, margin: int) -> np.ndarray:
     return out
 
 
-def _given_supports(path: Path, fusion, grid: Grid, dsm, dtm) -> BlocksInputs:
+def _given_supports(path: Path, fusion, grid: Grid, dsm, dtm, crowns) -> BlocksInputs:
     """The supports of a vector file grouped into buildings, with their boxes."""
     from workbench.footprints import read_footprints
 
@@ -200,7 +199,7 @@ def _given_supports(path: Path, fusion, grid: Grid, dsm, dtm) -> BlocksInputs:
         r0, r1, c0, c1 = int(r0[0]), int(r1[0]), int(c0[0]), int(c1[0])
         boxes.append(np.array([max(r0 - 4, 0), min(r1 + 5, grid.height),
                                max(c0 - 4, 0), min(c1 + 5, grid.width)]))  # fmt: skip
-    return BlocksInputs(grid, dsm, dtm, None, np.array(boxes), None, groups)
+    return BlocksInputs(grid, dsm, dtm, crowns, np.array(boxes), None, groups)
 
 
 def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> BuildingResult:
@@ -209,7 +208,8 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
     r0, r1, c0, c1 = inputs.boxes[k]
     g = inputs.grid
     crop = g.window(slice(r0, r1), slice(c0, c1))
-    dsm, dtm = inputs.dsm[r0:r1, c0:c1], inputs.dtm[r0:r1, c0:c1]
+    whole, dtm = inputs.dsm[r0:r1, c0:c1], inputs.dtm[r0:r1, c0:c1]
+    dsm = whole if inputs.crowns is None else np.where(inputs.crowns[r0:r1, c0:c1], np.nan, whole)
     xs = crop.xmin + (np.arange(crop.width) + 0.5) * g.gsd
     ys = crop.ymax - (np.arange(crop.height) + 0.5) * g.gsd
     min_cells = int(np.ceil(max(options.min_part_m**2, 0.5 * options.min_area_m2) / g.gsd**2))
@@ -217,7 +217,6 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
         seg = inputs.segments[r0:r1, c0:c1]
         # the outline and its parts where the whole DSM's walls and steps stand: a
         # mansard's steep lower slopes, often classed tree, are the building's all the same
-        whole = inputs.dsm_all[r0:r1, c0:c1]
         if options.all_building:  # a cloud of one building: no ground to find walls against
             mask = seg == k
         else:
