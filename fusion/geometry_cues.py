@@ -80,19 +80,16 @@ def geometric_cues(dsm: np.ndarray, spread: np.ndarray, gsd: float) -> np.ndarra
     return np.stack([*residuals, np.asarray(spread, np.float32)])
 
 
-def cue_columns(cues: np.ndarray, pixels: np.ndarray, xyz: np.ndarray, n_pixels: int,
-                grid: Grid) -> np.ndarray:  # fmt: skip
-    """(n_pixels, G) the cues of the cell each lifted pixel's point falls in,
-    :data:`UNKNOWN` for pixels not lifted or cells without the cue.
+def cue_columns(cues: np.ndarray, xyz: np.ndarray, grid: Grid) -> np.ndarray:
+    """(N, G) float32 the cues of the cell each point falls in, :data:`UNKNOWN` for
+    cells without the cue.
 
     Parameters
     ----------
     cues : (G, H, W) float
-    pixels : (N,) int
-        Flat indices of the lifted pixels; ``xyz`` (N, 3) their points, world metres.
+    xyz : (N, 3) float
+        Lifted pixels' points, world metres.
     """
-    out = np.full((n_pixels, len(cues)), UNKNOWN, np.float32)
     r, c = grid.cell_index(xyz[:, 0], xyz[:, 1], clip=True)
     values = cues[:, r, c].T
-    out[pixels] = np.where(np.isfinite(values), values, UNKNOWN)
-    return out
+    return np.where(np.isfinite(values), values, UNKNOWN).astype(np.float32)

@@ -266,18 +266,26 @@ def elevation_image(obs_pixels, xyz, shape, dtm: np.ndarray, grid: Grid) -> np.n
 def view_features(
     view: View, rgb, depth, dtm, grid, patch, surface=None, cues=None, window=None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sigma Points of a view (H*W, 78), with the geometric cues of each pixel's cell
-    after them when ``cues`` (G, H, W) are given (:mod:`fusion.geometry_cues`), and its
-    lifted pixels and points.
+    """The lifted pixels of a view, their points and their features: Sigma Points
+    (78), with the geometric cues of each pixel's cell after them when ``cues``
+    (G, H, W) are given (:mod:`fusion.geometry_cues`).
 
     Pixels without a matched depth take it from the fused ``surface`` (a
-    :class:`~fusion.dsm_depth.DsmSurface`) for their elevation cue and their cell: the
-    interpolation of their neighbours would lift a shadow beside a tower to the tower's
-    height.
+    :class:`~fusion.dsm_depth.DsmSurface`) for their elevation cue: the interpolation
+    of their neighbours would lift a shadow beside a tower to the tower's height. They
+    have no point, so no row of their own.
 
-    With ``window`` (rows, columns), the features of its pixels only (h*w, F), and the
-    lifted pixels in it, as flat indices in it: the elevation is interpolated over the
-    whole image, the patches read the window alone.
+    With ``window`` (rows, columns), the lifted pixels in it, as flat indices in it: the
+    elevation is interpolated over the whole image, the patches read the window alone.
+
+    Returns
+    -------
+    feats : (N, 78 [+ G]) float32
+        Row k the features of pixel ``pixels[k]``.
+    pixels : (N,) int
+        Flat indices of the lifted pixels (in the window, with ``window``).
+    xyz : (N, 3) float
+        Their points, world metres.
     """
     pixels, xyz = lift_depth(view.camera, depth)
     all_pixels, all_xyz = pixels, xyz
@@ -287,15 +295,14 @@ def view_features(
         filled.ravel()[unknown] = surface.depth_at(view.camera, unknown)
         all_pixels, all_xyz = lift_depth(view.camera, filled)
     elev = elevation_image(all_pixels, all_xyz, depth.shape, dtm, grid)
-    geometry = None if cues is None else cue_columns(cues, all_pixels, all_xyz, depth.size, grid)
     if window is not None:
         rgb, elev = rgb[window], elev[window]
-        if geometry is not None:
-            geometry = geometry.reshape(*depth.shape, -1)[window].reshape(-1, len(cues))
         pixels, xyz = in_window(window, depth.shape, pixels, xyz)
-    feats = sigma_points(feature_cues(rgb, elev), patch).reshape(-1, N_FEATURES)
-    if geometry is not None:
-        feats = np.concatenate([feats, geometry], axis=1)
+    n_cues = 0 if cues is None else len(cues)
+    feats = np.empty((len(pixels), N_FEATURES + n_cues), np.float32)
+    sigma_points(feature_cues(rgb, elev), patch, pixels=pixels, out=feats)
+    if cues is not None:
+        feats[:, N_FEATURES:] = cue_columns(cues, xyz, grid)
     return feats, pixels, xyz
 
 
@@ -409,8 +416,9 @@ class ViewContext:
     forest: object = None
 
     def features(self, v, seeing: Grid) -> tuple:
-        """The view's depth map, and the Sigma Points (with the cues), lifted pixels and
-        points of the window of its pixels that see the grid ``seeing``
+        """The view's depth map, and the lifted pixels' features (Sigma Points and cues),
+        the lifted pixels and their points in the window of its pixels that see the grid
+        ``seeing``
         (:func:`~fusion.observations.grid_window`, :func:`view_features`), and the
         window; None for each but the depth where no pixel does."""
         depth = v.read_depth()
@@ -639,7 +647,7 @@ def classify_view(i: int, ctx: ViewContext, folder: Path) -> int:
     depth, feats, pixels, _, window = ctx.features(ctx.views[i], ctx.grid)
     probs = np.zeros((depth.size, len(CLASSES)), np.uint8)
     if window is not None:
-        p = np.round(predict_proba(ctx.forest, feats[pixels]) * 255).astype(np.uint8)
+        p = np.round(predict_proba(ctx.forest, feats) * 255).astype(np.uint8)
         probs[window_pixels(window, pixels, depth.shape[1])] = p
     np.save(folder / f"{i}_probs.npy", probs)
     return 0 if window is None else len(pixels)
@@ -910,7 +918,7 @@ def labelled_pixels(i: int, ctx: ViewContext, labels: tuple) -> tuple:
     with np.errstate(invalid="ignore"):
         on_top = np.abs(xyz[:, 2] - ctx.dsm[gr, gc]) < ctx.opts.tolerance
     lab[~on_top] = 0
-    agree = elevation_consistent(lab, feats[pixels, MEAN_ELEVATION], ctx.opts.label_split)
+    agree = elevation_consistent(lab, feats[:, MEAN_ELEVATION], ctx.opts.label_split)
     lab[~agree] = 0
     keep = np.flatnonzero(lab > 0)
-    return feats[pixels[keep]], lab[keep], int((~agree).sum())
+    return feats[keep], lab[keep], int((~agree).sum())

@@ -15,6 +15,7 @@ import numpy as np
 N_CUES = 6
 N_FEATURES = N_CUES * (2 * N_CUES + 1)  # 78
 MEAN_ELEVATION = N_CUES - 1  # the attribute of the patch's mean elevation (point p0, last cue)
+CHUNK_PIXELS = 4096  # pixels whose 13 points are written at once: 1.3 MB of float32
 
 
 def feature_cues(rgb: np.ndarray, elevation: np.ndarray) -> np.ndarray:
@@ -38,8 +39,14 @@ def feature_cues(rgb: np.ndarray, elevation: np.ndarray) -> np.ndarray:
     return np.dstack([lab, dx, dy, elevation.astype(np.float32)])
 
 
-def sigma_points(cues: np.ndarray, patch: int = 11, alpha: float | None = None) -> np.ndarray:
-    """Sigma Points descriptor of every pixel.
+def sigma_points(
+    cues: np.ndarray,
+    patch: int = 11,
+    alpha: float | None = None,
+    pixels: np.ndarray | None = None,
+    out: np.ndarray | None = None,
+) -> np.ndarray:
+    """Sigma Points descriptor of every pixel, or of some.
 
     Parameters
     ----------
@@ -49,37 +56,54 @@ def sigma_points(cues: np.ndarray, patch: int = 11, alpha: float | None = None) 
         Side of the square patch, pixels (11 in the paper).
     alpha : float, optional
         Weight of the covariance; sqrt(2 d) by default, as in the paper.
+    pixels : (N,) int, optional
+        Flat indices of the pixels to describe (default all).
+    out : (N, F) float32, optional, F >= d (2 d + 1)
+        Where to write the descriptors of ``pixels``: its first d (2 d + 1) columns
+        (the caller's own columns may follow).
 
     Returns
     -------
-    (H, W, d (2 d + 1)) float32: p0 = mu, then mu + alpha L_i and mu - alpha L_i for
-    each column L_i of the Cholesky factor of the patch covariance.
+    (H, W, d (2 d + 1)) float32, or ``out`` (or a new (N, d (2 d + 1))) with
+    ``pixels``: p0 = mu, then mu + alpha L_i and mu - alpha L_i for each column L_i of
+    the Cholesky factor of the patch covariance.
     """
     H, W, d = cues.shape
+    n_features = d * (2 * d + 1)
     alpha = np.sqrt(2 * d) if alpha is None else alpha
-    # float64 and centred cues: E[xy] - E[x]E[y] cancels badly otherwise
+    # float64 and centred cues: E[xy] - E[x]E[y] cancels badly otherwise; one plane per
+    # cue, contiguous, for OpenCV's box filter
     offset = cues.reshape(-1, d).astype(np.float64).mean(axis=0)
-    c = cues.astype(np.float64) - offset
+    c = np.moveaxis(cues, -1, 0).astype(np.float64) - offset[:, None, None]
     box = dict(ddepth=-1, ksize=(patch, patch), normalize=True, borderType=cv2.BORDER_REFLECT)
-    mu = [cv2.boxFilter(c[..., i], **box) for i in range(d)]
-    cov = {}
+    mu = np.stack([cv2.boxFilter(c[i], **box).ravel() for i in range(d)], axis=1)  # (H*W, d)
+    moment = {}  # (i, j) -> the patch mean of c_i c_j, j <= i
     for i in range(d):
         for j in range(i + 1):
-            cov[i, j] = cv2.boxFilter(c[..., i] * c[..., j], **box) - mu[i] * mu[j]
+            moment[i, j] = cv2.boxFilter(c[i] * c[j], **box).ravel()
     del c  # a view's moments and factors are most of fusion's memory: free them early
-    # a small ridge keeps flat patches (zero variance) positive definite
-    ridge = 1e-6 * np.maximum(sum(cov[i, i] for i in range(d)) / d, 1e-4)
-    chol = cholesky_images(cov, d, ridge)
-    del cov, ridge
-    out = np.empty((H, W, 2 * d + 1, d), np.float32)
-    for k in range(d):
-        m = mu[k] + offset[k]
-        out[..., 0, k] = m
-        for i in range(d):  # point i: mu + alpha * column i of the factor (L[k, i], k >= i)
-            step = alpha * chol[k, i] if k >= i else 0.0
-            out[..., 1 + i, k] = m + step
-            out[..., 1 + d + i, k] = m - step
-    return out.reshape(H, W, d * (2 * d + 1))
+    n = H * W if pixels is None else len(pixels)
+    if out is None:
+        out = np.empty((n, n_features), np.float32)
+    points = out[:, :n_features].reshape(n, 2 * d + 1, d)
+    # the factors and the 13 points of a few thousand pixels at a time: written pixel by
+    # pixel, the (N, 13, d) output would be strided writes over the whole image, most
+    # of this function's time; a chunk's stays in the cache
+    for start in range(0, n, CHUNK_PIXELS):
+        s = slice(start, start + CHUNK_PIXELS)
+        at = s if pixels is None else pixels[s]
+        m = mu[at]
+        cov = {(i, j): v[at] - m[:, i] * m[:, j] for (i, j), v in moment.items()}
+        # a small ridge keeps flat patches (zero variance) positive definite
+        ridge = 1e-6 * np.maximum(sum(cov[i, i] for i in range(d)) / d, 1e-4)
+        steps = np.zeros((len(m), d, d))  # [:, i, k]: alpha times the factor's L[k, i]
+        for (k, i), factor in cholesky_images(cov, d, ridge).items():
+            steps[:, i, k] = alpha * factor
+        mean = m + offset
+        points[s, 0] = mean
+        points[s, 1 : 1 + d] = mean[:, None] + steps
+        points[s, 1 + d :] = mean[:, None] - steps
+    return out.reshape(H, W, n_features) if pixels is None else out
 
 
 def cholesky_images(cov: dict, d: int, ridge: np.ndarray) -> dict:
@@ -87,14 +111,14 @@ def cholesky_images(cov: dict, d: int, ridge: np.ndarray) -> dict:
 
     Parameters
     ----------
-    cov : dict (i, j) -> (H, W) array for j <= i
-        Lower triangle of the covariance.
+    cov : dict (i, j) -> array for j <= i
+        Lower triangle of the covariance, arrays of one shape (an image, or pixels).
     d : int
-    ridge : (H, W) array added to the diagonal.
+    ridge : array of that shape, added to the diagonal.
 
     Returns
     -------
-    dict (i, j) -> (H, W) array, j <= i: the lower-triangular factor L with L L^T = cov.
+    dict (i, j) -> array of that shape, j <= i: the lower-triangular factor L with L L^T = cov.
     Pivots that rounding leaves non-positive are clamped to the ridge rather than failing.
     """
     L = {}

@@ -46,6 +46,41 @@ def test_group_median_and_mean():
     np.testing.assert_array_equal(group_count(cells, 5), [3, 0, 4, 1, 0])
 
 
+def test_cell_layout_medians_are_numpy_s_over_every_count_and_block():
+    from workbench.robust import CellLayout
+
+    rng = np.random.default_rng(4)
+    sizes = [1, 2, 3, 4, 5, 8, 9, 17, 100, 1000]  # each power-of-two bucket's edges
+    cells = np.repeat(np.arange(len(sizes)) * 2, sizes)  # odd cells empty
+    rng.shuffle(cells)
+    values = rng.normal(size=(3, len(cells))).round(2)  # ties too
+    layout = CellLayout.of(cells, 2 * len(sizes))
+    layout.BLOCK = 8  # a few cells per block: the blocks' seams are crossed
+    med = layout.medians(values[:, layout.order])
+    for k in range(len(sizes)):
+        np.testing.assert_array_equal(med[:, 2 * k], np.median(values[:, cells == 2 * k], 1))
+    assert np.isnan(med[:, 1::2]).all()
+
+
+def test_vector_median_is_the_definition_cell_by_cell():
+    rng = np.random.default_rng(5)
+    cells = rng.integers(0, 30, 600)
+    v = rng.integers(0, 4, (600, 3)).astype(np.uint8) * 60  # few colours: equal scores
+    out = vector_median(cells, v, 32, n_projections=5, seed=3)
+    dirs = np.random.default_rng(3).normal(size=(5, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    for cell in range(32):
+        obs = np.flatnonzero(cells == cell)
+        if not len(obs):
+            assert (out[cell] == 0).all()
+            continue
+        proj = v[obs].astype(np.float64) @ dirs.T
+        dev = np.abs(proj - np.median(proj, axis=0))
+        score = (dev / (np.median(dev, axis=0) + 1e-6)).max(axis=1)
+        # the least score; among equal ones the cell's first observation
+        np.testing.assert_array_equal(out[cell], v[obs[np.argmin(score)]])
+
+
 def test_group_weighted_median_by_hand_and_with_equal_weights():
     cells = np.array([0, 0, 0, 2, 2, 2, 2, 3])
     vals = np.array([5.0, 1.0, 100.0, 4.0, 1.0, 3.0, 2.0, 7.0])
@@ -147,6 +182,19 @@ def test_sigma_points_match_a_direct_computation():
     a = np.sqrt(12)
     ref = np.concatenate([mu[None], mu + a * L.T, mu - a * L.T]).ravel()
     np.testing.assert_allclose(f[y, x], ref, rtol=1e-4, atol=1e-3)
+
+
+def test_sigma_points_of_some_pixels_are_the_rows_of_the_whole_image():
+    rng = np.random.default_rng(3)
+    cues = feature_cues(
+        rng.integers(0, 255, (90, 100, 3), dtype=np.uint8), rng.normal(3, 1, (90, 100))
+    )
+    whole = sigma_points(cues).reshape(-1, N_FEATURES)
+    pixels = np.sort(rng.choice(90 * 100, 5000, replace=False))  # more than one chunk
+    out = np.full((len(pixels), N_FEATURES + 2), 7.0, np.float32)
+    assert sigma_points(cues, pixels=pixels, out=out) is out
+    np.testing.assert_array_equal(out[:, :N_FEATURES], whole[pixels])
+    assert (out[:, N_FEATURES:] == 7.0).all()  # the caller's columns untouched
 
 
 def test_sigma_points_of_a_flat_patch_collapse_to_the_mean():
@@ -461,11 +509,10 @@ def test_geometric_cues_reach_each_pixel_through_its_cell():
     cues = np.stack([np.full((4, 4), 0.1), np.full((4, 4), 0.2), np.full((4, 4), np.nan)])
     cues[0, 0, 3] = 0.9  # the north-east cell
     xyz = np.array([[3.5, 3.5, 10.0], [0.5, 0.5, 0.0]])
-    out = cue_columns(cues, np.array([5, 0]), xyz, 8, grid)
-    assert out.shape == (8, 3)
-    assert out[5].tolist() == pytest.approx([0.9, 0.2, UNKNOWN])
-    assert out[0].tolist() == pytest.approx([0.1, 0.2, UNKNOWN])
-    assert (out[[1, 2, 3, 4, 6, 7]] == UNKNOWN).all()  # pixels not lifted
+    out = cue_columns(cues, xyz, grid)
+    assert out.shape == (2, 3) and out.dtype == np.float32
+    assert out[0].tolist() == pytest.approx([0.9, 0.2, UNKNOWN])
+    assert out[1].tolist() == pytest.approx([0.1, 0.2, UNKNOWN])
 
 
 def _oblique_view_of_a_block(width=300, height=200, seed=0):
@@ -532,13 +579,16 @@ def test_view_features_of_a_window_are_those_of_the_whole_image():
     np.testing.assert_array_equal(xyz, all_xyz[np.isin(all_pixels, full)])
     # every pixel whose point lands in the grid is in the window, with its features (the
     # patches' box filters run from another edge: the same but for rounding)
-    r, c = grid.cell_index(all_xyz[:, 0], all_xyz[:, 1])
-    seen = all_pixels[grid.contains(r, c)]
+    r_all, c_all = grid.cell_index(all_xyz[:, 0], all_xyz[:, 1])
+    seen = all_pixels[grid.contains(r_all, c_all)]
     assert len(seen) > 5000 and np.isin(seen, full).all()
     r, c = grid.cell_index(xyz[:, 0], xyz[:, 1])
     inside = grid.contains(r, c)
     np.testing.assert_array_equal(full[inside], seen)
-    np.testing.assert_allclose(feats[pixels[inside]], all_feats[seen], rtol=1e-6, atol=1e-6)
+    assert len(feats) == len(pixels) and len(all_feats) == len(all_pixels)
+    np.testing.assert_allclose(
+        feats[inside], all_feats[grid.contains(r_all, c_all)], rtol=1e-6, atol=1e-6
+    )
 
 
 def test_dsm_surface_depth_at_some_pixels_is_its_depth_map_there():

@@ -27,18 +27,70 @@ def group_mean(cells: np.ndarray, values: np.ndarray, n_cells: int) -> np.ndarra
 def group_median(cells: np.ndarray, values: np.ndarray, n_cells: int) -> np.ndarray:
     """(n_cells,) median of scalar ``values`` per cell (mean of the two middle values
     for even counts), NaN for empty cells."""
-    out = np.full(n_cells, np.nan)
     if len(cells) == 0:
+        return np.full(n_cells, np.nan)
+    layout = CellLayout.of(cells, n_cells)
+    return layout.medians(values[layout.order][None])[0]
+
+
+class CellLayout:
+    """Observations grouped by cell: ``order`` sorts them by cell (stably: in their
+    order within a cell), ``count`` and ``start`` give each cell's run in that order.
+
+    Statistics of several value columns share it (:meth:`medians`); a cell's values are
+    sorted on their own, a few thousand cells at a time, rather than all observations
+    by one key per column.
+    """
+
+    BLOCK = 1 << 18  # padded values sorted at once: 2 MB of float64 per column
+
+    def __init__(self, order: np.ndarray, count: np.ndarray):
+        self.order, self.count = order, count
+        self.start = np.cumsum(count) - count
+
+    @classmethod
+    def of(cls, cells: np.ndarray, n_cells: int) -> CellLayout:
+        """The layout of ``cells`` (N,) int in ``[0, n_cells)``."""
+        return cls(np.argsort(cells, kind="stable"), np.bincount(cells, minlength=n_cells))
+
+    def spread(self, per_cell: np.ndarray) -> np.ndarray:
+        """(..., N) each cell's value of ``per_cell`` (..., n_cells) repeated over its
+        observations, in the layout's order."""
+        return np.repeat(per_cell, self.count, axis=-1)
+
+    def medians(self, values: np.ndarray) -> np.ndarray:
+        """(P, n_cells) float64 median of each row of ``values`` (P, N), in the
+        layout's order, per cell (mean of the two middle values for even counts), NaN
+        for empty cells.
+
+        Cells of up to 2**b observations are padded with +inf to 2**b and sorted as
+        rows: no sort of all N, and no more than twice the values' memory per block.
+        """
+        n_rows = values.shape[0]
+        out = np.full((n_rows, len(self.count)), np.nan)
+        cells = np.flatnonzero(self.count)
+        count = self.count[cells]
+        width, lower = 1, 0
+        while len(count) and lower < count.max():
+            in_bucket = np.flatnonzero((count > lower) & (count <= width))
+            step = max(1, self.BLOCK // width)
+            for at in (in_bucket[i : i + step] for i in range(0, len(in_bucket), step)):
+                out[:, cells[at]] = self._middle(values, self.start[cells[at]], count[at], width)
+            lower, width = width, 2 * width
         return out
-    order = _order_by_cell_then_value(cells, values)
-    c, v = cells[order], values[order]
-    count = np.bincount(c, minlength=n_cells)
-    start = np.concatenate([[0], np.cumsum(count)[:-1]])
-    has = count > 0
-    lo = start[has] + (count[has] - 1) // 2
-    hi = start[has] + count[has] // 2
-    out[has] = 0.5 * (v[lo].astype(np.float64) + v[hi])
-    return out
+
+    @staticmethod
+    def _middle(values, start, count, width) -> np.ndarray:
+        """(P, n) the medians of ``n`` cells of ``count`` <= ``width`` observations from
+        ``start`` in ``values`` (P, N)."""
+        k = np.arange(width)
+        valid = k < count[:, None]
+        block = values[:, np.where(valid, start[:, None] + k, 0)]  # (P, n, width)
+        block[:, ~valid] = np.inf
+        block.sort(axis=-1)
+        rows = np.arange(len(count))
+        lo, hi = block[:, rows, (count - 1) // 2], block[:, rows, count // 2]
+        return 0.5 * (lo.astype(np.float64) + hi)
 
 
 def group_weighted_median(
@@ -147,18 +199,29 @@ def vector_median(
     rng = np.random.default_rng(seed)
     dirs = rng.normal(size=(n_projections, k))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    proj = vectors.astype(np.float64) @ dirs.T  # (N, P)
+    layout = CellLayout.of(cells, n_cells)
+    ordered = vectors[layout.order]
+    # one (P, N) array of projections, then of deviations, in place: a row at a time the
+    # temporaries stay of one row's size (a tile's observations are millions)
+    dev = np.empty((n_projections, len(cells)))
+    for a in range(0, len(cells), CellLayout.BLOCK):
+        dev[:, a : a + CellLayout.BLOCK] = (
+            ordered[a : a + CellLayout.BLOCK].astype(float) @ dirs.T
+        ).T
+    for p, med in enumerate(layout.medians(dev)):
+        np.abs(np.subtract(dev[p], layout.spread(med), out=dev[p]), out=dev[p])
     score = np.zeros(len(cells))
-    for p in range(n_projections):
-        med = group_median(cells, proj[:, p], n_cells)
-        dev = np.abs(proj[:, p] - med[cells])
-        mad = group_median(cells, dev, n_cells)
-        score = np.maximum(score, dev / (mad[cells] + 1e-6))
-    order = np.lexsort((score, cells))  # exact: near-ties must not depend on the tiling
-    first = np.ones(len(order), bool)
-    first[1:] = cells[order][1:] != cells[order][:-1]
-    winners = order[first]
-    out[cells[winners]] = vectors[winners]
+    for p, mad in enumerate(layout.medians(dev)):
+        np.maximum(score, dev[p] / (layout.spread(mad) + 1e-6), out=score)
+    # per cell the least score; among equal ones the first observation (exact, so that
+    # near-ties do not depend on the tiling)
+    has = layout.count > 0
+    counts = layout.count[has]
+    c = np.repeat(np.flatnonzero(has), counts)  # each observation's cell, in layout order
+    least = np.minimum.reduceat(score, layout.start[has])
+    at = np.flatnonzero(score == np.repeat(least, counts))
+    first = at[np.r_[True, c[at][1:] != c[at][:-1]]]
+    out[c[first]] = ordered[first]
     return out
 
 
