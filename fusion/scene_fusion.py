@@ -264,7 +264,7 @@ def elevation_image(obs_pixels, xyz, shape, dtm: np.ndarray, grid: Grid) -> np.n
 
 
 def view_features(
-    view: View, rgb, depth, dtm, grid, patch, surface=None, cues=None, window=None
+    view: View, rgb, depth, dtm, grid, patch, surface=None, cues=None, window=None, only=None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The lifted pixels of a view, their points and their features: Sigma Points
     (78), with the geometric cues of each pixel's cell after them when ``cues``
@@ -277,6 +277,8 @@ def view_features(
 
     With ``window`` (rows, columns), the lifted pixels in it, as flat indices in it: the
     elevation is interpolated over the whole image, the patches read the window alone.
+    With ``only`` (M,) sorted flat indices in the whole image, the lifted pixels among
+    them alone: their features are those they have among all.
 
     Returns
     -------
@@ -295,6 +297,9 @@ def view_features(
         filled.ravel()[unknown] = surface.depth_at(view.camera, unknown)
         all_pixels, all_xyz = lift_depth(view.camera, filled)
     elev = elevation_image(all_pixels, all_xyz, depth.shape, dtm, grid)
+    if only is not None:
+        keep = np.isin(pixels, only, assume_unique=True)
+        pixels, xyz = pixels[keep], xyz[keep]
     if window is not None:
         rgb, elev = rgb[window], elev[window]
         pixels, xyz = in_window(window, depth.shape, pixels, xyz)
@@ -415,12 +420,12 @@ class ViewContext:
     cues: np.ndarray | None
     forest: object = None
 
-    def features(self, v, seeing: Grid) -> tuple:
+    def features(self, v, seeing: Grid, only: np.ndarray | None = None) -> tuple:
         """The view's depth map, and the lifted pixels' features (Sigma Points and cues),
         the lifted pixels and their points in the window of its pixels that see the grid
-        ``seeing``
-        (:func:`~fusion.observations.grid_window`, :func:`view_features`), and the
-        window; None for each but the depth where no pixel does."""
+        ``seeing`` (:func:`~fusion.observations.grid_window`, :func:`view_features`;
+        among the flat indices ``only`` alone if given), and the window; None for each
+        but the depth where no pixel does."""
         depth = v.read_depth()
         _, rays = v.camera.pixel_grid_rays()
         window = grid_window(depth, rays, v.camera.center, seeing, feature_margin(self.opts.patch))
@@ -428,7 +433,7 @@ class ViewContext:
             return depth, None, None, None, None
         feats, pixels, xyz = view_features(
             v, v.read_image(), depth, self.dtm, self.grid, self.opts.patch, self.surface,
-            self.cues, window,
+            self.cues, window, only,
         )  # fmt: skip
         return depth, feats, pixels, xyz, window
 
@@ -505,6 +510,11 @@ class ObservationCache:
     def touching(self, t: int) -> list[int]:
         """The views with observations in tile ``t``, in view order."""
         return [i for i, tiles in enumerate(self.present) if t in tiles]
+
+    def view_pixels(self, i: int) -> np.ndarray:
+        """(M,) int64 sorted flat indices of the pixels of view ``i`` with an observation."""
+        parts = [self.in_tile(i, t, "pixels")[0] for t in self.present[i]]
+        return np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
 
     def in_tile(self, i: int, t: int, *names: str) -> tuple:
         """View ``i``'s observations in tile ``t``: the fields ``names``."""
@@ -634,22 +644,23 @@ def classify_views(cache: ObservationCache, ctx: ViewContext | None, forest,
         ctx.forest = copy.copy(forest)
         ctx.forest.set_params(n_jobs=1)
     shared = engine.share(ctx)
-    return sum(engine.map(classify_view, range(len(ctx.views)), shared, cache.folder,
+    return sum(engine.map(classify_view, range(len(ctx.views)), shared, cache,
                           stage="classification"))  # fmt: skip
 
 
-def classify_view(i: int, ctx: ViewContext, folder: Path) -> int:
-    """Task: view ``i``'s class probabilities, (H*W, 4) uint8, to ``folder/<i>_probs.npy``;
-    returns the number of pixels classified.
+def classify_view(i: int, ctx: ViewContext, cache: ObservationCache) -> int:
+    """Task: view ``i``'s class probabilities, (H*W, 4) uint8, to
+    ``cache.folder/<i>_probs.npy``; returns the number of pixels classified.
 
-    Only the pixels of the window that sees the grid (:func:`grid_window`) are classified,
-    the others left 0: the colour pass reads the observations' pixels, all inside it."""
-    depth, feats, pixels, _, window = ctx.features(ctx.views[i], ctx.grid)
+    Only the pixels the colour pass reads are classified, the view's visible
+    observations (:meth:`ObservationCache.view_pixels`, half of the pixels that see the
+    grid on `small`); the others are left 0."""
+    depth, feats, pixels, _, window = ctx.features(ctx.views[i], ctx.grid, cache.view_pixels(i))
     probs = np.zeros((depth.size, len(CLASSES)), np.uint8)
     if window is not None:
         p = np.round(predict_proba(ctx.forest, feats) * 255).astype(np.uint8)
         probs[window_pixels(window, pixels, depth.shape[1])] = p
-    np.save(folder / f"{i}_probs.npy", probs)
+    np.save(cache.folder / f"{i}_probs.npy", probs)
     return 0 if window is None else len(pixels)
 
 
