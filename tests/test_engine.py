@@ -142,6 +142,30 @@ def test_a_second_run_at_once_starts_its_cluster_quietly():
     assert not [w for w in caught if "already in use" in str(w.message)], caught
 
 
+def test_a_local_cluster_keeps_the_shared_context_in_every_worker():
+    """Dask's active memory manager would drop a worker's copy of a shared context
+    between tasks; the next task there would unpickle it anew (and the fusion rebuild
+    its ray-casting surface): each worker sees one object for the whole stage."""
+    from workbench.engine import start_engine
+
+    engine = start_engine(2)
+    try:
+        assert not engine.client.amm.running()
+        shared = engine.share(np.zeros(1000))
+        seen = set(engine.map(_worker_and_object, range(12), shared, stage="test"))
+    finally:
+        engine.close()
+    assert len(seen) == 2  # two workers, one copy each
+
+
+def _worker_and_object(i, context):
+    import os
+    import time
+
+    time.sleep(0.3)
+    return os.getpid(), id(context)
+
+
 @pytest.fixture(scope="module")
 def cluster():
     """A local Dask cluster of two worker processes, as `dask scheduler` and two
@@ -187,6 +211,7 @@ def test_two_worker_processes_give_the_products_of_one_process(
     record = json.loads((two / "fusion.json").read_text())
     assert record["engine"] == "dask" and record["workers"] == 2
     assert record["scheduler"] == cluster.scheduler_address
+    assert "its active memory manager drops the workers' copies" in proc.stderr  # the fixture's
     assert len(record["worker_peak_memory_mb"]) == 2
     for name in RASTERS:  # byte for byte
         a, _, _ = read_raster(one / name)

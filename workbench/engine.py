@@ -395,6 +395,7 @@ def start_engine(
     else:
         engine = DaskEngine(*local_cluster(workers or default_workers()), store=store)
     engine.client.run(glibc_malloc_defaults)
+    engine.client.run(one_opencv_thread)
     for module in preload:
         engine.client.run(importlib.import_module, module)
     return engine
@@ -418,18 +419,38 @@ def glibc_malloc_defaults() -> None:
     libc.mallopt(m_trim_threshold, 64 * 2**20)
 
 
+# Dask's active memory manager drops a worker's copy of a key that no task queued on it
+# needs, every 2 s: a context shared with every worker (:meth:`Engine.share`) is then
+# fetched and unpickled again by the worker's next task, which rebuilds what it built
+# from it (the fusion's ray-casting surface: 8 s a time on the city, where 29 of 124
+# views' tasks met a new copy). The contexts are few and bounded: keep every copy.
+KEEP_SHARED_REPLICAS = {"distributed.scheduler.active-memory-manager.start": False}
+
+
+def one_opencv_thread() -> None:
+    """OpenCV's filters on one thread in a Dask worker, as its nanny sets OpenMP and BLAS
+    (``OMP_NUM_THREADS=1``, which OpenCV's own pool ignores): the workers are the
+    parallelism, one per core, and two threads per worker on the cores of two workers
+    only contend."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
 def local_cluster(workers: int):
     """A client of a new local cluster of ``workers`` processes of one thread, and the
     cluster."""
+    import dask
     from distributed import Client, LocalCluster
 
     logging.getLogger("distributed").setLevel(logging.WARNING)  # its INFO is for operators
     # the dashboard on a free port: None still asks for 8787, and a second run at once
     # (another user's, or a test beside it) put "Port 8787 is already in use" on stderr
-    cluster = LocalCluster(
-        n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
-        silence_logs=logging.ERROR,
-    )  # fmt: skip
+    with dask.config.set(KEEP_SHARED_REPLICAS):
+        cluster = LocalCluster(
+            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
+            silence_logs=logging.ERROR,
+        )  # fmt: skip
     return Client(cluster), cluster
 
 
@@ -454,6 +475,12 @@ def connect(address: str):
             f"--scheduler {address}: the scheduler has no worker (start `dask worker "
             f"{address}` on the machines that should compute)"
         ) from None
+    if client.amm.running():
+        log.warning(
+            "--scheduler %s: its active memory manager drops the workers' copies of the "
+            "shared inputs between tasks, which then fetch them again (start the scheduler "
+            "with DASK_DISTRIBUTED__SCHEDULER__ACTIVE_MEMORY_MANAGER__START=False)", address
+        )  # fmt: skip
     return client
 
 
