@@ -786,7 +786,7 @@ def run_benchmarks(args) -> dict:
             print(
                 f"  {f['observations_per_s'] / 1e6:.2f} M observations fused per second; "
                 f"classification {f['classification_mpx_per_s']:.2f} Mpx/s "
-                "of the views' pixels that see the grid; "
+                "of the views' pixels the colour pass reads (their visible observations); "
                 f"peak memory {f['peak_memory_mib']:.0f} MiB in the command"
                 + (f", {workers} MiB in its {len(wp)} Dask workers" if wp else "")
             )

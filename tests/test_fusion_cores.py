@@ -44,6 +44,9 @@ def test_group_median_and_mean():
     assert np.isnan(med[1]) and np.isnan(med[4])
     np.testing.assert_allclose(group_mean(cells, vals, 5)[[0, 2, 3]], [106 / 3, 2.5, 7.0])
     np.testing.assert_array_equal(group_count(cells, 5), [3, 0, 4, 1, 0])
+    np.testing.assert_array_equal(
+        group_median(cells, vals.astype(int), 5)[[0, 2, 3]], med[[0, 2, 3]]
+    )
 
 
 def test_cell_layout_medians_are_numpy_s_over_every_count_and_block():

@@ -86,6 +86,8 @@ class CellLayout:
         k = np.arange(width)
         valid = k < count[:, None]
         block = values[:, np.where(valid, start[:, None] + k, 0)]  # (P, n, width)
+        if block.dtype.kind != "f":  # integers: +inf pads floats only
+            block = block.astype(np.float64)
         block[:, ~valid] = np.inf
         block.sort(axis=-1)
         rows = np.arange(len(count))
