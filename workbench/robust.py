@@ -218,10 +218,10 @@ def vector_median(
     # per cell the least score; among equal ones the first observation (exact, so that
     # near-ties do not depend on the tiling)
     has = layout.count > 0
-    counts = layout.count[has]
-    c = np.repeat(np.flatnonzero(has), counts)  # each observation's cell, in layout order
-    least = np.minimum.reduceat(score, layout.start[has])
-    at = np.flatnonzero(score == np.repeat(least, counts))
+    least = np.full(n_cells, np.inf)
+    least[has] = np.minimum.reduceat(score, layout.start[has])
+    c = layout.spread(np.arange(n_cells))  # each observation's cell, in layout order
+    at = np.flatnonzero(score == layout.spread(least))
     first = at[np.r_[True, c[at][1:] != c[at][:-1]]]
     out[c[first]] = ordered[first]
     return out
