@@ -111,6 +111,8 @@ def test_pairwise_cut_against_brute_force():
             + pair[np.arange(len(edges)), 2 * x[edges[:, 0]] + x[edges[:, 1]]].sum()
         )
         assert got == pytest.approx(energy.min())
+    # no node at all (a stitching band that met no edge): no labels, not PyMaxflow's error
+    assert pairwise_cut(np.zeros((0, 2)), np.zeros((0, 2), int), np.zeros((0, 4))).shape == (0,)
 
 
 def test_binary_cut_smooths_a_weak_outlier():

@@ -524,6 +524,127 @@ def test_refinement_never_raises_its_energy_and_keeps_views_that_see():
     assert energy(out) < energy(labels)
 
 
+def _random_texture_graph(seed, n=80, k=5):
+    """A 8 x 10 texel grid (8-neighbours) seen by ``k`` views, some texels by none."""
+    rng = np.random.default_rng(seed)
+    r, c = np.divmod(np.arange(n), 10)
+    positions = np.column_stack([c * 0.25, r * 0.25, np.zeros(n)])
+    edges = np.array([(a, b) for a in range(n) for b in range(a + 1, n)
+                      if max(abs(r[a] - r[b]), abs(c[a] - c[b])) == 1])  # fmt: skip
+    visible = rng.random((n, k)) < 0.75
+    visible[rng.random(n) < 0.05] = False
+    lab = rng.normal(50, 5, (n, k, 3)).astype(np.float32)
+    facing = rng.random((n, k)).astype(np.float32)
+    samples = ViewSamples(visible, facing, lab, np.zeros((n, k, 3), np.uint8))
+    labels = np.array([rng.choice(np.flatnonzero(v)) if v.any() else -1 for v in visible])
+    return positions, edges, samples, labels
+
+
+def _refine_by_definition(edges, labels, samples, w, sweeps=2):
+    """Expansion moves written from their definition: every vertex a node, every edge's
+    three costs from eq. 5 directly (what :func:`refine_seams` must equal)."""
+    from workbench.graph_cuts import pairwise_cut
+
+    labels, rows, seen = labels.copy(), np.arange(len(labels)), labels >= 0
+    d_now = w * (1.0 - samples.facing[rows, np.maximum(labels, 0)])
+    for _ in range(sweeps):
+        improved = False
+        for alpha in np.unique(labels[seen]):
+            movable = seen & samples.visible[:, alpha] & (labels != alpha)
+            if not movable.any():
+                continue
+            e = edges[movable[edges[:, 0]] | movable[edges[:, 1]]]
+            unary = np.column_stack(
+                [d_now, np.where(movable, w * (1.0 - samples.facing[:, alpha]), 1e9)]
+            )
+            pair = np.zeros((len(e), 4))
+            ends = (labels[e[:, 0]], labels[e[:, 1]], np.full(len(e), alpha))
+            for col, (u, v) in enumerate(((0, 1), (0, 2), (2, 1))):
+                a, b = ends[u], ends[v]
+                differ = (a != b) & (a >= 0) & (b >= 0)
+                pair[differ, col] = seam_costs(e[differ], a[differ], b[differ], samples)
+            x = pairwise_cut(unary, e, pair)
+            taken = pair[np.arange(len(e)), 2 * x[e[:, 0]] + x[e[:, 1]]]
+            if np.sum((unary[:, 1] - d_now)[x == 1]) + np.sum(taken - pair[:, 0]) < -1e-9:
+                labels = np.where(x == 1, alpha, labels)
+                d_now = np.where(x == 1, unary[:, 1], d_now)
+                improved = True
+        if not improved:
+            break
+    return labels
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_refinement_is_its_definition(seed):
+    # the moves cut only the vertices that may move and their neighbours, and share each
+    # vertex's seam term among its edges: the same labels as the plain definition
+    _, edges, samples, labels = _random_texture_graph(seed)
+    out = refine_seams(edges, labels, samples, facing_weight=5.0)
+    assert (out != labels).any()
+    assert np.array_equal(out, _refine_by_definition(edges, labels, samples, 5.0))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_move_costs_are_eq5_on_every_edge(seed):
+    from modeling.voxel.surface_graph import _move_costs
+
+    _, edges, samples, labels = _random_texture_graph(seed)
+    for k in range(samples.visible.shape[1]):
+        out = _move_costs(edges, labels, k, samples)
+        ends = (labels[edges[:, 0]], labels[edges[:, 1]], np.full(len(edges), k))
+        for col, (u, v) in enumerate(((0, 1), (0, 2), (2, 1))):
+            a, b = ends[u], ends[v]
+            differ = (a != b) & (a >= 0) & (b >= 0)
+            assert np.array_equal(
+                out[differ, col], seam_costs(edges[differ], a[differ], b[differ], samples)
+            )
+            assert (out[~differ, col] == 0).all()
+        assert (out[:, 3] == 0).all()
+
+
+def test_stitching_a_random_graph_keeps_every_view_that_sees():
+    for seed in range(4):
+        positions, edges, samples, labels = _random_texture_graph(seed)
+        out = stitch_patches(edges, positions, labels, samples, overlap_m=0.6, min_patch=3)
+        seen = out.labels >= 0
+        assert np.array_equal(seen, labels >= 0)
+        assert samples.visible[np.flatnonzero(seen), out.labels[seen]].all()
+        assert out.patches_after < out.patches_before and out.cuts > 0
+        assert seam_cost(edges, out.labels, samples)[0] < seam_cost(edges, labels, samples)[0]
+
+
+def test_a_view_that_sees_nothing_is_no_label():
+    from workbench.texture_seams import rgb_to_lab, seen_views, view_samples
+
+    def nadir(x, y):  # 100 m above (x, y), looking down, 1000 x 1000 px, f = 1000 px
+        R = np.diag([1.0, -1.0, -1.0])
+        K = np.array([[1000.0, 0, 500], [0, 1000.0, 500], [0, 0, 1]])
+        return Camera(K, R, -R @ np.array([x, y, 100.0]), 1000, 1000)
+
+    class Images:
+        def rgb_samples(self, k, uv):
+            return np.tile(np.array([[60.0, 120.0, 30.0 * (k + 1)]], np.float32), (len(uv), 1))
+
+    xy = np.stack(np.meshgrid(np.arange(5.0), np.arange(4.0)), -1).reshape(-1, 2)
+    positions = np.column_stack([xy, np.zeros(len(xy))])
+    up = np.tile([0.0, 0.0, 1.0], (len(xy), 1))
+    cams = [nadir(500.0, 0.0), nadir(2.0, 1.5), nadir(10.0, 1.5)]  # the first is too far
+    every = view_samples(positions, up, cams, Images())
+    assert every.visible[:, 0].sum() == 0 and every.visible[:, 1:].all()
+    views, samples = seen_views(positions, up, cams, Images())
+    assert views == [1, 2]
+    for name in ("visible", "facing", "lab", "rgb"):
+        assert np.array_equal(getattr(samples, name), getattr(every, name)[:, 1:])
+    to_cam = cams[2].center - positions
+    cos = to_cam[:, 2] / np.linalg.norm(to_cam, axis=1)
+    assert np.allclose(samples.facing[:, 1], cos)
+    assert np.allclose(samples.lab[:, 1], rgb_to_lab(np.array([60.0, 120.0, 90.0])))
+    assert (samples.rgb[:, 0] == [60, 120, 30]).all()
+    # no view sees anything: every view stays, with empty columns
+    views, samples = seen_views(positions, -up, cams, Images())
+    assert views == [0, 1, 2] and not samples.visible.any()
+
+
 def test_stitching_band_reaches_into_the_new_patch():
     """The overlap band lies in both patches (Fig. 5g): a new patch that the stitched
     view sees and that lies wholly in the band is cut away when every seam would cost;

@@ -199,6 +199,8 @@ def pairwise_cut(unary: np.ndarray, edges: np.ndarray, pair: np.ndarray) -> np.n
     (N,) int labels in {0, 1}.
     """
     n = len(unary)
+    if n == 0:  # PyMaxflow refuses an empty graph
+        return np.zeros(0, np.int64)
     cost1 = np.asarray(unary[:, 1], np.float64).copy()  # paid on the sink side, x = 1
     cost0 = np.asarray(unary[:, 0], np.float64).copy()
     if len(edges):

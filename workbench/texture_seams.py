@@ -68,11 +68,6 @@ class ViewSamples:
     lab: np.ndarray
     rgb: np.ndarray
 
-    def columns(self, keep: np.ndarray) -> ViewSamples:
-        """The samples of the views ``keep`` (K,) bool only."""
-        return ViewSamples(self.visible[:, keep], self.facing[:, keep], self.lab[:, keep],
-                           self.rgb[:, keep])  # fmt: skip
-
 
 def view_samples(
     positions: np.ndarray,
@@ -96,38 +91,71 @@ def view_samples(
         Every proxy of the scene.
     """
     views = list(range(len(cameras))) if views is None else list(views)
-    v, n_views = len(positions), len(views)
-    visible = np.zeros((v, n_views), bool)
-    facing = np.zeros((v, n_views), np.float32)
-    lab = np.zeros((v, n_views, 3), np.float32)
-    rgb = np.zeros((v, n_views, 3), np.uint8)
-    lifted = positions + 0.05 * normals
-    for j, k in enumerate(views):
-        cam = cameras[k]
-        to_cam = cam.center - positions
-        dist = np.linalg.norm(to_cam, axis=1)
-        cos = np.einsum("ij,ij->i", to_cam, normals) / np.maximum(dist, 1e-9)
-        sel = np.flatnonzero(cos > MIN_COS)
-        uv, depth = cam.project(positions[sel])
-        inside = (
-            (depth > 0)
-            & (uv[:, 0] >= 0)
-            & (uv[:, 1] >= 0)
-            & (uv[:, 0] <= cam.width - 1)
-            & (uv[:, 1] <= cam.height - 1)
-        )
-        sel, uv = sel[inside], uv[inside]
-        if occluders is not None and len(sel):
-            hidden = occluded(occluders, lifted[sel], cam.center - lifted[sel], tfar=1.0)
-            sel, uv = sel[~hidden], uv[~hidden]
+    sights = [_sighting(positions, normals, cameras[k], k, images, occluders) for k in views]
+    return _samples(len(positions), sights)
+
+
+def seen_views(
+    positions: np.ndarray,
+    normals: np.ndarray,
+    cameras: list[Camera],
+    images,
+    occluders=None,
+    views: list[int] | None = None,
+) -> tuple[list[int], ViewSamples]:
+    """:func:`view_samples` of the views (of ``views``) that see at least one vertex,
+    and those views: a view that sees nothing is no label of a cut, and would only cost
+    time. When no view sees any vertex, every view is kept."""
+    views = list(range(len(cameras))) if views is None else list(views)
+    sights = [_sighting(positions, normals, cameras[k], k, images, occluders) for k in views]
+    kept = [j for j, (sel, _, _) in enumerate(sights) if len(sel)] or list(range(len(views)))
+    return [views[j] for j in kept], _samples(len(positions), [sights[j] for j in kept])
+
+
+def _sighting(positions, normals, cam: Camera, k: int, images, occluders):
+    """The vertices view ``k`` sees ((N,) int), their cosines to it ((N,) float) and their
+    RGB there ((N, 3) float 0-255)."""
+    to_cam = cam.center - positions
+    dist = np.linalg.norm(to_cam, axis=1)
+    cos = np.einsum("ij,ij->i", to_cam, normals) / np.maximum(dist, 1e-9)
+    sel = np.flatnonzero(cos > MIN_COS)
+    uv, depth = cam.project(positions[sel])
+    inside = (
+        (depth > 0)
+        & (uv[:, 0] >= 0)
+        & (uv[:, 1] >= 0)
+        & (uv[:, 0] <= cam.width - 1)
+        & (uv[:, 1] <= cam.height - 1)
+    )
+    sel, uv = sel[inside], uv[inside]
+    if occluders is not None and len(sel):
+        lifted = positions[sel] + 0.05 * normals[sel]
+        hidden = occluded(occluders, lifted, cam.center - lifted, tfar=1.0)
+        sel, uv = sel[~hidden], uv[~hidden]
+    if not len(sel):
+        return sel, cos[sel], np.zeros((0, 3), np.float32)
+    return sel, cos[sel], images.rgb_samples(k, uv)
+
+
+def _samples(v: int, sights: list) -> ViewSamples:
+    """ViewSamples of ``v`` vertices from one :func:`_sighting` per view.
+
+    Stored view by view (each view's column contiguous), so that filling a view and
+    reading one view for every vertex, as the cuts do, run along memory; the arrays are
+    (V, K, ...) views of that storage."""
+    n = len(sights)
+    visible = np.zeros((n, v), bool)
+    facing = np.zeros((n, v), np.float32)
+    lab = np.zeros((n, v, 3), np.float32)
+    rgb = np.zeros((n, v, 3), np.uint8)
+    for j, (sel, cos, colours) in enumerate(sights):
         if not len(sel):
             continue
-        colours = images.rgb_samples(k, uv)
-        visible[sel, j] = True
-        facing[sel, j] = cos[sel]
-        rgb[sel, j] = np.clip(np.round(colours), 0, 255).astype(np.uint8)
-        lab[sel, j] = rgb_to_lab(colours)
-    return ViewSamples(visible, facing, lab, rgb)
+        visible[j, sel] = True
+        facing[j, sel] = cos
+        rgb[j, sel] = np.clip(np.round(colours), 0, 255).astype(np.uint8)
+        lab[j, sel] = rgb_to_lab(colours)
+    return ViewSamples(visible.T, facing.T, lab.transpose(1, 0, 2), rgb.transpose(1, 0, 2))
 
 
 def _view_differences(
@@ -150,8 +178,16 @@ def seam_costs(
     """C(s, t) of eq. 5 for each edge (s, t) between views ``src`` and ``dst`` (each (E,)):
     ||P1(s) - P2(s)|| + ||P1(t) - P2(t)|| in CIE Lab. A term a view cannot see costs
     ``MISSING_LAB``."""
-    d, ok = _view_differences(edges, src, dst, samples)
-    return np.where(ok, d, MISSING_LAB).sum(axis=1)
+    return seam_terms(edges[:, 0], src, dst, samples) + seam_terms(edges[:, 1], src, dst, samples)
+
+
+def seam_terms(x: np.ndarray, src, dst, samples: ViewSamples) -> np.ndarray:
+    """(N,) float64 one vertex's term of C in eq. 5: ||P_src(x) - P_dst(x)|| in CIE Lab
+    at the vertices ``x`` (N,), ``MISSING_LAB`` where either view does not see x.
+    ``src`` and ``dst`` are views, (N,) or one for all; the term is symmetric in them."""
+    ok = samples.visible[x, src] & samples.visible[x, dst]
+    d = np.linalg.norm(samples.lab[x, src] - samples.lab[x, dst], axis=1).astype(np.float64)
+    return np.where(ok, d, MISSING_LAB)
 
 
 def seam_cost(edges: np.ndarray, labels: np.ndarray, samples: ViewSamples) -> tuple[float, int]:

@@ -17,7 +17,7 @@ from workbench.camera import Camera, framing_cameras
 from workbench.model_run import Building
 from workbench.raster import Grid
 from workbench.records import peak_memory_mb
-from workbench.texture_seams import ViewSamples, seam_cost, view_samples
+from workbench.texture_seams import ViewSamples, seam_cost, seen_views
 
 from .options import VoxelOptions
 from .proxy import (
@@ -419,11 +419,7 @@ def texture_building(
 
     t0 = time.perf_counter()
     views = framing_cameras(cameras, V)
-    samples = view_samples(graph.positions, graph.normals, cameras, images, occluders, views)
-    # views that see no texel are no label of the cuts, and would only cost time
-    seen = samples.visible.any(axis=0)
-    if seen.any():  # a proxy no view sees keeps its (empty) columns
-        views, samples = [k for k, s in zip(views, seen, strict=True) if s], samples.columns(seen)
+    views, samples = seen_views(graph.positions, graph.normals, cameras, images, occluders, views)
     smooth = _voxel_normals_at(proxy, graph.positions, graph.normals)
     best = best_views(graph.positions, smooth, [cameras[k].center for k in views], samples)
     projective = face_views(voxel_faces(proxy.frame, graph), best, samples)

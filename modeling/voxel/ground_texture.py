@@ -18,7 +18,14 @@ from workbench.camera import Camera, framing_cameras
 from workbench.graph_cuts import binary_cut, grid_pairs
 from workbench.meshes import raster_mesh
 from workbench.raster import Grid
-from workbench.texture_seams import ViewSamples, rgb_to_lab, seam_cost, seam_costs, view_samples
+from workbench.texture_seams import (
+    ViewSamples,
+    rgb_to_lab,
+    seam_cost,
+    seam_costs,
+    seen_views,
+    view_samples,
+)
 
 from .surface_graph import best_views, stitch_patches, texel_colours
 from .view_images import ViewImages
@@ -104,10 +111,7 @@ def ground_cut(
         n = len(positions)
         return GroundTile(np.zeros((grid.height, grid.width, 3), np.uint8),
                           np.full(grid.shape, -1), {"texels": n, "unseen": n})  # fmt: skip
-    samples = view_samples(positions, up, cameras, images, occluders, views)
-    seen = samples.visible.any(axis=0)  # views that see no texel are no label of the cuts
-    if seen.any():
-        views, samples = [k for k, s in zip(views, seen, strict=True) if s], samples.columns(seen)
+    views, samples = seen_views(positions, up, cameras, images, occluders, views)
     centres = np.array([cameras[k].center for k in views]).reshape(-1, 3)
     labels = best_views(positions, up, centres, samples)
     edges, _ = grid_pairs(grid.shape)

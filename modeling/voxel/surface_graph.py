@@ -20,7 +20,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from workbench.graph_cuts import pairwise_cut
-from workbench.texture_seams import ViewSamples, seam_costs
+from workbench.texture_seams import ViewSamples, seam_costs, seam_terms
 
 _INF = 1e9
 
@@ -205,12 +205,17 @@ def best_views(
 
     ``centres`` (K, 3) are the projection centres of the views of ``samples``' columns.
     """
-    d = np.asarray(centres)[None, :, :] - positions[:, None, :]
-    d /= np.linalg.norm(d, axis=2, keepdims=True)
-    score = np.einsum("vkc,vc->vk", d, normals)
-    score = np.where(samples.visible, score, -np.inf)
-    best = np.argmax(score, axis=1)
-    best[~samples.visible.any(axis=1)] = -1
+    centres = np.asarray(centres)
+    best = np.full(len(positions), -1)
+    # a few thousand vertices at a time: the (V, K, 3) directions of a whole building
+    # are hundreds of megabytes, written and read three times
+    for lo in range(0, len(positions), 2048):
+        hi = lo + 2048
+        d = centres[None, :, :] - positions[lo:hi, None, :]
+        d /= np.linalg.norm(d, axis=2, keepdims=True)
+        visible = samples.visible[lo:hi]
+        score = np.where(visible, np.einsum("vkc,vc->vk", d, normals[lo:hi]), -np.inf)
+        best[lo:hi] = np.where(visible.any(axis=1), np.argmax(score, axis=1), -1)
     return best
 
 
@@ -293,30 +298,37 @@ def stitch_patches(
     done = np.zeros(len(labels), bool)
     remaining = sizes > 0
     cuts = 0
-    a, b = graph_edges[:, 0], graph_edges[:, 1]
+    incident = _incidence(graph_edges, len(labels))
+    order = np.argsort(positions[:, 0], kind="stable")
+    by_x = (order, positions[order, 0])
+    # patches with a vertex next to a stitched one; a remaining patch's vertices are
+    # never stitched nor relabelled by a cut, so marking the neighbours of each newly
+    # stitched patch keeps this exact
+    touching = np.zeros(n_patch, bool)
+
+    def stitched(members: np.ndarray) -> None:
+        done[members] = True
+        near = patch[incident[np.flatnonzero(members)].indices]
+        touching[near[near >= 0]] = True
+
     while remaining.any():
-        touching = np.zeros(n_patch, bool)
-        front = done[a] & (patch[b] >= 0)
-        touching[patch[b][front]] = True
-        front = done[b] & (patch[a] >= 0)
-        touching[patch[a][front]] = True
         candidates = remaining & touching
         if not candidates.any():  # a new part of the surface: start from its largest patch
             p = int(np.argmax(np.where(remaining, sizes, -1)))
-            done |= patch == p
+            stitched(patch == p)
             remaining[p] = False
             continue
         p = int(np.argmax(np.where(candidates, sizes, -1)))
         remaining[p] = False
         members = patch == p
-        if sizes[p] < min_patch and _absorb(graph_edges, labels, done, members, samples):
-            done |= members
+        if sizes[p] < min_patch and _absorb(incident, labels, done, members, samples):
+            stitched(members)
             continue
         k = int(labels[members][0])
-        keep, free = _frontier(positions, labels, done, members, samples, k, overlap_m)
-        labels, changed = _cut(graph_edges, keep, done, members, free, k, samples)
+        keep, free = _frontier(positions, by_x, labels, done, members, samples, k, overlap_m)
+        labels, changed = _cut(graph_edges, incident, keep, done, members, free, k, samples)
         cuts += 1
-        done |= members
+        stitched(members)
         patch[changed] = p
     return Stitching(
         labels, count_patches(graph_edges, initial), count_patches(graph_edges, labels), cuts
@@ -369,38 +381,75 @@ def refine_seams(
         return facing_weight * (1.0 - samples.facing[rows, view])
 
     d_now = data(np.maximum(labels, 0))
+    index = np.full(len(labels), -1)
+    to_alpha = np.zeros(len(labels))
     for _ in range(sweeps):
         improved = False
         for alpha in np.unique(labels[seen]):
             movable = seen & samples.visible[:, alpha] & (labels != alpha)
             if not movable.any():
                 continue
-            # edges with no end that may move keep their cost and play no part
+            # edges with no end that may move keep their cost and play no part; nor do
+            # the vertices that cannot move and touch none of them (a cut leaves them)
             edges = graph_edges[movable[graph_edges[:, 0]] | movable[graph_edges[:, 1]]]
-            unary = np.column_stack([d_now, np.where(movable, data(alpha), _INF)])
-            pair = _move_costs(edges, labels, alpha, samples)
-            x = pairwise_cut(unary, edges, pair)
-            taken = pair[np.arange(len(edges)), 2 * x[edges[:, 0]] + x[edges[:, 1]]]
-            gain = np.sum((unary[:, 1] - d_now)[x == 1]) + np.sum(taken - pair[:, 0])
+            touched = movable.copy()
+            touched[edges.ravel()] = True
+            nodes = np.flatnonzero(touched)
+            index[nodes] = np.arange(len(nodes))
+            unary = np.column_stack(
+                [d_now[nodes], np.where(movable[nodes], data(alpha)[nodes], _INF)]
+            )
+            # each vertex's term of C between its view and alpha, shared by its edges
+            to_alpha[nodes] = seam_terms(nodes, np.maximum(labels[nodes], 0), alpha, samples)
+            pair = _move_costs(edges, labels, alpha, samples, to_alpha)
+            x = pairwise_cut(unary, index[edges], pair)
+            taken = pair[np.arange(len(edges)), 2 * x[index[edges[:, 0]]] + x[index[edges[:, 1]]]]
+            gain = np.sum((unary[:, 1] - d_now[nodes])[x == 1]) + np.sum(taken - pair[:, 0])
             if gain < -1e-9:
-                labels = np.where(x == 1, alpha, labels)
-                d_now = np.where(x == 1, unary[:, 1], d_now)
+                moved = nodes[x == 1]
+                labels[moved] = alpha
+                d_now[moved] = unary[x == 1, 1]
                 improved = True
         if not improved:
             break
     return labels
 
 
-def _move_costs(edges: np.ndarray, labels: np.ndarray, k: int, samples) -> np.ndarray:
+def _move_costs(
+    edges: np.ndarray, labels: np.ndarray, k: int, samples, to_k: np.ndarray | None = None
+) -> np.ndarray:
     """(E, 4) C of eq. 5 of each edge for an expansion move to view ``k``: both ends keep
     their views (E00), the second end takes ``k`` (E01), the first does (E10), both do
-    (E11, no seam). Equal views and unseen ends (-1) cost nothing."""
-    ends = (labels[edges[:, 0]], labels[edges[:, 1]], np.full(len(edges), k))
+    (E11, no seam). Equal views and unseen ends (-1) cost nothing.
+
+    ``to_k`` (V,), when given, is every vertex's term of C between its own view and
+    ``k`` (:func:`~workbench.texture_seams.seam_terms`): an edge inside a patch, most of
+    them, then costs two look-ups; only the edges across a seam are computed here.
+    """
+    s, t = edges[:, 0], edges[:, 1]
+    ls, lt = labels[s], labels[t]
     out = np.zeros((len(edges), 4))
-    for col, (u, v) in enumerate(((0, 1), (0, 2), (2, 1))):
-        a, b = ends[u], ends[v]
-        differ = (a != b) & (a >= 0) & (b >= 0)
-        out[differ, col] = seam_costs(edges[differ], a[differ], b[differ], samples)
+    differ = (ls != lt) & (ls >= 0) & (lt >= 0)
+    out[differ, 0] = seam_costs(edges[differ], ls[differ], lt[differ], samples)
+    if to_k is None:  # at the edges' ends only: a stitching cut's band is small
+        to_k = np.zeros(len(labels))
+        ends = np.zeros(len(labels), bool)
+        ends[edges.ravel()] = True
+        ends = np.flatnonzero(ends)
+        to_k[ends] = seam_terms(ends, np.maximum(labels[ends], 0), k, samples)
+    across = ls != lt
+    # E01: s keeps ls, t takes k; t's term is its own when it has ls too
+    differ = (ls != k) & (ls >= 0)
+    far = np.where(across, 0.0, to_k[t])
+    one = differ & across
+    far[one] = seam_terms(t[one], ls[one], k, samples)
+    out[differ, 1] = to_k[s][differ] + far[differ]
+    # E10: s takes k, t keeps lt
+    differ = (lt != k) & (lt >= 0)
+    near = np.where(across, 0.0, to_k[s])
+    one = differ & across
+    near[one] = seam_terms(s[one], k, lt[one], samples)
+    out[differ, 2] = near[differ] + to_k[t][differ]
     return out
 
 
@@ -410,10 +459,18 @@ def count_patches(graph_edges: np.ndarray, labels: np.ndarray) -> int:
     return int(len(np.unique(patch[patch >= 0])))
 
 
-def _absorb(edges, labels, done, members, samples) -> bool:
+def _incidence(edges: np.ndarray, v: int) -> sparse.csr_matrix:
+    """(V, V) sparse: row s holds, at column t, 1 + the index of edge (s, t) or (t, s)."""
+    ids = np.arange(1, len(edges) + 1)
+    return sparse.csr_matrix(
+        (np.concatenate([ids, ids]), (edges.T.ravel(), edges[:, ::-1].T.ravel())), shape=(v, v)
+    )
+
+
+def _absorb(incident, labels, done, members, samples) -> bool:
     """Give a small patch its stitched neighbours' most common view, if it sees the patch."""
-    a, b = edges[:, 0], edges[:, 1]
-    outer = np.concatenate([labels[b[members[a] & done[b]]], labels[a[members[b] & done[a]]]])
+    near = incident[np.flatnonzero(members)].indices
+    outer = labels[near[done[near]]]
     if not len(outer):
         return False
     k = int(np.bincount(outer).argmax())
@@ -423,18 +480,23 @@ def _absorb(edges, labels, done, members, samples) -> bool:
     return True
 
 
-def _frontier(positions, labels, done, members, samples, k, overlap_m):
+def _frontier(positions, by_x, labels, done, members, samples, k, overlap_m):
     """The overlap band of a new patch (view ``k``) with the stitched vertices.
 
     On the stitched side, the vertices within ``overlap_m`` of the patch that view ``k``
     sees; on the patch's side, its vertices within ``overlap_m`` of a stitched vertex
     whose view sees them too. Returns the view each vertex keeps if the cut leaves it
     on the source side ((V,) int: its own, or for the patch's band vertices their nearest
-    stitched vertex's) and the band ((V,) bool).
+    stitched vertex's) and the band ((V,) bool). ``by_x`` is the vertices in order of x
+    and their x, two (V,) arrays.
     """
     lo = positions[members].min(axis=0) - overlap_m
     hi = positions[members].max(axis=0) + overlap_m
-    close = np.flatnonzero(done & np.all((positions >= lo) & (positions <= hi), axis=1))
+    # the stitched vertices in the patch's box, in index order; x first, by bisection
+    order, x = by_x
+    close = order[np.searchsorted(x, lo[0], "left") : np.searchsorted(x, hi[0], "right")]
+    p = positions[close]
+    close = np.sort(close[done[close] & np.all((p >= lo) & (p <= hi), axis=1)])
     free = np.zeros(len(labels), bool)
     keep = labels.copy()
     if not len(close):
@@ -452,25 +514,33 @@ def _frontier(positions, labels, done, members, samples, k, overlap_m):
     return keep, free
 
 
-def _cut(edges, keep, done, members, free, k, samples):
+def _cut(edges, incident, keep, done, members, free, k, samples):
     """One min cut: band vertices (``free``) keep their view ``keep`` (source side) or
     take view ``k`` (sink side); other stitched vertices keep theirs, the new patch's
-    take ``k``. Each edge pays C of eq. 5 between the views its two ends end up with."""
-    a, b = edges[:, 0], edges[:, 1]
+    take ``k``. Each edge pays C of eq. 5 between the views its two ends end up with.
+
+    ``incident`` is :func:`_incidence` of ``edges``: the cut reads the band's edges only.
+    """
+    rows = incident[np.flatnonzero(free)]
     # vertices next to the band keep the seam honest at its edge
     rim = np.zeros(len(keep), bool)
-    rim[a[free[b]]] = True
-    rim[b[free[a]]] = True
-    nodes = np.flatnonzero(free | members | (rim & done))
+    rim[rows.indices] = True
+    in_graph = free | (rim & (done | members))
+    ids = np.sort(rows.data)  # the band's edges, once each, in the graph's order
+    first = np.ones(len(ids), bool)
+    first[1:] = ids[1:] != ids[:-1]
+    e = edges[ids[first] - 1]
+    e = e[in_graph[e[:, 0]] & in_graph[e[:, 1]]]
+    # a patch vertex off the band has no edge here and takes k whatever the cut
+    nodes = np.flatnonzero(in_graph)
     index = np.full(len(keep), -1)
     index[nodes] = np.arange(len(nodes))
-    e = edges[(index[a] >= 0) & (index[b] >= 0)]
-    e = e[free[e[:, 0]] | free[e[:, 1]]]
     pair = _move_costs(e, keep, k, samples)
     unary = np.zeros((len(nodes), 2))
     unary[:, 1] = np.where(done[nodes] & ~free[nodes], _INF, 0.0)  # tied to the source
     unary[:, 0] = np.where(members[nodes] & ~free[nodes], _INF, 0.0)  # tied to the sink
-    to_k = nodes[pairwise_cut(unary, index[e], pair) == 1]  # every non-band member too
+    to_k = nodes[pairwise_cut(unary, index[e], pair) == 1]
     labels = keep.copy()
+    labels[members & ~in_graph] = k
     labels[to_k] = k
     return labels, to_k[~members[to_k]]
