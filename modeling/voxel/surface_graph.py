@@ -377,10 +377,10 @@ def refine_seams(
     seen = labels >= 0
     rows = np.arange(len(labels))
 
-    def data(view) -> np.ndarray:
-        return facing_weight * (1.0 - samples.facing[rows, view])
+    def data(at: np.ndarray, view) -> np.ndarray:
+        return facing_weight * (1.0 - samples.facing[at, view])
 
-    d_now = data(np.maximum(labels, 0))
+    d_now = data(rows, np.maximum(labels, 0))
     index = np.full(len(labels), -1)
     to_alpha = np.zeros(len(labels))
     for _ in range(sweeps):
@@ -397,7 +397,7 @@ def refine_seams(
             nodes = np.flatnonzero(touched)
             index[nodes] = np.arange(len(nodes))
             unary = np.column_stack(
-                [d_now[nodes], np.where(movable[nodes], data(alpha)[nodes], _INF)]
+                [d_now[nodes], np.where(movable[nodes], data(nodes, alpha), _INF)]
             )
             # each vertex's term of C between its view and alpha, shared by its edges
             to_alpha[nodes] = seam_terms(nodes, np.maximum(labels[nodes], 0), alpha, samples)
