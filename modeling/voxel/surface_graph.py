@@ -438,18 +438,19 @@ def _move_costs(
         ends = np.flatnonzero(ends)
         to_k[ends] = seam_terms(ends, np.maximum(labels[ends], 0), k, samples)
     across = ls != lt
+    at_s, at_t = to_k[s], to_k[t]
     # E01: s keeps ls, t takes k; t's term is its own when it has ls too
     differ = (ls != k) & (ls >= 0)
-    far = np.where(across, 0.0, to_k[t])
+    far = np.where(across, 0.0, at_t)
     one = differ & across
     far[one] = seam_terms(t[one], ls[one], k, samples)
-    out[differ, 1] = to_k[s][differ] + far[differ]
+    out[differ, 1] = at_s[differ] + far[differ]
     # E10: s takes k, t keeps lt
     differ = (lt != k) & (lt >= 0)
-    near = np.where(across, 0.0, to_k[s])
+    near = np.where(across, 0.0, at_s)
     one = differ & across
     near[one] = seam_terms(s[one], k, lt[one], samples)
-    out[differ, 2] = near[differ] + to_k[t][differ]
+    out[differ, 2] = near[differ] + at_t[differ]
     return out
 
 
