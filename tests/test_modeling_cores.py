@@ -24,10 +24,16 @@ from modeling.superpixel.aggregation import plane_residuals, superpixel_graph
 from modeling.superpixel.buildings import split_buildings
 from modeling.superpixel.class_crf import geometry_factor
 from modeling.superpixel.options import SuperpixelOptions
+from modeling.superpixel.path import adjacency_lists
 from modeling.superpixel.plane_hypotheses import SuperpixelPoints
 from modeling.superpixel.prototype_crf import edges_within, label_prototypes
 from modeling.superpixel.prototypes import cluster_prototypes, hypothesis_similarity
-from modeling.superpixel.quickshift import colour_height_image, quickshift_superpixels, relief_image
+from modeling.superpixel.quickshift import (
+    colour_height_image,
+    quickshift_superpixels,
+    relief_image,
+    split_disconnected,
+)
 from modeling.superpixel.rooftop import model_building, observed_faces
 from workbench.graph_cuts import alpha_expansion, binary_cut, crf_energy, pairwise_cut
 from workbench.meshes import is_watertight, unpaired_edges
@@ -194,6 +200,33 @@ def test_quickshift_tiles_keep_super_pixels_connected_and_on_edges():
     assert labels.min() == 0 and len(np.unique(labels)) == labels.max() + 1
     crossing = np.intersect1d(np.unique(labels[:, :70]), np.unique(labels[:, 70:]))
     assert len(crossing) == 0  # no super-pixel straddles the colour edge
+
+
+def test_split_disconnected_numbers_regions_by_label_then_raster_order():
+    labels = np.array([
+        [5, 5, 2, 5],
+        [2, 2, 2, 5],
+        [5, 2, 5, 5],
+    ])  # fmt: skip
+    # label 2: one region (4-connected); label 5: the top-left pair, the
+    # right-hand group (first cell (0, 3)), the lone cell at (2, 0): numbered after
+    # label 2's region by their first cell in raster order
+    expected = np.array([
+        [1, 1, 0, 2],
+        [0, 0, 0, 2],
+        [3, 0, 2, 2],
+    ])  # fmt: skip
+    np.testing.assert_array_equal(split_disconnected(labels), expected)
+    diagonal = np.array([[0, 1], [1, 0]])  # touching at a corner only: two regions each
+    np.testing.assert_array_equal(split_disconnected(diagonal), [[0, 2], [3, 1]])
+    assert split_disconnected(np.zeros((0, 4), np.int64)).shape == (0, 4)
+
+
+def test_adjacency_lists_keep_each_nodes_edges_in_order():
+    edges = np.array([[0, 2], [1, 2], [0, 1], [2, 5]])
+    assert adjacency_lists(edges) == {0: [2, 1], 1: [2, 0], 2: [0, 1, 5], 5: [2]}
+    assert list(adjacency_lists(edges)[2]) == [0, 1, 5]  # the edges' order, not sorted
+    assert adjacency_lists(np.zeros((0, 2), np.int64)) == {}
 
 
 def test_quickshift_workers_do_not_change_the_labels():

@@ -135,15 +135,23 @@ def alpha_expansion(
     i, j = (edges[:, 0], edges[:, 1]) if len(edges) else (np.zeros(0, int),) * 2
     energy = crf_energy(labels, unary, edges, weights, omega)
     movable = np.ones((n, n_labels), bool) if allowed is None else allowed
+    # a move repeated on the labels it last saw cannot lower the energy: refused then, it
+    # is refused again; taken, it left the optimum of a move set that contains the new one
+    changes, tried_at = 0, np.full(n_labels, -1)
     for _ in range(max_sweeps):
         improved = False
         for alpha in range(n_labels):
+            if tried_at[alpha] == changes:
+                continue
+            tried_at[alpha] = changes
             proposal = _expand(labels, alpha, unary, i, j, w, movable[:, alpha])
             if proposal is None:
                 continue
             e = crf_energy(proposal, unary, edges, weights, omega)
             if e < energy - 1e-9:
                 labels, energy, improved = proposal, e, True
+                changes += 1
+                tried_at[alpha] = changes
         if not improved:
             break
     return labels

@@ -17,6 +17,7 @@ from rasterio.errors import CRSError, RasterioIOError
 from rasterio.transform import Affine
 
 from .errors import InputError
+from .parallel import default_workers
 
 
 @dataclass(frozen=True)
@@ -222,6 +223,9 @@ def write_raster(
         blocksize=256,
         # heights and colours average into an overview; classes and ids must not
         overview_resampling="average" if image else "nearest",
+        # GDAL compresses the tiles on the process's cores; the file is byte for byte the
+        # one a single thread writes
+        num_threads=default_workers(),
     )
     with rasterio.open(path, "w", **profile) as dst:
         dst.write(arr)

@@ -85,12 +85,13 @@ def superpixel_graph(
     colour /= np.maximum(count, 1)[:, None]
     known = np.isfinite(dsm.ravel())
     height_median = group_median(flat[known], dsm.ravel()[known], n)
-    pairs = []
+    keys = []
     for a, b in ((labels[:, :-1], labels[:, 1:]), (labels[:-1, :], labels[1:, :])):
         diff = a != b
-        pairs.append(np.stack([np.minimum(a[diff], b[diff]), np.maximum(a[diff], b[diff])], 1))
-    pairs = np.concatenate(pairs)
-    edges, boundary = np.unique(pairs, axis=0, return_counts=True)
+        lo, hi = np.minimum(a[diff], b[diff]), np.maximum(a[diff], b[diff])
+        keys.append(lo.astype(np.int64) * n + hi)  # sorts as the pairs (lo, hi) do
+    key, boundary = np.unique(np.concatenate(keys), return_counts=True)
+    edges = np.stack([key // n, key % n], axis=1)
     g = np.linalg.norm(colour[edges[:, 0]] - colour[edges[:, 1]], axis=1)
     return SuperpixelGraph(
         labels, count, class_sum, colour, height_median, plane_residuals(labels, dsm, n), edges,

@@ -159,10 +159,7 @@ def model_buildings(
     buildings, (H, W) int32 prototype face of every building cell (1000 * building +
     face), and the seconds spent in each of ``BUILDING_STEPS``.
     """
-    neighbours: dict[int, list[int]] = {}
-    for a, b in graph.edges.tolist():
-        neighbours.setdefault(a, []).append(b)
-        neighbours.setdefault(b, []).append(a)
+    neighbours = adjacency_lists(graph.edges)
     cell_building = owner[labels]
     boxes = building_boxes(cell_building, int(owner.max()))
     members_of = np.split(np.argsort(owner, kind="stable"), np.cumsum(np.bincount(owner)))
@@ -200,6 +197,20 @@ def model_buildings(
             part.record.update(counts)
             out.append(part)
     return out, faces, seconds
+
+
+def adjacency_lists(edges: np.ndarray) -> dict[int, list[int]]:
+    """{node: its neighbours} on the ``edges`` (E, 2), each node's neighbours in the order
+    of the edges that name it; only nodes with an edge appear."""
+    if not len(edges):
+        return {}
+    node = np.r_[edges[:, 0], edges[:, 1]]
+    other = np.r_[edges[:, 1], edges[:, 0]]
+    order = np.lexsort((np.tile(np.arange(len(edges)), 2), node))
+    node, other = node[order], other[order]
+    starts = np.flatnonzero(np.r_[True, node[1:] != node[:-1]])
+    lists = np.split(other, starts[1:])
+    return dict(zip(node[starts].tolist(), (part.tolist() for part in lists), strict=True))
 
 
 def _timed(seconds: dict):

@@ -4,10 +4,10 @@ the DSM where the ortho cannot tell roof faces apart (LiDAR)."""
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 from scipy import ndimage
 from skimage.color import rgb2lab
+from skimage.measure import label
 from skimage.segmentation import quickshift
 
 from workbench.parallel import ordered_map
@@ -91,7 +91,10 @@ def quickshift_superpixels(
 
     out = np.empty((H, W), np.int64)
     next_label = 0
-    for (r0, c0, r1, c1), local in zip(tiles, ordered_map(segment, tiles, workers), strict=True):
+    # every tile in flight: the tiles differ in size (the last row and column are cut),
+    # and their labels together are no larger than ``out``
+    labelled = ordered_map(segment, tiles, workers, in_flight=len(tiles))
+    for (r0, c0, r1, c1), local in zip(tiles, labelled, strict=True):
         out[r0:r1, c0:c1] = local + next_label
         next_label += int(local.max()) + 1
     return split_disconnected(out)
@@ -153,21 +156,15 @@ def relief_image(dsm: np.ndarray, gsd: float, weight: float = RELIEF_LAB) -> np.
 
 
 def split_disconnected(labels: np.ndarray) -> np.ndarray:
-    """Relabel so that every label is one 4-connected region, labels 0..N-1."""
-    out = np.full(labels.shape, -1, np.int64)
-    n = 0
-    # connected components of "same label as the neighbour": label each label's pixels
-    order = np.argsort(labels, axis=None, kind="stable")
-    flat = labels.ravel()[order]
-    starts = np.flatnonzero(np.r_[True, flat[1:] != flat[:-1]])
-    ends = np.r_[starts[1:], len(flat)]
-    rows, cols = np.unravel_index(order, labels.shape)
-    for s, e in zip(starts, ends, strict=True):
-        r, c = rows[s:e], cols[s:e]
-        r0, c0 = r.min(), c.min()
-        mask = np.zeros((r.max() - r0 + 1, c.max() - c0 + 1), np.uint8)
-        mask[r - r0, c - c0] = 1
-        k, comp = cv2.connectedComponents(mask, connectivity=4)
-        out[r, c] = comp[r - r0, c - c0] - 1 + n
-        n += k - 1
-    return out
+    """Relabel so that every label is one 4-connected region, labels 0..N-1: the regions
+    ordered by their label, then by their first cell in raster order."""
+    if not labels.size:
+        return np.zeros(labels.shape, np.int64)
+    # scikit-image numbers the regions of equal value by their first cell in raster order
+    region = label(labels, background=-1, connectivity=1).ravel() - 1
+    n = int(region.max()) + 1
+    label_of = np.empty(n, np.int64)
+    label_of[region] = labels.ravel()
+    rank = np.empty(n, np.int64)
+    rank[np.argsort(label_of, kind="stable")] = np.arange(n)
+    return rank[region].reshape(labels.shape)
