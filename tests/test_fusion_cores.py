@@ -100,6 +100,31 @@ def test_group_weighted_median_by_hand_and_with_equal_weights():
     )
 
 
+def test_group_weighted_quantile_is_its_definition_on_runs_of_every_length():
+    """Cell by cell, sorted by value: the first whose cumulative weight reaches q of the
+    total (within 1e-9), or its mean with the next where it reaches it exactly."""
+    rng = np.random.default_rng(7)
+    lengths = [1, 2, 3, 5, 8, 13, 64, 65, 200]
+    cells = np.repeat(np.arange(len(lengths)) * 2, lengths)  # odd cells stay empty
+    rng.shuffle(cells)
+    vals = rng.integers(0, 6, len(cells)).astype(np.float64)  # ties within every cell
+    w = rng.integers(1, 4, len(cells)).astype(np.float64)  # exact targets happen
+    qs = (0.1, 0.25, 0.5, 0.7, 0.9)
+    got = group_weighted_quantile(cells, vals, w, 2 * len(lengths), qs)
+    for k, q in enumerate(qs):
+        for cell in range(2 * len(lengths)):
+            mine = cells == cell
+            if not mine.any():
+                assert np.isnan(got[k, cell])
+                continue
+            order = np.lexsort((vals[mine], np.zeros(mine.sum())))
+            v, cum = vals[mine][order], np.cumsum(w[mine][order])
+            target = q * cum[-1]
+            i = int(np.argmax(cum >= target - 1e-9 * target))
+            exact = abs(cum[i] - target) <= 1e-9 * target and i + 1 < len(v)
+            assert got[k, cell] == (0.5 * (v[i] + v[i + 1]) if exact else v[i])
+
+
 def test_group_weighted_quantile_by_hand():
     cells = np.array([0, 0, 0, 0, 2, 2])
     vals = np.array([4.0, 1.0, 3.0, 2.0, 10.0, 20.0])

@@ -195,7 +195,7 @@ def _rings(T: np.ndarray, V: np.ndarray, normal: np.ndarray) -> list | None:
 
 def _newell(P: np.ndarray) -> np.ndarray:
     """Newell's vector of a closed polygon (k, 3): twice its area times its normal."""
-    Q = np.roll(P, -1, axis=0)
+    Q = np.concatenate([P[1:], P[:1]])  # the next vertex (np.roll's generality costs more)
     return np.array([
         np.sum((P[:, 1] - Q[:, 1]) * (P[:, 2] + Q[:, 2])),
         np.sum((P[:, 2] - Q[:, 2]) * (P[:, 0] + Q[:, 0])),

@@ -131,26 +131,45 @@ def group_weighted_quantile(
     if len(cells) == 0:
         return out if np.ndim(q) else out[0]
     order = _order_by_cell_then_value(cells, values)
-    c, v = cells[order], values[order].astype(np.float64)
+    v = values[order].astype(np.float64)
     w = weights[order].astype(np.float64)
-    count = np.bincount(c, minlength=n_cells)
-    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    count = np.bincount(cells, minlength=n_cells)
+    end = np.cumsum(count)
+    start = end - count
     cum = np.cumsum(w)
     before = np.concatenate([[0.0], cum])[start]  # total weight of the earlier cells
-    within = cum - before[c]
-    total = np.bincount(c, w, minlength=n_cells)[c]
-    same_as_next = np.r_[c[1:] == c[:-1], False]
+    within = cum - np.repeat(before, count)  # rises along each cell's run: weights > 0
+    seen = np.flatnonzero(count)
+    total = np.bincount(np.repeat(np.arange(n_cells), count), w, minlength=n_cells)[seen]
+    first, stop = start[seen], end[seen]
     for k, qk in enumerate(qs):
         target = qk * total
         tol = 1e-9 * target
-        reached = within >= target - tol
-        first = reached.copy()
-        first[1:] &= ~(reached[:-1] & same_as_next[:-1])  # the first that reaches, per cell
-        idx = np.flatnonzero(first)
-        tie = (np.abs(within[idx] - target[idx]) <= tol[idx]) & same_as_next[idx]
-        nxt = np.minimum(idx + 1, len(c) - 1)
-        out[k, c[idx]] = np.where(tie, 0.5 * (v[idx] + v[nxt]), v[idx])
+        # the first of each cell's run that reaches the target, by bisection on the runs
+        # together: O(cells log run) instead of passes over every observation
+        idx = _first_reaching(within, target - tol, first, stop)
+        found = idx < stop
+        idx, cell, at = idx[found], seen[found], np.flatnonzero(found)
+        tie = (np.abs(within[idx] - target[at]) <= tol[at]) & (idx + 1 < stop[at])
+        nxt = np.minimum(idx + 1, len(v) - 1)
+        out[k, cell] = np.where(tie, 0.5 * (v[idx] + v[nxt]), v[idx])
     return out if np.ndim(q) else out[0]
+
+
+def _first_reaching(
+    rising: np.ndarray, floor: np.ndarray, lo: np.ndarray, hi: np.ndarray
+) -> np.ndarray:
+    """Per run ``lo[i]:hi[i]`` of the non-decreasing ``rising``, the first index whose
+    value is at least ``floor[i]``; ``hi[i]`` where none is."""
+    lo, hi = lo.copy(), hi.copy()
+    while True:
+        open_ = np.flatnonzero(lo < hi)
+        if not len(open_):
+            return lo
+        mid = (lo[open_] + hi[open_]) // 2
+        up = rising[mid] >= floor[open_]
+        hi[open_[up]] = mid[up]
+        lo[open_[~up]] = mid[~up] + 1
 
 
 def _order_by_cell_then_value(cells: np.ndarray, values: np.ndarray) -> np.ndarray:
