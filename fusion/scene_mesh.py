@@ -33,7 +33,15 @@ log = logging.getLogger(__name__)
 BLOCK_VOXELS = 8  # voxels along a block's side
 BLOCK_BYTES = BLOCK_VOXELS**3 * 5 * 4  # tsdf, weight and colour (3) as float32
 BLOCKS_PER_COLUMN = 8  # measured on `small`: ground, roofs, walls and noise
-PEAK_FACTOR = 2.5  # the hash map's growth and the extraction, over the blocks themselves
+# the hash map's growth and the extraction, over the blocks themselves: on `small` seed 0,
+# 74,248 blocks (725 MiB) peaked at 2.55 GiB in all, which 8 blocks a column and this
+# factor put at 2.7 GiB
+PEAK_FACTOR = 3.5
+# Open3D crashed (SIGSEGV, twice) in the first of 4 tiles of the 1 km² city, about
+# 250,000 blocks each; 16 tiles of 250 m (0.4 m voxels, about 51,000 blocks each by the
+# estimate) ran, as does
+# `small`'s one grid of 74,000: tiles made by default hold no more than this
+TILE_BLOCKS = 60_000
 
 
 @dataclass
@@ -62,8 +70,16 @@ def integrate_views(
     bounds: tuple[float, float, float, float] | None = None,
     min_weight: float = 1.0,
     max_memory_fraction: float = 0.6,
+    tile_m: float | None = None,
 ) -> SceneMesh:
     """TSDF integration of every view's depth map and colour, then marching cubes.
+
+    An area whose voxel blocks would not fit in memory is meshed in square tiles, one
+    after another (:func:`mesh_tiles`): each tile's grid holds the blocks within one
+    block of the tile, every view integrates into them what it integrates there in one
+    grid of the whole area, and the tile keeps the triangles whose centroid lies in it.
+    A voxel's signed distance depends only on the views' depths along its rays, so the
+    tiles' triangles are the whole grid's, and the mesh the same (tested).
 
     Parameters
     ----------
@@ -78,37 +94,120 @@ def integrate_views(
     min_weight : float
         Voxels seen by fewer views' worth of weight are left out of the surface.
     max_memory_fraction : float
-        Refuse, before integrating, an area whose blocks would need more of the
-        machine's memory than this.
+        The blocks of one grid may take this much of the machine's memory; a larger area
+        is meshed in tiles (with bounds only).
+    tile_m : float, optional
+        Tile side, metres (rounded up to whole blocks); default: one grid when it fits,
+        else the largest tile whose grid takes at most half that memory (the tiles'
+        triangles wait in memory to be joined) and about ``TILE_BLOCKS`` blocks.
 
     Raises
     ------
     InputError
         A view has no depth map.
     WorkbenchError
-        The area would not fit in memory at this voxel size.
+        A tile of one block would not fit in memory at this voxel size.
     """
     voxel_m = float(voxel_m or scene.gsd or 0.25)
     bounds = bounds or scene.bounds
     for v in scene.views:
         if v.depth_path is None:
             raise InputError(v.image_path, "depth", "mesh: every view needs a depth map")
-    if bounds is not None:
-        columns = (bounds[2] - bounds[0]) * (bounds[3] - bounds[1]) / (BLOCK_VOXELS * voxel_m) ** 2
-        need = columns * BLOCKS_PER_COLUMN * BLOCK_BYTES * PEAK_FACTOR
-        if need > max_memory_fraction * physical_memory():
-            raise WorkbenchError(
-                f"mesh: --voxel {voxel_m:g} over {bounds} needs about {need / 2**30:.1f} GiB, "
-                f"more than {max_memory_fraction:.0%} of this machine's "
-                f"{physical_memory() / 2**30:.0f} GiB; use a larger --voxel or smaller --bounds"
-            )
-        centre = np.array([(bounds[0] + bounds[2]) / 2, (bounds[1] + bounds[3]) / 2, 0.0])
-        blocks = int(columns * BLOCKS_PER_COLUMN) + 1000
-    else:
+    limit = max_memory_fraction * physical_memory()
+    if bounds is None:
         centre = np.mean([v.camera.center for v in scene.views], axis=0) * [1, 1, 0]
-        blocks = 100_000
+        tiles, blocks = None, 100_000
+    else:
+        centre = np.array([(bounds[0] + bounds[2]) / 2, (bounds[1] + bounds[3]) / 2, 0.0])
+        need = grid_bytes(bounds, voxel_m)
+        if tile_m is None and need <= limit:
+            tiles = None
+        else:
+            # half the limit a tile: the tiles' triangles wait in memory to be joined
+            side = tile_m or min(fitting_tile_m(voxel_m, limit / 2), largest_tile_m(voxel_m))
+            tiles = mesh_tiles(bounds, voxel_m, side)
+            need = grid_bytes(tiles[0][1], voxel_m)
+        if need > limit:
+            raise WorkbenchError(
+                f"mesh: --voxel {voxel_m:g} over {bounds} needs about {need / 2**30:.1f} GiB"
+                f"{' a tile' if tiles else ''}, more than {max_memory_fraction:.0%} of this "
+                f"machine's {physical_memory() / 2**30:.0f} GiB; use a larger --voxel"
+                f"{' or a smaller --tile' if tiles else ''}"
+            )
+        blocks = int(grid_columns(tiles[0][1] if tiles else bounds, voxel_m) * BLOCKS_PER_COLUMN)
+        blocks += 1000
     origin = np.round(centre / 1000.0) * 1000.0
-    grid = o3d.t.geometry.VoxelBlockGrid(
+    args = (voxel_m, trunc_voxels, bounds, origin, min_weight, blocks)
+    if tiles is None:
+        grid = _integrate(scene.views, None, *args[:4], blocks, "mesh: integrating views")
+        mesh = grid.extract_triangle_mesh(weight_threshold=min_weight).to_legacy()
+        vertices = np.asarray(mesh.vertices, np.float64)
+        triangles, colors = np.asarray(mesh.triangles), np.asarray(mesh.vertex_colors)
+        n_blocks = int(grid.hashmap().size())
+    else:
+        vertices, triangles, colors, n_blocks = _tiled(scene.views, tiles, *args, limit)
+    order, triangles = canonical_order(vertices, triangles)
+    vertices = vertices[order] + origin
+    colors = np.clip(colors[order] * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    record = {
+        "voxel_m": voxel_m, "trunc_m": round(trunc_voxels * voxel_m, 4),
+        "bounds": list(bounds) if bounds is not None else None,
+        "views": len(scene.views), "blocks": n_blocks,
+        "tiles": len(tiles) if tiles else 1,
+        "vertices": len(vertices), "triangles": len(triangles),
+    }  # fmt: skip
+    if not len(triangles):
+        raise WorkbenchError("mesh: the views' depth maps gave no surface inside the bounds")
+    return SceneMesh(vertices, triangles, colors, record)
+
+
+def grid_columns(bounds, voxel_m: float) -> float:
+    """Columns of voxel blocks over ``bounds`` (xmin, ymin, xmax, ymax)."""
+    return (bounds[2] - bounds[0]) * (bounds[3] - bounds[1]) / (BLOCK_VOXELS * voxel_m) ** 2
+
+
+def grid_bytes(bounds, voxel_m: float) -> float:
+    """Estimated peak bytes of a voxel block grid over ``bounds``."""
+    return grid_columns(bounds, voxel_m) * BLOCKS_PER_COLUMN * BLOCK_BYTES * PEAK_FACTOR
+
+
+def fitting_tile_m(voxel_m: float, limit: float) -> float:
+    """The side of the largest square tile (with its margin of a block each side) whose
+    grid's estimate stays under ``limit`` bytes, metres."""
+    block_m = BLOCK_VOXELS * voxel_m
+    side = np.sqrt(limit / grid_bytes((0.0, 0.0, 1.0, 1.0), voxel_m)) - 2 * block_m
+    return max(block_m, side)
+
+
+def largest_tile_m(voxel_m: float) -> float:
+    """The side of a tile of about ``TILE_BLOCKS`` blocks, metres."""
+    return np.sqrt(TILE_BLOCKS / BLOCKS_PER_COLUMN) * BLOCK_VOXELS * voxel_m
+
+
+def mesh_tiles(bounds, voxel_m: float, tile_m: float) -> list[tuple[tuple, tuple]]:
+    """Square tiles of ``tile_m`` (rounded up to whole blocks) over ``bounds``: per tile
+    (core, grown). The core is the area whose triangles the tile keeps, half-open (xmin,
+    ymin, xmax, ymax), the outer rows and columns running on to infinity (the surface
+    reaches a little past the bounds); grown is the tile within the bounds widened by a
+    block, so that every cube of the core has its neighbours."""
+    block_m = BLOCK_VOXELS * voxel_m
+    side = np.ceil(tile_m / block_m) * block_m
+    xs = np.arange(bounds[0], bounds[2], side)
+    ys = np.arange(bounds[1], bounds[3], side)
+    tiles = []
+    for j, y0 in enumerate(ys):
+        for i, x0 in enumerate(xs):
+            core = (-np.inf if i == 0 else x0, -np.inf if j == 0 else y0,
+                    np.inf if i == len(xs) - 1 else x0 + side,
+                    np.inf if j == len(ys) - 1 else y0 + side)  # fmt: skip
+            grown = (x0 - block_m, y0 - block_m, min(x0 + side, bounds[2]) + block_m,
+                     min(y0 + side, bounds[3]) + block_m)  # fmt: skip
+            tiles.append((tuple(float(c) for c in core), tuple(float(g) for g in grown)))
+    return tiles
+
+
+def _new_grid(voxel_m: float, blocks: int):
+    return o3d.t.geometry.VoxelBlockGrid(
         attr_names=("tsdf", "weight", "color"),
         attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
         attr_channels=((1), (1), (3)),
@@ -117,37 +216,153 @@ def integrate_views(
         block_count=blocks,
         device=o3c.Device("CPU:0"),
     )
-    depth_max = 0.0
-    for view in progress(scene.views, "mesh: integrating views"):
-        image, depth = undistorted(view)
-        depth = in_bounds(depth, view.camera, bounds)
+
+
+def _integrate(views, box, voxel_m, trunc_voxels, bounds, origin, blocks, desc):
+    """A grid of ``views`` integrated, into the blocks within ``box`` (block indices of
+    the local frame, inclusive: x0, y0, x1, y1) only when given. ``views`` is a list of
+    views, or of (view, footprint) pairs, the footprint the box of the blocks the view
+    allocates (:func:`view_blocks`): a view whose footprint misses ``box`` is not read."""
+    grid = _new_grid(voxel_m, blocks)
+    for item in progress(views, desc):
+        view, foot = item if isinstance(item, tuple) else (item, None)
+        if foot is not None and not _overlap(foot, box):
+            continue
+        depth = in_bounds(undistorted_depth(view), view.camera, bounds)
         if not (depth > 0).any():
             continue
-        depth_max = max(depth_max, float(depth.max()))
-        K = o3c.Tensor(view.camera.K, o3c.float64)
-        E = o3c.Tensor(local_extrinsic(view.camera, origin), o3c.float64)
-        d_img = o3d.t.geometry.Image(o3c.Tensor(depth))
-        c_img = o3d.t.geometry.Image(o3c.Tensor(image.astype(np.float32) / 255.0))
-        far = float(depth.max()) + 1.0
+        d_img, K, E, far = _depth_image(depth, view.camera, origin)
         coords = grid.compute_unique_block_coordinates(
             d_img, K, E, 1.0, far, trunc_voxel_multiplier=trunc_voxels
         )
-        grid.integrate(coords, d_img, c_img, K, K, E, 1.0, far,
-                       trunc_voxel_multiplier=trunc_voxels)  # fmt: skip
-    mesh = grid.extract_triangle_mesh(weight_threshold=min_weight).to_legacy()
-    order, triangles = canonical_order(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
-    vertices = np.asarray(mesh.vertices, np.float64)[order] + origin
-    colors = np.asarray(mesh.vertex_colors)[order]
-    colors = np.clip(colors * 255.0 + 0.5, 0, 255).astype(np.uint8)
-    record = {
-        "voxel_m": voxel_m, "trunc_m": round(trunc_voxels * voxel_m, 4),
-        "bounds": list(bounds) if bounds is not None else None,
-        "views": len(scene.views), "blocks": int(grid.hashmap().size()),
-        "vertices": len(vertices), "triangles": len(triangles),
-    }  # fmt: skip
-    if not len(triangles):
-        raise WorkbenchError("mesh: the views' depth maps gave no surface inside the bounds")
-    return SceneMesh(vertices, triangles, colors, record)
+        if box is not None:
+            xy = coords.numpy()[:, :2]
+            inside = np.all((xy >= box[:2]) & (xy <= box[2:]), axis=1)
+            if not inside.any():
+                continue
+            coords = o3c.Tensor(np.ascontiguousarray(coords.numpy()[inside]))
+        image = undistorted_image(view).astype(np.float32) / 255.0
+        grid.integrate(coords, d_img, o3d.t.geometry.Image(o3c.Tensor(image)), K, K, E, 1.0,
+                       far, trunc_voxel_multiplier=trunc_voxels)  # fmt: skip
+    return grid
+
+
+def _depth_image(depth: np.ndarray, camera, origin: np.ndarray) -> tuple:
+    """Open3D's depth image, intrinsics, local extrinsics and far plane of a view."""
+    K = o3c.Tensor(camera.K, o3c.float64)
+    E = o3c.Tensor(local_extrinsic(camera, origin), o3c.float64)
+    return o3d.t.geometry.Image(o3c.Tensor(depth)), K, E, float(depth.max()) + 1.0
+
+
+def _overlap(a, b) -> bool:
+    return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
+
+
+KEY_BITS = 21  # bits of each block index in a block's key: +-1 million blocks
+
+
+def block_keys(coords: np.ndarray) -> np.ndarray:
+    """(N,) int64 key of each block's (N, 3) indices, ordered as (x, y, z)."""
+    c = coords.astype(np.int64) + (1 << (KEY_BITS - 1))
+    return (c[:, 0] << (2 * KEY_BITS)) | (c[:, 1] << KEY_BITS) | c[:, 2]
+
+
+def key_xy(keys: np.ndarray) -> np.ndarray:
+    """(N, 2) x and y block indices of ``keys``."""
+    mask = (1 << KEY_BITS) - 1
+    x = (keys >> (2 * KEY_BITS)) - (1 << (KEY_BITS - 1))
+    y = ((keys >> KEY_BITS) & mask) - (1 << (KEY_BITS - 1))
+    return np.column_stack([x, y])
+
+
+def view_blocks(views, bounds, voxel_m, trunc_voxels, origin) -> tuple[list, np.ndarray]:
+    """The blocks the views allocate (a first pass over their depth maps, no grid): per
+    view the box of its blocks' x and y indices (x0, y0, x1, y1; None for a view that
+    sees nothing inside ``bounds``), and the sorted keys of every view's blocks."""
+    scratch = _new_grid(voxel_m, 1)  # computing coordinates inserts nothing
+    boxes, keys = [], np.zeros(0, np.int64)
+    for view in progress(views, "mesh: the views' blocks"):
+        depth = in_bounds(undistorted_depth(view), view.camera, bounds)
+        if not (depth > 0).any():
+            boxes.append(None)
+            continue
+        d_img, K, E, far = _depth_image(depth, view.camera, origin)
+        coords = scratch.compute_unique_block_coordinates(
+            d_img, K, E, 1.0, far, trunc_voxel_multiplier=trunc_voxels
+        ).numpy()
+        boxes.append((*coords[:, :2].min(axis=0), *coords[:, :2].max(axis=0)))
+        keys = np.union1d(keys, block_keys(coords))
+    return boxes, keys
+
+
+def _tiled(views, tiles, voxel_m, trunc_voxels, bounds, origin, min_weight, blocks, limit):
+    """The tiles' meshes joined: (V, 3) float64 local vertices, (T, 3) triangles, (V, 3)
+    float colours, and the blocks integrated over all tiles. A vertex on a tile's edge
+    is the same float in both tiles and is joined by its position (vertices a tile
+    itself repeats at one position stay apart).
+
+    A first pass finds every view's blocks: each tile's grid is made for the blocks it
+    will hold (Open3D's block grid does not grow past its ``block_count``), a view is read
+    for a tile only when its blocks reach it, and the outer tiles reach as far past the
+    bounds as any view's blocks do."""
+    block_m = BLOCK_VOXELS * voxel_m
+    boxes, keys = view_blocks(views, bounds, voxel_m, trunc_voxels, origin)
+    footed = [(v, b) for v, b in zip(views, boxes, strict=True) if b is not None]
+    xy = key_xy(keys)
+    parts, total_blocks = [], 0
+    for k, (core, grown) in enumerate(tiles):
+        lo = np.floor((np.array(grown[:2]) - origin[:2]) / block_m).astype(np.int64)
+        hi = np.floor((np.array(grown[2:]) - origin[:2]) / block_m).astype(np.int64)
+        # the outer sides: every block a view allocates beyond the bounds there
+        lo = np.where(np.isinf(core[:2]), np.minimum(lo, xy.min(axis=0, initial=0)), lo)
+        hi = np.where(np.isinf(core[2:]), np.maximum(hi, xy.max(axis=0, initial=0)), hi)
+        box = (*lo, *hi)
+        count = int(np.all((xy >= lo) & (xy <= hi), axis=1).sum())
+        if count * BLOCK_BYTES * PEAK_FACTOR > limit:
+            raise WorkbenchError(
+                f"mesh: tile {k + 1} holds {count:,} voxel blocks, about "
+                f"{count * BLOCK_BYTES * PEAK_FACTOR / 2**30:.1f} GiB, more than this "
+                f"machine allows ({limit / 2**30:.1f} GiB); use a smaller --tile"
+            )
+        desc = f"mesh: tile {k + 1} of {len(tiles)}"
+        grid = _integrate(footed, box, voxel_m, trunc_voxels, bounds, origin, count + 1000,
+                          desc)  # fmt: skip
+        total_blocks += int(grid.hashmap().size())
+        mesh = grid.extract_triangle_mesh(weight_threshold=min_weight).to_legacy()
+        del grid
+        V = np.asarray(mesh.vertices, np.float64)
+        T = np.asarray(mesh.triangles, np.int64)
+        if not len(T):
+            continue
+        centre = V[T].mean(axis=1) + origin
+        keep = ((centre[:, 0] >= core[0]) & (centre[:, 0] < core[2])
+                & (centre[:, 1] >= core[1]) & (centre[:, 1] < core[3]))  # fmt: skip
+        used, T = np.unique(T[keep], return_inverse=True)
+        parts.append((V[used], T.reshape(-1, 3), np.asarray(mesh.vertex_colors)[used]))
+    if not parts:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3)), total_blocks
+    V = np.concatenate([p[0] for p in parts])
+    colors = np.concatenate([p[2] for p in parts])
+    offsets = np.cumsum([0] + [len(p[0]) for p in parts])
+    T = np.concatenate([p[1] + off for p, off in zip(parts, offsets, strict=False)])
+    # a position's n-th vertex in a tile is the n-th in the others too
+    repeat = np.concatenate([_occurrence(p[0]) for p in parts])
+    key = np.column_stack([V, repeat])
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    return V[first], inverse.reshape(-1)[T], colors[first], total_blocks
+
+
+def _occurrence(V: np.ndarray) -> np.ndarray:
+    """(V,) how many earlier rows of ``V`` have the same position."""
+    _, inverse = np.unique(V, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    order = np.argsort(inverse, kind="stable")
+    sorted_inv = inverse[order]
+    starts = np.flatnonzero(np.r_[True, sorted_inv[1:] != sorted_inv[:-1]])
+    rank = np.arange(len(V)) - np.repeat(starts, np.diff(np.r_[starts, len(V)]))
+    out = np.empty(len(V), np.float64)
+    out[order] = rank
+    return out
 
 
 def canonical_order(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -211,16 +426,29 @@ def local_extrinsic(camera, origin: np.ndarray) -> np.ndarray:
 def undistorted(view) -> tuple[np.ndarray, np.ndarray]:
     """The view's image (H, W, 3) uint8 and z-depth (H, W) float32 (0 unknown) as a
     pinhole camera of the same K sees them (Open3D integrates without distortion)."""
-    image = view.read_image()
+    return undistorted_image(view), undistorted_depth(view)
+
+
+def _undistort_maps(camera):
+    return cv2.initUndistortRectifyMap(camera.K, camera.distortion, None, camera.K,
+                                       (camera.width, camera.height), cv2.CV_32FC1)  # fmt: skip
+
+
+def undistorted_depth(view) -> np.ndarray:
+    """The view's z-depth (H, W) float32 (0 unknown) through a pinhole of the same K."""
     depth = np.ascontiguousarray(view.read_depth(), np.float32)
     depth[~np.isfinite(depth) | (depth < 0)] = 0.0
-    c = view.camera
-    if c.has_distortion:
-        maps = cv2.initUndistortRectifyMap(c.K, c.distortion, None, c.K, (c.width, c.height),
-                                           cv2.CV_32FC1)  # fmt: skip
-        image = cv2.remap(image, *maps, cv2.INTER_LINEAR)
-        depth = cv2.remap(depth, *maps, cv2.INTER_NEAREST)  # no depth between two surfaces
-    return np.ascontiguousarray(image), np.ascontiguousarray(depth)
+    if view.camera.has_distortion:  # nearest: no depth between two surfaces
+        depth = cv2.remap(depth, *_undistort_maps(view.camera), cv2.INTER_NEAREST)
+    return np.ascontiguousarray(depth)
+
+
+def undistorted_image(view) -> np.ndarray:
+    """The view's image (H, W, 3) uint8 through a pinhole of the same K."""
+    image = view.read_image()
+    if view.camera.has_distortion:
+        image = cv2.remap(image, *_undistort_maps(view.camera), cv2.INTER_LINEAR)
+    return np.ascontiguousarray(image)
 
 
 def in_bounds(depth: np.ndarray, camera, bounds) -> np.ndarray:

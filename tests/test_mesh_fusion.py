@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from fusion.mesh_sampling import SurfaceMesh, orthogonal_sampling, read_surface_mesh
-from fusion.scene_mesh import canonical_order
+from fusion.scene_mesh import (
+    canonical_order,
+    fitting_tile_m,
+    grid_bytes,
+    largest_tile_m,
+    mesh_tiles,
+)
 from tests.conftest import run_cli
 from workbench.imageio import write_rgb
 from workbench.meshio import write_mtl, write_obj, write_ply
@@ -149,6 +155,35 @@ def test_mesh_refuses_an_existing_file_and_a_view_without_depth(tiny_scene, tmp_
     assert (tmp_path / "m.ply").read_text() == "keep"
     proc = run_cli("mesh", tiny_scene, "-o", tmp_path / "m.obj")
     assert proc.returncode == 2 and "PLY" in proc.stderr
+
+
+def test_a_tiled_mesh_is_the_whole_grid_s_mesh(mesh_fusion, tiny_scene, tmp_path):
+    """Nine tiles of 30 m (the last ones cut by the 64 m area; each grid a block wider
+    each side), one after another, give the mesh of one grid over the area, byte for
+    byte."""
+    root, _, _ = mesh_fusion
+    proc = run_cli("mesh", tiny_scene, "-o", tmp_path / "tiled.ply", "--tile", "30")
+    assert proc.returncode == 0, proc.stderr
+    assert "9 tiles" in proc.stdout
+    assert (tmp_path / "tiled.ply").read_bytes() == (root / "city.ply").read_bytes()
+
+
+def test_mesh_tiles_by_hand():
+    # 0.25 m voxels: blocks of 2 m; a 3 m tile rounds up to 4 m
+    tiles = mesh_tiles((0.0, 0.0, 10.0, 7.0), 0.25, 3.0)
+    cores = [core for core, _ in tiles]
+    inf = float("inf")  # the outer tiles keep what the surface has past the bounds
+    assert cores == [(-inf, -inf, 4, 4), (4, -inf, 8, 4), (8, -inf, inf, 4),
+                     (-inf, 4, 4, inf), (4, 4, 8, inf), (8, 4, inf, inf)]  # fmt: skip
+    assert tiles[0][1] == (-2, -2, 6, 6)  # a block of margin each side
+    assert tiles[-1][1] == (6, 2, 12, 9)  # the far sides end a block past the bounds
+    # the largest tile whose grid fits: its estimate is the limit
+    side = fitting_tile_m(0.25, 2**30)
+    assert grid_bytes((0, 0, side + 4, side + 4), 0.25) == pytest.approx(2**30)
+    # by default no more blocks than Open3D was seen to extract: the 1 km² city at 0.4 m
+    # in 16 tiles of 278.4 m (87 blocks of 3.2 m), the last row and column 164.8 m
+    city = mesh_tiles((-500.0, -500.0, 500.0, 500.0), 0.4, largest_tile_m(0.4))
+    assert len(city) == 16 and city[0][0][2] == pytest.approx(-500 + 278.4)
 
 
 def test_canonical_order_ignores_the_order_a_mesher_gave():

@@ -210,6 +210,10 @@ def _add_mesh(sub) -> None:
                    help="voxel edge, metres (default: the scene's gsd, else 0.25)")  # fmt: skip
     p.add_argument("--trunc", type=number("positive"), default=4.0, metavar="VOXELS",
                    help="truncation of the signed distance, voxels (default: 4)")  # fmt: skip
+    p.add_argument("--tile", type=number("positive"), metavar="M",
+                   help="mesh the area in square tiles of M metres, one after another (the "
+                   "same mesh in less memory; default: tiles only when one grid of the "
+                   "whole area would not fit in 60%% of the memory)")  # fmt: skip
     p.add_argument("--overwrite", action="store_true", help="replace MESH.ply if it exists")
     p.set_defaults(func=cmd_mesh)
 
@@ -433,12 +437,14 @@ def cmd_mesh(args) -> int:
         raise WorkbenchError(f"{out}: exists (give --overwrite to replace it)")
     t0 = time.perf_counter()
     scene = load_scene(args.scene)
-    mesh = integrate_views(scene, args.voxel, args.trunc)
+    mesh = integrate_views(scene, args.voxel, args.trunc, tile_m=args.tile)
     write_scene_mesh(out, mesh, scene.crs)
     r = mesh.record
     print(
         f"wrote {out}: {r['triangles']:,} triangles, {r['vertices']:,} vertices from "
-        f"{r['views']} views at {r['voxel_m']:g} m voxels, {time.perf_counter() - t0:.1f} s"
+        f"{r['views']} views at {r['voxel_m']:g} m voxels"
+        f"{', ' + str(r['tiles']) + ' tiles' if r['tiles'] > 1 else ''}, "
+        f"{time.perf_counter() - t0:.1f} s"
     )
     return 0
 
