@@ -39,8 +39,8 @@ BLOCKS_PER_COLUMN = 8  # measured on `small`: ground, roofs, walls and noise
 PEAK_FACTOR = 3.5
 # Open3D crashed (SIGSEGV, twice) in the first of 4 tiles of the 1 km² city, about
 # 250,000 blocks each; 16 tiles of 250 m (0.4 m voxels, about 51,000 blocks each by the
-# estimate) ran, as does
-# `small`'s one grid of 74,000: tiles made by default hold no more than this
+# estimate) ran, as does `small`'s one grid of 74,000 blocks: tiles made by default hold
+# no more than this
 TILE_BLOCKS = 60_000
 
 
@@ -134,18 +134,19 @@ def integrate_views(
                 f"machine's {physical_memory() / 2**30:.0f} GiB; use a larger --voxel"
                 f"{' or a smaller --tile' if tiles else ''}"
             )
-        blocks = int(grid_columns(tiles[0][1] if tiles else bounds, voxel_m) * BLOCKS_PER_COLUMN)
-        blocks += 1000
+        blocks = int(grid_columns(bounds, voxel_m) * BLOCKS_PER_COLUMN) + 1000
     origin = np.round(centre / 1000.0) * 1000.0
-    args = (voxel_m, trunc_voxels, bounds, origin, min_weight, blocks)
     if tiles is None:
-        grid = _integrate(scene.views, None, *args[:4], blocks, "mesh: integrating views")
+        grid = _integrate(scene.views, None, voxel_m, trunc_voxels, bounds, origin, blocks,
+                          "mesh: integrating views")  # fmt: skip
         mesh = grid.extract_triangle_mesh(weight_threshold=min_weight).to_legacy()
         vertices = np.asarray(mesh.vertices, np.float64)
         triangles, colors = np.asarray(mesh.triangles), np.asarray(mesh.vertex_colors)
         n_blocks = int(grid.hashmap().size())
     else:
-        vertices, triangles, colors, n_blocks = _tiled(scene.views, tiles, *args, limit)
+        vertices, triangles, colors, n_blocks = _tiled(
+            scene.views, tiles, voxel_m, trunc_voxels, bounds, origin, min_weight, limit
+        )
     order, triangles = canonical_order(vertices, triangles)
     vertices = vertices[order] + origin
     colors = np.clip(colors[order] * 255.0 + 0.5, 0, 255).astype(np.uint8)
@@ -295,7 +296,7 @@ def view_blocks(views, bounds, voxel_m, trunc_voxels, origin) -> tuple[list, np.
     return boxes, keys
 
 
-def _tiled(views, tiles, voxel_m, trunc_voxels, bounds, origin, min_weight, blocks, limit):
+def _tiled(views, tiles, voxel_m, trunc_voxels, bounds, origin, min_weight, limit):
     """The tiles' meshes joined: (V, 3) float64 local vertices, (T, 3) triangles, (V, 3)
     float colours, and the blocks integrated over all tiles. A vertex on a tile's edge
     is the same float in both tiles and is joined by its position (vertices a tile
@@ -313,9 +314,9 @@ def _tiled(views, tiles, voxel_m, trunc_voxels, bounds, origin, min_weight, bloc
     for k, (core, grown) in enumerate(tiles):
         lo = np.floor((np.array(grown[:2]) - origin[:2]) / block_m).astype(np.int64)
         hi = np.floor((np.array(grown[2:]) - origin[:2]) / block_m).astype(np.int64)
-        # the outer sides: every block a view allocates beyond the bounds there
-        lo = np.where(np.isinf(core[:2]), np.minimum(lo, xy.min(axis=0, initial=0)), lo)
-        hi = np.where(np.isinf(core[2:]), np.maximum(hi, xy.max(axis=0, initial=0)), hi)
+        if len(xy):  # the outer sides: every block a view allocates past the bounds there
+            lo = np.where(np.isinf(core[:2]), np.minimum(lo, xy.min(axis=0)), lo)
+            hi = np.where(np.isinf(core[2:]), np.maximum(hi, xy.max(axis=0)), hi)
         box = (*lo, *hi)
         count = int(np.all((xy >= lo) & (xy <= hi), axis=1).sum())
         if count * BLOCK_BYTES * PEAK_FACTOR > limit:
@@ -423,19 +424,14 @@ def local_extrinsic(camera, origin: np.ndarray) -> np.ndarray:
     return E
 
 
-def undistorted(view) -> tuple[np.ndarray, np.ndarray]:
-    """The view's image (H, W, 3) uint8 and z-depth (H, W) float32 (0 unknown) as a
-    pinhole camera of the same K sees them (Open3D integrates without distortion)."""
-    return undistorted_image(view), undistorted_depth(view)
-
-
 def _undistort_maps(camera):
     return cv2.initUndistortRectifyMap(camera.K, camera.distortion, None, camera.K,
                                        (camera.width, camera.height), cv2.CV_32FC1)  # fmt: skip
 
 
 def undistorted_depth(view) -> np.ndarray:
-    """The view's z-depth (H, W) float32 (0 unknown) through a pinhole of the same K."""
+    """The view's z-depth (H, W) float32 (0 unknown) through a pinhole of the same K
+    (Open3D integrates without distortion)."""
     depth = np.ascontiguousarray(view.read_depth(), np.float32)
     depth[~np.isfinite(depth) | (depth < 0)] = 0.0
     if view.camera.has_distortion:  # nearest: no depth between two surfaces
