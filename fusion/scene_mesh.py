@@ -229,13 +229,10 @@ def _integrate(views, box, voxel_m, trunc_voxels, bounds, origin, blocks, desc):
         view, foot = item if isinstance(item, tuple) else (item, None)
         if foot is not None and not _overlap(foot, box):
             continue
-        depth = in_bounds(undistorted_depth(view), view.camera, bounds)
-        if not (depth > 0).any():
+        seen = _view_depth_blocks(grid, view, bounds, origin, trunc_voxels)
+        if seen is None:
             continue
-        d_img, K, E, far = _depth_image(depth, view.camera, origin)
-        coords = grid.compute_unique_block_coordinates(
-            d_img, K, E, 1.0, far, trunc_voxel_multiplier=trunc_voxels
-        )
+        d_img, K, E, far, coords = seen
         if box is not None:
             xy = coords.numpy()[:, :2]
             inside = np.all((xy >= box[:2]) & (xy <= box[2:]), axis=1)
@@ -248,11 +245,21 @@ def _integrate(views, box, voxel_m, trunc_voxels, bounds, origin, blocks, desc):
     return grid
 
 
-def _depth_image(depth: np.ndarray, camera, origin: np.ndarray) -> tuple:
-    """Open3D's depth image, intrinsics, local extrinsics and far plane of a view."""
-    K = o3c.Tensor(camera.K, o3c.float64)
-    E = o3c.Tensor(local_extrinsic(camera, origin), o3c.float64)
-    return o3d.t.geometry.Image(o3c.Tensor(depth)), K, E, float(depth.max()) + 1.0
+def _view_depth_blocks(grid, view, bounds, origin: np.ndarray, trunc_voxels: float):
+    """A view's depth inside ``bounds`` as Open3D takes it: (depth image, intrinsics,
+    local extrinsics, far plane, the blocks it allocates in ``grid``'s lattice, a (N, 3)
+    tensor; computing them inserts nothing), or None when it sees nothing there."""
+    depth = in_bounds(undistorted_depth(view), view.camera, bounds)
+    if not (depth > 0).any():
+        return None
+    d_img = o3d.t.geometry.Image(o3c.Tensor(depth))
+    K = o3c.Tensor(view.camera.K, o3c.float64)
+    E = o3c.Tensor(local_extrinsic(view.camera, origin), o3c.float64)
+    far = float(depth.max()) + 1.0
+    coords = grid.compute_unique_block_coordinates(
+        d_img, K, E, 1.0, far, trunc_voxel_multiplier=trunc_voxels
+    )
+    return d_img, K, E, far, coords
 
 
 def _overlap(a, b) -> bool:
@@ -280,17 +287,14 @@ def view_blocks(views, bounds, voxel_m, trunc_voxels, origin) -> tuple[list, np.
     """The blocks the views allocate (a first pass over their depth maps, no grid): per
     view the box of its blocks' x and y indices (x0, y0, x1, y1; None for a view that
     sees nothing inside ``bounds``), and the sorted keys of every view's blocks."""
-    scratch = _new_grid(voxel_m, 1)  # computing coordinates inserts nothing
+    scratch = _new_grid(voxel_m, 1)  # for its lattice only
     boxes, keys = [], np.zeros(0, np.int64)
     for view in progress(views, "mesh: the views' blocks"):
-        depth = in_bounds(undistorted_depth(view), view.camera, bounds)
-        if not (depth > 0).any():
+        seen = _view_depth_blocks(scratch, view, bounds, origin, trunc_voxels)
+        if seen is None:
             boxes.append(None)
             continue
-        d_img, K, E, far = _depth_image(depth, view.camera, origin)
-        coords = scratch.compute_unique_block_coordinates(
-            d_img, K, E, 1.0, far, trunc_voxel_multiplier=trunc_voxels
-        ).numpy()
+        coords = seen[-1].numpy()
         boxes.append((*coords[:, :2].min(axis=0), *coords[:, :2].max(axis=0)))
         keys = np.union1d(keys, block_keys(coords))
     return boxes, keys
