@@ -18,7 +18,7 @@ test: setup
 test-fast: setup
 	$(BIN)/python -m pytest -q -m "not slow"
 
-bench: setup  # BENCH_ARGS="--preset city": the 1 km² city end to end (about an hour)
+bench: setup  # BENCH_ARGS="--preset city": the 1 km² city end to end (about two hours)
 	$(BIN)/python benchmarks/run.py $(BENCH_ARGS)
 
 lint: setup

@@ -1,10 +1,10 @@
 """A whole preset end to end, as a user runs it: ``workbench sample``, ``fusion``, the
-modeling paths that run from a scene or a fusion (super-pixel, voxel, parametric, blocks;
-the LOD path needs ``workbench mesh``, whose TSDF grid does not fit a city in memory yet)
-and ``compare``, each a command of its own; wall time, throughput and the peak memory of
-every process (the command's, and each Dask worker's).
+modeling paths that run from a scene or a fusion (super-pixel, voxel, parametric, blocks),
+``workbench mesh`` and ``fusion --mesh`` with the LOD path on that mesh's fusion (as its
+paper has it), and ``compare``, each a command of its own; wall time, throughput and the
+peak memory of every process (the command's, and each Dask worker's).
 
-``make bench BENCH_ARGS="--preset city"`` runs it on the 1 km² city (about 40 minutes on
+``make bench BENCH_ARGS="--preset city"`` runs it on the 1 km² city (about two hours on
 2 cores); ``--preset small`` gives the same table on the everyday sample, to set beside
 it: peak memory must not grow with the area.
 
@@ -114,12 +114,42 @@ def city_run(
             "own_peak_mb": rec.get("peak_memory_mb"),
             "worker_peak_mb": rec.get("worker_peak_memory_mb"),
         }  # fmt: skip
+    res.update(mesh_chain(scene, out, reuse_runs))
+    runs = [fusion, *(out / name for name in paths), out / "lod"]
     kept = 0.0 if reuse_runs and (report / "metrics.json").exists() else None
-    wall, peak = run("compare", fusion, *(out / name for name in paths), "--truth", scene,
-                     "-o", report, "--overwrite", log=out / "compare.log", kept=kept)  # fmt: skip
+    wall, peak = run("compare", *runs, "--truth", scene, "-o", report, "--overwrite",
+                     log=out / "compare.log", kept=kept)  # fmt: skip
     res["compare"] = {"wall_s": wall, "peak_mb": peak}
     res["total_s"] = sum(v["wall_s"] for v in res.values() if isinstance(v, dict) and
                          "wall_s" in v)  # fmt: skip
+    return res
+
+
+def mesh_chain(scene: Path, out: Path, reuse_runs: bool = False) -> dict:
+    """``workbench mesh`` (tiled as it decides), ``fusion --mesh`` on the scene's grid and
+    the LOD path on that fusion with the scene's training strokes: their figures."""
+    mesh, fusion = out / "mesh" / "mesh.ply", out / "fusion_mesh"
+    doc = json.loads((scene / "scene.json").read_text())
+    res = {}
+    kept = 0.0 if reuse_runs and mesh.exists() else None
+    wall, peak = run("mesh", scene, "-o", mesh, "--overwrite", log=out / "mesh.log", kept=kept)
+    res["mesh"] = {"wall_s": wall, "peak_mb": peak, "megabytes": mesh.stat().st_size / 2**20}
+    kept = _recorded_s(fusion / "fusion.json", "stages_total_s") if reuse_runs else None
+    wall, peak = run("fusion", "--mesh", mesh, "-o", fusion, "--gsd", doc["gsd"], "--bounds",
+                     *doc["bounds"], "--overwrite", log=out / "fusion_mesh.log",
+                     kept=kept)  # fmt: skip
+    res["fusion_mesh"] = {"wall_s": wall, "peak_mb": peak}
+    folder = out / "lod"
+    kept = _recorded_s(folder / "model.json") if reuse_runs else None
+    wall, peak = run("model", "lod", fusion, "--labels", scene / "training" / "labels.tif",
+                     "-o", folder, "--overwrite", log=out / "lod.log", kept=kept)  # fmt: skip
+    rec = json.loads((folder / "model.json").read_text())
+    n = rec["counts"]["buildings"]
+    res["lod"] = {
+        "wall_s": wall, "peak_mb": peak, "buildings": n, "seconds_per_building": wall / max(n, 1),
+        "stages": {k: v["wall_s"] for k, v in rec["stages"].items()},
+        "own_peak_mb": rec.get("peak_memory_mb"),
+    }  # fmt: skip
     return res
 
 
@@ -150,10 +180,13 @@ def print_city(r: dict) -> None:
     m = r["superpixel"]
     print(f"  superpixel  {m['wall_s']:8.1f} s  {peaks(m)}; {m['buildings']} buildings, "
           f"{m['wall_s'] / (f['cells'] / 1e6):.1f} s per ortho megapixel")  # fmt: skip
-    for name in ("voxel", "parametric", "blocks"):
+    for name in ("voxel", "parametric", "blocks", "mesh", "fusion_mesh", "lod"):
         if name not in r:  # a record from before the path was benched
             continue
         m = r[name]
+        if "buildings" not in m:  # the mesh and its fusion
+            print(f"  {name:<11} {m['wall_s']:8.1f} s  {peaks(m)}")
+            continue
         print(f"  {name:<11} {m['wall_s']:8.1f} s  {peaks(m)}; {m['buildings']} buildings, "
               f"{m['seconds_per_building']:.2f} s per building")  # fmt: skip
         print("              " + ", ".join(f"{k} {v:.1f}" for k, v in m["stages"].items()))
