@@ -42,7 +42,13 @@ from modeling.voxel.roof_planes import (
     flat_planes,
     roof_faces,
 )
-from modeling.voxel.surface_graph import patches, refine_seams, stitch_patches, surface_graph
+from modeling.voxel.surface_graph import (
+    patches,
+    refine_seams,
+    select_views,
+    stitch_patches,
+    surface_graph,
+)
 from modeling.voxel.texture_atlas import atlas, pack_charts
 from modeling.voxel.view_images import footprint_sigma, hs_chroma
 from workbench.camera import Camera, look_at_rotation
@@ -643,6 +649,34 @@ def test_a_view_that_sees_nothing_is_no_label():
     # no view sees anything: every view stays, with empty columns
     views, samples = seen_views(positions, -up, cams, Images())
     assert views == [0, 1, 2] and not samples.visible.any()
+
+
+def test_view_selection_keeps_the_views_that_face_the_roof():
+    """A gable's two slopes, 30 degrees each, under four downward-looking views 100 m up:
+    A above the ridge (cosine 0.87 to both slopes), B and C 57.7 m east and west (1.0 to
+    their own slope, 0.5 to the other) and D 5 m east of A (0.89 and 0.84). Greedily:
+    A first (0.87 a texel against 0.75 for B or C), then B and C (0.07 each), which give
+    every texel its best cosine; D adds nothing. Wider tolerances stop earlier."""
+
+    def downward(x):  # 100 m up at (x, 0), looking down, f = 300 px, 1000 x 1000 px
+        R = np.diag([1.0, -1.0, -1.0])
+        K = np.array([[300.0, 0, 500], [0, 300.0, 500], [0, 0, 1]])
+        return Camera(K, R, -R @ np.array([x, 0.0, 100.0]), 1000, 1000)
+
+    x, y = np.meshgrid([0.5, 1.0, 1.5], [0.0, 1.0, 2.0])
+    east = np.column_stack([x.ravel(), y.ravel(), 10 - np.tan(np.pi / 6) * x.ravel()])
+    west = east * [-1, 1, 1]
+    positions = np.vstack([east, west])
+    normals = np.repeat([[0.5, 0, np.sqrt(0.75)], [-0.5, 0, np.sqrt(0.75)]], len(east), axis=0)
+    cams = [downward(0.0), downward(57.7), downward(-57.7), downward(5.0)]
+    every = [0, 1, 2, 3]
+    assert select_views(positions, normals, normals, cams, every, tolerance=0.0) == every
+    assert select_views(positions, normals, normals, cams, every, tolerance=0.01) == [0, 1, 2]
+    # A alone falls short of 0.999 by 0.13; A and B by 0.07 (half the texels at 0.87)
+    assert select_views(positions, normals, normals, cams, every, tolerance=0.1) == [0, 1]
+    assert select_views(positions, normals, normals, cams, every, tolerance=0.2) == [0]
+    # facing away from every view: nothing to choose from, every view stays
+    assert select_views(positions, -normals, -normals, cams, every, tolerance=0.01) == every
 
 
 def test_stitching_band_reaches_into_the_new_patch():

@@ -112,9 +112,12 @@ def seen_views(
     return [views[j] for j in kept], _samples(len(positions), [sights[j] for j in kept])
 
 
-def _sighting(positions, normals, cam: Camera, k: int, images, occluders):
-    """The vertices view ``k`` sees ((N,) int), their cosines to it ((N,) float) and their
-    RGB there ((N, 3) float 0-255)."""
+def framed(
+    positions: np.ndarray, normals: np.ndarray, cam: Camera
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The vertices that face view ``cam`` by more than ``MIN_COS`` and lie in its frame,
+    before any occlusion: their indices (N,) int, cosines (N,) float and pixel
+    coordinates (N, 2)."""
     to_cam = cam.center - positions
     dist = np.linalg.norm(to_cam, axis=1)
     cos = np.einsum("ij,ij->i", to_cam, normals) / np.maximum(dist, 1e-9)
@@ -127,14 +130,28 @@ def _sighting(positions, normals, cam: Camera, k: int, images, occluders):
         & (uv[:, 0] <= cam.width - 1)
         & (uv[:, 1] <= cam.height - 1)
     )
-    sel, uv = sel[inside], uv[inside]
+    return sel[inside], cos[sel[inside]], uv[inside]
+
+
+def hidden_from(occluders, positions: np.ndarray, normals: np.ndarray,
+                centre: np.ndarray) -> np.ndarray:  # fmt: skip
+    """(N,) bool: something of ``occluders`` lies between each vertex (lifted 5 cm off its
+    surface along its normal, so that it does not hide itself) and the projection centre
+    ``centre`` (3,) it is looked at from."""
+    lifted = positions + 0.05 * normals
+    return occluded(occluders, lifted, centre - lifted, tfar=1.0)
+
+
+def _sighting(positions, normals, cam: Camera, k: int, images, occluders):
+    """The vertices view ``k`` sees ((N,) int), their cosines to it ((N,) float) and their
+    RGB there ((N, 3) float 0-255)."""
+    sel, cos, uv = framed(positions, normals, cam)
     if occluders is not None and len(sel):
-        lifted = positions[sel] + 0.05 * normals[sel]
-        hidden = occluded(occluders, lifted, cam.center - lifted, tfar=1.0)
-        sel, uv = sel[~hidden], uv[~hidden]
+        hidden = hidden_from(occluders, positions[sel], normals[sel], cam.center)
+        sel, cos, uv = sel[~hidden], cos[~hidden], uv[~hidden]
     if not len(sel):
-        return sel, cos[sel], np.zeros((0, 3), np.float32)
-    return sel, cos[sel], images.rgb_samples(k, uv)
+        return sel, cos, np.zeros((0, 3), np.float32)
+    return sel, cos, images.rgb_samples(k, uv)
 
 
 def _samples(v: int, sights: list) -> ViewSamples:

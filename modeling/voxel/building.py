@@ -49,6 +49,7 @@ from .surface_graph import (
     best_views,
     count_patches,
     refine_seams,
+    select_views,
     stitch_patches,
     surface_graph,
     texel_colours,
@@ -418,9 +419,11 @@ def texture_building(
     t_graph = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    views = framing_cameras(cameras, V)
-    views, samples = seen_views(graph.positions, graph.normals, cameras, images, occluders, views)
     smooth = _voxel_normals_at(proxy, graph.positions, graph.normals)
+    framing = framing_cameras(cameras, V)
+    chosen = select_views(graph.positions, graph.normals, smooth, cameras, framing, occluders,
+                          options.view_tolerance)  # fmt: skip
+    views, samples = seen_views(graph.positions, graph.normals, cameras, images, occluders, chosen)
     best = best_views(graph.positions, smooth, [cameras[k].center for k in views], samples)
     projective = face_views(voxel_faces(proxy.frame, graph), best, samples)
     t_views = time.perf_counter() - t0
@@ -453,6 +456,8 @@ def texture_building(
         "patches_before": stitched.patches_before,
         "patches_after": stitched.patches_after,
         "cuts": stitched.cuts,
+        "views_framing": len(framing),
+        "views_chosen": len(chosen),
         "views_used": int(len(used)),
         "seam_cost": round(cost_cut, 4),
         "seam_cost_projective": round(cost_proj, 4),

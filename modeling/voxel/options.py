@@ -29,6 +29,11 @@ class VoxelOptions:
         10.0, "what the refinement charges for a worse-facing view, per unit cosine",
         unit="Lab", kind="non_negative",
     )  # fmt: skip
+    view_tolerance: float = option(
+        0.01, "a building's texture takes the fewest views that face a sample of its texels "
+        "within this mean cosine of what every view gives (0: every view, as in the paper)",
+        kind="non_negative",
+    )  # fmt: skip
     ring_m: float = option(4.0, "width of the building-ground ring cut", unit="m", flag="--ring")
     grow_m: float = option(
         1.5, "grow the GIS footprints by this much before voxelising", unit="m",
