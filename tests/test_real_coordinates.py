@@ -90,7 +90,10 @@ def test_every_command_gives_the_same_city_at_utm(tiny_scene, tiny_fusion, tiny_
     # at a texel and the faces whose texels split their votes between two views; measured
     # against the projective cost: the run's own projective 8.0 % (4.5 % with the proxies
     # before the fusion's class CRF and the roof cap), graph cut 0.6 %; as compare
-    # recomputes them from the written textures, 0.7 % and 0.02 %
+    # recomputes them from the written textures, 0.7 % and 0.02 %. Since each building
+    # takes only the views it needs (select_views), a score moved by rounding can change
+    # which views a building takes: the run's own 10.5 % and 2.7 %, compare's 0.13 % and
+    # 0.46 %
     ta, tb = (runs[k]["metrics"]["voxel"]["texture"] for k in ("local", "utm"))
     moved = {
         (source, key): abs(within[key] - figures[key]) / figures["seam_cost_projective"]
@@ -98,5 +101,5 @@ def test_every_command_gives_the_same_city_at_utm(tiny_scene, tiny_fusion, tiny_
                                         ("compare", ta, tb))
         for key in ("seam_cost", "seam_cost_projective")
     }  # fmt: skip
-    assert moved["run", "seam_cost"] < 0.02 and moved["compare", "seam_cost"] < 0.02, moved
-    assert max(moved.values()) < 0.10, moved
+    assert moved["compare", "seam_cost"] < 0.01 and moved["compare", "seam_cost_projective"] < 0.01
+    assert moved["run", "seam_cost"] < 0.04 and moved["run", "seam_cost_projective"] < 0.12, moved
