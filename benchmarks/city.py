@@ -105,15 +105,7 @@ def city_run(
         kept = _recorded_s(folder / "model.json") if reuse_runs else None
         wall, peak = run("model", *args, "-o", folder, "--overwrite", log=out / f"{name}.log",
                          kept=kept)  # fmt: skip
-        rec = json.loads((folder / "model.json").read_text())
-        n = rec["counts"]["buildings"]
-        res[name] = {
-            "wall_s": wall, "peak_mb": peak, "buildings": n,
-            "seconds_per_building": wall / max(n, 1),
-            "stages": {k: v["wall_s"] for k, v in rec["stages"].items()},
-            "own_peak_mb": rec.get("peak_memory_mb"),
-            "worker_peak_mb": rec.get("worker_peak_memory_mb"),
-        }  # fmt: skip
+        res[name] = model_figures(folder, wall, peak)
     res.update(mesh_chain(scene, out, reuse_runs))
     runs = [fusion, *(out / name for name in paths), out / "lod"]
     kept = 0.0 if reuse_runs and (report / "metrics.json").exists() else None
@@ -133,7 +125,7 @@ def mesh_chain(scene: Path, out: Path, reuse_runs: bool = False) -> dict:
     res = {}
     kept = 0.0 if reuse_runs and mesh.exists() else None
     wall, peak = run("mesh", scene, "-o", mesh, "--overwrite", log=out / "mesh.log", kept=kept)
-    res["mesh"] = {"wall_s": wall, "peak_mb": peak, "megabytes": mesh.stat().st_size / 2**20}
+    res["mesh"] = {"wall_s": wall, "peak_mb": peak}
     kept = _recorded_s(fusion / "fusion.json", "stages_total_s") if reuse_runs else None
     wall, peak = run("fusion", "--mesh", mesh, "-o", fusion, "--gsd", doc["gsd"], "--bounds",
                      *doc["bounds"], "--overwrite", log=out / "fusion_mesh.log",
@@ -143,14 +135,21 @@ def mesh_chain(scene: Path, out: Path, reuse_runs: bool = False) -> dict:
     kept = _recorded_s(folder / "model.json") if reuse_runs else None
     wall, peak = run("model", "lod", fusion, "--labels", scene / "training" / "labels.tif",
                      "-o", folder, "--overwrite", log=out / "lod.log", kept=kept)  # fmt: skip
+    res["lod"] = model_figures(folder, wall, peak)
+    return res
+
+
+def model_figures(folder: Path, wall: float, peak: float | None) -> dict:
+    """A modeling run's figures: the command's wall time and peak, and from its record
+    the buildings, seconds per building, stages and peaks of its own process and workers."""
     rec = json.loads((folder / "model.json").read_text())
     n = rec["counts"]["buildings"]
-    res["lod"] = {
+    return {
         "wall_s": wall, "peak_mb": peak, "buildings": n, "seconds_per_building": wall / max(n, 1),
         "stages": {k: v["wall_s"] for k, v in rec["stages"].items()},
         "own_peak_mb": rec.get("peak_memory_mb"),
+        "worker_peak_mb": rec.get("worker_peak_memory_mb"),
     }  # fmt: skip
-    return res
 
 
 def print_city(r: dict) -> None:
