@@ -1,6 +1,7 @@
 """The voxel path: hand-computed cases for each step, then the command on the tiny city."""
 
 import json
+import warnings
 
 import cv2
 import numpy as np
@@ -31,6 +32,7 @@ from modeling.voxel.proxy import (
     surface_normals,
     upward_views,
     variance_outliers,
+    view_median,
     voxel_variance,
     voxelise,
 )
@@ -188,6 +190,21 @@ def test_sample_variance_by_hand():
     s2[0, :, 0] = [1.0, 1.2, 0.8, 1.0, 9.0]  # a tree hides the voxel in one view
     trimmed, _ = sample_variance(s2, keep=0.8)
     np.testing.assert_allclose(trimmed[0], (0.04 + 0.04 + 0 + 0) / 4, rtol=1e-5)
+
+
+def test_view_median_is_numpys_nanmedian_to_the_bit():
+    rng = np.random.default_rng(3)
+    for k in (1, 2, 5, 40):
+        s = rng.random((300, k, 3)).astype(np.float32)
+        unseen = rng.random((300, k)) < 0.4
+        unseen[:4], unseen[4:8] = True, False  # no view, every view
+        s[unseen] = np.nan
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            expected = np.nanmedian(s, axis=1)
+        got = view_median(s)
+        assert got.dtype == expected.dtype
+        np.testing.assert_array_equal(got, expected)
 
 
 def test_column_minimum_band_and_outliers():
@@ -778,6 +795,7 @@ def test_voxel_run_writes_closed_textured_models(voxel_run):
         assert mesh.has_triangle_uvs() and mesh.has_textures()
         assert b["watertight"]
         assert b["patches_after"] <= b["patches_before"] + 2
+        assert {"variance", "clustering", "visibility", "refine_seams"} <= set(b["times_s"])
     for name in ("ground.obj", "ground.png", "scene.obj", "scene.ply", "preview.png"):
         assert (out / name).exists()
     assert metrics["complexity"]["watertight_fraction"] == 1.0

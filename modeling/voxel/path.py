@@ -293,6 +293,8 @@ def voxel_building(p: Proxy, t: BuildingTexture) -> Building:
     record = {k: v for k, v in p.record.items() if k not in _COMMON}
     record.update(m.record)
     record.update(t.record)
+    # both stages time their steps: keep the proxy's beside the texture's
+    record["times_s"] = {**p.record.get("times_s", {}), **t.record.get("times_s", {})}
     mesh = Surface(p.vertices, p.triangles, vertex_colours(p.vertices, t), Texture(t.image, t.uvs))
     return replace(m, id=p.id, mesh=mesh, lod="2.2" if p.roof.pitched else "1.3",
                    watertight=None, record=record)  # fmt: skip

@@ -335,7 +335,7 @@ def sample_variance(samples: np.ndarray, keep: float = 1.0) -> tuple[np.ndarray,
             variance = np.nansum(np.nanvar(samples, axis=1), axis=1)
             n_kept = views
         else:
-            med = np.nanmedian(samples, axis=1)
+            med = view_median(samples)
             d2 = np.sum((samples - med[:, None, :]) ** 2, axis=2)
             d2 = np.sort(np.where(seen, d2, np.inf), axis=1)
             n_kept = np.maximum(np.ceil(keep * views), np.minimum(views, 2)).astype(np.int64)
@@ -344,6 +344,19 @@ def sample_variance(samples: np.ndarray, keep: float = 1.0) -> tuple[np.ndarray,
             variance = kept.sum(axis=1) / np.maximum(n_kept, 1)
     variance = np.where(n_kept >= 2, variance, np.nan).astype(np.float64)
     return variance, views
+
+
+def view_median(samples: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(samples, axis=1)`` for (N, K, C) samples whose channels are NaN
+    together, (N, C): one sort instead of NumPy's masked-array median, which took a
+    quarter of a city building's photo-consistency (the same values, to the bit)."""
+    n = np.isfinite(samples[:, :, :1]).sum(axis=1)  # (N, 1) views per voxel
+    ordered = np.sort(samples, axis=1)  # NaN last
+    shape = (len(samples), 1, samples.shape[2])
+    lo = np.broadcast_to(np.maximum(n - 1, 0)[:, None, :] // 2, shape)
+    hi = np.broadcast_to(n[:, None, :] // 2, shape)
+    pair = np.take_along_axis(ordered, lo, axis=1) + np.take_along_axis(ordered, hi, axis=1)
+    return np.where(n > 0, pair[:, 0] / samples.dtype.type(2), np.nan)
 
 
 def height_weighted_variance(
