@@ -167,6 +167,22 @@ def test_complexity_roof_types_and_cost():
     assert cost == {"wall_s": 3.5, "peak_memory_mb": 300.0}
 
 
+def test_a_hipped_roof_whose_ridge_the_grid_cannot_show_is_a_pyramid_too():
+    # 9.76 m by 9.70 m: a 6 cm ridge, under two 0.25 m cells; 10.0 by 9.4: 0.6 m, over
+    square = [{"half_length": 4.88, "half_width": 4.85}]
+    oblong = [{"half_length": 5.0, "half_width": 4.7}]
+    assert metrics.indistinguishable_roof_types("hipped", square, 0.25) == {"hipped", "pyramid"}
+    assert metrics.indistinguishable_roof_types("hipped", oblong, 0.25) == {"hipped"}
+    assert metrics.indistinguishable_roof_types("hipped", oblong, 0.5) == {"hipped", "pyramid"}
+    assert metrics.indistinguishable_roof_types("gable", square, 0.25) == {"gable"}
+    assert metrics.indistinguishable_roof_types("hipped", square + oblong, 0.25) == {"hipped"}
+    pred, truth = ["pyramid", "pyramid", "hipped"], ["hipped", "hipped", "hipped"]
+    accepted = [{"hipped", "pyramid"}, {"hipped"}, {"hipped", "pyramid"}]
+    r = metrics.roof_type_accuracy(pred, truth, accepted)
+    assert r["roof_type_accuracy"] == pytest.approx(2 / 3)
+    assert r["confusion"] == {"hipped": {"pyramid": 2, "hipped": 1}}
+
+
 def test_watertight_needs_closed_consistent_outward_faces():
     box = o3d.geometry.TriangleMesh.create_box(2, 3, 4)
     v, t = np.asarray(box.vertices), np.asarray(box.triangles).copy()

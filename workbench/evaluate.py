@@ -230,6 +230,11 @@ def per_building(run: Run, truth: Truth, layers: RunLayers) -> list[dict]:
         rec = truth.buildings.get(k, {})
         if "roof_type" in rec:
             row["roof_type_true"] = rec["roof_type"]
+            also = metrics.indistinguishable_roof_types(
+                rec["roof_type"], rec.get("wings", []), truth.grid.gsd
+            ) - {rec["roof_type"]}
+            if also:
+                row["roof_type_true_also"] = sorted(also)
         if k in true_h:
             row["height_true_m"] = true_h[k]
             row["height_model_m"] = model_h.get(k, 0.0)
@@ -266,7 +271,8 @@ def building_summary(rows: list[dict], min_area_m2: float = 50.0) -> dict:
     """The ``buildings`` group: true buildings of at least ``min_area_m2`` that less than
     half of is building in the run (``missed_over_50m2``), median and mean |height error|
     in percent, overall and per true roof type, and roof-type accuracy over the true
-    buildings a model building covers."""
+    buildings a model building covers (with ``roof_types_unresolvable``: how many of them
+    the grid cannot tell from another type, which counts too)."""
     out = {}
     big = [r for r in rows if r["area_m2"] >= min_area_m2]
     if big:
@@ -287,10 +293,13 @@ def building_summary(rows: list[dict], min_area_m2: float = 50.0) -> dict:
     typed = [r for r in rows if "roof_type" in r and "roof_type_true" in r]
     if typed:
         acc = metrics.roof_type_accuracy(
-            [r["roof_type"] for r in typed], [r["roof_type_true"] for r in typed]
+            [r["roof_type"] for r in typed],
+            [r["roof_type_true"] for r in typed],
+            [{r["roof_type_true"], *r.get("roof_type_true_also", [])} for r in typed],
         )
         out["roof_type_accuracy"] = acc["roof_type_accuracy"]
         out["roof_type_confusion"] = acc["confusion"]
+        out["roof_types_unresolvable"] = sum("roof_type_true_also" in r for r in typed)
     return out
 
 

@@ -327,12 +327,13 @@ def _buildings_section(buildings: dict[str, list[dict]]) -> str:
         rows, classes = [], []
         for i in ids:
             t, r = first.get(i, {}), by[n].get(i, {})
-            roof = r.get("roof_type", "")
-            wrong = bool(roof and t.get("roof_type_true") and roof != t["roof_type_true"])
+            roof, also = r.get("roof_type", ""), t.get("roof_type_true_also", [])
+            true_roof = " or ".join([t["roof_type_true"], *also]) if "roof_type_true" in t else ""
+            wrong = bool(roof and true_roof and roof not in (t["roof_type_true"], *also))
             rows.append(
                 [
                     i,
-                    t.get("roof_type_true", ""),
+                    true_roof,
                     _f(t.get("height_true_m"), "{:.2f}"),
                     _f(t.get("area_m2"), "{:.0f}"),
                     _f(r.get("covered_fraction"), "{:.0%}"),
