@@ -62,6 +62,12 @@ class ParametricOptions:
         "smallest part's area, is a part of its own (a multi-level building's upper tier)",
         unit="m",
     )  # fmt: skip
+    planar_m: float = option(
+        0.1, "a segment the fusion classes mostly tree is a building all the same when its "
+        "fitted roof leaves a median residual under this on its cells: a planar roof is a "
+        "roof whatever its colour (crowns leave 0.12 m and more, roofs 0.05 m)", unit="m",
+        kind="non_negative",
+    )  # fmt: skip
     robust_m: float = option(
         0.3, "scale of the robust loss of the roof fit (eq. 6): residuals beyond it, walls' "
         "cells and chimneys, weigh less", unit="m", cli=False,

@@ -80,6 +80,9 @@ class ParametricInputs:
     segments: np.ndarray
     boxes: np.ndarray  # (q + 1, 4) r0, r1, c0, c1 of each segment with its margin
     tree: np.ndarray | None = None  # (H, W) bool: the fusion's tree outweighs building
+    # (H, W) bool: the fusion's class map says tree (its Potts model's answer, which the
+    # probabilities cell by cell are not); None: ``tree`` stands for it
+    tree_class: np.ndarray | None = None
 
 
 @dataclass
@@ -154,6 +157,7 @@ def run_parametric(
         sources = region_sources(fusion, options)
         prob = fusion.rasters["class_prob"]
         tree = np.nan_to_num(prob[TREE - 1]) > np.nan_to_num(prob[BUILDING - 1])
+        tree_class = classed_tree(fusion_dir, grid)
     pull = None
     results: list[SegmentResult] = []
     rounds = []
@@ -171,7 +175,8 @@ def run_parametric(
             segments = building_segments(mask, grid.gsd, opening, options.min_area_m2)
             q = int(segments.max())
             inputs = ParametricInputs(grid, dsm, dtm, rgb, segments, segment_boxes(segments, q),
-                                      None if options.all_building else tree)  # fmt: skip
+                                      *((None, None) if options.all_building
+                                        else (tree, tree_class)))  # fmt: skip
         with timer.stage("priors_and_roofs" if r == 0 else f"priors_and_roofs_{r + 1}"):
             shared = engine.share(inputs)
             results = list(engine.map(building_task, list(range(1, q + 1)), shared, options,
@@ -220,6 +225,19 @@ def check_inputs(
     fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
     if footprints is not None and not options.all_building:
         initial_region(fusion, footprints)
+
+
+def classed_tree(fusion_dir: Path, grid: Grid) -> np.ndarray | None:
+    """(H, W) bool cells the fusion's class map (``class.tif``) says are tree, or None
+    when the run has none. On seeds 0-2 it calls 7 segments of crowns tree that the
+    probabilities, cell by cell, give to building, and no building."""
+    if not (Path(fusion_dir) / "class.tif").exists():
+        return None
+    classes = read_fusion_run(fusion_dir, ("class",))
+    if classes.grid != grid:
+        raise InputError(Path(fusion_dir) / "class.tif", "transform", "grid differs from the "
+                         "fusion's other rasters'")  # fmt: skip
+    return classes.rasters["class"][0] == TREE
 
 
 def initial_region(fusion, footprints: Path | None) -> tuple[np.ndarray, str]:
@@ -290,11 +308,20 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     # a segment of --all-building is a building: no unknown-object label for it
     lambda_ = np.inf if options.all_building else options.lambda_
     crowns = np.zeros(mask.shape, bool)
+    overruled = None
     if inputs.tree is not None:
         tree = inputs.tree[r0:r1, c0:c1]
-        if (mask & tree).sum() > 0.5 * mask.sum():  # eq. 4's unknown label, on the classes
-            return SegmentResult(k, skipped="a tree: the fusion classes most of it tree")
-        crowns = tree_crowns(mask, tree, crop.gsd, options, min_cells)
+        classed = tree if inputs.tree_class is None else inputs.tree_class[r0:r1, c0:c1]
+        if (mask & classed).sum() > 0.5 * mask.sum():  # eq. 4's unknown label, on the classes
+            # unless its roof is planar: then the classes took a roof for a tree by its
+            # colour (a green roof), and say nothing of crowns on it either
+            overruled = planar_residual(mask, dsm, dtm, xs, ys, crop, options, min_cells,
+                                        lambda_)  # fmt: skip
+            if overruled is None or overruled >= options.planar_m:
+                return SegmentResult(k, skipped="a tree: the fusion classes most of it tree "
+                                                "and no planar roof fits it")  # fmt: skip
+        else:
+            crowns = tree_crowns(mask, tree, crop.gsd, options, min_cells)
     unknown = crowns  # left to the data term (eq. 4): out of the segment and of the fits
     found = segment_roofs(mask & ~unknown, np.where(unknown, np.nan, dsm), dtm, xs, ys, crop,
                           options, min_cells, lambda_)  # fmt: skip
@@ -324,6 +351,7 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
         "energy_2d": round(float(sum(p.energy for p in priors)), 5),
         "energy_3d_rms_m": round(float(_rms(heights - dsm, inside & ~unknown)), 3),
         "unknown_object_m2": round(float(unknown.sum()) * crop.gsd**2, 2),
+        "tree_class_overruled": overruled is not None,
         "meshed": how,
         "iterations": int(sum(p.evaluations for p in priors) + sum(w.fit.evaluations
                                                                   for w, _ in wings)),
@@ -376,6 +404,19 @@ def segment_roofs(mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells, lambda
         return "no DSM height on the registered prior"
     return SegmentRoofs(priors, energies, outline, inside, wings, model_heights(wings, X, Y),
                         base_z)  # fmt: skip
+
+
+def planar_residual(mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells, lambda_):
+    """Median |DSM - fitted roof| over the segment's cells inside its outline, metres
+    (eq. 6's fit, :func:`segment_roofs`), or None when no prior or roof fits it. On seeds
+    0-2 a roof leaves 0.05 m (90 % under 0.105 m), a crown or a group of crowns at least
+    0.12 m."""
+    found = segment_roofs(mask, dsm, dtm, xs, ys, crop, options, min_cells, lambda_)
+    if isinstance(found, str):
+        return None
+    r = np.abs(dsm - found.heights)[found.inside & mask]
+    r = r[np.isfinite(r)]
+    return float(np.median(r)) if len(r) else None
 
 
 def tree_crowns(mask, tree, gsd: float, options, min_cells) -> np.ndarray:
