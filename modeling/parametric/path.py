@@ -308,23 +308,24 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     # a segment of --all-building is a building: no unknown-object label for it
     lambda_ = np.inf if options.all_building else options.lambda_
     crowns = np.zeros(mask.shape, bool)
-    overruled = None
+    found = overruled = None
     if inputs.tree is not None:
         tree = inputs.tree[r0:r1, c0:c1]
         classed = tree if inputs.tree_class is None else inputs.tree_class[r0:r1, c0:c1]
         if (mask & classed).sum() > 0.5 * mask.sum():  # eq. 4's unknown label, on the classes
             # unless its roof is planar: then the classes took a roof for a tree by its
             # colour (a green roof), and say nothing of crowns on it either
-            overruled = planar_residual(mask, dsm, dtm, xs, ys, crop, options, min_cells,
-                                        lambda_)  # fmt: skip
+            found = segment_roofs(mask, dsm, dtm, xs, ys, crop, options, min_cells, lambda_)
+            overruled = planar_residual(found, dsm, mask)
             if overruled is None or overruled >= options.planar_m:
                 return SegmentResult(k, skipped="a tree: the fusion classes most of it tree "
                                                 "and no planar roof fits it")  # fmt: skip
         else:
             crowns = tree_crowns(mask, tree, crop.gsd, options, min_cells)
     unknown = crowns  # left to the data term (eq. 4): out of the segment and of the fits
-    found = segment_roofs(mask & ~unknown, np.where(unknown, np.nan, dsm), dtm, xs, ys, crop,
-                          options, min_cells, lambda_)  # fmt: skip
+    if found is None:
+        found = segment_roofs(mask & ~unknown, np.where(unknown, np.nan, dsm), dtm, xs, ys,
+                              crop, options, min_cells, lambda_)  # fmt: skip
     if not isinstance(found, str):
         more = unknown_objects(dsm, mask & ~unknown, found.heights, crop.gsd, options, min_cells)
         if more.any():  # the segment without them, again
@@ -406,12 +407,11 @@ def segment_roofs(mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells, lambda
                         base_z)  # fmt: skip
 
 
-def planar_residual(mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells, lambda_):
-    """Median |DSM - fitted roof| over the segment's cells inside its outline, metres
-    (eq. 6's fit, :func:`segment_roofs`), or None when no prior or roof fits it. On seeds
-    0-2 a roof leaves 0.05 m (90 % under 0.105 m), a crown or a group of crowns at least
-    0.12 m."""
-    found = segment_roofs(mask, dsm, dtm, xs, ys, crop, options, min_cells, lambda_)
+def planar_residual(found, dsm: np.ndarray, mask: np.ndarray) -> float | None:
+    """Median |DSM - fitted roof| over the segment's cells (``mask``) inside its outline,
+    metres, for :func:`segment_roofs`' answer ``found``; None when no prior or roof fits
+    (a str). On seeds 0-2 a roof leaves 0.05 m (90 % under 0.105 m), a crown or a group of
+    crowns at least 0.12 m."""
     if isinstance(found, str):
         return None
     r = np.abs(dsm - found.heights)[found.inside & mask]
