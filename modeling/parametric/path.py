@@ -223,6 +223,8 @@ def check_inputs(
     fusion run's rasters and the footprints (one line, with no worker's shutdown noise
     after it)."""
     fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
+    if not options.all_building:
+        classed_tree(fusion_dir, fusion.grid)  # a class map on another grid
     if footprints is not None and not options.all_building:
         initial_region(fusion, footprints)
 
