@@ -20,13 +20,14 @@ import numpy as np
 import open3d as o3d
 
 from workbench.errors import InputError
-from workbench.raster import Grid, parse_crs
+from workbench.raster import Grid, class_codes, parse_crs
 from workbench.raycast import cast, raycasting_scene
 from workbench.records import StageTimer
 
 from .ground import dtm_from_dsm
 from .interpolate import push_pull_fill, small_holes
 from .options import FusionOptions
+from .planar_objects import planar_tree_objects, relabel_planar_objects
 from .raster_forest import classify_rasters, synthetic_raster_forest
 from .scene_fusion import FILLED, HOLE_CELLS, FusionResult, check_memory
 
@@ -282,6 +283,12 @@ def fuse_mesh(path, opts: FusionOptions | None = None, *, crs: str | None = None
         ndsm = (dsm - dtm).astype(np.float32)
     with timer.stage("classes"):
         prob = classify_rasters(synthetic_raster_forest(), dsm, dtm, ortho, grid.gsd)
+    class_map, planar = None, 0
+    if opts.planar_objects:
+        with timer.stage("planar_objects"):
+            most_probable = class_codes(prob)
+            roof, planar = planar_tree_objects(most_probable, dsm, ndsm, grid.gsd, opts.seed)
+            class_map, prob = relabel_planar_objects(most_probable, prob, roof)
     count = hit.astype(np.int16)
     count[holes] = FILLED
     inputs = {
@@ -295,11 +302,15 @@ def fuse_mesh(path, opts: FusionOptions | None = None, *, crs: str | None = None
         "mode": "mesh",
         "dtm_source": "progressive morphological filter",
         "class_source": "a forest trained on the synthetic city's rasters (nDSM, slope, "
-        "roughness, curvature, brightness, greenness): no training labels",
+        "roughness, curvature, brightness, greenness): no training labels"
+        + ("; objects classed tree made building where planes explain most of their cells "
+           "(fusion.planar_objects)" if opts.planar_objects else ""),
+        "planar_objects_made_building": planar,
         "missed_cells": int((~hit).sum()), "filled_cells": int(holes.sum()),
         "seconds_per_million_triangles": round(
             (time.perf_counter() - t0) / max(len(mesh.triangles) / 1e6, 1e-6), 2),
         "stages": timer.stages,
     }  # fmt: skip
-    result = FusionResult(grid, ortho, dsm, dtm, ndsm, prob, count, {}, record, None, normal)
+    result = FusionResult(grid, ortho, dsm, dtm, ndsm, prob, count, {}, record, None, normal,
+                          class_map=class_map)  # fmt: skip
     return result, mesh.crs, inputs

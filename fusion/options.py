@@ -66,6 +66,11 @@ class FusionOptions:
         "class_prob.tif keeps the confidences",
         kind="non_negative", metavar="OMEGA",
     )  # fmt: skip
+    planar_objects: bool = option(
+        True, "views and meshes: an object classed tree, a storey or more above the DTM, becomes "
+        "building where a few planes explain most of its cells (a green roof); off: the "
+        "classes as the forest and the class CRF leave them",
+    )  # fmt: skip
     raster_prior: bool = option(
         False, "multiply the views' class probabilities by those of a forest on the fused "
         "rasters (nDSM, slope, roughness, colour), trained on the synthetic city; not in the "

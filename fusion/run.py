@@ -147,7 +147,7 @@ def fusion_quality(result, truth_scene) -> dict:
             q["ortho_mae_mean_fusion"] = colour_mae(np.round(mean), t["ortho"], ok)
     if "class" in t and np.isfinite(result.class_prob).any():
         q["classification"] = classification(result.classes, t["class"])
-        if result.class_map is not None:  # the class CRF's ablation: each cell's argmax
+        if result.class_map is not None:  # the ablation of the class CRF and planar objects
             q["classification_most_probable"] = classification(
                 class_codes(result.class_prob), t["class"]
             )

@@ -81,6 +81,7 @@ from .observations import (
     window_pixels,
 )
 from .options import FusionOptions
+from .planar_objects import planar_tree_objects, relabel_planar_objects
 from .raster_forest import classify_rasters, synthetic_raster_forest
 from .sigma_points import MEAN_ELEVATION, N_FEATURES, feature_cues, sigma_points
 
@@ -114,7 +115,8 @@ class FusionResult:
     record: dict = field(default_factory=dict)
     forest: object = None
     normal: np.ndarray | None = None  # (3, H, W) float32 unit normals, from a mesh
-    class_map: np.ndarray | None = None  # (H, W) uint8 decided classes (the class CRF's)
+    class_map: np.ndarray | None = None  # (H, W) uint8 decided classes (the class CRF's and
+    # planar objects'; a mesh's: its most probable class and planar objects')
 
     @property
     def classes(self) -> np.ndarray:
@@ -363,7 +365,7 @@ def fuse_views(
         with timer.stage("colour_and_class"):
             c = colours_and_classes(cache, shared_views, forest is not None, dsm, h, mode, opts,
                                     engine)  # fmt: skip
-    dsm, ndsm, class_prob, classes, ortho, count16, crowns, class_source = _finish(
+    dsm, ndsm, class_prob, classes, ortho, count16, crowns, planar, class_source = _finish(
         c, h, dsm, dtm, spikes, holes, forest, class_source, grid, mode, opts, timer, engine
     )
     observe_s = timer.stages["observations"]["wall_s"] + timer.stages["heights"]["wall_s"]
@@ -377,6 +379,7 @@ def fuse_views(
         "class_source": class_source,
         "filled_cells": int(holes.sum()),
         "rejected_isolated_spikes": int(spikes.sum()),
+        "planar_objects_made_building": planar,
         "crown_cells_raised": int(crowns.sum()),
         "crown_sightings_raised": int(np.isfinite(c.crown_z).sum()),
         "stages": timer.stages,
@@ -777,9 +780,9 @@ def _finish(
     timer: StageTimer,
     engine: Engine,
 ):
-    """Normalised classes with the elevation prior, the class CRF's labels, the crowns'
-    corrections of the DSM (neither in the paper), the small holes of the ortho filled,
-    the count flagged."""
+    """Normalised classes with the elevation prior, the class CRF's labels, planar objects
+    classed tree made building, the crowns' corrections of the DSM (none of them in the
+    paper), the small holes of the ortho filled, the count flagged."""
     with timer.stage("finish"):
         dsm, ndsm, class_prob, ortho, class_source = _class_confidences(
             c, h, dsm, dtm, holes, forest, class_source, grid, opts
@@ -791,6 +794,15 @@ def _finish(
             f"; class.tif: a contrast-sensitive Potts model (omega {opts.class_crf:g}) on "
             "the ortho's colour and the DSM"
         )
+    planar = 0
+    if opts.planar_objects and forest is not None:
+        with timer.stage("planar_objects"):
+            roof, planar = planar_tree_objects(classes, dsm, ndsm, grid.gsd, opts.seed)
+            classes, class_prob = relabel_planar_objects(classes, class_prob, roof)
+        class_source += (
+            f"; {planar} objects classed tree made building in both rasters: planes explain "
+            "most of their cells (fusion.planar_objects)"
+        )
     with timer.stage("crowns"):
         crowns = np.zeros(grid.shape, bool)
         if mode == "depth maps":
@@ -799,7 +811,7 @@ def _finish(
             ndsm = (dsm - dtm).astype(np.float32)
         count16 = np.minimum(h.count, np.iinfo(np.int16).max).astype(np.int16)
         count16[holes] = FILLED
-    return dsm, ndsm, class_prob, classes, ortho, count16, crowns, class_source
+    return dsm, ndsm, class_prob, classes, ortho, count16, crowns, planar, class_source
 
 
 def _class_confidences(c: FusedColours, h: FusedHeights, dsm, dtm, holes, forest,

@@ -12,7 +12,6 @@ from shapely.geometry.polygon import orient
 
 from modeling.shared.affinity_propagation import sparse_affinity_propagation
 from modeling.shared.outline_regularity import regularise_outline
-from modeling.shared.planes import plane_heights, ransac_plane
 from modeling.shared.roof_mesh import (
     extrude_faces,
     face_polygons,
@@ -37,6 +36,7 @@ from modeling.superpixel.quickshift import (
 from modeling.superpixel.rooftop import model_building, observed_faces
 from workbench.graph_cuts import alpha_expansion, binary_cut, crf_energy, pairwise_cut
 from workbench.meshes import is_watertight, unpaired_edges
+from workbench.planes import plane_heights, ransac_plane
 from workbench.raster import Grid
 
 

@@ -17,10 +17,10 @@ import shapely
 from shapely.geometry import Polygon, shape
 from shapely.geometry.polygon import orient
 
+from workbench.planes import plane_heights
 from workbench.raster import Grid
 
 from .outline_regularity import regularise_outline
-from .planes import plane_heights
 
 _EPS = 1e-7  # metres, on coordinates
 _CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)  # 4-neighbourhood

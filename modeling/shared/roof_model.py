@@ -11,9 +11,9 @@ import shapely
 
 from workbench.meshes import is_watertight, unpaired_edges
 from workbench.model_run import Building, Surface
+from workbench.planes import plane_heights
 from workbench.raster import Grid
 
-from .planes import plane_heights
 from .roof_mesh import extrude_faces, face_polygons, merge_smallest_face
 from .roof_types import roof_type
 

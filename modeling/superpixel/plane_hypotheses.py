@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from modeling.shared.planes import ransac_plane
+from workbench.planes import ransac_plane
 from workbench.raster import Grid
 
 from .options import SuperpixelOptions

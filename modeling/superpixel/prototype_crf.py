@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from modeling.shared.planes import point_plane_distances, ransac_plane
 from workbench.graph_cuts import alpha_expansion
+from workbench.planes import point_plane_distances, ransac_plane
 
 from .aggregation import SuperpixelGraph
 from .options import SuperpixelOptions

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from modeling.shared.affinity_propagation import sparse_affinity_propagation
-from modeling.shared.planes import point_plane_distances
+from workbench.planes import point_plane_distances
 
 from .options import SuperpixelOptions
 

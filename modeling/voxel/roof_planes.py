@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from modeling.shared.planes import plane_heights, point_plane_distances, ransac_plane
+from workbench.planes import plane_heights, point_plane_distances, sequential_planes
 
 _SQUARE = np.ones((3, 3), bool)
 MAX_PLANES = 8  # per roof level: a cross-gabled roof has 4 to 6
@@ -96,26 +96,6 @@ def flat_planes(level_heights: np.ndarray) -> np.ndarray:
     return np.column_stack([np.zeros((len(h), 2)), np.ones(len(h)), -h])
 
 
-def fit_planes(points: np.ndarray, tolerance: float, min_points: int, seed: int) -> np.ndarray:
-    """Roof planes of a point set by sequential RANSAC: the plane with most inliers
-    within ``tolerance`` metres, its inliers removed, again, while a plane gathers at least
-    ``min_points``. Returns (P, 4) planes, P <= ``MAX_PLANES``."""
-    planes = []
-    left = np.asarray(points, np.float64)
-    while len(left) >= max(min_points, 6) and len(planes) < MAX_PLANES:
-        plane = ransac_plane(
-            left, tolerance, iterations=300, max_tilt_deg=MAX_TILT_DEG, seed=seed + len(planes)
-        )
-        if plane is None:
-            break
-        inlier = point_plane_distances(plane, left) < tolerance
-        if inlier.sum() < min_points:
-            break
-        planes.append(plane)
-        left = left[~inlier]
-    return np.array(planes).reshape(-1, 4)
-
-
 def level_planes(planes: np.ndarray, points: np.ndarray, max_deg: float) -> np.ndarray:
     """``planes`` (P, 4) with those flatter than ``max_deg`` made horizontal at the median
     height of the ``points`` (N, 3) nearest to them."""
@@ -164,7 +144,7 @@ def pitched_planes(
     """
     if len(points) < 2 * min_points:
         return None
-    planes = fit_planes(points, tolerance, min_points, seed)
+    planes = sequential_planes(points, tolerance, min_points, MAX_PLANES, MAX_TILT_DEG, seed)
     if len(planes) == 0:
         return None
     planes = level_planes(planes, points, HORIZONTAL_DEG)

@@ -1,4 +1,5 @@
-"""RANSAC roof-plane hypotheses per super-pixel (the super-pixel paper, section 5.1).
+"""Planes by RANSAC: the super-pixel paper's roof-plane hypotheses (section 5.1), the
+voxel path's pitched roofs and the fusion's test of planar objects.
 
 A plane is (n, d) with unit normal n (n_z > 0) and n . X + d = 0, world metres.
 """
@@ -67,3 +68,45 @@ def ransac_plane(
     if normal[2] < np.cos(np.radians(max_tilt_deg)):
         return None
     return np.r_[normal, -normal @ (mean + centre)]
+
+
+def sequential_planes(
+    points: np.ndarray,
+    tolerance: float,
+    min_points: int,
+    max_planes: int,
+    max_tilt_deg: float,
+    seed: int,
+) -> np.ndarray:
+    """Planes of a point set by sequential RANSAC: the plane with most inliers within
+    ``tolerance`` metres, its inliers removed, again, while a plane gathers at least
+    ``min_points`` of the points left and no more than ``max_planes`` are found.
+
+    Parameters
+    ----------
+    points : (N, 3) float
+        Metres, near a local origin.
+    max_tilt_deg : float
+        Steeper planes are walls or trees, not roofs: the search stops at one.
+    seed : int
+        The k-th plane's RANSAC draws with ``seed + k``.
+
+    Returns
+    -------
+    (P, 4) planes, P <= ``max_planes``. A point within ``tolerance`` of any of them was
+    one of their inliers.
+    """
+    planes = []
+    left = np.asarray(points, np.float64)
+    while len(left) >= max(min_points, 6) and len(planes) < max_planes:
+        plane = ransac_plane(
+            left, tolerance, iterations=300, max_tilt_deg=max_tilt_deg, seed=seed + len(planes)
+        )
+        if plane is None:
+            break
+        inlier = point_plane_distances(plane, left) < tolerance
+        if inlier.sum() < min_points:
+            break
+        planes.append(plane)
+        left = left[~inlier]
+    return np.array(planes).reshape(-1, 4)

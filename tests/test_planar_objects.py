@@ -1,0 +1,136 @@
+"""Objects classed tree that are planar roofs (fusion.planar_objects) and the
+sequential RANSAC they use (workbench.planes.sequential_planes): hand-made surfaces."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from fusion.planar_objects import (
+    MIN_AREA_M2,
+    dsm_noise,
+    planar_tree_objects,
+    relabel_planar_objects,
+)
+from workbench.planes import plane_heights, sequential_planes
+from workbench.raster import BUILDING, TREE
+
+GSD = 0.25
+SIGMA = 0.03  # the DSM's noise, metres
+
+
+def _crown(x, y, cx, cy, radius, height, top, rng):
+    """A crown as the synthetic city makes one: an ellipsoid whose radius wanders by
+    +-9 % (here smoothly, over about a metre), its upper half as the DSM sees it."""
+    lumps = ndimage.gaussian_filter(rng.random(x.shape) - 0.5, 4) * 0.18 / 0.05
+    d2 = ((x - cx) ** 2 + (y - cy) ** 2) / (radius * (1 + lumps)) ** 2
+    z = top - height + height * np.sqrt(np.clip(1 - d2, 0, None))
+    return np.where(d2 < 1, z, np.nan)
+
+
+def _city(rng):
+    """(dsm, ndsm, classes) of 60 x 40 m: flat ground, a hipped roof, a gable roof and a
+    flat roof, two crowns and a low hedge of planes, every object classed tree."""
+    rows, cols = np.indices((160, 240))
+    x, y = cols * GSD, (160 - rows) * GSD
+    dsm = np.zeros(x.shape)
+    classes = np.full(x.shape, 1, np.uint8)  # ground
+
+    def put(z, where):
+        dsm[where] = z[where]
+        classes[where] = TREE
+
+    # hipped roof 12 x 8 m: eaves at 6 m, 30 degree faces
+    inside = (x > 4) & (x < 16) & (y > 4) & (y < 12)
+    d = np.minimum.reduce([x - 4, 16 - x, y - 4, 12 - y])
+    put(6 + np.tan(np.radians(30)) * d, inside)
+    # gable roof 10 x 7 m, ridge along x
+    inside = (x > 22) & (x < 32) & (y > 4) & (y < 11)
+    put(8 + 0.6 * np.minimum(y - 4, 11 - y), inside)
+    # flat roof 6 x 5 m (30 m²) at 4 m
+    inside = (x > 38) & (x < 44) & (y > 5) & (y < 10)
+    put(np.full(x.shape, 4.0), inside)
+    # two crowns, radius 3.5 and 4.5 m, on 3 m trunks
+    for cx, cy, r, h in ((10, 28, 3.5, 3.2), (30, 27, 4.5, 4.0)):
+        z = _crown(x, y, cx, cy, r, h, 3 + 2 * h, rng)
+        put(z, np.isfinite(z))
+    # a 1.8 m hedge, planar on top: too low to be a storey
+    inside = (x > 40) & (x < 56) & (y > 25) & (y < 27)
+    put(np.full(x.shape, 1.8), inside)
+    # a shed of 4 m x 3 m at 3 m: planar, yet too small to judge
+    inside = (x > 50) & (x < 54) & (y > 5) & (y < 8)
+    put(np.full(x.shape, 3.0), inside)
+    dsm = dsm + rng.normal(0, SIGMA, dsm.shape)
+    return dsm, dsm.copy(), classes, x, y  # flat ground at 0: the nDSM is the DSM
+
+
+def test_planar_objects_are_roofs_and_crowns_stay_trees():
+    rng = np.random.default_rng(3)
+    dsm, ndsm, classes, x, y = _city(rng)
+    assert dsm_noise(dsm, classes, GSD) == pytest.approx(SIGMA, rel=0.15)
+    roof, found = planar_tree_objects(classes, dsm, ndsm, GSD, seed=0)
+    assert found == 3  # hipped, gable and flat; not the crowns, hedge or shed
+    for box in ((4, 16, 4, 12), (22, 32, 4, 11), (38, 44, 5, 10)):
+        x0, x1, y0, y1 = box
+        inside = (x > x0 + GSD) & (x < x1 - GSD) & (y > y0 + GSD) & (y < y1 - GSD)
+        assert roof[inside].mean() > 0.97
+    assert not roof[y > 18].any()  # the crowns and the hedge
+    assert not roof[(x > 50) & (y < 10)].any()  # the shed: under MIN_AREA_M2
+    assert 4 * 3 < MIN_AREA_M2 < 6 * 5
+
+
+def test_a_planar_object_needs_its_planes_to_explain_most_of_it():
+    """A flat roof whose half is a crown over it: its plane explains half its cells."""
+    rng = np.random.default_rng(4)
+    rows, cols = np.indices((80, 80))
+    x, y = cols * GSD, (80 - rows) * GSD
+    flat = (x > 2) & (x < 18) & (y > 2) & (y < 18)
+    z = _crown(x, y, 11.0, 10.0, 6.0, 4.0, 14.0, rng)
+    dsm = np.where(flat, 6.0, 0.0)
+    dsm = np.where(np.isfinite(z) & (np.nan_to_num(z) > 6.0), z, dsm)
+    dsm += rng.normal(0, SIGMA, dsm.shape)
+    classes = np.where(flat | np.isfinite(z), TREE, 1).astype(np.uint8)
+    tall = (classes == TREE) & (dsm > 2.5)
+    share = np.mean(np.abs(dsm[tall] - 6.0) < 0.06)
+    assert 0.4 < share < 0.6  # the case: the roof's plane explains about half
+    roof, found = planar_tree_objects(classes, dsm, dsm.copy(), GSD)
+    assert found == 0 and not roof.any()
+
+
+def test_no_ground_no_noise_no_change():
+    dsm = np.full((40, 40), 8.0)
+    classes = np.full((40, 40), TREE, np.uint8)
+    assert np.isnan(dsm_noise(dsm, classes, GSD))
+    roof, found = planar_tree_objects(classes, dsm, dsm, GSD)
+    assert found == 0 and not roof.any()
+
+
+def test_relabel_swaps_building_with_the_most_probable_class():
+    classes = np.array([[TREE, TREE, 1]], np.uint8)
+    prob = np.array(
+        [
+            [[0.1, 0.6, 0.9]],  # ground
+            [[0.1, 0.1, 0.05]],  # grass
+            [[0.7, 0.2, 0.05]],  # tree
+            [[0.1, 0.1, 0.0]],  # building
+        ]
+    )
+    roof = np.array([[True, True, False]])
+    new_classes, new_prob = relabel_planar_objects(classes, prob, roof)
+    assert new_classes.tolist() == [[BUILDING, BUILDING, 1]]
+    assert new_prob[:, 0, 0].tolist() == [0.1, 0.1, 0.1, 0.7]  # tree's 0.7 to building
+    assert new_prob[:, 0, 1].tolist() == [0.1, 0.1, 0.2, 0.6]  # ground was the most probable
+    assert new_prob[:, 0, 2].tolist() == prob[:, 0, 2].tolist()
+    assert prob[3, 0, 0] == 0.1 and classes[0, 0] == TREE  # inputs untouched
+
+
+def test_sequential_planes_finds_a_gable_roofs_two_faces():
+    rng = np.random.default_rng(5)
+    x, y = rng.uniform(-5, 5, 2000), rng.uniform(-3, 3, 2000)
+    z = 4.0 - 0.5 * np.abs(y) + rng.normal(0, 0.02, 2000)
+    planes = sequential_planes(np.c_[x, y, z], 0.06, 200, 6, 75.0, seed=0)
+    assert len(planes) == 2
+    for p in planes:
+        side = np.sign(p[1])  # z = 4 - 0.5 |y| on the side its normal leans to
+        yy = side * np.array([1.0, 2.0])
+        assert plane_heights(p, np.zeros(2), yy) == pytest.approx(4.0 - 0.5 * np.abs(yy), abs=0.03)
+    assert len(sequential_planes(np.c_[x, y, z], 0.06, 200, 1, 75.0, seed=0)) == 1
