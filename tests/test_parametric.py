@@ -152,10 +152,10 @@ def test_a_tier_on_a_flat_base_is_multi_level_not_a_mansard():
     assert len(tiers) == 1 and abs(tiers[0].fit.z_main - 16.0) < 0.1
 
 
-def _roof_and_crown(crown_z, seed=0):
+def _roof_and_crown(crown_z, seed=0, leaves_m=0.5):
     """A 18 m x 14 m flat roof at 30 m and a crown of radius 4 m centred on its corner:
-    a dome 3 m high from ``crown_z``, leafy (0.5 m of seeded noise); the segment takes
-    both in, as the level set does when the crown stands near the roof's height."""
+    a dome 3 m high from ``crown_z``, leafy (``leaves_m`` of seeded noise); the segment
+    takes both in, as the level set does when the crown stands near the roof's height."""
     grid = Grid(-20.0, 16.0, 0.25, 160, 128)
     xs = grid.xmin + (np.arange(grid.width) + 0.5) * grid.gsd
     ys = grid.ymax - (np.arange(grid.height) + 0.5) * grid.gsd
@@ -163,7 +163,7 @@ def _roof_and_crown(crown_z, seed=0):
     roof = (np.abs(X) <= 9) & (np.abs(Y) <= 7)
     r = np.hypot(X - 9.0, Y - 6.0)
     crown = r <= 4.0
-    noise = np.random.default_rng(seed).normal(0.0, 0.5, X.shape)
+    noise = np.random.default_rng(seed).normal(0.0, leaves_m, X.shape)
     dome = crown_z + 3.0 * np.sqrt(np.clip(1 - (r / 4.0) ** 2, 0, 1)) + noise
     dsm = np.where(roof, 30.0, 0.0)
     dsm = np.where(crown & (dome > dsm), dome, dsm)
@@ -192,6 +192,33 @@ def test_a_crown_over_the_roof_is_no_tier():
     assert not any(w["tier"] for w in b.record["wings"])
     assert b.roof_type == "flat" and abs(b.ridge_z - 30.0) < 0.1
     assert b.record["unknown_object_m2"] > 20.0
+
+
+def test_a_crown_the_class_map_calls_tree_is_no_tier_where_the_probabilities_are_ragged():
+    """A smooth crown (0.1 m of leaves) inside a flat roof: the probabilities call every
+    other cell of it tree, too ragged a part to be a crown, and its dome becomes a tier
+    at 34.5 m; the class map calls it tree whole, and it is left to the data term."""
+    inputs, roof, _ = _roof_and_crown(31.0, leaves_m=0.1)
+    g = inputs.grid
+    X, Y = np.meshgrid(g.xmin + (np.arange(g.width) + 0.5) * g.gsd,
+                       g.ymax - (np.arange(g.height) + 0.5) * g.gsd)  # fmt: skip
+    r = np.hypot(X - 3.0, Y - 1.0)
+    dome = 31.0 + 3.0 * np.sqrt(np.clip(1 - (r / 3.0) ** 2, 0, 1))
+    dome += np.random.default_rng(0).normal(0.0, 0.1, r.shape)
+    crown = r <= 3.0
+    inputs.dsm = np.where(roof, 30.0, 0.0)
+    inputs.dsm = np.where(crown & (dome > inputs.dsm), dome, inputs.dsm)
+    inputs.segments = (roof | crown).astype(np.int32)
+    inputs.boxes = segment_boxes(inputs.segments, 1)
+    rows, cols = np.indices(r.shape)
+    inputs.tree = crown & ((rows + cols) % 2 == 0)
+    b = building_task(1, inputs, ParametricOptions()).building
+    assert any(w["tier"] for w in b.record["wings"]) and b.ridge_z > 34.0  # the case
+    inputs.tree_class = crown
+    b = building_task(1, inputs, ParametricOptions()).building
+    assert not any(w["tier"] for w in b.record["wings"])
+    assert b.roof_type == "flat" and abs(b.ridge_z - 30.0) < 0.1
+    assert b.record["unknown_object_m2"] > 25.0  # the crown's 28 m²
 
 
 def test_the_classes_make_a_segment_a_tree_unless_a_planar_roof_fits_it():

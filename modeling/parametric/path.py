@@ -322,8 +322,9 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
             if overruled is None or overruled >= options.planar_m:
                 return SegmentResult(k, skipped="a tree: the fusion classes most of it tree "
                                                 "and no planar roof fits it")  # fmt: skip
-        else:
-            crowns = tree_crowns(mask, tree, crop.gsd, options, min_cells)
+        else:  # crowns from the class map: the probabilities' cell by cell are ragged, and
+            # a crown over a roof that they left out was fitted as an upper tier
+            crowns = tree_crowns(mask, classed, crop.gsd, options, min_cells)
     unknown = crowns  # left to the data term (eq. 4): out of the segment and of the fits
     if found is None:
         found = segment_roofs(mask & ~unknown, np.where(unknown, np.nan, dsm), dtm, xs, ys,
@@ -423,7 +424,7 @@ def planar_residual(found, dsm: np.ndarray, mask: np.ndarray) -> float | None:
 
 def tree_crowns(mask, tree, gsd: float, options, min_cells) -> np.ndarray:
     """(h, w) bool crowns the level set took into the segment ``mask``: the cells the
-    fusion classes tree rather than building (``tree``), in parts wider than the
+    fusion classes tree (``tree``: its class map, else its probabilities), in parts wider than the
     smallest part and of at least ``min_cells``, with what they leave of the segment
     that is narrower (their rim, which the classes may give to building) or smaller.
     None when they would leave less than half the segment: a building the classes got
