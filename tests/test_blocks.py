@@ -2,9 +2,12 @@
 cases, and the path end to end from fused rasters, scored by the shared metrics."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
+import rasterio
+from affine import Affine
 from shapely.geometry import Polygon, box
 
 from modeling.blocks.block_meshes import block_faces
@@ -302,14 +305,23 @@ def test_blocks_from_given_supports(blocks_run, tiny_fusion, tmp_path):
 
 
 def test_blocks_bad_input_is_one_line(tiny_fusion, tmp_path):
-    """A missing fusion folder, supports far off the grid: one line, exit 2, no output."""
+    """A missing fusion folder, supports far off the grid, a class map on another grid
+    (it says where the crowns are): one line, exit 2, no output."""
     far = tmp_path / "far.geojson"
     square = [[[1e6, 1e6], [1e6 + 9, 1e6], [1e6 + 9, 1e6 + 9], [1e6, 1e6 + 9], [1e6, 1e6]]]
     far.write_text(json.dumps({"type": "FeatureCollection", "features": [
         {"type": "Feature", "properties": {}, "geometry": {"type": "Polygon",
                                                           "coordinates": square}}]}))  # fmt: skip
+    shifted = tmp_path / "shifted"  # a class map on another grid than the other rasters
+    shutil.copytree(tiny_fusion, shifted)
+    with rasterio.open(tiny_fusion / "class.tif") as src:
+        profile, classes = src.profile, src.read()
+    profile["transform"] = profile["transform"] @ Affine.translation(3, 0)
+    with rasterio.open(shifted / "class.tif", "w", **profile) as dst:
+        dst.write(classes)
     for args, says in (((tmp_path / "nowhere",), "no such fusion folder"),
-                       ((tiny_fusion, "--supports", far), "far.geojson")):  # fmt: skip
+                       ((tiny_fusion, "--supports", far), "far.geojson"),
+                       ((shifted,), "class.tif")):  # fmt: skip
         proc = run_cli("model", "blocks", *args, "-o", tmp_path / "o")
         assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
         assert says in proc.stderr

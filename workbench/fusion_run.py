@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .raster import Grid, read_raster
+from .raster import TREE, Grid, read_raster
 
 BANDS = {"ortho": 3, "class_prob": 4}  # rasters with more than one band
 
@@ -93,3 +93,16 @@ def _record(path: Path) -> dict:
     except (OSError, json.JSONDecodeError, UnicodeDecodeError):
         return {}
     return doc if isinstance(doc, dict) else {}
+
+
+def classed_tree(fusion_dir: Path, grid: Grid) -> np.ndarray | None:
+    """(H, W) bool cells the fusion's class map (``class.tif``) says are tree, or None
+    when the run has none. On seeds 0-2 it calls 7 segments of crowns tree that the
+    probabilities, cell by cell, give to building, and no building."""
+    if not (Path(fusion_dir) / "class.tif").exists():
+        return None
+    classes = read_fusion_run(fusion_dir, ("class",))
+    if classes.grid != grid:
+        raise InputError(Path(fusion_dir) / "class.tif", "transform", "grid differs from the "
+                         "fusion's other rasters'")  # fmt: skip
+    return classes.rasters["class"][0] == TREE

@@ -26,7 +26,7 @@ from modeling.shared.roof_envelope import BuildingMesh, building_solid, face_pla
 from modeling.shared.roof_model import closed_roof_model
 from workbench.engine import Engine, ThreadEngine
 from workbench.errors import InputError
-from workbench.fusion_run import read_fusion_run
+from workbench.fusion_run import classed_tree, read_fusion_run
 from workbench.meshes import is_watertight
 from workbench.model_run import Building, ModelRun, Surface
 from workbench.raster import BUILDING, TREE, Grid
@@ -96,7 +96,8 @@ def run_blocks(
     Parameters
     ----------
     fusion_dir : path
-        A fusion run folder (ortho, dsm, dtm, ndsm, class_prob), from images or points.
+        A fusion run folder (ortho, dsm, dtm, ndsm, class_prob; its class.tif, when it has
+        one, says where crowns are), from images or points.
     options : BlocksOptions
     supports : path, optional
         2D supports (convex quadrilaterals or triangles, any vector file GDAL reads);
@@ -113,8 +114,11 @@ def run_blocks(
         grid = fusion.grid
         dsm, dtm, rgb = fusion.band("dsm"), fusion.band("dtm"), fusion.rgb
         prob = np.nan_to_num(fusion.rasters["class_prob"].astype(np.float64))
-        # crowns are no roof: left out of every likelihood
-        crowns = None if options.all_building else prob[TREE - 1] > prob[BUILDING - 1]
+        # crowns are no roof: left out of every likelihood. The class map's, where the run
+        # has one: the probabilities cell by cell leave a crown over a roof ragged
+        crowns = None if options.all_building else classed_tree(fusion_dir, grid)
+        if crowns is None and not options.all_building:
+            crowns = prob[TREE - 1] > prob[BUILDING - 1]
     with timer.stage("supports"):
         if supports is not None:
             inputs = _given_supports(supports, fusion, grid, dsm, dtm, crowns)
@@ -168,6 +172,8 @@ def check_inputs(fusion_dir: Path, options: BlocksOptions, supports: Path | None
     fusion run's rasters and the supports' file (one line, with no worker's shutdown
     noise after it)."""
     fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
+    if not options.all_building:
+        classed_tree(fusion_dir, fusion.grid)  # a class map on another grid
     if supports is not None:
         _given_supports(supports, fusion, fusion.grid, None, None, None)
 

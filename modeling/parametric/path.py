@@ -35,7 +35,7 @@ from modeling.shared.raster_ground import ground_surface, vertex_colours
 from modeling.shared.roof_envelope import building_solid, face_planes
 from workbench.engine import Engine, ThreadEngine
 from workbench.errors import InputError
-from workbench.fusion_run import read_fusion_run
+from workbench.fusion_run import classed_tree, read_fusion_run
 from workbench.meshes import is_watertight
 from workbench.model_run import Building, ModelRun, Surface
 from workbench.raster import BUILDING, TREE, Grid
@@ -227,19 +227,6 @@ def check_inputs(
         classed_tree(fusion_dir, fusion.grid)  # a class map on another grid
     if footprints is not None and not options.all_building:
         initial_region(fusion, footprints)
-
-
-def classed_tree(fusion_dir: Path, grid: Grid) -> np.ndarray | None:
-    """(H, W) bool cells the fusion's class map (``class.tif``) says are tree, or None
-    when the run has none. On seeds 0-2 it calls 7 segments of crowns tree that the
-    probabilities, cell by cell, give to building, and no building."""
-    if not (Path(fusion_dir) / "class.tif").exists():
-        return None
-    classes = read_fusion_run(fusion_dir, ("class",))
-    if classes.grid != grid:
-        raise InputError(Path(fusion_dir) / "class.tif", "transform", "grid differs from the "
-                         "fusion's other rasters'")  # fmt: skip
-    return classes.rasters["class"][0] == TREE
 
 
 def initial_region(fusion, footprints: Path | None) -> tuple[np.ndarray, str]:
