@@ -2,6 +2,7 @@
 path end to end from fused rasters, scored by the shared metrics."""
 
 import json
+import shutil
 
 import numpy as np
 import open3d as o3d
@@ -44,8 +45,10 @@ from modeling.shared.footprint_priors import (
 from modeling.shared.opened_parts import building_segments
 from modeling.shared.roof_envelope import building_solid
 from tests.conftest import SHARED_DATA, run_cli
+from workbench.errors import InputError
+from workbench.fusion_run import read_fusion_run, tree_cells
 from workbench.meshes import is_watertight
-from workbench.raster import Grid
+from workbench.raster import BUILDING, TREE, Grid
 
 WING = np.array([-6.0, 6.0, -4.0, 4.0])  # 12 m x 8 m
 
@@ -211,10 +214,10 @@ def test_a_crown_the_class_map_calls_tree_is_no_tier_where_the_probabilities_are
     inputs.segments = (roof | crown).astype(np.int32)
     inputs.boxes = segment_boxes(inputs.segments, 1)
     rows, cols = np.indices(r.shape)
-    inputs.tree = crown & ((rows + cols) % 2 == 0)
+    inputs.tree = crown & ((rows + cols) % 2 == 0)  # as the probabilities call it
     b = building_task(1, inputs, ParametricOptions()).building
     assert any(w["tier"] for w in b.record["wings"]) and b.ridge_z > 34.0  # the case
-    inputs.tree_class = crown
+    inputs.tree = crown  # as the class map calls it (workbench.fusion_run.tree_cells)
     b = building_task(1, inputs, ParametricOptions()).building
     assert not any(w["tier"] for w in b.record["wings"])
     assert b.roof_type == "flat" and abs(b.ridge_z - 30.0) < 0.1
@@ -245,11 +248,28 @@ def test_the_classes_make_a_segment_a_tree_unless_a_planar_roof_fits_it():
     inputs.boxes = segment_boxes(inputs.segments, 1)
     result = building_task(1, inputs, options)
     assert result.building is None and "no planar roof" in result.skipped
-    # where the run has its class map, the map decides, not the probabilities cell by cell
-    inputs.tree, inputs.tree_class = np.zeros_like(hedge), hedge
-    assert "no planar roof" in building_task(1, inputs, options).skipped
-    inputs.tree_class = np.zeros_like(hedge)  # no class says tree: nothing refuses it
+    inputs.tree = np.zeros_like(hedge)  # no class says tree: nothing refuses it
     assert building_task(1, inputs, options).building is not None
+
+
+def test_tree_cells_are_the_class_maps_else_the_probabilities(tiny_fusion, tmp_path):
+    """Where the run has its class map, the map decides which cells are tree, not the
+    probabilities cell by cell; without one, tree outweighing building does; a map on
+    another grid is refused, naming it."""
+    fusion = read_fusion_run(tiny_fusion, ("class", "class_prob"))
+    classes, prob = fusion.rasters["class"][0], fusion.rasters["class_prob"]
+    by_prob = np.nan_to_num(prob[TREE - 1]) > np.nan_to_num(prob[BUILDING - 1])
+    assert (classes == TREE).sum() > 1000 and (by_prob != (classes == TREE)).sum() > 100
+    cells = tree_cells(tiny_fusion, fusion.grid, prob)
+    assert np.array_equal(cells, classes == TREE)
+    bare = tmp_path / "bare"
+    shutil.copytree(tiny_fusion, bare)
+    (bare / "class.tif").unlink()
+    assert np.array_equal(tree_cells(bare, fusion.grid, prob), by_prob)
+    other = Grid(fusion.grid.xmin + 3.0, fusion.grid.ymax, fusion.grid.gsd,
+                 fusion.grid.width, fusion.grid.height)  # fmt: skip
+    with pytest.raises(InputError, match="class.tif"):
+        tree_cells(tiny_fusion, other, prob)
 
 
 def test_a_rough_block_on_the_roof_is_no_tier():

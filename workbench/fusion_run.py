@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .raster import TREE, Grid, read_raster
+from .raster import BUILDING, TREE, Grid, read_raster
 
 BANDS = {"ortho": 3, "class_prob": 4}  # rasters with more than one band
 
@@ -106,3 +106,14 @@ def classed_tree(fusion_dir: Path, grid: Grid) -> np.ndarray | None:
         raise InputError(Path(fusion_dir) / "class.tif", "transform", "grid differs from the "
                          "fusion's other rasters'")  # fmt: skip
     return classes.rasters["class"][0] == TREE
+
+
+def tree_cells(fusion_dir: Path, grid: Grid, class_prob: np.ndarray) -> np.ndarray:
+    """(H, W) bool the cells the fusion calls tree: its class map's (:func:`classed_tree`),
+    or where the run has no ``class.tif`` (a cloud's, a run from another tool), those
+    whose tree probability outweighs building's in ``class_prob`` (4, H, W)."""
+    classed = classed_tree(fusion_dir, grid)
+    if classed is not None:
+        return classed
+    prob = np.nan_to_num(np.asarray(class_prob, np.float64))
+    return prob[TREE - 1] > prob[BUILDING - 1]

@@ -26,10 +26,10 @@ from modeling.shared.roof_envelope import BuildingMesh, building_solid, face_pla
 from modeling.shared.roof_model import closed_roof_model
 from workbench.engine import Engine, ThreadEngine
 from workbench.errors import InputError
-from workbench.fusion_run import classed_tree, read_fusion_run
+from workbench.fusion_run import classed_tree, read_fusion_run, tree_cells
 from workbench.meshes import is_watertight
 from workbench.model_run import Building, ModelRun, Surface
-from workbench.raster import BUILDING, TREE, Grid
+from workbench.raster import BUILDING, Grid
 from workbench.records import StageTimer, peak_memory_mb
 
 from .block_meshes import block_faces
@@ -114,11 +114,9 @@ def run_blocks(
         grid = fusion.grid
         dsm, dtm, rgb = fusion.band("dsm"), fusion.band("dtm"), fusion.rgb
         prob = np.nan_to_num(fusion.rasters["class_prob"].astype(np.float64))
-        # crowns are no roof: left out of every likelihood. The class map's, where the run
-        # has one: the probabilities cell by cell leave a crown over a roof ragged
-        crowns = None if options.all_building else classed_tree(fusion_dir, grid)
-        if crowns is None and not options.all_building:
-            crowns = prob[TREE - 1] > prob[BUILDING - 1]
+        # crowns are no roof: left out of every likelihood (the class map's where the run
+        # has one: the probabilities cell by cell leave a crown over a roof ragged)
+        crowns = None if options.all_building else tree_cells(fusion_dir, grid, prob)
     with timer.stage("supports"):
         if supports is not None:
             inputs = _given_supports(supports, fusion, grid, dsm, dtm, crowns)

@@ -35,10 +35,10 @@ from modeling.shared.raster_ground import ground_surface, vertex_colours
 from modeling.shared.roof_envelope import building_solid, face_planes
 from workbench.engine import Engine, ThreadEngine
 from workbench.errors import InputError
-from workbench.fusion_run import classed_tree, read_fusion_run
+from workbench.fusion_run import classed_tree, read_fusion_run, tree_cells
 from workbench.meshes import is_watertight
 from workbench.model_run import Building, ModelRun, Surface
-from workbench.raster import BUILDING, TREE, Grid
+from workbench.raster import BUILDING, Grid
 from workbench.records import StageTimer, peak_memory_mb
 
 from .options import ParametricOptions
@@ -79,10 +79,10 @@ class ParametricInputs:
     rgb: np.ndarray
     segments: np.ndarray
     boxes: np.ndarray  # (q + 1, 4) r0, r1, c0, c1 of each segment with its margin
-    tree: np.ndarray | None = None  # (H, W) bool: the fusion's tree outweighs building
-    # (H, W) bool: the fusion's class map says tree (its Potts model's answer, which the
-    # probabilities cell by cell are not); None: ``tree`` stands for it
-    tree_class: np.ndarray | None = None
+    # (H, W) bool: the cells the fusion calls tree (:func:`~workbench.fusion_run.tree_cells`:
+    # its class map's, the Potts model's answer, which the probabilities cell by cell are
+    # not); None: every segment is a building (--all-building)
+    tree: np.ndarray | None = None
 
 
 @dataclass
@@ -156,8 +156,7 @@ def run_parametric(
             init, init_source = initial_region(fusion, footprints)
         sources = region_sources(fusion, options)
         prob = fusion.rasters["class_prob"]
-        tree = np.nan_to_num(prob[TREE - 1]) > np.nan_to_num(prob[BUILDING - 1])
-        tree_class = classed_tree(fusion_dir, grid)
+        tree = None if options.all_building else tree_cells(fusion_dir, grid, prob)
     pull = None
     results: list[SegmentResult] = []
     rounds = []
@@ -175,8 +174,7 @@ def run_parametric(
             segments = building_segments(mask, grid.gsd, opening, options.min_area_m2)
             q = int(segments.max())
             inputs = ParametricInputs(grid, dsm, dtm, rgb, segments, segment_boxes(segments, q),
-                                      *((None, None) if options.all_building
-                                        else (tree, tree_class)))  # fmt: skip
+                                      tree)  # fmt: skip
         with timer.stage("priors_and_roofs" if r == 0 else f"priors_and_roofs_{r + 1}"):
             shared = engine.share(inputs)
             results = list(engine.map(building_task, list(range(1, q + 1)), shared, options,
@@ -300,8 +298,7 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     found = overruled = None
     if inputs.tree is not None:
         tree = inputs.tree[r0:r1, c0:c1]
-        classed = tree if inputs.tree_class is None else inputs.tree_class[r0:r1, c0:c1]
-        if (mask & classed).sum() > 0.5 * mask.sum():  # eq. 4's unknown label, on the classes
+        if (mask & tree).sum() > 0.5 * mask.sum():  # eq. 4's unknown label, on the classes
             # unless its roof is planar: then the classes took a roof for a tree by its
             # colour (a green roof), and say nothing of crowns on it either
             found = segment_roofs(mask, dsm, dtm, xs, ys, crop, options, min_cells, lambda_)
@@ -311,7 +308,7 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
                                                 "and no planar roof fits it")  # fmt: skip
         else:  # crowns from the class map: the probabilities' cell by cell are ragged, and
             # a crown over a roof that they left out was fitted as an upper tier
-            crowns = tree_crowns(mask, classed, crop.gsd, options, min_cells)
+            crowns = tree_crowns(mask, tree, crop.gsd, options, min_cells)
     unknown = crowns  # left to the data term (eq. 4): out of the segment and of the fits
     if found is None:
         found = segment_roofs(mask & ~unknown, np.where(unknown, np.nan, dsm), dtm, xs, ys,
