@@ -795,7 +795,7 @@ def _finish(
             "the ortho's colour and the DSM"
         )
     planar = 0
-    if opts.planar_objects and forest is not None:
+    if opts.planar_objects:
         with timer.stage("planar_objects"):
             roof, planar = planar_tree_objects(classes, dsm, ndsm, grid.gsd, opts.seed)
             classes, class_prob = relabel_planar_objects(classes, class_prob, roof)
