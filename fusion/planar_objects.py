@@ -19,11 +19,10 @@ import numpy as np
 from scipy import ndimage
 
 from workbench.planes import point_plane_distances, sequential_planes
-from workbench.raster import BUILDING, TREE
+from workbench.raster import BUILDING, GROUND, TREE
 
 from .geometry_cues import WINDOWS_M, plane_residual, window_cells
 
-GROUND = 1
 STOREY_M = 2.5  # lower objects are hedges and shrubs whatever their shape
 MIN_AREA_M2 = 20.0  # a smaller crown is nearly planar in pieces: planes explain up to 0.7
 NOISE_FACTOR = 2.0  # inlier distance: this many times the DSM's noise

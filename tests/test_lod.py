@@ -8,19 +8,13 @@ import pytest
 
 from modeling.lod.arrangement import arrangement_faces, label_faces, planarity_weight
 from modeling.lod.facades import facade_directions
-from modeling.lod.labelling import (
-    BUILDING,
-    GRASS,
-    GROUND,
-    TREE,
-    mrf_labelling,
-    normalised_height,
-)
+from modeling.lod.labelling import mrf_labelling, normalised_height
 from modeling.lod.segments import regularise_segments
 from modeling.lod.shapes import roof_directions, roof_planes, snap_to_facades
 from modeling.lod.tree_probability import train_tree_classifier, tree_features, tree_probability
 from tests.conftest import run_cli
 from workbench.cityjson_check import check_city_model
+from workbench.raster import BUILDING, GRASS, GROUND, TREE
 
 
 def test_normalised_height_is_a_logistic_about_h_trunc():

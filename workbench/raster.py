@@ -145,7 +145,7 @@ def parse_crs(value, *, path: str | os.PathLike, field: str = "crs") -> CRS:
 
 
 CLASS_CODES = (0, 1, 2, 3, 4)  # no data, ground, grass, tree, building
-TREE, BUILDING = 3, 4
+GROUND, GRASS, TREE, BUILDING = 1, 2, 3, 4
 
 
 def class_codes(class_prob: np.ndarray) -> np.ndarray:

@@ -9,9 +9,8 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from workbench.graph_cuts import alpha_expansion, grid_pairs, squared_differences
+from workbench.raster import GROUND
 from workbench.texture_seams import rgb_to_lab
-
-GROUND, GRASS, TREE, BUILDING = 1, 2, 3, 4  # the workbench's class codes
 
 
 def normalised_height(h: np.ndarray, h_ground: np.ndarray, h_trunc: float) -> np.ndarray:

@@ -26,12 +26,12 @@ from workbench.fusion_run import read_fusion_run
 from workbench.model_run import Building, ModelRun
 from workbench.pictures import colorize_classes, contact_sheet
 from workbench.progress import progress
-from workbench.raster import Grid, read_raster
+from workbench.raster import BUILDING, GRASS, TREE, Grid, read_raster
 from workbench.records import StageTimer, peak_memory_mb
 
 from .arrangement import arrangement_faces, label_faces
 from .facades import facade_directions, wall_normals
-from .labelling import BUILDING, GRASS, TREE, fill_from_below, mrf_labelling, open_close
+from .labelling import fill_from_below, mrf_labelling, open_close
 from .options import LodOptions
 from .segments import (
     detect_segments,
