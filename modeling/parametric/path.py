@@ -408,9 +408,9 @@ def planar_residual(found, dsm: np.ndarray, mask: np.ndarray) -> float | None:
 
 def tree_crowns(mask, tree, gsd: float, options, min_cells) -> np.ndarray:
     """(h, w) bool crowns the level set took into the segment ``mask``: the cells the
-    fusion classes tree (``tree``: its class map, else its probabilities), in parts wider than the
-    smallest part and of at least ``min_cells``, with what they leave of the segment
-    that is narrower (their rim, which the classes may give to building) or smaller.
+    fusion classes tree (``tree``: its class map, else its probabilities), in parts wider
+    than the smallest part and of at least ``min_cells``, with what they leave of the
+    segment that is narrower (their rim, which the classes may give to building) or smaller.
     None when they would leave less than half the segment: a building the classes got
     wrong (a green roof) stays whole, and the roof fit decides."""
     crowns = _large_parts(mask & tree, gsd, options, min_cells)
