@@ -161,8 +161,7 @@ def prior_indicator(u, v, family: str, params: np.ndarray, eps: float) -> np.nda
 def prior_energy(segment: np.ndarray, indicator: np.ndarray) -> float:
     """Eq. 4's data term of one prior over its domain: the mean of (H(phi) - H(phi~))^2
     normalised by the template's variance sigma^2 = mean(phi~^2) - mean(phi~)^2."""
-    var = float(np.mean(indicator**2) - np.mean(indicator) ** 2)
-    return float(np.mean((segment - indicator) ** 2) / max(var, 1e-6))
+    return float(np.mean((segment - indicator) ** 2) / max(_variance(indicator), 1e-6))
 
 
 @dataclass
@@ -494,7 +493,7 @@ def decompose_outline(
 
 def _variance(indicator: np.ndarray) -> float:
     """sigma^2 of a template's indicator over its domain (eq. 4's normalisation)."""
-    ind = indicator.astype(np.float64)
+    ind = np.asarray(indicator, np.float64)
     return float(np.mean(ind**2) - np.mean(ind) ** 2)
 
 
