@@ -85,15 +85,13 @@ def test_every_command_gives_the_same_city_at_utm(tiny_scene, tiny_fusion, tiny_
         )
         assert ub["height"]["rmse_m"] == pytest.approx(la["height"]["rmse_m"], abs=0.01)
     # the texture seams: in float32 at 5.7e6 m the occlusion tests moved the projective
-    # seam cost by 9 %. In a local origin only the rounding of the moved cameras and of
-    # the fused DSM (0.06 % of its cells) moves them, through the views whose scores tie
-    # at a texel and the faces whose texels split their votes between two views; measured
-    # against the projective cost: the run's own projective 8.0 % (4.5 % with the proxies
-    # before the fusion's class CRF and the roof cap), graph cut 0.6 %; as compare
-    # recomputes them from the written textures, 0.7 % and 0.02 %. Since each building
-    # takes only the views it needs (select_views), a score moved by rounding can change
-    # which views a building takes: the run's own 10.5 % and 2.7 %, compare's 0.13 % and
-    # 0.46 %
+    # seam cost by 9 %; then the charts' plane offsets, n . p in world coordinates, carried
+    # the normals' rounding as millimetres and split coplanar faces (66 charts for 51:
+    # the run's own costs moved 14 % and 22 %). In a local origin only the rounding of
+    # the moved cameras and of the fused DSM (0.06 % of its cells) can move them, through
+    # the views whose scores tie at a texel (select_views may then take other views for
+    # a building); measured against the projective cost: the run's own 0 % and 0 %, as
+    # compare recomputes them from the written textures 0.14 % and 0.11 %
     ta, tb = (runs[k]["metrics"]["voxel"]["texture"] for k in ("local", "utm"))
     moved = {
         (source, key): abs(within[key] - figures[key]) / figures["seam_cost_projective"]
@@ -102,4 +100,4 @@ def test_every_command_gives_the_same_city_at_utm(tiny_scene, tiny_fusion, tiny_
         for key in ("seam_cost", "seam_cost_projective")
     }  # fmt: skip
     assert moved["compare", "seam_cost"] < 0.01 and moved["compare", "seam_cost_projective"] < 0.01
-    assert moved["run", "seam_cost"] < 0.04 and moved["run", "seam_cost_projective"] < 0.12, moved
+    assert moved["run", "seam_cost"] < 0.04 and moved["run", "seam_cost_projective"] < 0.04, moved

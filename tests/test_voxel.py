@@ -45,6 +45,7 @@ from modeling.voxel.roof_planes import (
     roof_faces,
 )
 from modeling.voxel.surface_graph import (
+    mesh_charts,
     patches,
     refine_seams,
     select_views,
@@ -740,6 +741,27 @@ def test_surface_graph_and_atlas_on_a_box(tmp_path):
     write_obj(tmp_path / "box.obj", v, t, uvs=uvs, material="m", mtllib="box.mtl")
     mesh = o3d.io.read_triangle_mesh(str(tmp_path / "box.obj"))
     assert len(mesh.triangle_uvs) == 3 * len(t)
+
+
+def test_a_planar_roof_is_one_chart_at_utm_too():
+    """A pitched plane of 800 triangles, turned 23 degrees: one chart near the origin and
+    at UTM coordinates (in world coordinates its triangles' plane offsets scattered over
+    millimetres and made 130 charts)."""
+    a, b = np.meshgrid(np.linspace(0, 10, 21), np.linspace(0, 8, 21))
+    x, y = a.ravel(), b.ravel()
+    th = np.radians(23.0)
+    local = np.column_stack(
+        [np.cos(th) * x - np.sin(th) * y, np.sin(th) * x + np.cos(th) * y, 10.0 + 0.57 * x]
+    )
+    idx = np.arange(21 * 21).reshape(21, 21)
+    quad = np.column_stack([idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(),
+                            idx[1:, :-1].ravel()])  # fmt: skip
+    tri = np.concatenate([quad[:, [0, 1, 2]], quad[:, [0, 2, 3]]])
+    utm = np.array([500123.4, 5701234.5, 0.0])
+    near, far = mesh_charts(local, tri, 0.1), mesh_charts(local + utm, tri, 0.1)
+    assert len(near) == len(far) == 1
+    assert near[0].shape == far[0].shape
+    np.testing.assert_allclose(far[0].origin - utm, near[0].origin, atol=1e-6)
 
 
 def test_pack_charts_do_not_overlap():

@@ -91,7 +91,11 @@ def mesh_charts(
     u_hint : (3,), optional
         Horizontal direction of texel columns on roofs (the voxel grid's x axis).
     """
-    p = vertices[triangles]
+    # a local origin (a texel corner): at UTM magnitudes, n . p carries the normal's
+    # rounding (1e-9) as millimetres, which split coplanar triangles into charts (a tiny
+    # city at UTM: 66 charts where the same city near the origin has 51)
+    ref = np.floor(vertices.min(axis=0) / texel_m) * texel_m
+    p = vertices[triangles] - ref
     n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     offset = np.einsum("ij,ij->i", n, p[:, 0])
@@ -131,7 +135,7 @@ def mesh_charts(
         b0 = np.floor(b_.min() / texel_m) * texel_m
         cols = max(1, int(np.ceil((a_.max() - a0) / texel_m - 1e-9)))
         rows = max(1, int(np.ceil((b_.max() - b0) / texel_m - 1e-9)))
-        origin = a0 * u + b0 * v + normal * offset[tris[0]]
+        origin = ref + (a0 * u + b0 * v + normal * offset[tris[0]])
         charts.append(Chart(tris, origin, u, v, normal, (rows, cols), normal[2] > -0.9))
     return charts
 
