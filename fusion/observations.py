@@ -93,16 +93,17 @@ def normal_z_image(
     if rays is None:
         _, rays = camera.pixel_grid_rays()
     # points relative to the camera centre, in float32: half the memory traffic, and
-    # millimetres over the few hundred metres of an aerial view
-    P = rays.reshape(H, W, 3).astype(np.float32) * smooth[..., None]
+    # millimetres over the few hundred metres of an aerial view; one image per axis
+    # (NumPy's loops run along rows, not along (x, y, z) triples)
+    P = [rays[:, k].reshape(H, W).astype(np.float32) * smooth for k in range(3)]
     s = step
-    dx = P[s:-s, 2 * s :] - P[s:-s, : -2 * s]  # the interior, where both differences exist
-    dy = P[2 * s :, s:-s] - P[: -2 * s, s:-s]
-    nx = dx[..., 1] * dy[..., 2] - dx[..., 2] * dy[..., 1]
-    ny = dx[..., 2] * dy[..., 0] - dx[..., 0] * dy[..., 2]
-    n_z = dx[..., 0] * dy[..., 1] - dx[..., 1] * dy[..., 0]
-    c = P[s:-s, s:-s]
-    toward = -np.sign(nx * c[..., 0] + ny * c[..., 1] + n_z * c[..., 2])  # camera at P = 0
+    dx = [p[s:-s, 2 * s :] - p[s:-s, : -2 * s] for p in P]  # the interior, where both
+    dy = [p[2 * s :, s:-s] - p[: -2 * s, s:-s] for p in P]  # differences exist
+    nx = dx[1] * dy[2] - dx[2] * dy[1]
+    ny = dx[2] * dy[0] - dx[0] * dy[2]
+    n_z = dx[0] * dy[1] - dx[1] * dy[0]
+    c = [p[s:-s, s:-s] for p in P]
+    toward = -np.sign(nx * c[0] + ny * c[1] + n_z * c[2])  # camera at P = 0
     nz = np.full((H, W), np.nan, np.float32)
     with np.errstate(invalid="ignore", divide="ignore"):
         nz[s:-s, s:-s] = toward * n_z / np.sqrt(nx * nx + ny * ny + n_z * n_z)
@@ -182,8 +183,11 @@ def height_weights(center: np.ndarray, xyz: np.ndarray) -> np.ndarray:
     center : (3,) camera centre, metres
     xyz : (N, 3) world points, metres
     """
-    ray = xyz - center
-    cos2 = ray[:, 2] ** 2 / np.maximum(np.einsum("ij,ij->i", ray, ray), 1e-18)
+    # an axis at a time (NumPy's loops run along columns, not triples), summed in the
+    # order np.einsum("ij,ij->i") sums them, so that the weights stay what they were
+    x, y, z = (xyz[:, k] - center[k] for k in range(3))
+    z2 = z * z
+    cos2 = z2 / np.maximum((x * x + z2) + y * y, 1e-18)
     return cos2.astype(np.float32)
 
 
@@ -206,7 +210,11 @@ def lift_depth(
         _, dirs = camera.pixel_rays(np.column_stack([u, v]).astype(np.float64))
     else:
         dirs = rays[pixels]
-    xyz = camera.center + dirs * depth.ravel()[pixels, None].astype(np.float64)
+    d = depth.ravel()[pixels].astype(np.float64)
+    xyz = np.empty((len(pixels), 3))
+    for k in range(3):  # an axis at a time: NumPy's loops run along columns, not triples
+        np.multiply(dirs[:, k], d, out=xyz[:, k])
+        xyz[:, k] += camera.center[k]
     return pixels, xyz
 
 
@@ -265,10 +273,11 @@ def visibility_groups(
 # sigma 1.5 reaches 6, and the differences a step of 3
 OBSERVE_MARGIN = 6 + 3
 COLUMN_BLOCK = 64  # float32 columns: four AVX-512 vectors
+WINDOW_BAND = 32  # image rows whose rays grid_window holds at once: 0.6 MB at 1024 columns
 
 
 def grid_window(
-    depth: np.ndarray, rays: np.ndarray, center: np.ndarray, grid: Grid, margin: int
+    depth: np.ndarray, camera: Camera, grid: Grid, margin: int
 ) -> tuple[slice, slice] | None:
     """The rows and columns of a view that can see the grid: the bounding box of the
     pixels whose depth puts their point within a cell of the grid, widened by ``margin``
@@ -282,21 +291,27 @@ def grid_window(
     Parameters
     ----------
     depth : (H, W) float z-depth, metres, NaN unknown
-    rays : (H*W, 3) float64 directions of :meth:`Camera.pixel_grid_rays`
-    center : (3,) camera centre, metres
+    camera : Camera
     grid : Grid
     margin : int
     """
     H, W = depth.shape
-    d = depth.ravel().astype(np.float64)
     x0, y0, x1, y1 = grid.bounds
     slack = grid.gsd  # the window may be larger than needed, never smaller
-    with np.errstate(invalid="ignore"):  # NaN depths compare False
-        x = rays[:, 0] * d
-        y = rays[:, 1] * d
-        near = ((x >= x0 - center[0] - slack) & (x <= x1 - center[0] + slack)
-                & (y >= y0 - center[1] - slack) & (y <= y1 - center[1] + slack))  # fmt: skip
-    near = near.reshape(H, W)
+    cx, cy = camera.center[:2]
+    near = np.empty((H, W), bool)
+    # a band of rows at a time: the whole image's (H*W, 3) rays would be written to
+    # memory and read back, most of this function's time
+    for r0 in range(0, H, WINDOW_BAND):
+        band = slice(r0, min(r0 + WINDOW_BAND, H))
+        _, rays = camera.pixel_grid_rays(window=(band, slice(None)))
+        d = depth[band].ravel().astype(np.float64)
+        with np.errstate(invalid="ignore"):  # NaN depths compare False
+            x = rays[:, 0] * d
+            y = rays[:, 1] * d
+            inside = ((x >= x0 - cx - slack) & (x <= x1 - cx + slack)
+                      & (y >= y0 - cy - slack) & (y <= y1 - cy + slack))  # fmt: skip
+        near[band] = inside.reshape(-1, W)
     rows, cols = np.flatnonzero(near.any(axis=1)), np.flatnonzero(near.any(axis=0))
     if not len(rows):
         return None
@@ -346,15 +361,14 @@ def observe(
     depth = np.where(depth_outliers(depth), np.float32(np.nan), depth)
     # on the whole image: np.roll compares the pixels by its edges with its far side
     jumps = depth_jumps(depth)
-    _, rays = camera.pixel_grid_rays()
-    window = grid_window(depth, rays, camera.center, grid, OBSERVE_MARGIN)
+    window = grid_window(depth, camera, grid, OBSERVE_MARGIN)
     if window is None:
         none = np.zeros(0, np.int64)
         return ViewObservations(none, none, np.zeros((0, 3)), np.zeros(0, np.float32),
                                 np.zeros(0, bool), np.zeros(0, np.float32), np.zeros(0, bool),
                                 np.zeros(0, np.float32))  # fmt: skip
     depth, jumps = depth[window], jumps[window]
-    rays = rays.reshape(H, W, 3)[window].reshape(-1, 3)
+    _, rays = camera.pixel_grid_rays(window=window)
     pixels, xyz = lift_depth(camera, depth, rays)
     # indices of half cells: the cell is the index // 2, the quarter of it the index % 2
     r, c = grid.world_to_cell(xyz[:, 0], xyz[:, 1])

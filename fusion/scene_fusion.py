@@ -204,10 +204,18 @@ def _joined(parts: list, dtype, tail: tuple = ()) -> np.ndarray:
     return np.concatenate(parts) if parts else np.zeros((0, *tail), dtype)
 
 
+def tile_shape(grid: Grid, size: int) -> tuple[int, int]:
+    """Rows and columns of the tiles of at most ``size`` x ``size`` cells that cut the
+    grid most evenly: with a remainder tile, the workers would wait on the largest
+    (`small`'s 800 cells a side: tiles of 400, not 512 and 288)."""
+    return tuple(-(-n // -(-n // size)) for n in (grid.height, grid.width))
+
+
 def _tiles(grid: Grid, size: int):
-    for r0 in range(0, grid.height, size):
-        for c0 in range(0, grid.width, size):
-            yield r0, c0, min(size, grid.height - r0), min(size, grid.width - c0)
+    th, tw = tile_shape(grid, size)
+    for r0 in range(0, grid.height, th):
+        for c0 in range(0, grid.width, tw):
+            yield r0, c0, min(th, grid.height - r0), min(tw, grid.width - c0)
 
 
 def preferred(cells: np.ndarray, reliable: np.ndarray, n_cells: int) -> np.ndarray:
@@ -430,8 +438,7 @@ class ViewContext:
         among the flat indices ``only`` alone if given), and the window; None for each
         but the depth where no pixel does."""
         depth = v.read_depth()
-        _, rays = v.camera.pixel_grid_rays()
-        window = grid_window(depth, rays, v.camera.center, seeing, feature_margin(self.opts.patch))
+        window = grid_window(depth, v.camera, seeing, feature_margin(self.opts.patch))
         if window is None:
             return depth, None, None, None, None
         feats, pixels, xyz = view_features(
@@ -504,8 +511,8 @@ class ObservationCache:
                                        stage="observations"))  # fmt: skip
 
     def tile_of(self, r: np.ndarray, c: np.ndarray) -> np.ndarray:
-        n_cols = -(-self.grid.width // self.tile)
-        return (r // self.tile) * n_cols + c // self.tile
+        th, tw = tile_shape(self.grid, self.tile)
+        return (r // th) * -(-self.grid.width // tw) + c // tw
 
     def path(self, i: int, t: int) -> Path:
         return self.folder / f"{i}_{t}.npz"
@@ -530,14 +537,17 @@ def observe_view(i: int, views: list, cache: ObservationCache, tolerance: float)
     tiles it reaches."""
     v, grid = views[i], cache.grid
     obs = observe(v.camera, v.read_depth(), grid, tolerance=tolerance)
-    vis = obs.visible
+    vis = np.flatnonzero(obs.visible)
     r, c = np.divmod(obs.cells[vis], grid.width)
     tile = cache.tile_of(r, c)
     order = np.argsort(tile, kind="stable")  # keeps the view's order within a cell
-    fields = {"z": obs.xyz[vis, 2].astype(np.float32), "weight": obs.height_weight[vis],
-              "top": obs.top_surface[vis], "pixels": obs.pixels[vis].astype(np.int32)}  # fmt: skip
-    tile, r, c = tile[order], r[order], c[order]
-    fields = {k: f[order] for k, f in fields.items()}
+    tile, r, c, take = tile[order], r[order], c[order], vis[order]
+    fields = {
+        "z": obs.xyz[take, 2].astype(np.float32),
+        "weight": obs.height_weight[take],
+        "top": obs.top_surface[take],
+        "pixels": obs.pixels[take].astype(np.int32),
+    }
     present, starts = np.unique(tile, return_index=True)
     ends = np.append(starts[1:], len(tile))[: len(starts)]  # none for a view that sees nothing
     for t, a, b in zip(present.tolist(), starts, ends, strict=True):

@@ -32,6 +32,17 @@ def test_pixel_rays_invert_project(dist):
     np.testing.assert_allclose(uv2, uv, atol=1e-4 if dist else 1e-8)
 
 
+@pytest.mark.parametrize("dist", [None, [-0.1, 0.02, 0.001, -0.002, 0.0]])
+def test_a_window_of_grid_rays_is_the_whole_grid_s_to_the_bit(dist):
+    cam = _cam(dist)
+    _, whole = cam.pixel_grid_rays()
+    window = (slice(100, 230), slice(64, 640))
+    _, part = cam.pixel_grid_rays(window=window)
+    np.testing.assert_array_equal(part, whole.reshape(480, 640, 3)[window].reshape(-1, 3))
+    _, coarse = cam.pixel_grid_rays(step=4)
+    np.testing.assert_array_equal(coarse, whole.reshape(480, 640, 3)[::4, ::4].reshape(-1, 3))
+
+
 def test_centre_and_principal_point():
     cam = _cam()
     axis_point = cam.center + 50 * cam.viewing_direction

@@ -22,7 +22,13 @@ from fusion.observations import (
     visibility_groups,
 )
 from fusion.points import top_surface_at_centres
-from fusion.scene_fusion import elevation_image, isolated_spikes, top_surface_votes
+from fusion.scene_fusion import (
+    ObservationCache,
+    elevation_image,
+    isolated_spikes,
+    tile_shape,
+    top_surface_votes,
+)
 from fusion.sigma_points import N_FEATURES, feature_cues, sigma_points
 from workbench.camera import Camera, look_at_rotation
 from workbench.raster import Grid
@@ -123,6 +129,39 @@ def test_group_weighted_quantile_is_its_definition_on_runs_of_every_length():
             i = int(np.argmax(cum >= target - 1e-9 * target))
             exact = abs(cum[i] - target) <= 1e-9 * target and i + 1 < len(v)
             assert got[k, cell] == (0.5 * (v[i] + v[i + 1]) if exact else v[i])
+
+
+def test_tiles_cut_the_grid_evenly_and_tile_of_finds_them(tmp_path):
+    def grid(h, w):
+        return Grid.from_bounds(0.0, 0.0, w * 0.5, h * 0.5, 0.5)
+
+    # at most 512 cells a side, as few tiles as that allows, sides differing by one at most
+    assert tile_shape(grid(800, 800), 512) == (400, 400)
+    assert tile_shape(grid(512, 1000), 512) == (512, 500)
+    assert tile_shape(grid(513, 300), 512) == (257, 300)
+    cache = ObservationCache(tmp_path, grid(513, 1030), 512)
+    assert [t[2:] for t in cache.tiles] == [(257, 344)] * 2 + [(257, 342)] + [(256, 344)] * 2 + [
+        (256, 342)
+    ]
+    r, c = np.meshgrid(np.arange(513), np.arange(1030), indexing="ij")
+    owner = cache.tile_of(r, c)
+    for t, (r0, c0, h, w) in enumerate(cache.tiles):
+        assert (owner[r0 : r0 + h, c0 : c0 + w] == t).all()
+        assert (owner == t).sum() == h * w
+
+
+def test_cell_then_value_order_is_lexsort_s_for_float32_and_float64():
+    from workbench.robust import _order_by_cell_then_value
+
+    rng = np.random.default_rng(3)
+    cells = rng.integers(0, 50, 5000)
+    # negative values, both zeros (which must tie), infinities and many exact ties
+    vals = rng.normal(0, 3, 5000).round(1)
+    vals[rng.random(5000) < 0.05] = -0.0
+    vals[:2] = [np.inf, -np.inf]
+    for dtype in (np.float32, np.float64):
+        v = vals.astype(dtype)
+        np.testing.assert_array_equal(_order_by_cell_then_value(cells, v), np.lexsort((v, cells)))
 
 
 def test_group_weighted_quantile_by_hand():
@@ -570,7 +609,7 @@ def test_observe_reads_only_the_window_that_sees_the_grid(monkeypatch):
 
     cam, depth = _oblique_view_of_a_block()
     grid = Grid.from_bounds(-15.0, -10.0, 15.0, 20.0, 0.5)
-    window = grid_window(depth, cam.pixel_grid_rays()[1], cam.center, grid, OBSERVE_MARGIN)
+    window = grid_window(depth, cam, grid, OBSERVE_MARGIN)
     rows, cols = window
     assert 0 < (rows.stop - rows.start) * (cols.stop - cols.start) < 0.6 * depth.size
     windowed = observe(cam, depth, grid)
@@ -585,7 +624,7 @@ def test_observe_reads_only_the_window_that_sees_the_grid(monkeypatch):
     monkeypatch.undo()
     # a grid the view does not see: no window, no observation
     far = Grid.from_bounds(500.0, 500.0, 510.0, 510.0, 0.5)
-    assert grid_window(depth, cam.pixel_grid_rays()[1], cam.center, far, 9) is None
+    assert grid_window(depth, cam, far, 9) is None
     assert len(observe(cam, depth, far).cells) == 0
 
 
@@ -600,7 +639,7 @@ def test_view_features_of_a_window_are_those_of_the_whole_image():
     rgb = cv2.GaussianBlur(rng.integers(0, 256, depth.shape + (3,), dtype=np.uint8), (0, 0), 2)
     grid = Grid.from_bounds(-15.0, -10.0, 15.0, 20.0, 0.5)
     dtm, view = np.zeros(grid.shape), SimpleNamespace(camera=cam)
-    window = grid_window(depth, cam.pixel_grid_rays()[1], cam.center, grid, feature_margin(11))
+    window = grid_window(depth, cam, grid, feature_margin(11))
     feats, pixels, xyz = view_features(view, rgb, depth, dtm, grid, 11, window=window)
     all_feats, all_pixels, all_xyz = view_features(view, rgb, depth, dtm, grid, 11)
     full = window_pixels(window, pixels, depth.shape[1])

@@ -112,19 +112,29 @@ class Camera:
         d_cam = np.column_stack([xy, np.ones(len(xy))])
         return self.center, d_cam @ self.R
 
-    def pixel_grid_rays(self, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    def pixel_grid_rays(
+        self, step: int = 1, window: tuple[slice, slice] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Rays through every ``step``-th pixel centre, row-major.
 
-        Returns the origin (3,) and directions (H*W, 3), as :meth:`pixel_rays`.
+        With ``window`` (rows, columns), the rays of its pixels alone: the same values
+        as the whole image's at those pixels.
+
+        Returns the origin (3,) and directions (H*W, 3) (the window's pixels), as
+        :meth:`pixel_rays`.
         """
-        u = np.arange(0, self.width, step, dtype=np.float64)
-        v = np.arange(0, self.height, step, dtype=np.float64)
+        rows, cols = window if window is not None else (slice(None), slice(None))
+        rows, cols = rows.indices(self.height)[:2], cols.indices(self.width)[:2]
+        u = np.arange(*cols, step, dtype=np.float64)
+        v = np.arange(*rows, step, dtype=np.float64)
         if self.has_distortion:
             uu, vv = np.meshgrid(u, v)
             return self.pixel_rays(np.column_stack([uu.ravel(), vv.ravel()]))
         # without distortion a ray is linear in (u, v): a sum of a row and a column term
         M = self.R.T @ np.linalg.inv(self.K)  # camera z of every direction stays 1
-        dirs = (v[:, None, None] * M[:, 1] + M[:, 2]) + u[None, :, None] * M[:, 0]
+        dirs = np.empty((len(v), len(u), 3))
+        for k in range(3):  # one axis at a time: NumPy's loops run along rows, not triples
+            dirs[..., k] = (v[:, None] * M[k, 1] + M[k, 2]) + u[None, :] * M[k, 0]
         return self.center, dirs.reshape(-1, 3)
 
     def to_dict(self) -> dict:
