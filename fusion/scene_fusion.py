@@ -938,20 +938,34 @@ def _train(ctx: ViewContext, labels_path, engine: Engine):
 
 def labelled_pixels(i: int, ctx: ViewContext, labels: tuple) -> tuple:
     """Task: view ``i``'s labelled pixels: their features and labels, and the number of
-    labelled pixels dropped by elevation. ``labels`` is (label raster, its grid)."""
-    label_raster, label_grid = labels
-    _, feats, pixels, xyz, window = ctx.features(ctx.views[i], label_grid)
+    labelled pixels dropped by elevation. ``labels`` is (label raster, its grid).
+
+    Only the pixels on a stroke are described (a tenth of a view's on `small`): their
+    features are those they have among all the view's (:func:`view_features`)."""
+    view = ctx.views[i]
+    pixels, xyz = lift_depth(view.camera, view.read_depth())
+    on_stroke = pixels[stroke_labels(xyz, labels, ctx) > 0]
+    _, feats, pixels, xyz, window = ctx.features(view, labels[1], on_stroke)
     if window is None:
         return np.zeros((0, 0), np.float32), np.zeros(0, np.uint8), 0  # the view sees no label
+    lab = stroke_labels(xyz, labels, ctx)
+    agree = elevation_consistent(lab, feats[:, MEAN_ELEVATION], ctx.opts.label_split)
+    lab[~agree] = 0
+    keep = np.flatnonzero(lab > 0)
+    return feats[keep], lab[keep], int((~agree).sum())
+
+
+def stroke_labels(xyz: np.ndarray, labels: tuple, ctx: ViewContext) -> np.ndarray:
+    """(N,) uint8 class of the stroke under each point (N, 3), 0 where none, or where the
+    point is not on the fused top surface (within the DSM's tolerance): a facade's or a
+    rounded edge's point would teach its stroke's class to what lies below the roof."""
+    label_raster, label_grid = labels
     r, c = label_grid.cell_index(xyz[:, 0], xyz[:, 1])
     inside = label_grid.contains(r, c)
-    lab = np.zeros(len(pixels), np.uint8)
+    lab = np.zeros(len(xyz), np.uint8)
     lab[inside] = label_raster[r[inside], c[inside]]
     gr, gc = ctx.grid.cell_index(xyz[:, 0], xyz[:, 1], clip=True)
     with np.errstate(invalid="ignore"):
         on_top = np.abs(xyz[:, 2] - ctx.dsm[gr, gc]) < ctx.opts.tolerance
     lab[~on_top] = 0
-    agree = elevation_consistent(lab, feats[:, MEAN_ELEVATION], ctx.opts.label_split)
-    lab[~agree] = 0
-    keep = np.flatnonzero(lab > 0)
-    return feats[keep], lab[keep], int((~agree).sum())
+    return lab
