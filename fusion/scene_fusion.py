@@ -287,8 +287,9 @@ def view_features(
 
     With ``window`` (rows, columns), the lifted pixels in it, as flat indices in it: the
     elevation is interpolated over the whole image, the patches read the window alone.
-    With ``only`` (M,) sorted flat indices in the whole image, the lifted pixels among
-    them alone: their features are those they have among all.
+    With ``only``, (M,) sorted flat indices in the whole image or a function of the lifted
+    pixels and their points that returns which to keep ((N,), (N, 3) -> (N,) bool), those
+    pixels alone: their features are those they have among all.
 
     Returns
     -------
@@ -308,7 +309,7 @@ def view_features(
         all_pixels, all_xyz = lift_depth(view.camera, filled)
     elev = elevation_image(all_pixels, all_xyz, depth.shape, dtm, grid)
     if only is not None:
-        keep = np.isin(pixels, only, assume_unique=True)
+        keep = only(pixels, xyz) if callable(only) else np.isin(pixels, only, assume_unique=True)
         pixels, xyz = pixels[keep], xyz[keep]
     if window is not None:
         rgb, elev = rgb[window], elev[window]
@@ -431,12 +432,12 @@ class ViewContext:
     cues: np.ndarray | None
     forest: object = None
 
-    def features(self, v, seeing: Grid, only: np.ndarray | None = None) -> tuple:
+    def features(self, v, seeing: Grid, only=None) -> tuple:
         """The view's depth map, and the lifted pixels' features (Sigma Points and cues),
         the lifted pixels and their points in the window of its pixels that see the grid
         ``seeing`` (:func:`~fusion.observations.grid_window`, :func:`view_features`;
-        among the flat indices ``only`` alone if given), and the window; None for each
-        but the depth where no pixel does."""
+        those ``only`` names alone if given), and the window; None for each but the depth
+        where no pixel does."""
         depth = v.read_depth()
         window = grid_window(depth, v.camera, seeing, feature_margin(self.opts.patch))
         if window is None:
@@ -940,12 +941,13 @@ def labelled_pixels(i: int, ctx: ViewContext, labels: tuple) -> tuple:
     """Task: view ``i``'s labelled pixels: their features and labels, and the number of
     labelled pixels dropped by elevation. ``labels`` is (label raster, its grid).
 
-    Only the pixels on a stroke are described (a tenth of a view's on `small`): their
+    Only the pixels on a stroke are described (strokes cover 2.2 % of `small`'s cells): their
     features are those they have among all the view's (:func:`view_features`)."""
-    view = ctx.views[i]
-    pixels, xyz = lift_depth(view.camera, view.read_depth())
-    on_stroke = pixels[stroke_labels(xyz, labels, ctx) > 0]
-    _, feats, pixels, xyz, window = ctx.features(view, labels[1], on_stroke)
+
+    def on_stroke(pixels, xyz):
+        return stroke_labels(xyz, labels, ctx) > 0
+
+    _, feats, pixels, xyz, window = ctx.features(ctx.views[i], labels[1], on_stroke)
     if window is None:
         return np.zeros((0, 0), np.float32), np.zeros(0, np.uint8), 0  # the view sees no label
     lab = stroke_labels(xyz, labels, ctx)
