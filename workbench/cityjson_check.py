@@ -87,6 +87,9 @@ def check_shell(shell: list, vertices: np.ndarray) -> list[str]:
     """Problems of one solid shell: surfaces of rings of vertex indices into ``vertices``."""
     problems = []
     for f, surface in enumerate(shell):
+        if not newell_normal(vertices[surface[0]]).any():
+            problems.append(f"surface {f} has no area (its corners are collinear)")
+            continue
         off = _planarity(surface, vertices)
         if off > PLANARITY_M:
             problems.append(f"surface {f} not planar ({off * 100:.1f} cm off its plane)")
@@ -182,8 +185,11 @@ def _planarity(surface: list, vertices: np.ndarray) -> float:
 
 
 def _triangulate(surface: list, vertices: np.ndarray) -> np.ndarray:
-    """(t, 3) vertex indices of a planar polygon with holes, on its own vertices."""
+    """(t, 3) vertex indices of a planar polygon with holes, on its own vertices; none for
+    a polygon of no area (collinear corners), which GEOS cannot triangulate."""
     n = newell_normal(vertices[surface[0]])
+    if not n.any():
+        return np.zeros((0, 3), np.int64)
     drop = int(np.argmax(np.abs(n)))
     keep = [i for i in range(3) if i != drop]
     rings = [vertices[r][:, keep] for r in surface]
