@@ -87,10 +87,11 @@ def check_shell(shell: list, vertices: np.ndarray) -> list[str]:
     """Problems of one solid shell: surfaces of rings of vertex indices into ``vertices``."""
     problems = []
     for f, surface in enumerate(shell):
-        if not newell_normal(vertices[surface[0]]).any():
+        n = newell_normal(vertices[surface[0]])
+        if not n.any():
             problems.append(f"surface {f} has no area (its corners are collinear)")
             continue
-        off = _planarity(surface, vertices)
+        off = _planarity(surface, vertices, n)
         if off > PLANARITY_M:
             problems.append(f"surface {f} not planar ({off * 100:.1f} cm off its plane)")
     edges = Counter()
@@ -178,10 +179,11 @@ def _count(x, depth: int) -> int:
     return len(x) if depth == 1 else sum(_count(item, depth - 1) for item in x)
 
 
-def _planarity(surface: list, vertices: np.ndarray) -> float:
+def _planarity(surface: list, vertices: np.ndarray, n: np.ndarray) -> float:
+    """The farthest of a surface's vertices from its mean point along its unit normal
+    ``n``, metres."""
     P = vertices[np.concatenate(surface)]
-    n = newell_normal(vertices[surface[0]])
-    return float(np.abs((P - P.mean(axis=0)) @ n).max()) if n.any() else float("inf")
+    return float(np.abs((P - P.mean(axis=0)) @ n).max())
 
 
 def _triangulate(surface: list, vertices: np.ndarray) -> np.ndarray:
