@@ -2,6 +2,7 @@
 volume-keeping LOD1.2 block, and the solid checks, on hand-computed houses."""
 
 import math
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -77,6 +78,28 @@ def test_weld_merges_corners_a_few_millimetres_apart():
     T2[4] = [4, 5, 8]  # one triangle keeps the old corner
     cells, tri, kept = weld(V2, T2, 0.001)
     assert len(cells) == 10 and len(tri) == len(T) and len(kept) == len(T)
+
+
+def test_a_sliver_on_one_line_is_split_away_and_the_house_stays_a_closed_solid():
+    V, T = gable_house()
+    # the east eave 5 -> 6 gets a middle corner 10: the roof meets it, the wall does not,
+    # and a triangle (5, 6, 10) of no area closes the gap
+    V2 = np.vstack([V, (V[5] + V[6]) / 2])
+    T2 = np.vstack([T[T[:, 0] != 5], [[5, 10, 9], [10, 6, 9], [5, 9, 8], [5, 6, 10]]])
+    cells, tri, kept = weld(V2, T2, 0.001)
+    p = cells[tri]
+    assert np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]).any(axis=1).all()
+    assert len(tri) == len(T2) and len(kept) == len(tri)  # one gone, one split in two
+    edges = Counter(map(tuple, np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])))
+    assert all(n == 1 and edges[e[::-1]] == 1 for e, n in edges.items())
+    run = house_run()
+    run.buildings[0].mesh = Surface(V2, T2)
+    doc = city_model(run)
+    assert check_city_model(doc) == []
+    (obj,) = doc["CityObjects"].values()
+    shell = obj["geometry"][-1]["boundaries"][0]
+    # floor, west wall and roof; the gables; the east wall and roof, with corner 10
+    assert sorted(len(s[0]) for s in shell) == [4, 4, 4, 5, 5, 5, 5]
 
 
 def test_the_house_is_a_valid_solid_with_semantics_and_a_volume_keeping_lod1():

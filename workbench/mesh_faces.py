@@ -61,7 +61,8 @@ def weld(
     cells : (U, 3) int64
         The merged vertices in grid steps.
     triangles : (T', 3) int64
-        Triangles on them; those with two corners merged into one are dropped.
+        Triangles on them; those with two corners merged into one are dropped, those
+        left with their corners on one line removed by ``split_caps``.
     kept : (T',) int64
         Index of each kept triangle in the input.
     """
@@ -77,7 +78,62 @@ def weld(
     tri = inverse.reshape(-1)[cluster[np.asarray(triangles, np.int64)]]
     kept = np.flatnonzero((tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2])
                           & (tri[:, 2] != tri[:, 0]))  # fmt: skip
-    return cells, tri[kept], kept
+    tri, kept = split_caps(cells, tri[kept], kept)
+    return cells, tri, kept
+
+
+def split_caps(
+    cells: np.ndarray, triangles: np.ndarray, source: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Remove triangles whose three corners lie on one line, keeping the mesh closed.
+
+    Snapped to a grid, a sliver's corners can fall on one line: the triangle has no area
+    and no normal, and a city model's surface made of it is invalid. Its middle corner
+    ``b`` lies on its long edge ``a c``; the neighbour across that edge, ``(a, c, d)``, is
+    split at ``b`` into ``(a, b, d)`` and ``(b, c, d)``, which take over the sliver's two
+    short edges (an edge split, as in mesh repair). A neighbour that is the sliver
+    folded back, ``(a, c, b)``, goes with it; without a single neighbour across the long
+    edge (an open or non-manifold mesh) the sliver alone is dropped.
+
+    Parameters
+    ----------
+    cells : (V, 3) int64
+        Vertices on the grid (exact integer arithmetic finds the slivers).
+    triangles : (T, 3) int64
+        Triangles, no two corners equal.
+    source : (T,) int64
+        Index of each triangle in the caller's input; the two halves of a split
+        triangle keep the index of the triangle they came from.
+
+    Returns
+    -------
+    triangles : (T', 3) int64
+    source : (T',) int64
+    """
+    tri, source = np.asarray(triangles, np.int64), np.asarray(source, np.int64)
+    for _ in range(len(tri)):  # each pass removes one sliver
+        p = cells[tri]
+        flat = np.flatnonzero(~np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]).any(axis=1))
+        if not flat.size:
+            break
+        i = flat[0]
+        # the middle corner sees the other two on opposite sides
+        k = next(k for k in range(3) if np.dot(p[i, k - 1] - p[i, k], p[i, k - 2] - p[i, k]) < 0)
+        b, c, a = tri[i, k], tri[i, (k + 1) % 3], tri[i, (k + 2) % 3]  # long edge c -> a
+        across = [(j, r) for r in range(3)
+                  for j in np.flatnonzero((tri[:, r] == a) & (tri[:, r - 2] == c))]  # fmt: skip
+        keep = np.ones(len(tri), bool)
+        keep[i] = False
+        if len(across) == 1:
+            j, r = across[0]
+            d = tri[j, (r + 2) % 3]
+            keep[j] = False
+        if len(across) == 1 and d != b:
+            tri = np.vstack([tri[keep], [[a, b, d], [b, c, d]]])
+            source = np.concatenate([source[keep], [source[j]] * 2])
+        else:
+            tri, source = tri[keep], source[keep]
+    return tri, source
 
 
 def planar_faces(
