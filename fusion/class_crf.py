@@ -69,21 +69,15 @@ def contrast_betas(ortho: np.ndarray, dsm: np.ndarray, seen: np.ndarray) -> tupl
     return 1.0 / (2.0 * max(mc, 1e-12)), 1.0 / (2.0 * max(mh, 1e-12))
 
 
-@dataclass
-class CrfProblem:
-    """What every tile's task reads: the grid's confidences (4, H, W), ortho (H, W, 3),
-    DSM and seen cells (H, W), the weight, the contrasts' betas (the whole grid's), the
-    sweeps and the tile side."""
+@dataclass(frozen=True)
+class CrfWeights:
+    """What every tile's task shares: the pairwise weight, the contrasts' betas (the
+    whole grid's, so that the weights do not depend on the tiling) and the sweeps."""
 
-    class_prob: np.ndarray
-    ortho: np.ndarray
-    dsm: np.ndarray
-    seen: np.ndarray
     omega: float
     beta_c: float
     beta_h: float
     max_sweeps: int
-    tile: int
 
 
 def contrast_class_crf(
@@ -123,29 +117,36 @@ def contrast_class_crf(
     if omega <= 0 or not seen.any():
         return codes
     beta_c, beta_h = contrast_betas(ortho, dsm, seen)
-    problem = CrfProblem(class_prob, ortho, dsm, seen, omega, beta_c, beta_h, max_sweeps, tile)
+    weights = CrfWeights(omega, beta_c, beta_h, max_sweeps)
     H, W = seen.shape
     corners = [(r0, c0) for r0 in range(0, H, tile) for c0 in range(0, W, tile)]
+    # each task takes its tile's window along: no worker holds the whole grid
+    items = [tile_window(corner, tile, class_prob, ortho, dsm, seen) for corner in corners]
     engine = engine or ThreadEngine(1)
-    labels = engine.map(crf_tile, corners, engine.share(problem), stage="class_crf")
+    labels = engine.map(crf_tile, items, weights, stage="class_crf")
     for (r0, c0), core in zip(corners, labels, strict=True):
         codes[r0 : r0 + core.shape[0], c0 : c0 + core.shape[1]] = core
     return codes
 
 
-def crf_tile(corner: tuple[int, int], problem: CrfProblem) -> np.ndarray:
-    """Task: the labels (uint8 codes, 0 unseen) of the tile whose first cell is
-    ``corner``, solved with ``MARGIN`` cells of context on every side."""
+def tile_window(corner: tuple[int, int], tile: int, class_prob, ortho, dsm, seen) -> tuple:
+    """The tile whose first cell is ``corner`` with ``MARGIN`` cells of context on every
+    side: its (rows, columns) in the window, and the window of each raster (views)."""
     r0, c0 = corner
-    H, W = problem.seen.shape
-    t = problem.tile
-    rs = slice(max(r0 - MARGIN, 0), min(r0 + t + MARGIN, H))
-    cs = slice(max(c0 - MARGIN, 0), min(c0 + t + MARGIN, W))
-    labels = _solve(problem.class_prob[:, rs, cs], problem.ortho[rs, cs], problem.dsm[rs, cs],
-                    problem.seen[rs, cs], problem.omega, problem.beta_c, problem.beta_h,
-                    problem.max_sweeps)  # fmt: skip
-    return labels[r0 - rs.start : r0 - rs.start + min(t, H - r0),
-                  c0 - cs.start : c0 - cs.start + min(t, W - c0)]  # fmt: skip
+    H, W = seen.shape
+    rs = slice(max(r0 - MARGIN, 0), min(r0 + tile + MARGIN, H))
+    cs = slice(max(c0 - MARGIN, 0), min(c0 + tile + MARGIN, W))
+    core = (slice(r0 - rs.start, r0 - rs.start + min(tile, H - r0)),
+            slice(c0 - cs.start, c0 - cs.start + min(tile, W - c0)))  # fmt: skip
+    return core, class_prob[:, rs, cs], ortho[rs, cs], dsm[rs, cs], seen[rs, cs]
+
+
+def crf_tile(item: tuple, how: CrfWeights) -> np.ndarray:
+    """Task: the labels (uint8 codes, 0 unseen) of one tile (:func:`tile_window`),
+    solved on its window."""
+    core, prob, ortho, dsm, seen = item
+    labels = _solve(prob, ortho, dsm, seen, how.omega, how.beta_c, how.beta_h, how.max_sweeps)
+    return labels[core]
 
 
 def _solve(prob, ortho, dsm, seen, omega, beta_c, beta_h, max_sweeps) -> np.ndarray:

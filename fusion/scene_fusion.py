@@ -70,6 +70,7 @@ from .classifier import (
 from .crowns import BENEATH_TOP_M, CROWN_QUANTILE, crown_sightings, crown_tops
 from .dsm_depth import DsmSurface
 from .geometry_cues import cue_columns, geometric_cues
+from .grid_rasters import GridRasters
 from .ground import dtm_from_dsm
 from .interpolate import push_pull_fill, small_holes
 from .observations import (
@@ -366,7 +367,8 @@ def fuse_views(
             # the top surface (beside towers, in their shadows) the ground is the better guess
             surface = DsmSurface(np.where(np.isfinite(dsm), dsm, dtm_full), grid)
             cues = geometric_cues(dsm, h.spread, grid.gsd) if opts.geometry_cues else None
-            ctx = ViewContext(views, grid, opts, dsm, dtm, surface, cues)
+            rasters = GridRasters.write(folder, grid, surface, dsm=dsm, dtm=dtm, cues=cues)
+            ctx = ViewContext(views, grid, opts, rasters)
         with timer.stage("training"):
             forest, class_source = _forest(scene, ctx, opts, engine)
         with timer.stage("classification"):
@@ -420,16 +422,14 @@ def _scratch(engine: Engine):
 class ViewContext:
     """What a view's features need, shared by the tasks of the training and the
     classification: the views, the grid, the options, the fused DSM and DTM, the surface
-    that fills unmatched pixels, the geometric cues (or None), and the forest once
+    that fills unmatched pixels and the geometric cues (in files a task reads the cells
+    it needs of: :class:`~fusion.grid_rasters.GridRasters`), and the forest once
     trained."""
 
     views: list
     grid: Grid
     opts: FusionOptions
-    dsm: np.ndarray
-    dtm: np.ndarray
-    surface: DsmSurface
-    cues: np.ndarray | None
+    rasters: GridRasters
     forest: object = None
 
     def features(self, v, seeing: Grid, only=None) -> tuple:
@@ -442,9 +442,10 @@ class ViewContext:
         window = grid_window(depth, v.camera, seeing, feature_margin(self.opts.patch))
         if window is None:
             return depth, None, None, None, None
+        r = self.rasters
         feats, pixels, xyz = view_features(
-            v, v.read_image(), depth, self.dtm, self.grid, self.opts.patch, self.surface,
-            self.cues, window, only,
+            v, v.read_image(), depth, r.read("dtm"), self.grid, self.opts.patch, r.surface(),
+            r.read("cues"), window, only,
         )  # fmt: skip
         return depth, feats, pixels, xyz, window
 
@@ -909,7 +910,7 @@ def _train(ctx: ViewContext, labels_path, engine: Engine):
     """
     opts = ctx.opts
     data, label_grid, _ = read_raster(labels_path, field="training_labels")
-    labels = (data[0], label_grid)
+    labels = (ctx.rasters.keep("training_labels", data[0]), label_grid)  # a file, mapped
     rng = np.random.default_rng(opts.seed)
     # a spread subset of views gives as varied samples as all of them, in less time
     step = max(1, int(np.ceil(len(ctx.views) / opts.training_views)))
@@ -939,7 +940,8 @@ def _train(ctx: ViewContext, labels_path, engine: Engine):
 
 def labelled_pixels(i: int, ctx: ViewContext, labels: tuple) -> tuple:
     """Task: view ``i``'s labelled pixels: their features and labels, and the number of
-    labelled pixels dropped by elevation. ``labels`` is (label raster, its grid).
+    labelled pixels dropped by elevation. ``labels`` is (label raster's .npy file, its
+    grid).
 
     Only the pixels on a stroke are described (strokes cover 2.2 % of `small`'s cells): their
     features are those they have among all the view's (:func:`view_features`)."""
@@ -961,13 +963,14 @@ def stroke_labels(xyz: np.ndarray, labels: tuple, ctx: ViewContext) -> np.ndarra
     """(N,) uint8 class of the stroke under each point (N, 3), 0 where none, or where the
     point is not on the fused top surface (within the DSM's tolerance): a facade's or a
     rounded edge's point would teach its stroke's class to what lies below the roof."""
-    label_raster, label_grid = labels
+    label_file, label_grid = labels
+    label_raster = np.load(label_file, mmap_mode="r")
     r, c = label_grid.cell_index(xyz[:, 0], xyz[:, 1])
     inside = label_grid.contains(r, c)
     lab = np.zeros(len(xyz), np.uint8)
     lab[inside] = label_raster[r[inside], c[inside]]
     gr, gc = ctx.grid.cell_index(xyz[:, 0], xyz[:, 1], clip=True)
     with np.errstate(invalid="ignore"):
-        on_top = np.abs(xyz[:, 2] - ctx.dsm[gr, gc]) < ctx.opts.tolerance
+        on_top = np.abs(xyz[:, 2] - ctx.rasters.read("dsm")[gr, gc]) < ctx.opts.tolerance
     lab[~on_top] = 0
     return lab

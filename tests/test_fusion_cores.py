@@ -658,8 +658,49 @@ def test_view_features_of_a_window_are_those_of_the_whole_image():
     )
 
 
-def test_dsm_surface_depth_at_some_pixels_is_its_depth_map_there():
+def test_ray_window_bounds_where_rays_from_above_can_meet_the_heights():
+    from fusion.dsm_depth import ray_window
+
+    grid = Grid.from_bounds(-50.0, -50.0, 50.0, 50.0, 1.0)
+    dirs = np.array([[0.1, 0.0, -1.0], [0.0, 0.0, 1.0]])
+    # the first ray crosses z = 10 at x = 9 and z = 0 at x = 10 (columns 59 and 60, row
+    # 50), a cell added around; the second goes up
+    rows, cols, rays = ray_window(np.array([0.0, 0.0, 100.0]), dirs, grid, (0.0, 10.0))
+    assert (rows, cols) == (slice(49, 52), slice(58, 62))
+    assert rays.tolist() == [True, False]
+    assert ray_window(np.array([0.0, 0.0, 100.0]), dirs[1:], grid, (0.0, 10.0)) is None
+    # from within the heights, anywhere
+    rows, cols, rays = ray_window(np.array([0.0, 0.0, 5.0]), dirs, grid, (0.0, 10.0))
+    assert (rows, cols) == (slice(0, 100), slice(0, 100)) and rays.all()
+
+
+def test_grid_rasters_are_read_from_their_files_at_the_cells_asked_for(tmp_path):
     from fusion.dsm_depth import DsmSurface
+    from fusion.grid_rasters import GridRasters
+
+    grid = Grid.from_bounds(-30.0, -30.0, 30.0, 30.0, 0.5)
+    X, Y = grid.cell_centers()
+    dsm = np.where((np.abs(X) < 8) & (np.abs(Y - 5) < 6), 10.0, 0.02 * X).astype(np.float32)
+    dsm[3, 4] = np.nan
+    dtm, cues = 0.02 * X, np.stack([X, Y]).astype(np.float32)
+    surface = DsmSurface(dsm, grid)
+    rasters = GridRasters.write(tmp_path, grid, surface, dsm=dsm, dtm=dtm, cues=cues)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "cues.npy", "dsm.npy", "dtm.npy", "filled.npy"]  # fmt: skip
+    assert isinstance(rasters.read("dtm"), np.memmap) and rasters.read("none") is None
+    r, c = np.array([0, 3, 119]), np.array([5, 4, 0])
+    np.testing.assert_array_equal(rasters.read("dsm")[r, c], dsm[r, c])
+    np.testing.assert_array_equal(rasters.read("cues")[:, r, c], cues[:, r, c])
+    # a task's surface casts as the whole one does, from the mapped heights
+    cam, _ = _oblique_view_of_a_block()
+    pixels = np.random.default_rng(1).choice(cam.width * cam.height, 500, replace=False)
+    np.testing.assert_array_equal(
+        rasters.surface().depth_at(cam, pixels), surface.depth_map(cam).ravel()[pixels]
+    )
+
+
+def test_dsm_surface_depth_at_some_pixels_is_its_depth_map_there():
+    from fusion.dsm_depth import BYTES_PER_QUAD, DsmSurface, ray_window
 
     grid = Grid.from_bounds(-30.0, -30.0, 30.0, 30.0, 0.5)
     X, Y = grid.cell_centers()
@@ -669,5 +710,16 @@ def test_dsm_surface_depth_at_some_pixels_is_its_depth_map_there():
     whole = surface.depth_map(cam).ravel()
     pixels = np.random.default_rng(0).choice(whole.size, 2000, replace=False)
     np.testing.assert_array_equal(surface.depth_at(cam, pixels), whole[pixels])
+    # a patch of the image is cast against a window of the surface, with the same result
+    patch = (np.arange(90, 110)[:, None] * cam.width + np.arange(130, 170)).ravel()
+    origin, dirs = cam.pixel_grid_rays()
+    rows, cols, _ = ray_window(origin, dirs[patch], grid, surface.z_range)
+    assert (rows.stop - rows.start) * (cols.stop - cols.start) < 0.5 * grid.width * grid.height
+    np.testing.assert_array_equal(surface.depth_at(cam, patch), whole[patch])
+    # in tiles of 16 x 16 quads, four kept at most: the same depths
+    budget = 4 * 16 * 16 * BYTES_PER_QUAD / 2**20
+    tiled = DsmSurface(dsm, grid, tile=16, budget_mb=budget)
+    np.testing.assert_array_equal(tiled.depth_at(cam, pixels), whole[pixels])
+    assert len(tiled._tiles) == 4
     roof = np.isfinite(whole) & (whole < np.nanmedian(whole) - 5)
     assert roof.sum() > 1000  # the block's roof is nearer than the ground behind it
