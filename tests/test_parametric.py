@@ -252,6 +252,29 @@ def test_the_classes_make_a_segment_a_tree_unless_a_planar_roof_fits_it():
     assert building_task(1, inputs, options).building is not None
 
 
+def test_a_segment_classed_building_with_a_planar_roof_is_modelled_whatever_the_label():
+    """Eq. 4's unknown label, made cheap (lambda 0.3), wins over every prior of a flat
+    block; the fusion classing it building, and its fitted roof planar, it is modelled
+    all the same (``unknown_label_overruled``); a leafy top classed building is not."""
+    grid = Grid(-20.0, 16.0, 0.25, 160, 128)
+    X, Y = np.meshgrid(np.arange(grid.width), np.arange(grid.height))
+    block = (np.abs(X - 80) < 40) & (np.abs(Y - 64) < 30)
+    segments = block.astype(np.int32)
+    inputs = ParametricInputs(grid, np.where(block, 12.0, 0.0), np.zeros(block.shape),
+                              np.zeros(block.shape + (3,), np.uint8), segments,
+                              segment_boxes(segments, 1))  # fmt: skip
+    options = ParametricOptions(lambda_=0.3)
+    assert "unknown object" in building_task(1, inputs, options).skipped
+    inputs.building = block
+    b = building_task(1, inputs, options).building
+    assert b.record["unknown_label_overruled"] and b.record["family"] == "rect"
+    assert b.roof_type == "flat" and abs(b.ridge_z - 12.0) < 0.05
+    assert abs(b.footprint.area - 80 * 60 * 0.25**2) < 8.0
+    domes = 12.0 + 2.0 * np.abs(np.sin(X / 6.0) * np.sin(Y / 6.0))
+    inputs.dsm = np.where(block, domes + np.random.default_rng(2).normal(0, 0.5, X.shape), 0.0)
+    assert "unknown object" in building_task(1, inputs, options).skipped
+
+
 def test_tree_cells_are_the_class_maps_else_the_probabilities(tiny_fusion, tmp_path):
     """Where the run has its class map, the map decides which cells are tree, not the
     probabilities cell by cell; without one, tree outweighing building does; a map on

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .raster import BUILDING, TREE, Grid, read_raster
+from .raster import BUILDING, TREE, Grid, class_codes, read_raster
 
 BANDS = {"ortho": 3, "class_prob": 4}  # rasters with more than one band
 
@@ -99,13 +99,19 @@ def classed_tree(fusion_dir: Path, grid: Grid) -> np.ndarray | None:
     """(H, W) bool cells the fusion's class map (``class.tif``) says are tree, or None
     when the run has none. On seeds 0-2 it calls 7 segments of crowns tree that the
     probabilities, cell by cell, give to building, and no building."""
+    return classed_as(fusion_dir, grid, TREE)
+
+
+def classed_as(fusion_dir: Path, grid: Grid, code: int) -> np.ndarray | None:
+    """(H, W) bool cells of class ``code`` in the fusion's class map (``class.tif``), or
+    None when the run has none."""
     if not (Path(fusion_dir) / "class.tif").exists():
         return None
     classes = read_fusion_run(fusion_dir, ("class",))
     if classes.grid != grid:
         raise InputError(Path(fusion_dir) / "class.tif", "transform", "grid differs from the "
                          "fusion's other rasters'")  # fmt: skip
-    return classes.rasters["class"][0] == TREE
+    return classes.rasters["class"][0] == code
 
 
 def tree_cells(fusion_dir: Path, grid: Grid, class_prob: np.ndarray) -> np.ndarray:
@@ -117,3 +123,11 @@ def tree_cells(fusion_dir: Path, grid: Grid, class_prob: np.ndarray) -> np.ndarr
         return classed
     prob = np.nan_to_num(np.asarray(class_prob, np.float64))
     return prob[TREE - 1] > prob[BUILDING - 1]
+
+
+def building_cells(fusion_dir: Path, grid: Grid, class_prob: np.ndarray) -> np.ndarray:
+    """(H, W) bool the cells the fusion calls building: its class map's, or where the run
+    has no ``class.tif``, those whose most probable class in ``class_prob`` (4, H, W) is
+    building."""
+    classed = classed_as(fusion_dir, grid, BUILDING)
+    return classed if classed is not None else class_codes(class_prob) == BUILDING

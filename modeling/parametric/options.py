@@ -27,7 +27,8 @@ class ParametricOptions:
     )  # fmt: skip
     lambda_: float = option(
         0.95, "cost of the unknown-object label per cell (eq. 4): a segment that no prior "
-        "explains better is left to the data term and not modelled", flag="--lambda",
+        "explains better is left to the data term and not modelled (one the fusion classes "
+        "building is always modelled)", flag="--lambda",
     )  # fmt: skip
     height_weight: float = option(
         0.85, "weight of the height's region term against the colour's (eq. 1's varrho)",
