@@ -20,8 +20,11 @@ from workbench.raycast import cast, raycasting_scene
 from .interpolate import push_pull_fill
 
 TILE_QUADS = 256  # quads a side of a tile of the surface that depth_at casts against
-TILE_BUDGET_MB = 256  # a surface's tiles kept at once, the least recently used dropped
-BYTES_PER_QUAD = 256  # a quad's two triangles in Open3D's scene, its BVH built: 160-260
+# a surface's tiles kept at once, the least recently used dropped: the whole 1 km² city at
+# 0.4 m (100 tiles), whose views each need 40 tiles (median): with 16 kept, every view
+# rebuilt most of its own (4 s a view)
+TILE_BUDGET_MB = 1024
+BYTES_PER_QUAD = 160  # a quad's two triangles in Open3D's scene, BVH built: 146 in a tile
 
 
 class DsmSurface:
@@ -33,8 +36,9 @@ class DsmSurface:
     :meth:`depth_map` casts against the whole surface (built once, kept). :meth:`depth_at`
     casts against tiles of ``tile`` x ``tile`` quads, each built when a ray first may meet
     it and kept while the tiles fit in ``budget_mb`` (least recently used dropped first):
-    the same triangles, so the same depths, in a memory that does not grow with the area
-    (a whole 1 km² surface at 0.4 m is 974 MiB once cast against; `small`'s 158 MiB fits).
+    the same triangles, so the same depths, in a memory bounded whatever the area (a
+    whole 1 km² surface at 0.4 m, 974 MiB once cast against, fits; beyond, the tiles
+    a view does not need go first).
 
     Parameters
     ----------
