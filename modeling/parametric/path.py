@@ -301,12 +301,12 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     found = overruled = None
     if inputs.tree is not None:
         tree = inputs.tree[r0:r1, c0:c1]
-        if (mask & tree).sum() > 0.5 * mask.sum():  # eq. 4's unknown label, on the classes
+        if _classed(mask, inputs.tree, (r0, c0)):  # eq. 4's unknown label, on the classes
             # unless its roof is planar: then the classes took a roof for a tree by its
             # colour (a green roof), and say nothing of crowns on it either
-            found = segment_roofs(mask, dsm, dtm, xs, ys, crop, options, min_cells, lambda_)
-            overruled = planar_residual(found, dsm, mask)
-            if overruled is None or overruled >= options.planar_m:
+            found, overruled = planar_roof(mask, dsm, dtm, xs, ys, crop, options, min_cells,
+                                           lambda_)  # fmt: skip
+            if found is None:
                 return SegmentResult(k, skipped="a tree: the fusion classes most of it tree "
                                                 "and no planar roof fits it")  # fmt: skip
         else:  # crowns from the class map: the probabilities' cell by cell are ragged, and
@@ -427,10 +427,18 @@ def building_all_the_same(why: str, mask, dsm, dtm, xs, ys, crop: Grid, options,
     the priors fit poorly is left out of the model altogether: small seed 5 lost a T
     and a U, by 0.4 and 15 % of their energy; the T's roof leaves 0.04 m and is kept,
     the rectangle over the U 0.43 m, and it stays out."""
-    found = segment_roofs(mask, dsm, dtm, xs, ys, crop, options, min_cells, np.inf)
+    found, residual = planar_roof(mask, dsm, dtm, xs, ys, crop, options, min_cells, np.inf)
+    return (why, None) if found is None else (found, residual)
+
+
+def planar_roof(mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells, lambda_) -> tuple:
+    """:func:`segment_roofs` on the segment ``mask`` and the median residual its roof
+    leaves there (:func:`planar_residual`), or (None, None) unless that is under
+    ``options.planar_m``: a roof, not a crown."""
+    found = segment_roofs(mask, dsm, dtm, xs, ys, crop, options, min_cells, lambda_)
     residual = planar_residual(found, dsm, mask)
     if residual is None or residual >= options.planar_m:
-        return why, None
+        return None, None
     return found, residual
 
 
