@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from workbench.engine import disk_full
 from workbench.raster import Grid
 
 from .dsm_depth import DsmSurface
@@ -54,13 +55,13 @@ class GridRasters:
         kept = {name: a for name, a in {**rasters, "filled": surface.filled}.items()
                 if a is not None}  # fmt: skip
         for name, array in kept.items():
-            np.save(Path(folder) / f"{name}.npy", array)
+            _save(Path(folder) / f"{name}.npy", array)
         return cls(grid, Path(folder), tuple(kept), surface.origin, surface.z_range)
 
     def keep(self, name: str, array: np.ndarray) -> Path:
         """Write another array (on a grid of its own) beside the rasters; its file."""
         path = self.folder / f"{name}.npy"
-        np.save(path, array)
+        _save(path, array)
         return path
 
     def read(self, name: str) -> np.ndarray | None:
@@ -78,3 +79,14 @@ class GridRasters:
                 self.folder / "filled.npy", self.grid, self.surface_origin, self.surface_z_range
             )
         return self._surface
+
+
+def _save(path: Path, array: np.ndarray) -> None:
+    """``np.save``, a full disk named in one line (the tasks finished before are kept)."""
+    try:
+        np.save(path, array)
+    except OSError as e:
+        full = disk_full(e, path)
+        if full is None:
+            raise
+        raise full from None

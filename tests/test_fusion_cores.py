@@ -699,6 +699,24 @@ def test_grid_rasters_are_read_from_their_files_at_the_cells_asked_for(tmp_path)
     )
 
 
+def test_grid_rasters_on_a_full_disk_say_so_in_one_line(tmp_path, monkeypatch):
+    import errno
+
+    from fusion import grid_rasters
+    from fusion.dsm_depth import DsmSurface
+    from workbench.errors import WorkbenchError
+
+    grid = Grid.from_bounds(0.0, 0.0, 4.0, 4.0, 1.0)
+
+    def full(path, array):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(grid_rasters.np, "save", full)
+    with pytest.raises(WorkbenchError, match=r"dsm\.npy: disk full .* --resume"):
+        grid_rasters.GridRasters.write(tmp_path, grid, DsmSurface(np.zeros((4, 4)), grid),
+                                       dsm=np.zeros((4, 4)))  # fmt: skip
+
+
 def test_dsm_surface_depth_at_some_pixels_is_its_depth_map_there():
     from fusion.dsm_depth import BYTES_PER_QUAD, DsmSurface, ray_window
 
