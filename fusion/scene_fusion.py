@@ -36,7 +36,9 @@ from __future__ import annotations
 import copy
 import logging
 import os
+import shutil
 import tempfile
+import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -414,8 +416,25 @@ def _scratch(engine: Engine):
     if engine.store is not None:
         yield engine.store.scratch("views")
         return
-    with tempfile.TemporaryDirectory(prefix="fusion-") as folder:
-        yield Path(folder)
+    folder = Path(tempfile.mkdtemp(prefix="fusion-"))
+    try:
+        yield folder
+    finally:
+        remove_folder(folder)
+
+
+def remove_folder(folder: Path, tries: int = 20, pause_s: float = 0.25) -> None:
+    """Remove the scratch ``folder``. When a task failed, its siblings already running
+    on the workers are not stopped by their cancellation and may write a file into it
+    while it is removed; they fail once it is gone (no task creates it), so a few tries
+    apart remove it; one left behind is named in a warning, not an error hiding the
+    task's."""
+    for _ in range(tries):
+        shutil.rmtree(folder, ignore_errors=True)
+        if not folder.exists():
+            return
+        time.sleep(pause_s)
+    log.warning("%s: could not remove this scratch folder; remove it by hand", folder)
 
 
 @dataclass

@@ -201,6 +201,32 @@ def test_a_worker_that_cannot_read_an_image_names_it(cluster, tiny_scene, tmp_pa
     assert err.value.path == str(gone) and "\n" not in str(err.value)
 
 
+def test_the_scratch_folder_goes_although_a_task_still_writes_into_it(tmp_path, monkeypatch):
+    """A failed run's siblings go on writing into the scratch folder (a cancelled task
+    already running is not stopped): a file saved while the folder is removed (the CI
+    once failed with ENOTEMPTY on this) is removed by the next try, and no error hides
+    the task's."""
+    from fusion import scene_fusion
+
+    folder = tmp_path / "fusion-scratch"
+    folder.mkdir()
+    (folder / "0_probs.npy").write_bytes(b"x")
+    rmtree, tries = shutil.rmtree, []
+
+    def rmtree_as_a_sibling_saves(path, ignore_errors=False):
+        tries.append(path)
+        if len(tries) > 1:
+            return rmtree(path, ignore_errors=ignore_errors)
+        (path / "0_probs.npy").unlink()  # the files listed go ...
+        (path / "1_probs.npy").write_bytes(b"x")  # ... a sibling saves one, and rmdir fails
+        if not ignore_errors:
+            raise OSError(errno.ENOTEMPTY, "Directory not empty", str(path))
+
+    monkeypatch.setattr(scene_fusion.shutil, "rmtree", rmtree_as_a_sibling_saves)
+    scene_fusion.remove_folder(folder, pause_s=0.0)
+    assert not folder.exists() and len(tries) == 2
+
+
 @pytest.mark.slow
 def test_two_worker_processes_give_the_products_of_one_process(
     cluster, tiny_scene, tiny_fusion_one_process, tmp_path
