@@ -46,7 +46,7 @@ from modeling.shared.opened_parts import building_segments
 from modeling.shared.roof_envelope import building_solid
 from tests.conftest import SHARED_DATA, run_cli
 from workbench.errors import InputError
-from workbench.fusion_run import read_fusion_run, tree_cells
+from workbench.fusion_run import class_map, read_fusion_run, tree_cells
 from workbench.meshes import is_watertight
 from workbench.raster import BUILDING, TREE, Grid
 
@@ -283,16 +283,17 @@ def test_tree_cells_are_the_class_maps_else_the_probabilities(tiny_fusion, tmp_p
     classes, prob = fusion.rasters["class"][0], fusion.rasters["class_prob"]
     by_prob = np.nan_to_num(prob[TREE - 1]) > np.nan_to_num(prob[BUILDING - 1])
     assert (classes == TREE).sum() > 1000 and (by_prob != (classes == TREE)).sum() > 100
-    cells = tree_cells(tiny_fusion, fusion.grid, prob)
+    cells = tree_cells(class_map(tiny_fusion, fusion.grid), prob)
     assert np.array_equal(cells, classes == TREE)
     bare = tmp_path / "bare"
     shutil.copytree(tiny_fusion, bare)
     (bare / "class.tif").unlink()
-    assert np.array_equal(tree_cells(bare, fusion.grid, prob), by_prob)
+    assert class_map(bare, fusion.grid) is None
+    assert np.array_equal(tree_cells(None, prob), by_prob)
     other = Grid(fusion.grid.xmin + 3.0, fusion.grid.ymax, fusion.grid.gsd,
                  fusion.grid.width, fusion.grid.height)  # fmt: skip
     with pytest.raises(InputError, match="class.tif"):
-        tree_cells(tiny_fusion, other, prob)
+        class_map(tiny_fusion, other)
 
 
 def test_a_rough_block_on_the_roof_is_no_tier():

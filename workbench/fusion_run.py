@@ -95,39 +95,33 @@ def _record(path: Path) -> dict:
     return doc if isinstance(doc, dict) else {}
 
 
-def classed_tree(fusion_dir: Path, grid: Grid) -> np.ndarray | None:
-    """(H, W) bool cells the fusion's class map (``class.tif``) says are tree, or None
-    when the run has none. On seeds 0-2 it calls 7 segments of crowns tree that the
-    probabilities, cell by cell, give to building, and no building."""
-    return classed_as(fusion_dir, grid, TREE)
-
-
-def classed_as(fusion_dir: Path, grid: Grid, code: int) -> np.ndarray | None:
-    """(H, W) bool cells of class ``code`` in the fusion's class map (``class.tif``), or
-    None when the run has none."""
+def class_map(fusion_dir: Path, grid: Grid) -> np.ndarray | None:
+    """(H, W) the class codes of the fusion's class map (``class.tif``), or None when the
+    run has none (a cloud's, a run from another tool)."""
     if not (Path(fusion_dir) / "class.tif").exists():
         return None
     classes = read_fusion_run(fusion_dir, ("class",))
     if classes.grid != grid:
         raise InputError(Path(fusion_dir) / "class.tif", "transform", "grid differs from the "
                          "fusion's other rasters'")  # fmt: skip
-    return classes.rasters["class"][0] == code
+    return classes.rasters["class"][0]
 
 
-def tree_cells(fusion_dir: Path, grid: Grid, class_prob: np.ndarray) -> np.ndarray:
-    """(H, W) bool the cells the fusion calls tree: its class map's (:func:`classed_tree`),
-    or where the run has no ``class.tif`` (a cloud's, a run from another tool), those
-    whose tree probability outweighs building's in ``class_prob`` (4, H, W)."""
-    classed = classed_tree(fusion_dir, grid)
-    if classed is not None:
-        return classed
+def tree_cells(classes: np.ndarray | None, class_prob: np.ndarray) -> np.ndarray:
+    """(H, W) bool the cells the fusion calls tree: its class map's (``classes``, of
+    :func:`class_map`; on seeds 0-2 it calls 7 segments of crowns tree that the
+    probabilities, cell by cell, give to building, and no building), or with no class
+    map those whose tree probability outweighs building's in ``class_prob`` (4, H, W)."""
+    if classes is not None:
+        return classes == TREE
     prob = np.nan_to_num(np.asarray(class_prob, np.float64))
     return prob[TREE - 1] > prob[BUILDING - 1]
 
 
-def building_cells(fusion_dir: Path, grid: Grid, class_prob: np.ndarray) -> np.ndarray:
-    """(H, W) bool the cells the fusion calls building: its class map's, or where the run
-    has no ``class.tif``, those whose most probable class in ``class_prob`` (4, H, W) is
-    building."""
-    classed = classed_as(fusion_dir, grid, BUILDING)
-    return classed if classed is not None else class_codes(class_prob) == BUILDING
+def building_cells(classes: np.ndarray | None, class_prob: np.ndarray) -> np.ndarray:
+    """(H, W) bool the cells the fusion calls building: its class map's (``classes``, of
+    :func:`class_map`), or with no class map those whose most probable class in
+    ``class_prob`` (4, H, W) is building."""
+    if classes is not None:
+        return classes == BUILDING
+    return class_codes(class_prob) == BUILDING

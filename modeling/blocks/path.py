@@ -26,7 +26,7 @@ from modeling.shared.roof_envelope import BuildingMesh, building_solid, face_pla
 from modeling.shared.roof_model import closed_roof_model
 from workbench.engine import Engine, ThreadEngine
 from workbench.errors import InputError
-from workbench.fusion_run import classed_tree, read_fusion_run, tree_cells
+from workbench.fusion_run import class_map, read_fusion_run, tree_cells
 from workbench.meshes import is_watertight
 from workbench.model_run import Building, ModelRun, Surface
 from workbench.raster import BUILDING, Grid
@@ -116,7 +116,7 @@ def run_blocks(
         prob = np.nan_to_num(fusion.rasters["class_prob"].astype(np.float64))
         # crowns are no roof: left out of every likelihood (the class map's where the run
         # has one: the probabilities cell by cell leave a crown over a roof ragged)
-        crowns = None if options.all_building else tree_cells(fusion_dir, grid, prob)
+        crowns = None if options.all_building else tree_cells(class_map(fusion_dir, grid), prob)
     with timer.stage("supports"):
         if supports is not None:
             inputs = _given_supports(supports, fusion, grid, dsm, dtm, crowns)
@@ -171,7 +171,7 @@ def check_inputs(fusion_dir: Path, options: BlocksOptions, supports: Path | None
     noise after it)."""
     fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
     if not options.all_building:
-        classed_tree(fusion_dir, fusion.grid)  # a class map on another grid
+        class_map(fusion_dir, fusion.grid)  # a class map on another grid
     if supports is not None:
         _given_supports(supports, fusion, fusion.grid, None, None, None)
 

@@ -35,7 +35,7 @@ from modeling.shared.raster_ground import ground_surface, vertex_colours
 from modeling.shared.roof_envelope import building_solid, face_planes
 from workbench.engine import Engine, ThreadEngine
 from workbench.errors import InputError
-from workbench.fusion_run import building_cells, classed_tree, read_fusion_run, tree_cells
+from workbench.fusion_run import building_cells, class_map, read_fusion_run, tree_cells
 from workbench.meshes import is_watertight
 from workbench.model_run import Building, ModelRun, Surface
 from workbench.raster import BUILDING, Grid
@@ -158,8 +158,10 @@ def run_parametric(
             init, init_source = initial_region(fusion, footprints)
         sources = region_sources(fusion, options)
         prob = fusion.rasters["class_prob"]
-        tree = None if options.all_building else tree_cells(fusion_dir, grid, prob)
-        building = None if options.all_building else building_cells(fusion_dir, grid, prob)
+        tree = building = None
+        if not options.all_building:
+            classes = class_map(fusion_dir, grid)
+            tree, building = tree_cells(classes, prob), building_cells(classes, prob)
     pull = None
     results: list[SegmentResult] = []
     rounds = []
@@ -225,7 +227,7 @@ def check_inputs(
     after it)."""
     fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
     if not options.all_building:
-        classed_tree(fusion_dir, fusion.grid)  # a class map on another grid
+        class_map(fusion_dir, fusion.grid)  # a class map on another grid
     if footprints is not None and not options.all_building:
         initial_region(fusion, footprints)
 
