@@ -24,21 +24,41 @@ from workbench.robust import plane_residual_from_moments
 CUES = ("plane_residual_1.25m", "plane_residual_2.25m", "height_spread")
 WINDOWS_M = (1.25, 2.25)
 UNKNOWN = -1.0  # the forest's value for a cue no cell gives (NaN it cannot split on)
+TILE_CELLS = 512  # plane_residual's tiles: 512 x 512 cells of float64 moments, ~45 MB
 
 
-def plane_residual(dsm: np.ndarray, size: int) -> np.ndarray:
+def plane_residual(dsm: np.ndarray, size: int, tile: int = TILE_CELLS) -> np.ndarray:
     """(H, W) float32 RMS residual of the least-squares plane z = a x + b y + c through
     the known cells of the ``size`` x ``size`` window around each cell, metres; NaN
     where fewer than 6 cells are known.
 
     From box sums of the moments of x, y and z, so that it costs a few filters of the
-    grid whatever the window.
+    grid whatever the window; in tiles of ``tile`` x ``tile`` cells with the window's
+    half as a margin, so that its float64 moments (some 160 bytes a cell) are a tile's,
+    not a city's.
     """
+    known = np.isfinite(dsm)
+    if not known.any():
+        return np.full(dsm.shape, np.nan, np.float32)
+    origin = float(np.median(np.asarray(dsm[known], np.float64)))  # heights near 0
+    out = np.empty(dsm.shape, np.float32)
+    half = size // 2
+    for r0 in range(0, dsm.shape[0], tile):
+        for c0 in range(0, dsm.shape[1], tile):
+            rs, cs = max(r0 - half, 0), max(c0 - half, 0)
+            with_margin = dsm[rs : r0 + tile + half, cs : c0 + tile + half]
+            res = _window_plane_residual(with_margin, size, origin)
+            out[r0 : r0 + tile, c0 : c0 + tile] = res[r0 - rs : r0 - rs + tile,
+                                                      c0 - cs : c0 - cs + tile]  # fmt: skip
+    return out
+
+
+def _window_plane_residual(dsm: np.ndarray, size: int, origin: float) -> np.ndarray:
+    """:func:`plane_residual` of one tile with its margin (cells beyond the array count
+    as unknown: the grid's own border), heights taken from ``origin``."""
     z = np.asarray(dsm, np.float64)
     known = np.isfinite(z)
-    if not known.any():
-        return np.full(z.shape, np.nan, np.float32)
-    z = np.where(known, z - np.nanmedian(z), 0.0)  # heights near 0: no cancellation
+    z = np.where(known, z - origin, 0.0)
     w = known.astype(np.float64)
     rows, cols = np.indices(z.shape, dtype=np.float64)
 

@@ -571,6 +571,21 @@ def test_plane_residual_is_zero_on_a_roof_and_the_spread_of_a_crown():
     assert window_cells(1.25, 1.0) == 3  # never under 3 x 3
 
 
+def test_plane_residual_in_tiles_is_that_of_the_whole_grid():
+    """The tiles' margins hold every window: residuals in 16-cell tiles are the whole
+    grid's (to float64 rounding) at the tiles' edges too, and unknown cells stay so."""
+    rng = np.random.default_rng(1)
+    rows, cols = np.indices((70, 90))
+    dsm = 30.0 + 0.3 * cols + rng.normal(0.0, 0.4, (70, 90)) * (rows > 35)  # plane, then bumps
+    dsm[rng.random(dsm.shape) < 0.1] = np.nan
+    dsm[:8, :8] = np.nan
+    for size in (5, 9):
+        whole, tiled = plane_residual(dsm, size, tile=1000), plane_residual(dsm, size, tile=16)
+        assert np.array_equal(np.isnan(whole), np.isnan(tiled))
+        np.testing.assert_allclose(tiled, whole, atol=1e-5)
+        assert np.nanmax(whole[rows > 40]) > 0.2  # the bumps are seen
+
+
 def test_geometric_cues_reach_each_pixel_through_its_cell():
     grid = Grid(0.0, 4.0, 1.0, 4, 4)
     cues = np.stack([np.full((4, 4), 0.1), np.full((4, 4), 0.2), np.full((4, 4), np.nan)])
