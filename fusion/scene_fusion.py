@@ -850,14 +850,15 @@ def _class_confidences(c: FusedColours, h: FusedHeights, dsm, dtm, holes, forest
     """The accumulated class confidences normalised, with the elevation prior and the
     raster forest; the DSM with the crowns' sightings; the ortho's small holes filled."""
     seen = h.count > 0
+    class_prob = c.prob_sum  # normalised in place: the sums are not needed after
     with np.errstate(invalid="ignore", divide="ignore"):
-        class_prob = c.prob_sum / c.prob_sum.sum(axis=0, keepdims=True)
+        class_prob /= class_prob.sum(axis=0, keepdims=True)
     # before the elevation prior, which would otherwise damp tree at crowns' rims
     dsm = np.where(np.isfinite(c.crown_z), c.crown_z, dsm)
     ndsm = (dsm - dtm).astype(np.float32)
     class_prob[:, ~seen] = np.nan
     if forest is not None:
-        class_prob = elevation_prior(class_prob, ndsm, opts.label_split)
+        class_prob = elevation_prior(class_prob, ndsm, opts.label_split, copy=False)
         class_source += (
             f"; tree and building damped below {opts.label_split / 2:g} m nDSM, ground "
             f"and grass above {opts.label_split + 2:g} m"
