@@ -71,18 +71,18 @@ def elevation_prior(
     damping : float
         Factor on a contradicted class's probability.
     copy : bool
-        False: a float32 ``class_prob`` is damped in place (a city's is 100 MB).
+        False: ``class_prob`` is damped in place when it is float32 (a city's is 100 MB).
 
     Returns
     -------
     (4, H, W) float32 probabilities, renormalised.
     """
-    out = np.array(class_prob, dtype=np.float32, copy=copy)
+    out = np.array(class_prob, np.float32) if copy else np.asarray(class_prob, np.float32)
     with np.errstate(invalid="ignore"):
-        factors = {True: np.where(ndsm < split / 2, damping, 1.0),
-                   False: np.where(ndsm > split + 2.0, damping, 1.0)}  # fmt: skip
+        on_terrain = np.where(ndsm < split / 2, damping, 1.0)
+        well_above = np.where(ndsm > split + 2.0, damping, 1.0)
     for k in range(len(out)):  # band by band: no (4, H, W) float64 temporary
-        out[k] *= factors[k + 1 in RAISED]
+        out[k] *= on_terrain if k + 1 in RAISED else well_above
     with np.errstate(invalid="ignore", divide="ignore"):
         out /= out.sum(axis=0, keepdims=True)
     return out

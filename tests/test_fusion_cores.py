@@ -419,6 +419,7 @@ def test_elevation_prior_damps_the_classes_the_ndsm_contradicts():
         ]
     )[:, None, :]
     ndsm = np.array([[0.1, 8.0, 2.0, np.nan]])
+    before = p.copy()
     q = elevation_prior(p, ndsm, split=1.0, damping=0.01)
     low = np.array([0.30, 0.10, 0.006, 0.0])
     np.testing.assert_allclose(q[:, 0, 0], low / low.sum(), rtol=1e-6)
@@ -427,6 +428,10 @@ def test_elevation_prior_damps_the_classes_the_ndsm_contradicts():
     np.testing.assert_allclose(q[:, 0, 2], 0.25)  # between 0.5 and 3 m: nothing damped
     assert np.isnan(q[:, 0, 3]).all()
     assert np.argmax(q[:, 0, 0]) == 0 and np.argmax(q[:, 0, 1]) == 3
+    np.testing.assert_array_equal(p, before)  # p as it was, by default
+    mine = p.astype(np.float32)
+    assert elevation_prior(mine, ndsm, split=1.0, damping=0.01, copy=False) is mine
+    np.testing.assert_array_equal(mine, q)  # in place, the same numbers
 
 
 def test_normals_face_the_camera_and_undersides_are_negative():
