@@ -303,7 +303,7 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     found = overruled = None
     if inputs.tree is not None:
         tree = inputs.tree[r0:r1, c0:c1]
-        if _classed(mask, inputs.tree, (r0, c0)):  # eq. 4's unknown label, on the classes
+        if _classed(mask, tree):  # eq. 4's unknown label, on the classes
             # unless its roof is planar: then the classes took a roof for a tree by its
             # colour (a green roof), and say nothing of crowns on it either
             found, overruled = planar_roof(mask, dsm, dtm, xs, ys, crop, options, min_cells,
@@ -317,13 +317,13 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     unknown = crowns  # left to the data term (eq. 4): out of the segment and of the fits
     unknown_overruled = None
     if found is None:
-        found = segment_roofs(mask & ~unknown, np.where(unknown, np.nan, dsm), dtm, xs, ys,
-                              crop, options, min_cells, lambda_)  # fmt: skip
-        if isinstance(found, str) and _classed(mask, inputs.building, (r0, c0)):
+        known, known_dsm = mask & ~unknown, np.where(unknown, np.nan, dsm)
+        found = segment_roofs(known, known_dsm, dtm, xs, ys, crop, options, min_cells, lambda_)
+        building = None if inputs.building is None else inputs.building[r0:r1, c0:c1]
+        if isinstance(found, str) and building is not None and _classed(mask, building):
             found, unknown_overruled = building_all_the_same(
-                found, mask & ~unknown, np.where(unknown, np.nan, dsm), dtm, xs, ys, crop,
-                options, min_cells,
-            )  # fmt: skip
+                found, known, known_dsm, dtm, xs, ys, crop, options, min_cells
+            )
     if not isinstance(found, str):
         more = unknown_objects(dsm, mask & ~unknown, found.heights, crop.gsd, options, min_cells)
         if more.any():  # the segment without them, again
@@ -406,14 +406,10 @@ def segment_roofs(mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells, lambda
                         base_z)  # fmt: skip
 
 
-def _classed(mask: np.ndarray, cells: np.ndarray | None, corner: tuple[int, int]) -> bool:
-    """Whether the fusion classes more than half of the segment ``mask`` (on the crop
-    whose first cell is ``corner``) as ``cells`` (H, W) say; False without them."""
-    if cells is None:
-        return False
-    r0, c0 = corner
-    h, w = mask.shape
-    return bool((mask & cells[r0 : r0 + h, c0 : c0 + w]).sum() > 0.5 * mask.sum())
+def _classed(mask: np.ndarray, cells: np.ndarray) -> bool:
+    """Whether the fusion classes more than half of the segment ``mask`` as ``cells`` (the
+    same crop, bool) say."""
+    return bool((mask & cells).sum() > 0.5 * mask.sum())
 
 
 def building_all_the_same(why: str, mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells):
