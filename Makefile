@@ -13,10 +13,10 @@ demo: setup
 
 test: setup
 	@bash scripts/setup.sh --browser
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --dist loadgroup
 
 test-fast: setup
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(BIN)/python -m pytest -q -n auto --dist loadgroup -m "not slow"
 
 bench: setup  # BENCH_ARGS="--preset city": the 1 km² city end to end (about two hours)
 	$(BIN)/python benchmarks/run.py $(BENCH_ARGS)

@@ -9,6 +9,22 @@ from data_samples.generate import generate_sample
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
+# the module fixtures that read one path's run of the tiny city (``tiny_models``)
+PATH_FIXTURES = {"blocks_run": "blocks", "modelled": "parametric", "voxel_run": "voxel"}
+
+
+def pytest_collection_modifyitems(items):
+    """Under pytest-xdist (``make test``: ``--dist loadgroup``), the tests that read one
+    path's ``tiny_models`` run share a worker, so that the session fixture models the
+    tiny city once rather than once per worker (the block path's run takes 40 s)."""
+    for item in items:
+        names = set(item.fixturenames)
+        groups = {path for name, path in PATH_FIXTURES.items() if name in names}
+        if "path_run" in names:
+            groups.add(item.callspec.params["path_run"])
+        if item.get_closest_marker("xdist_group") is None and len(groups) == 1:
+            item.add_marker(pytest.mark.xdist_group(groups.pop()))
+
 
 @pytest.fixture(scope="session")
 def tiny_scene(tmp_path_factory) -> Path:

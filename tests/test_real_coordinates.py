@@ -34,6 +34,7 @@ def test_ray_casting_keeps_millimetres_far_from_the_origin(origin):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("voxel")  # with the tests that read the tiny city's voxel run
 def test_every_command_gives_the_same_city_at_utm(tiny_scene, tiny_fusion, tiny_models,
                                                   tmp_path):  # fmt: skip
     utm = tmp_path / "utm"
