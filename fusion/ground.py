@@ -79,7 +79,7 @@ def dtm_from_dsm(
     H, W = dsm.shape
     f = max(1, int(round(coarse / gsd)))
     hc, wc = -(-H // f), -(-W // f)
-    pad = np.full((hc * f, wc * f), np.nan)
+    pad = np.full((hc * f, wc * f), np.nan, np.promote_types(dsm.dtype, np.float32))
     pad[:H, :W] = dsm
     blocks = pad.reshape(hc, f, wc, f)
     with np.errstate(all="ignore"):
@@ -101,5 +101,5 @@ def dtm_from_dsm(
     ground = np.isfinite(dsm) & (np.abs(dsm - dtm) < kw.get("dh0", 0.5) + 0.25)
     # refine at full resolution: interpolate the ground cells only
     dtm = push_pull_fill(dsm, ground).astype(np.float32)
-    dtm = np.minimum(dtm, np.where(np.isfinite(dsm), dsm, np.inf)).astype(np.float32)
+    np.minimum(dtm, np.where(np.isfinite(dsm), dsm, np.inf), out=dtm)
     return dtm, ground

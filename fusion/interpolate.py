@@ -19,10 +19,32 @@ def push_pull_fill(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
     (H, W) float64 equal to ``values`` where valid, smoothly interpolated elsewhere
     (NaN everywhere only if nothing is valid).
     """
-    v = np.where(valid, values, 0.0).astype(np.float64)
-    w = valid.astype(np.float64)
-    if not w.any():
+    if not valid.any():
         return np.full(values.shape, np.nan)
+    if min(values.shape) <= 2 or valid.all():
+        return np.where(valid, values, 0.0).astype(np.float64)
+    # The first level's weights are 0 or 1: its block sums need only the valid values,
+    # and its blend w v + (1 - w) up is the coarser level's value where not valid. So
+    # the whole raster holds one float64 array (8 bytes a cell, not 64 in float64
+    # values, weights, their product, paddings and the blend's terms).
+    H, W = values.shape
+    h2, w2 = (H + 1) // 2, (W + 1) // 2
+    sums = np.zeros((2 * h2, 2 * w2))
+    sums[:H, :W][valid] = values[valid]
+    vs = sums.reshape(h2, 2, w2, 2).sum(axis=(1, 3))
+    del sums
+    ws = np.pad(valid, ((0, 2 * h2 - H), (0, 2 * w2 - W))).reshape(h2, 2, w2, 2).sum(axis=(1, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        v = np.where(ws > 0, vs / ws, 0.0)
+    filled = _push_pull_coarse(v, np.minimum(ws, 1.0))
+    out = cv2.resize(filled, (W, H), interpolation=cv2.INTER_LINEAR)
+    out[valid] = values[valid]
+    return out
+
+
+def _push_pull_coarse(v: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """The pyramid from a level of block means ``v`` and weights ``w`` (in [0, 1]) up:
+    ``v`` blended with the next coarser level where ``w`` is under 1."""
     levels = []
     while True:
         levels.append((v, w))
@@ -40,9 +62,7 @@ def push_pull_fill(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
     for v, w in reversed(levels[:-1]):
         up = cv2.resize(filled, (v.shape[1], v.shape[0]), interpolation=cv2.INTER_LINEAR)
         filled = w * v + (1 - w) * up
-    out = filled
-    out[valid] = values[valid]
-    return out
+    return filled
 
 
 def small_holes(missing: np.ndarray, max_cells: int) -> np.ndarray:
@@ -57,3 +77,50 @@ def small_holes(missing: np.ndarray, max_cells: int) -> np.ndarray:
     keep = (area <= max_cells) & inner
     keep[0] = False
     return keep[labels] & missing
+
+
+def fill_small_holes(values: np.ndarray, valid: np.ndarray, holes: np.ndarray,
+                     max_cells: int) -> np.ndarray:  # fmt: skip
+    """``values`` with each small hole filled by push-pull interpolation
+    (:func:`push_pull_fill`) in a window about it, not over the whole raster.
+
+    A hole of at most ``max_cells`` cells spans at most that many; the pyramid fills it
+    from the level whose blocks are that wide, and the bilinear step up reaches one block
+    further. A margin of ``2 * max_cells`` cells about the hole's box therefore holds
+    what the whole raster's pyramid uses there, in a few kilobytes rather than 64 bytes
+    a cell of the raster. The window's corners fall on the whole raster's blocks of that
+    level (multiples of its power of two), so that its pyramid averages the same blocks
+    and steps up by the same factor of two.
+
+    Parameters
+    ----------
+    values : (H, W) or (H, W, C) array
+    valid : (H, W) bool, the cells to interpolate from
+    holes : (H, W) bool, the cells to fill (:func:`small_holes`)
+    max_cells : int, the largest hole's cells
+
+    Returns
+    -------
+    a copy of ``values``, of its dtype (rounded for integers), filled at ``holes``
+    """
+    out = values.copy()
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(holes.astype(np.uint8), connectivity=8)
+    margin = 2 * max_cells
+    block = 1 << int(np.ceil(np.log2(margin)))
+    H, W = holes.shape
+    planes = out.reshape(H, W, -1)
+
+    def aligned(start, stop, size):  # the margin added, out to the blocks' edges
+        return slice(max((start - margin) // block * block, 0),
+                     min(-(-(stop + margin) // block) * block, size))  # fmt: skip
+
+    for k in range(1, n):
+        x, y, w, h = stats[k, :4]
+        rows, cols = aligned(y, y + h, H), aligned(x, x + w, W)
+        inside = labels[rows, cols] == k
+        for c in range(planes.shape[2]):
+            filled = push_pull_fill(planes[rows, cols, c].astype(np.float64), valid[rows, cols])
+            if np.issubdtype(out.dtype, np.integer):
+                filled = np.round(filled)
+            planes[rows, cols, c][inside] = filled[inside]
+    return out

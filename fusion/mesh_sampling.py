@@ -25,7 +25,7 @@ from workbench.raycast import cast, raycasting_scene
 from workbench.records import StageTimer
 
 from .ground import dtm_from_dsm
-from .interpolate import push_pull_fill, small_holes
+from .interpolate import fill_small_holes, small_holes
 from .options import FusionOptions
 from .planar_objects import planar_tree_objects, relabel_planar_objects
 from .raster_forest import classify_rasters, synthetic_raster_forest
@@ -276,7 +276,7 @@ def fuse_mesh(path, opts: FusionOptions | None = None, *, crs: str | None = None
         ortho, dsm, normal = orthogonal_sampling(mesh, grid)
         hit = np.isfinite(dsm)
         holes = small_holes(~hit, HOLE_CELLS)
-        dsm = np.where(holes, push_pull_fill(dsm, hit), dsm).astype(np.float32)
+        dsm = fill_small_holes(dsm, hit, holes, HOLE_CELLS)
     with timer.stage("ground"):
         dtm, _ = dtm_from_dsm(dsm, grid.gsd)
         dtm = np.where(np.isfinite(dsm), np.minimum(dtm, dsm), np.nan).astype(np.float32)

@@ -20,7 +20,7 @@ from workbench.raster import Grid
 from workbench.records import StageTimer
 
 from .ground import dtm_from_dsm
-from .interpolate import push_pull_fill, small_holes
+from .interpolate import fill_small_holes, push_pull_fill, small_holes
 from .options import FusionOptions
 from .point_classes import LOW_M, UNCLASSIFIED, classify_returns
 from .point_clouds import cloud_files, read_clouds
@@ -246,7 +246,7 @@ def top_surface_raster(
     dsm = dsm.reshape(grid.shape)
     count = np.bincount(cells, minlength=n).reshape(grid.shape)
     holes = small_holes(~np.isfinite(dsm), HOLE_CELLS)
-    dsm = np.where(holes, push_pull_fill(dsm, np.isfinite(dsm)), dsm).astype(np.float32)
+    dsm = fill_small_holes(dsm, np.isfinite(dsm), holes, HOLE_CELLS).astype(np.float32)
     filled = (reached & ~occupied).reshape(grid.shape) | holes
     return dsm, count, filled, source
 

@@ -74,7 +74,7 @@ from .dsm_depth import DsmSurface
 from .geometry_cues import cue_columns, geometric_cues
 from .grid_rasters import GridRasters
 from .ground import dtm_from_dsm
-from .interpolate import push_pull_fill, small_holes
+from .interpolate import fill_small_holes, push_pull_fill, small_holes
 from .observations import (
     close_neighbours,
     grid_window,
@@ -645,7 +645,7 @@ def _ground(h: FusedHeights, grid: Grid, mode: str, given):
         dsm = sample_to_grid(given[0], given[1], grid)[0].astype(np.float32)
         spikes = np.zeros(grid.shape, bool)
     holes = small_holes(~np.isfinite(dsm), HOLE_CELLS)
-    dsm = np.where(holes, push_pull_fill(dsm, np.isfinite(dsm)), dsm).astype(np.float32)
+    dsm = fill_small_holes(dsm, np.isfinite(dsm), holes, HOLE_CELLS)
     dtm_full, _ = dtm_from_dsm(dsm, grid.gsd)
     dtm = np.where(np.isfinite(dsm), dtm_full, np.nan).astype(np.float32)
     return dsm, dtm, dtm_full, spikes, holes
@@ -863,7 +863,7 @@ def _class_confidences(c: FusedColours, h: FusedHeights, dsm, dtm, holes, forest
             f"; tree and building damped below {opts.label_split / 2:g} m nDSM, ground "
             f"and grass above {opts.label_split + 2:g} m"
         )
-    ortho = _fill_small_rgb(c.ortho, seen, holes)
+    ortho = fill_small_holes(c.ortho, seen, holes, HOLE_CELLS)
     class_prob, class_source = _raster_forest(class_prob, class_source, forest, dsm, dtm, ortho,
                                               grid, opts)  # fmt: skip
     return dsm, ndsm, class_prob, ortho, class_source
@@ -901,17 +901,6 @@ def isolated_spikes(
     """
     alone = close_neighbours(dsm, jump) <= 1  # at least 7 of 8 differ or are unknown
     return np.isfinite(dsm) & (count <= max_count) & alone
-
-
-def _fill_small_rgb(ortho, seen, holes):
-    if not holes.any():
-        return ortho
-    out = ortho.copy()
-    for k in range(3):
-        out[..., k] = np.where(
-            holes, np.round(push_pull_fill(ortho[..., k].astype(float), seen)), ortho[..., k]
-        )
-    return out
 
 
 def _train(ctx: ViewContext, labels_path, engine: Engine):
