@@ -47,23 +47,28 @@ def contrast_terms(ortho: np.ndarray, dsm: np.ndarray, pairs: np.ndarray) -> tup
     return dc2, squared_differences(np.ravel(dsm), pairs)
 
 
-def contrast_betas(ortho: np.ndarray, dsm: np.ndarray, seen: np.ndarray) -> tuple[float, float]:
+def contrast_betas(
+    ortho: np.ndarray, dsm: np.ndarray, seen: np.ndarray, band: int = TILE
+) -> tuple[float, float]:
     """beta_c, beta_h: 1 / (2 mean) of the squared differences over every pair of seen
     8-neighbours of the grid, so that the weights do not depend on how it is tiled.
-    Summed one neighbour direction at a time, on shifted views of the rasters: no index
-    arrays, so memory stays a few rasters whatever the grid."""
-    lab = rgb_to_lab(ortho)
-    z = np.asarray(dsm, np.float64)
+    Summed in bands of ``band`` rows (with the next band's first row), one neighbour
+    direction at a time on shifted views: memory stays a few bands whatever the grid."""
     H, W = seen.shape
     sums = np.zeros(4)  # colour sum, pairs; height sum, pairs with both heights known
-    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        a = (slice(0, H - dr), slice(max(-dc, 0), W - max(dc, 0)))
-        b = (slice(dr, H), slice(max(dc, 0), W - max(-dc, 0)))
-        both = seen[a] & seen[b]
-        dc2 = np.sum((lab[a] - lab[b]) ** 2, axis=-1, dtype=np.float64)[both]
-        dh2 = ((z[a] - z[b]) ** 2)[both]
-        known = np.isfinite(dh2)
-        sums += (dc2.sum(), dc2.size, dh2[known].sum(), known.sum())
+    for r0 in range(0, H, band):
+        own, r1 = min(band, H - r0), min(r0 + band + 1, H)  # pairs from the band's rows
+        lab = rgb_to_lab(ortho[r0:r1])
+        z = np.asarray(dsm[r0:r1], np.float64)
+        for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+            rows = min(own, r1 - r0 - dr)
+            a = (slice(0, rows), slice(max(-dc, 0), W - max(dc, 0)))
+            b = (slice(dr, dr + rows), slice(max(dc, 0), W - max(-dc, 0)))
+            both = seen[r0:r1][a] & seen[r0:r1][b]
+            dc2 = np.sum((lab[a] - lab[b]) ** 2, axis=-1, dtype=np.float64)[both]
+            dh2 = ((z[a] - z[b]) ** 2)[both]
+            known = np.isfinite(dh2)
+            sums += (dc2.sum(), dc2.size, dh2[known].sum(), known.sum())
     mc = sums[0] / sums[1] if sums[1] else 0.0
     mh = sums[2] / sums[3] if sums[3] else 0.0
     return 1.0 / (2.0 * max(mc, 1e-12)), 1.0 / (2.0 * max(mh, 1e-12))

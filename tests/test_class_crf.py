@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from fusion.class_crf import contrast_betas, contrast_class_crf
+from fusion.class_crf import contrast_betas, contrast_class_crf, contrast_terms
 from workbench.engine import ThreadEngine
 from workbench.graph_cuts import grid_pairs
 
@@ -97,6 +97,22 @@ def test_betas_are_the_inverse_mean_squared_differences():
     across = np.array([(a % 3 == 0) != (b % 3 == 0) for a, b in pairs])
     assert beta_h == pytest.approx(1.0 / (2.0 * 4.0 * across.mean()))
     assert beta_c == pytest.approx(1.0 / (2.0 * 100.0**2 * across.mean()), rel=1e-3)
+
+
+def test_betas_in_bands_are_the_mean_over_every_pair():
+    """Summed band by band, the betas are those of every seen pair of the grid at once
+    (contrast_terms over grid_pairs), whatever the band's height."""
+    rng = np.random.default_rng(5)
+    ortho = rng.integers(0, 256, (23, 17, 3)).astype(np.uint8)
+    dsm = rng.normal(10, 3, (23, 17)).astype(np.float32)
+    dsm[rng.random(dsm.shape) < 0.1] = np.nan
+    seen = rng.random(dsm.shape) < 0.9
+    pairs, _ = grid_pairs(seen.shape, diagonals=True)
+    pairs = pairs[seen.ravel()[pairs].all(axis=1)]
+    dc2, dh2 = contrast_terms(ortho, dsm, pairs)
+    want = 1 / (2 * dc2.mean()), 1 / (2 * np.nanmean(dh2))
+    for band in (1, 2, 5, 23, 64):
+        assert contrast_betas(ortho, dsm, seen, band=band) == pytest.approx(want, rel=1e-12)
 
 
 def test_grid_pairs_counts():
