@@ -8,7 +8,7 @@ from rasterio.crs import CRS
 
 from workbench.errors import InputError
 from workbench.meshio import read_obj, read_ply, texture_of, write_mtl, write_obj, write_ply
-from workbench.raster import Grid, read_raster, write_raster
+from workbench.raster import Grid, class_codes, read_raster, write_raster
 
 
 def test_grid_geometry():
@@ -147,3 +147,15 @@ def test_rasters_are_cloud_optimized_with_fitting_overviews(tmp_path):
         assert set(np.unique(ds.read(1))) <= {0, 1, 4}  # classes are picked, never averaged
     data, g, _ = read_raster(tmp_path / "dsm.tif")
     assert g == grid and np.isnan(data[0, :10]).all()
+
+
+@pytest.mark.parametrize("band", [1, 2, 256])
+def test_class_codes_are_the_most_probable_class_and_0_unseen(band):
+    prob = np.full((4, 3, 2), np.nan, np.float32)  # the first row's cells unseen
+    prob[:, 1, 0] = [0.1, 0.2, 0.6, 0.1]  # tree
+    prob[:, 1, 1] = [0.4, 0.4, 0.1, 0.1]  # a tie: the first, ground
+    prob[:, 2, 0] = [0.2, np.nan, 0.1, 0.3]  # a class without confidence counts as 0
+    prob[:, 2, 1] = [0.0, 0.0, 0.0, 1.0]
+    codes = class_codes(prob, band=band)
+    assert codes.dtype == np.uint8
+    np.testing.assert_array_equal(codes, [[0, 0], [3, 1], [4, 4]])
