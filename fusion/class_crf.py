@@ -58,13 +58,13 @@ def contrast_betas(
     sums = np.zeros(4)  # colour sum, pairs; height sum, pairs with both heights known
     for r0 in range(0, H, band):
         own, r1 = min(band, H - r0), min(r0 + band + 1, H)  # pairs from the band's rows
-        lab = rgb_to_lab(ortho[r0:r1])
+        lab, seen_band = rgb_to_lab(ortho[r0:r1]), seen[r0:r1]
         z = np.asarray(dsm[r0:r1], np.float64)
         for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
             rows = min(own, r1 - r0 - dr)
             a = (slice(0, rows), slice(max(-dc, 0), W - max(dc, 0)))
             b = (slice(dr, dr + rows), slice(max(dc, 0), W - max(-dc, 0)))
-            both = seen[r0:r1][a] & seen[r0:r1][b]
+            both = seen_band[a] & seen_band[b]
             dc2 = np.sum((lab[a] - lab[b]) ** 2, axis=-1, dtype=np.float64)[both]
             dh2 = ((z[a] - z[b]) ** 2)[both]
             known = np.isfinite(dh2)

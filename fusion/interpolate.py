@@ -119,7 +119,7 @@ def fill_small_holes(values: np.ndarray, valid: np.ndarray, holes: np.ndarray,
         rows, cols = aligned(y, y + h, H), aligned(x, x + w, W)
         inside = labels[rows, cols] == k
         for c in range(planes.shape[2]):
-            filled = push_pull_fill(planes[rows, cols, c].astype(np.float64), valid[rows, cols])
+            filled = push_pull_fill(planes[rows, cols, c], valid[rows, cols])
             if np.issubdtype(out.dtype, np.integer):
                 filled = np.round(filled)
             planes[rows, cols, c][inside] = filled[inside]
