@@ -32,7 +32,15 @@ from modeling.parametric.roof_geometry import (
     roof_type,
     side_distances,
 )
-from modeling.parametric.segmentation import level_set_segmentation
+from modeling.parametric.segmentation import (
+    curvature,
+    descent_step,
+    dirac,
+    gaussian_cost,
+    heaviside,
+    level_set_segmentation,
+    signed_distance,
+)
 from modeling.shared.footprint_priors import (
     SegmentFrame,
     compete_priors,
@@ -429,6 +437,30 @@ def test_level_set_separates_two_gaussian_regions():
                                  length_weight=0.5, iterations=150)  # fmt: skip
     assert np.mean(got != truth) < 0.01
     assert building_segments(got, 0.25, 0.0, 1.0).max() == 1
+
+
+def test_gaussian_cost_in_chunks_is_the_negative_log_likelihood():
+    rng = np.random.default_rng(4)
+    sample = rng.normal([0.2, 0.5, 0.7], [0.1, 0.2, 0.05], (500, 3))
+    values = rng.normal(0.5, 0.3, (1000, 3))
+    cov = np.cov(sample, rowvar=False) + 1e-4 * np.eye(3)
+    d = values - sample.mean(axis=0)
+    want = np.einsum("ni,ij,nj->n", d, np.linalg.inv(cov), d) + np.log(np.linalg.det(cov))
+    whole = gaussian_cost(values, sample)
+    np.testing.assert_allclose(whole, want, rtol=1e-12)
+    np.testing.assert_array_equal(gaussian_cost(values, sample, chunk=7), whole)
+
+
+@pytest.mark.parametrize("rows", [1, 2, 7, 256])
+def test_descent_step_in_bands_is_the_whole_grids(rows):
+    """Eq. 1 + 8's step in bands of rows is the whole grid's formula, bit for bit."""
+    rng = np.random.default_rng(2)
+    phi = signed_distance(rng.random((41, 23)) < 0.4) + rng.normal(0, 0.1, (41, 23))
+    force, prior, weight = rng.normal(0, 1, (3, 41, 23))
+    whole = dirac(phi) * (0.5 * curvature(phi) - force - 2.0 * weight * (heaviside(phi) - prior))
+    np.testing.assert_array_equal(descent_step(phi, force, 0.5, prior, weight, rows=rows), whole)
+    no_prior = dirac(phi) * (0.5 * curvature(phi) - force)
+    np.testing.assert_array_equal(descent_step(phi, force, 0.5, rows=rows), no_prior)
 
 
 def test_l_shaped_hipped_solid_is_closed():

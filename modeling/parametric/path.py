@@ -255,9 +255,9 @@ def region_sources(fusion, options: ParametricOptions) -> list:
     height (varrho), the building probability's log-odds (a third source)."""
     rgb = fusion.rgb.astype(np.float64) / 255.0
     ndsm = fusion.band("ndsm")
-    prob = fusion.rasters["class_prob"].astype(np.float64)
-    seen = np.isfinite(prob).all(axis=0) & (np.nan_to_num(prob).sum(axis=0) > 0)
-    p = np.clip(np.nan_to_num(prob[BUILDING - 1]), _LOGIT_CLIP, 1 - _LOGIT_CLIP)
+    prob = fusion.rasters["class_prob"]  # confidences are not negative: a sum > 0 is any > 0
+    seen = np.isfinite(prob).all(axis=0) & (prob > 0).any(axis=0)
+    p = np.clip(np.nan_to_num(prob[BUILDING - 1].astype(np.float64)), _LOGIT_CLIP, 1 - _LOGIT_CLIP)
     return [
         (rgb, rgb.sum(axis=-1) > 0, 1.0),
         (ndsm[..., None], np.isfinite(ndsm), options.height_weight),

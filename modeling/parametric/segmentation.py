@@ -18,6 +18,8 @@ _EPS_CELLS = 1.5  # width of the smoothed Heaviside and Dirac, cells
 _BAND_CELLS = 8.0  # phi is kept a signed distance clipped to this many cells
 _REINIT_EVERY = 10  # steps between re-initialisations and re-estimated statistics
 _MIN_VARIANCE = 1e-4  # floor of each source's variance (units of the source squared)
+_BAND_ROWS = 256  # rows of a band of the descent step
+_CHUNK_CELLS = 1 << 18  # cells of a chunk of the region terms
 
 
 def heaviside(phi: np.ndarray, eps: float = _EPS_CELLS) -> np.ndarray:
@@ -30,23 +32,28 @@ def dirac(phi: np.ndarray, eps: float = _EPS_CELLS) -> np.ndarray:
     return (eps / np.pi) / (eps**2 + phi**2)
 
 
-def gaussian_cost(values: np.ndarray, sample: np.ndarray) -> np.ndarray:
+def gaussian_cost(values: np.ndarray, sample: np.ndarray, chunk: int = _CHUNK_CELLS) -> np.ndarray:
     """Negative log-likelihood (up to a constant) of ``values`` under the Gaussian fitted
     to ``sample``: (A - mu)^T Sigma^-1 (A - mu) + log det Sigma.
 
-    values : (N, C) float; sample : (M, C) float, M >= 2. Returns (N,) float.
+    values : (N, C) float; sample : (M, C) float, M >= 2; chunk : cells taken at once.
+    Returns (N,) float.
     """
     mu = sample.mean(axis=0)
     cov = np.atleast_2d(np.cov(sample, rowvar=False)) + _MIN_VARIANCE * np.eye(sample.shape[1])
     inv = np.linalg.inv(cov)
-    d = values - mu
+    q = np.empty(len(values))
+    # in chunks of cells: a city's differences and terms were some 50 bytes a cell;
     # the quadratic form channel pair by channel pair: C is at most 3, and einsum or
     # matmul over a tiny inner axis are several times slower on millions of cells
-    q = np.zeros(len(d))
-    for a in range(d.shape[1]):
-        q += inv[a, a] * d[:, a] ** 2
-        for b in range(a + 1, d.shape[1]):
-            q += 2.0 * inv[a, b] * d[:, a] * d[:, b]
+    for start in range(0, len(values), chunk):
+        d = values[start : start + chunk] - mu
+        part = np.zeros(len(d))
+        for a in range(d.shape[1]):
+            part += inv[a, a] * d[:, a] ** 2
+            for b in range(a + 1, d.shape[1]):
+                part += 2.0 * inv[a, b] * d[:, a] * d[:, b]
+        q[start : start + len(d)] = part
     return q + np.log(np.linalg.det(cov))
 
 
@@ -133,12 +140,39 @@ def level_set_segmentation(
         if it and it % _REINIT_EVERY == 0:
             phi = signed_distance(phi > 0)
             force = _region_force(gathered, phi > 0)
-        speed = length_weight * curvature(phi) - force
-        if prior is not None:
-            speed = speed - 2.0 * prior_weight * (heaviside(phi) - prior)
-        step = dirac(phi) * speed
-        top = np.max(np.abs(step))
+        step = descent_step(phi, force, length_weight, prior, prior_weight)
+        top = max(step.max(), -step.min())
         if top == 0:
             break
-        phi = phi + step * min(1.0, 0.5 / top)  # at most half a cell per step
+        step *= min(1.0, 0.5 / top)  # at most half a cell per step
+        phi += step
     return phi > 0
+
+
+def descent_step(
+    phi: np.ndarray,
+    force: np.ndarray,
+    length_weight: float,
+    prior: np.ndarray | None = None,
+    prior_weight: np.ndarray | float = 0.0,
+    rows: int = _BAND_ROWS,
+) -> np.ndarray:
+    """(H, W) dphi/dt of eq. 1 (+ eq. 8): delta_eps(phi) (length_weight kappa - force
+    - 2 prior_weight (H_eps(phi) - prior)), in bands of ``rows`` rows.
+
+    The curvature's second differences reach two rows: each band is computed with two
+    rows of the next ones about it, so the step is the whole grid's, bit for bit, with
+    a band's temporaries (some 80 bytes a cell in float64) rather than the grid's.
+    """
+    H = phi.shape[0]
+    step = np.empty_like(phi, dtype=np.float64)
+    for r0 in range(0, H, rows):
+        r1 = min(r0 + rows, H)
+        a, b = max(r0 - 2, 0), min(r1 + 2, H)
+        p = phi[r0:r1]
+        speed = length_weight * curvature(phi[a:b])[r0 - a : r1 - a] - force[r0:r1]
+        if prior is not None:
+            weight = prior_weight[r0:r1] if np.ndim(prior_weight) else prior_weight
+            speed = speed - 2.0 * weight * (heaviside(p) - prior[r0:r1])
+        step[r0:r1] = dirac(p) * speed
+    return step
