@@ -253,7 +253,8 @@ def initial_region(fusion, footprints: Path | None) -> tuple[np.ndarray, str]:
 def region_sources(fusion, options: ParametricOptions) -> list:
     """Eq. 1's sources with their weights: the ortho's colour (weight 1), the nDSM's
     height (varrho), the building probability's log-odds (a third source)."""
-    rgb = fusion.rgb.astype(np.float64) / 255.0
+    rgb = fusion.rgb.astype(np.float64)
+    rgb /= 255.0  # in place: a city's RGB in float64 is 150 MiB
     ndsm = fusion.band("ndsm")
     prob = fusion.rasters["class_prob"]  # confidences are not negative: a sum > 0 is any > 0
     seen = np.isfinite(prob).all(axis=0) & (prob > 0).any(axis=0)
