@@ -136,12 +136,14 @@ def test_superpixel_graph_boundaries_and_aggregates():
     prob = np.zeros((4, 3, 3), np.float32)
     prob[3] = 1.0
     prob[:, 2, :] = np.nan  # unknown cells count as uniform
+    prob[:, 1, 2] = 0.0  # and so do cells without any confidence
     dsm = np.arange(9, dtype=float).reshape(3, 3)
     g = superpixel_graph(labels, rgb, prob, dsm)
     pairs = {tuple(e): b for e, b in zip(g.edges.tolist(), g.boundary, strict=True)}
     assert pairs == {(0, 1): 2, (0, 2): 2, (1, 2): 1}
     assert g.count.tolist() == [4, 2, 3]
     assert g.class_sum[0].tolist() == [0, 0, 0, 4] and g.class_sum[2].tolist() == [0.75] * 4
+    assert g.class_sum[1].tolist() == [0.25, 0.25, 0.25, 1.25]
     assert g.height_median.tolist() == [2.0, 3.5, 7.0]
     assert g.colour_distance[0] > 50  # black against white in Lab
     assert np.isnan(g.plane_residual).all()  # under 6 cells each: no plane to fit

@@ -76,11 +76,17 @@ def superpixel_graph(
     flat = labels.ravel()
     count = np.bincount(flat, minlength=n)
     C = class_prob.shape[0]
-    p = np.nan_to_num(class_prob.reshape(C, -1).astype(np.float64), nan=0.0)
-    empty = p.sum(axis=0) <= 0
-    p[:, empty] = 1.0 / C
-    class_sum = np.stack([np.bincount(flat, weights=p[c], minlength=n) for c in range(C)], axis=1)
-    lab = cv2.cvtColor(rgb.astype(np.float32) / 255.0, cv2.COLOR_RGB2Lab).reshape(-1, 3)
+    # one class at a time, not a float64 copy of all (some 64 bytes a cell); confidences
+    # are not negative, so a cell whose sum is 0 is one with none above 0
+    empty = ~(class_prob.reshape(C, -1) > 0).any(axis=0)
+    class_sum = np.zeros((n, C))
+    for c in range(C):
+        p = np.nan_to_num(class_prob[c].ravel().astype(np.float64), nan=0.0, copy=False)
+        p[empty] = 1.0 / C
+        class_sum[:, c] = np.bincount(flat, weights=p, minlength=n)
+    scaled = rgb.astype(np.float32)
+    scaled /= 255.0
+    lab = cv2.cvtColor(scaled, cv2.COLOR_RGB2Lab).reshape(-1, 3)
     colour = np.stack([np.bincount(flat, weights=lab[:, k], minlength=n) for k in range(3)], 1)
     colour /= np.maximum(count, 1)[:, None]
     known = np.isfinite(dsm.ravel())
@@ -104,11 +110,11 @@ def plane_residuals(labels: np.ndarray, dsm: np.ndarray, n: int) -> np.ndarray:
     DSM cells of each super-pixel, metres (x, y in cells: the residual is in metres
     whatever their unit); NaN under 6 known cells. From per-super-pixel sums of the
     moments, one pass over the grid."""
-    rows, cols = np.indices(dsm.shape)
     known = np.isfinite(dsm)
+    rows, cols = np.nonzero(known)  # in the order of the mask's cells
     sp = labels[known]
     z = dsm[known].astype(np.float64)
-    x, y = cols[known].astype(np.float64), rows[known].astype(np.float64)
+    x, y = cols.astype(np.float64), rows.astype(np.float64)
     k = np.bincount(sp, minlength=n).astype(np.float64)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = [np.bincount(sp, a, n) / k for a in (x, y, z)]
