@@ -117,8 +117,8 @@ def plane_residuals(labels: np.ndarray, dsm: np.ndarray, n: int) -> np.ndarray:
     x, y = cols.astype(np.float64), rows.astype(np.float64)
     k = np.bincount(sp, minlength=n).astype(np.float64)
     with np.errstate(invalid="ignore", divide="ignore"):
-        mean = [np.bincount(sp, a, n) / k for a in (x, y, z)]
-        x, y, z = x - mean[0][sp], y - mean[1][sp], z - mean[2][sp]  # centred per super-pixel
+        for a in (x, y, z):  # centred per super-pixel, in place (the city's were 150 MiB)
+            a -= (np.bincount(sp, a, n) / k)[sp]
         moments = (
             np.bincount(sp, a * b, n) / k
             for a, b in ((x, x), (y, y), (x, y), (x, z), (y, z), (z, z))
