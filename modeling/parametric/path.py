@@ -400,6 +400,8 @@ def segment_roofs(mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells, lambda
     ground = dtm[inside & np.isfinite(dtm)]
     base_z = float(np.min(ground)) if len(ground) else float(np.nanmin(dsm[inside]) - 3.0)
     ground_z = float(np.median(ground)) if len(ground) else base_z
+    if options.all_building:  # a cloud of roofs alone has its DTM on its lowest roof
+        ground_z = -np.inf
     wings = roof_wings(priors, X, Y, dsm, inside, crop, options, min_cells, ground_z)
     if not wings:
         return "no DSM height on the registered prior"
@@ -541,13 +543,15 @@ def _in_rect(u, v, rect, pad=0.0):
 
 
 def fit_wings(priors, X, Y, dsm, inside, options: ParametricOptions, gsd: float,
-              flat: bool = False) -> list:  # fmt: skip
+              flat: bool | float = False) -> list:  # fmt: skip
     """Eq. 6 on every wing of every part: its cells are those of the outline inside its
     rectangle that no other wing covers (all of its cells where the others cover most),
     less the outermost ring, whose heights the walls blur. The wings share one main
     height h_m (their median), as the paper's buildings do; tiers get their own.
-    ``flat`` holds every angle at 0 (a multi-level building's base)."""
-    fit = (lambda d, z, s, zm, _: flat_fit(d, z, s, zm)) if flat else fit_roof
+    ``flat`` holds every angle at 0 (a multi-level building's base), at the level of
+    each wing's outer ring (True) or at the height it gives (metres)."""
+    level = None if isinstance(flat, bool) else float(flat)
+    fit = fit_roof if flat is False else (lambda d, z, s, zm, _: flat_fit(d, z, s, level or zm))
     rects = [(w, p) for p in priors for w in p.wings()]
     coords = {id(p): _frame_coords(p, X, Y) for p in priors}
     masks = [_in_rect(*coords[id(p)], w) & inside for w, p in rects]
@@ -608,12 +612,22 @@ def roof_wings(
     tiers stacked on them (a multi-level building, which the roofs would bridge with
     steep planes), whichever fits the DSM over the outline better (the robust cost). A
     flat base less than a tier's step above ``ground_z`` (metres) is the ground the
-    outline took in, not a level of the building. A tier is chosen the same way, on
-    the roof under it (``depth`` tiers down, at most ``_MAX_TIERS``)."""
-    candidates = []
-    for flat in (False, True):
+    outline took in, not a level of the building. A third candidate's flat base stands
+    at the lowest level (:func:`_lowest_level`) where that is a tier's step below the
+    outer ring's. A tier is chosen the same way, on the roof under it (``depth`` tiers
+    down, at most ``_MAX_TIERS``)."""
+    candidates, ring_z = [], None
+    for flat in (False, True, "lowest"):
+        if flat == "lowest":
+            flat = _lowest_level(dsm, inside, options.tier_step_m, min_cells)
+            if flat is None or ring_z is None or flat > ring_z - options.tier_step_m:
+                continue
         wings = fit_wings(priors, X, Y, dsm, inside, options, crop.gsd, flat)
-        if flat and any(w.fit.z_main < ground_z + options.tier_step_m for w, _ in wings):
+        if flat is True and wings:
+            ring_z = min(w.fit.z_main for w, _ in wings)
+        if flat is not False and any(
+            w.fit.z_main < ground_z + options.tier_step_m for w, _ in wings
+        ):
             continue
         if depth < _MAX_TIERS:
             wings += stack_tiers(wings, X, Y, dsm, inside, crop, options, min_cells, depth)
@@ -622,6 +636,19 @@ def roof_wings(
             r = r[np.isfinite(r)]
             candidates.append((robust_cost(r, options.robust_m), wings))
     return min(candidates, key=lambda c: c[0])[1] if candidates else []
+
+
+def _lowest_level(dsm, inside, step: float, min_cells: int) -> float | None:
+    """The height of the lowest part of the outline's DSM (off its outer ring) of at least
+    ``min_cells`` cells, when they stand within ``step`` metres of one another: a base
+    for tiers below the outer ring's level (a low annex beside the main block, which
+    tiers stacked on the ring's level cannot reach). None when there is none."""
+    z = np.sort(dsm[ndimage.binary_erosion(inside)])
+    z = z[np.isfinite(z)]
+    if len(z) < 2 * min_cells:
+        return None
+    low = z[:min_cells]
+    return float(np.median(low)) if low[-1] - low[0] <= step else None
 
 
 def model_heights(wings, X, Y) -> np.ndarray:
