@@ -25,6 +25,7 @@ from modeling.voxel.proxy import (
     fused_flat_levels,
     fused_ground_columns,
     fused_roof_columns,
+    fused_upper_levels,
     highest_tied,
     occupancy,
     proxy_mesh,
@@ -167,6 +168,32 @@ def test_fused_flat_levels_place_grow_and_merge_flat_levels():
     none, block = np.zeros((3, 3), np.int64), np.s_[:3, :3]
     empty, no_heights = fused_flat_levels(none, np.zeros(0), fused[block], domain[block], 0.5, 1.5)
     assert not empty.any() and len(no_heights) == 0
+
+
+def test_fused_upper_levels_stand_a_wedding_cakes_tiers_on_their_own():
+    """One level of 20 x 20 columns at 10 m whose fused heights hold an 8 x 8 tier at
+    14 m with a 4 x 4 tier at 18 m on it (the k-means folded both into the base: small
+    tiers do not pay for a cluster under c_e), and a ramp from 10 to 16 m (a pitched
+    part, not flat) and a single column at 20 m (a chimney, no 3 x 3 part)."""
+    levels = np.ones((20, 20), np.int64)
+    levels[:, 18:] = 0
+    fused = np.full(levels.shape, 10.0)
+    fused[2:10, 2:10] = 14.0
+    fused[4:8, 4:8] = 18.0
+    fused[12:18, 2:14] = np.linspace(10.0, 16.0, 12)[None, :]
+    fused[15, 16] = 20.0
+    fused[2, 2] = np.nan  # unseen: left where it is
+    out, heights = fused_upper_levels(levels, np.array([10.0]), fused, 0.5, 1.5)
+    np.testing.assert_allclose(heights, [10.0, 14.0, 18.0])
+    want = levels.copy()
+    want[2:10, 2:10] = 2
+    want[4:8, 4:8] = 3
+    want[2, 2] = 1
+    np.testing.assert_array_equal(out, want)
+    same, kept = fused_upper_levels(levels, np.array([10.0]), np.full(levels.shape, 10.0), 0.5,
+                                    1.5)  # fmt: skip
+    np.testing.assert_array_equal(same, levels)
+    np.testing.assert_allclose(kept, [10.0])
 
 
 def test_ellipsoid_normals_point_up_on_top_and_out_at_the_sides():

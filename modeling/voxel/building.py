@@ -32,6 +32,7 @@ from .proxy import (
     fused_flat_levels,
     fused_ground_columns,
     fused_roof_columns,
+    fused_upper_levels,
     height_weighted_variance,
     highest_tied,
     occupancy,
@@ -350,6 +351,7 @@ def roof_levels(
         levels, level_heights = fused_flat_levels(
             levels, level_heights, fused, columns, 0.5 * r, 1.5 * r
         )
+        levels, level_heights = fused_upper_levels(levels, level_heights, fused, 0.5 * r, 1.5 * r)
     if fused is not None and options.pitched_roofs:
         levels = fused_roof_columns(levels, level_heights, fused, columns, options.min_height_m)
     return levels, level_heights, photo_heights, n_clusters
