@@ -641,11 +641,8 @@ def fused_flat_levels(
     known = np.isfinite(fused)
     for lev in range(1, len(heights) + 1):
         region = levels == lev
-        h = fused[region & known]
-        if not len(h):
-            continue
-        middle = np.median(h)
-        if np.mean(np.abs(h - middle) <= flat / 2) < 0.5:
+        middle = flat_median(fused[region & known], flat)
+        if middle is None:
             continue
         heights[lev - 1] = middle
         with np.errstate(invalid="ignore"):
@@ -662,6 +659,15 @@ def fused_flat_levels(
     weight = size[order]
     merged = np.bincount(group, weight * heights[used[order] - 1]) / np.bincount(group, weight)
     return renumber[out], merged
+
+
+def flat_median(heights: np.ndarray, flat: float) -> float | None:
+    """The median of ``heights`` (metres) when at least half of them lie within ``flat``
+    / 2 of it (a flat roof's columns), else None (a pitched roof's, or none)."""
+    if not len(heights):
+        return None
+    middle = float(np.median(heights))
+    return middle if np.mean(np.abs(heights - middle) <= flat / 2) >= 0.5 else None
 
 
 def fused_upper_levels(
@@ -708,9 +714,8 @@ def fused_upper_levels(
             above = ndimage.binary_opening(above, _SQUARE)
             parts, n = ndimage.label(above, _CROSS)
             for j in range(1, n + 1):
-                h = fused[parts == j]
-                middle = float(np.median(h))
-                if np.mean(np.abs(h - middle) <= flat / 2) >= 0.5:
+                middle = flat_median(fused[parts == j], flat)
+                if middle is not None:
                     heights.append(middle)
                     out[parts == j] = len(heights)
                     added = True
