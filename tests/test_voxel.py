@@ -174,7 +174,8 @@ def test_fused_upper_levels_stand_a_wedding_cakes_tiers_on_their_own():
     """One level of 20 x 20 columns at 10 m whose fused heights hold an 8 x 8 tier at
     14 m with a 4 x 4 tier at 18 m on it (the k-means folded both into the base: small
     tiers do not pay for a cluster under c_e), and a ramp from 10 to 16 m (a pitched
-    part, not flat) and a single column at 20 m (a chimney, no 3 x 3 part)."""
+    part, not flat) and a single column at 20 m (a chimney, no 3 x 3 part); then a
+    gable level, whose ridge is no tier."""
     levels = np.ones((20, 20), np.int64)
     levels[:, 18:] = 0
     fused = np.full(levels.shape, 10.0)
@@ -194,6 +195,13 @@ def test_fused_upper_levels_stand_a_wedding_cakes_tiers_on_their_own():
                                     1.5)  # fmt: skip
     np.testing.assert_array_equal(same, levels)
     np.testing.assert_allclose(kept, [10.0])
+    # a gable level (30 deg, 0.58 m a column): the three rows along its ridge, two of
+    # them at one height, pass the part's flatness test; the level itself does not
+    gable = np.ones((20, 11), np.int64)
+    ridge = 10.0 + 0.577 * (5 - np.abs(np.arange(11) - 5))[None, :].repeat(20, 0)
+    same, kept = fused_upper_levels(gable, np.array([10.5]), ridge, 0.5, 1.5)
+    np.testing.assert_array_equal(same, gable)
+    np.testing.assert_allclose(kept, [10.5])
 
 
 def test_ellipsoid_normals_point_up_on_top_and_out_at_the_sides():

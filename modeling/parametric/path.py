@@ -551,7 +551,11 @@ def fit_wings(priors, X, Y, dsm, inside, options: ParametricOptions, gsd: float,
     ``flat`` holds every angle at 0 (a multi-level building's base), at the level of
     each wing's outer ring (True) or at the height it gives (metres)."""
     level = None if isinstance(flat, bool) else float(flat)
-    fit = fit_roof if flat is False else (lambda d, z, s, zm, _: flat_fit(d, z, s, level or zm))
+    fit = (
+        fit_roof
+        if flat is False
+        else (lambda d, z, s, zm, _: flat_fit(d, z, s, zm if level is None else level))
+    )
     rects = [(w, p) for p in priors for w in p.wings()]
     coords = {id(p): _frame_coords(p, X, Y) for p in priors}
     masks = [_in_rect(*coords[id(p)], w) & inside for w, p in rects]

@@ -678,8 +678,8 @@ def fused_upper_levels(
     merge: float,
     max_rounds: int = 3,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Stand the flat parts of a level that the fusion sees more than ``merge`` above
-    it as levels of their own, at their median fused height (not in the paper).
+    """Stand the flat parts of a flat level that the fusion sees more than ``merge``
+    above it as levels of their own, at their median fused height (not in the paper).
 
     c_e weighs a level's gain against the error of all the building's heights, so a
     small top tier on a large building (a wedding cake's: 30 of 400 columns) does not
@@ -687,8 +687,10 @@ def fused_upper_levels(
     stand metres low. A part counts when it survives the 3 x 3 opening
     :func:`filter_levels` applies to every level and at least half its columns' fused
     heights lie within ``flat / 2`` of their median, as :func:`fused_flat_levels` asks of
-    a flat level: the ridge of a pitched roof is not flat. Up to ``max_rounds`` tiers
-    deep.
+    a flat level; and only on a level that is flat by the same test (a wedding cake's
+    middle level, its top tier a small share of it): on a pitched one the three rows of
+    columns along a gable's ridge pass it, the two beside the ridge at one height, and
+    came out a flat tier. Up to ``max_rounds`` tiers deep.
 
     Parameters
     ----------
@@ -709,6 +711,8 @@ def fused_upper_levels(
     for _ in range(max_rounds):
         added = False
         for lev in range(1, len(heights) + 1):
+            if flat_median(fused[(out == lev) & np.isfinite(fused)], flat) is None:
+                continue  # a pitched level: its ridge's rows can look flat (as wide as 3)
             with np.errstate(invalid="ignore"):
                 above = (out == lev) & (fused - heights[lev - 1] > merge)
             above = ndimage.binary_opening(above, _SQUARE)
