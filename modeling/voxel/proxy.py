@@ -711,17 +711,18 @@ def fused_upper_levels(
     for _ in range(max_rounds):
         added = False
         for lev in range(1, len(heights) + 1):
-            if flat_median(fused[(out == lev) & np.isfinite(fused)], flat) is None:
+            region = out == lev
+            if flat_median(fused[region & np.isfinite(fused)], flat) is None:
                 continue  # a pitched level: its ridge's rows can look flat (as wide as 3)
             with np.errstate(invalid="ignore"):
-                above = (out == lev) & (fused - heights[lev - 1] > merge)
-            above = ndimage.binary_opening(above, _SQUARE)
-            parts, n = ndimage.label(above, _CROSS)
+                above = region & (fused - heights[lev - 1] > merge)
+            parts, n = ndimage.label(ndimage.binary_opening(above, _SQUARE), _CROSS)
             for j in range(1, n + 1):
-                middle = flat_median(fused[parts == j], flat)
+                part = parts == j
+                middle = flat_median(fused[part], flat)
                 if middle is not None:
                     heights.append(middle)
-                    out[parts == j] = len(heights)
+                    out[part] = len(heights)
                     added = True
         if not added:
             break
