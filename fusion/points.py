@@ -19,7 +19,7 @@ from workbench.errors import InputError
 from workbench.raster import Grid
 from workbench.records import StageTimer
 
-from .ground import dtm_from_dsm
+from .ground import LOWEST_BUILDING_M, dtm_from_dsm
 from .interpolate import fill_small_holes, push_pull_fill, small_holes
 from .options import FusionOptions
 from .point_classes import LOW_M, UNCLASSIFIED, classify_returns
@@ -277,7 +277,12 @@ def cloud_dtm(xyz, cells, cls, dsm: np.ndarray, grid: Grid, unit: float):
         dtm = push_pull_fill(ground, np.isfinite(ground)).astype(np.float32)
         dtm_source = "LAS ground class (2), interpolated"
     else:
-        metric = dict(coarse=1.0 / unit, max_window=80.0 / unit, dh0=0.5 / unit, dh_max=3.0 / unit)
+        metric = dict(
+            coarse=1.0 / unit,
+            max_window=80.0 / unit,
+            dh0=0.5 / unit,
+            dh_max=LOWEST_BUILDING_M / unit,
+        )
         dtm, _ = dtm_from_dsm(dsm, grid.gsd, **metric)
         dtm_source = "progressive morphological filter"
     dtm = np.where(np.isfinite(dsm), np.minimum(dtm, dsm), np.nan).astype(np.float32)

@@ -337,6 +337,21 @@ def test_dtm_removes_buildings_and_keeps_sloped_ground():
     assert is_ground[350:, 300:].all()
 
 
+def test_dtm_removes_a_single_storey_garage():
+    """A 2.8 m garage of 15 x 9 m: above the largest threshold Zhang et al. prescribe (the
+    lowest building's height), so the filter opens it away; with 3 m it stayed terrain."""
+    gsd = 0.25
+    y, x = np.mgrid[0:240, 0:240] * gsd
+    ground = 17.0 + 0.02 * x
+    dsm = ground.copy()
+    dsm[100:136, 90:150] += 2.8
+    dtm, is_ground = dtm_from_dsm(dsm, gsd)
+    assert np.abs(dtm - ground).max() < 0.2
+    assert not is_ground[100:136, 90:150].any()
+    former, _ = dtm_from_dsm(dsm, gsd, dh_max=3.0)
+    assert (former - ground)[100:136, 90:150].max() > 2.7  # the case: it was terrain
+
+
 def test_depth_jumps_flag_edges_not_slopes():
     d = np.full((40, 40), 60.0, np.float32)
     d[:, 20:] = 52.0  # an 8 m step
