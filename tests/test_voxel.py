@@ -23,6 +23,7 @@ from modeling.voxel.proxy import (
     filter_levels,
     fused_fine_heights,
     fused_flat_levels,
+    fused_floating_levels,
     fused_ground_columns,
     fused_roof_columns,
     fused_upper_levels,
@@ -202,6 +203,34 @@ def test_fused_upper_levels_stand_a_wedding_cakes_tiers_on_their_own():
     same, kept = fused_upper_levels(gable, np.array([10.5]), ridge, 0.5, 1.5)
     np.testing.assert_array_equal(same, gable)
     np.testing.assert_allclose(kept, [10.5])
+
+
+def test_fused_floating_levels_empty_a_level_above_what_was_seen():
+    """A tower's tiers at 31, 41 and 46 m, and a level k-means made at the grid's top
+    (70 m) over columns the fusion sees at 41 and 46 m (dev seed 10): that level's columns
+    are emptied. Kept: a gable level at 10.5 m between eaves at 10 m and a ridge at 12.9 m,
+    with or without an antenna on it; an unseen level; a flat level 2 m above its fused
+    heights, which fused_flat_levels stands on them."""
+    levels = np.ones((24, 20), np.int64)
+    fused = np.full(levels.shape, 31.0)
+    levels[0:10, 0:10], fused[0:10, 0:10] = 2, 41.0
+    levels[12:20, 0:8], fused[12:20, 0:8] = 3, 46.0
+    levels[0:10, 10:20] = 4
+    fused[0:5, 10:20], fused[5:10, 10:20] = 41.0, 46.0
+    heights = np.array([31.0, 41.0, 46.0, 70.0])
+    out = fused_floating_levels(levels, heights, fused, 0.5, 1.5)
+    want = levels.copy()
+    want[0:10, 10:20] = 0
+    np.testing.assert_array_equal(out, want)
+    gable = np.ones((20, 11), np.int64)
+    ridge = 10.0 + 0.577 * (5 - np.abs(np.arange(11) - 5))[None, :].repeat(20, 0)
+    antenna = ridge.copy()
+    antenna[0, :] = 20.0  # 11 of 220 columns
+    for seen, height in ((ridge, 10.5), (antenna, 10.5), (np.full(ridge.shape, np.nan), 30.0),
+                         (np.full(ridge.shape, 2.9), 5.0)):  # fmt: skip
+        kept = fused_floating_levels(gable, np.array([height]), seen, 0.5, 1.5)
+        np.testing.assert_array_equal(kept, gable)
+    assert not fused_floating_levels(gable, np.array([14.5]), ridge, 0.5, 1.5).any()
 
 
 def test_ellipsoid_normals_point_up_on_top_and_out_at_the_sides():

@@ -30,6 +30,7 @@ from .proxy import (
     filter_levels,
     fused_fine_heights,
     fused_flat_levels,
+    fused_floating_levels,
     fused_ground_columns,
     fused_roof_columns,
     fused_upper_levels,
@@ -310,7 +311,8 @@ def roof_levels(
     options: VoxelOptions,
 ):
     """Section 4.3: the columns' consistent heights clustered into roof levels (1D
-    k-means, c_e), filtered, and with a fusion run the flat ones placed on its nDSM.
+    k-means, c_e), filtered, and with a fusion run those floating above its nDSM emptied
+    and the flat ones placed on it.
 
     Parameters
     ----------
@@ -347,6 +349,8 @@ def roof_levels(
     levels[columns] = col_levels
     levels = filter_levels(levels, columns)
     photo_heights = level_heights[np.unique(levels[levels > 0]) - 1]
+    if fused is not None:
+        levels = fused_floating_levels(levels, level_heights, fused, 0.5 * r, 1.5 * r)
     if fused is not None and options.fusion_flat_roofs:
         levels, level_heights = fused_flat_levels(
             levels, level_heights, fused, columns, 0.5 * r, 1.5 * r

@@ -661,6 +661,48 @@ def fused_flat_levels(
     return renumber[out], merged
 
 
+def fused_floating_levels(
+    levels: np.ndarray, level_heights: np.ndarray, fused: np.ndarray, flat: float, merge: float
+) -> np.ndarray:
+    """Empty the columns of each level that is not flat (:func:`flat_median`) and stands
+    more than ``merge`` above nine in ten of its columns' fused heights (not in the
+    paper).
+
+    Where the views do not tell heights apart, the voxels above a roof stay as
+    photo-consistent as the roof up to the grid's top, and k-means makes a level there:
+    on dev seed 10 the tiers of a 46 m tower (31-46 m above its base) left a level at
+    70 m, the top of the grid its GIS height (74 m) sets. No roof stands above what dense
+    matching sees of it, and a pitched roof's level lies between its eaves' and its
+    ridge's fused heights. The emptied columns go to the levels at their fused heights
+    (:func:`fused_flat_levels`, :func:`fused_roof_columns`). A flat level is left to
+    :func:`fused_flat_levels`, which stands it on its fused height (emptied, a low flat
+    roof's level at the grid's top lost the columns whose fused heights the walls blur).
+
+    Parameters
+    ----------
+    levels : (nx, ny) int
+        Roof level of each column (1 = lowest), 0 empty.
+    level_heights : (K,) float
+        Heights of levels 1..K, metres.
+    fused : (nx, ny) float
+        Fused height of each column, metres, NaN unknown.
+    flat, merge : float
+        Metres.
+
+    Returns
+    -------
+    (nx, ny) int levels, the floating ones' columns 0; the numbering is kept.
+    """
+    out = levels.copy()
+    for lev, height in enumerate(level_heights, 1):
+        seen = fused[(levels == lev) & np.isfinite(fused)]
+        if flat_median(seen, flat) is not None:
+            continue  # a flat level: fused_flat_levels stands it on its fused height
+        if len(seen) and height - np.percentile(seen, 90) > merge:
+            out[levels == lev] = 0
+    return out
+
+
 def flat_median(heights: np.ndarray, flat: float) -> float | None:
     """The median of ``heights`` (metres) when at least half of them lie within ``flat``
     / 2 of it (a flat roof's columns), else None (a pitched roof's, or none)."""
