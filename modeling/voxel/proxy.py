@@ -694,12 +694,14 @@ def fused_floating_levels(
     (nx, ny) int levels, the floating ones' columns 0; the numbering is kept.
     """
     out = levels.copy()
+    known = np.isfinite(fused)
     for lev, height in enumerate(level_heights, 1):
-        seen = fused[(levels == lev) & np.isfinite(fused)]
+        region = levels == lev
+        seen = fused[region & known]
         if flat_median(seen, flat) is not None:
             continue  # a flat level: fused_flat_levels stands it on its fused height
         if len(seen) and height - np.percentile(seen, 90) > merge:
-            out[levels == lev] = 0
+            out[region] = 0
     return out
 
 
