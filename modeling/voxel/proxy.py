@@ -752,11 +752,12 @@ def fused_upper_levels(
     levels, level_heights : the levels renumbered by increasing height, and their heights.
     """
     out, heights = levels.copy(), list(np.asarray(level_heights, np.float64))
+    known = np.isfinite(fused)
     for _ in range(max_rounds):
         added = False
         for lev in range(1, len(heights) + 1):
             region = out == lev
-            if flat_median(fused[region & np.isfinite(fused)], flat) is None:
+            if flat_median(fused[region & known], flat) is None:
                 continue  # a pitched level: its ridge's rows can look flat (as wide as 3)
             with np.errstate(invalid="ignore"):
                 above = region & (fused - heights[lev - 1] > merge)
