@@ -352,6 +352,23 @@ def test_dtm_removes_a_single_storey_garage():
     assert (former - ground)[100:136, 90:150].max() > 2.7  # the case: it was terrain
 
 
+def test_dtm_removes_a_building_whose_uphill_wall_is_under_a_storey():
+    """A 3.3 m building of 11 x 40 m across a 1 m step of the terrain (dev seed 15's
+    T-shaped building): its roof stands 2.3 m above the plateau uphill, which the
+    openings follow at every window; at 2.5 m, a storey, part of it stayed terrain."""
+    gsd = 0.25
+    y = np.mgrid[0:640, 0:640][0] * gsd
+    r0, r1 = 500, 544
+    ground = 18.0 - np.clip((y - r0 * gsd) / ((r1 - r0) * gsd), 0, 1)  # rows run south
+    dsm = ground.copy()
+    dsm[r0:r1, 200:360] = 17.0 + 3.3
+    dtm, is_ground = dtm_from_dsm(dsm, gsd)
+    assert np.abs(dtm - ground).max() < 0.2
+    assert not is_ground[r0:r1, 200:360].any()
+    former, _ = dtm_from_dsm(dsm, gsd, dh_max=2.5)
+    assert (former - ground)[r0:r1, 200:360].max() > 2.0  # the case: part of it was terrain
+
+
 def test_depth_jumps_flag_edges_not_slopes():
     d = np.full((40, 40), 60.0, np.float32)
     d[:, 20:] = 52.0  # an 8 m step
