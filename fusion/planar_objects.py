@@ -75,7 +75,8 @@ def planar_tree_objects(
         The cells on the planes of every planar object, with the gaps between them
         inside the object closed (a vent, a seam between two faces).
     objects : int
-        How many objects were found planar.
+        How many roofs were found: an object's and, over :data:`PASSES`, those in what
+        was left of it.
     """
     roof = np.zeros(classes.shape, bool)
     tolerance = NOISE_FACTOR * dsm_noise(dsm, classes, gsd)
@@ -87,7 +88,7 @@ def planar_tree_objects(
     rng = np.random.default_rng(seed)
     found = 0
     candidates = tall_tree
-    for _ in range(PASSES):
+    for _round in range(PASSES):
         labels, _ = ndimage.label(candidates)
         new = np.zeros(classes.shape, bool)
         for k, window in enumerate(ndimage.find_objects(labels), 1):
