@@ -66,10 +66,17 @@ def _recorded_s(record: Path, key: str | None = None) -> float | None:
 
 
 def city_run(
-    preset: str, seed: int, out: Path, workers: int | None, reuse: bool, reuse_runs: bool = False
+    preset: str,
+    seed: int,
+    out: Path,
+    workers: int | None,
+    reuse: bool,
+    reuse_runs: bool = False,
+    block_m: float | None = None,
 ) -> dict:
     """Every stage on one preset and seed; the figures of each. ``reuse`` keeps an
-    existing sample scene; ``reuse_runs`` also the runs whose logs are there."""
+    existing sample scene; ``reuse_runs`` also the runs whose logs are there; with
+    ``block_m``, the fusion is run again in blocks of that side (``--block``)."""
     out.mkdir(parents=True, exist_ok=True)
     scene, fusion, report = out / "scene", out / "fusion", out / "report"
     w = ["--workers", str(workers)] if workers else []
@@ -96,6 +103,17 @@ def city_run(
         "engine": rec.get("engine"), "workers": rec.get("workers"),
         "quality": rec.get("quality", {}),
     }  # fmt: skip
+    if block_m is not None:  # the same fusion in blocks: the command's memory follows the block
+        blocked = out / "fusion_blocks"
+        kept = _recorded_s(blocked / "fusion.json", "stages_total_s") if reuse_runs else None
+        wall, peak = run("fusion", scene, "-o", blocked, "--truth", scene, "--block", block_m,
+                         *w, "--overwrite", log=out / "fusion_blocks.log", kept=kept)  # fmt: skip
+        rec = json.loads((blocked / "fusion.json").read_text())
+        res["fusion_blocks"] = {
+            "wall_s": wall, "peak_mb": peak, "own_peak_mb": rec.get("peak_memory_mb"),
+            "worker_peak_mb": rec.get("worker_peak_memory_mb"), **rec["blocks"],
+            "quality": rec.get("quality", {}),
+        }  # fmt: skip
     paths = {"superpixel": ["superpixel", fusion],
              "voxel": ["voxel", scene, "--fusion", fusion, *w],
              "parametric": ["parametric", fusion, *w],
@@ -176,6 +194,13 @@ def print_city(r: dict) -> None:
           f"{f['tiles']} tiles of {f['cells'] / 1e6:.2f} M cells; {f['observations'] / 1e6:.1f} M "
           f"observations, {f['observations_per_s'] / 1e6:.2f} M/s")  # fmt: skip
     print("              " + ", ".join(f"{k} {v:.1f}" for k, v in f["stages"].items()))
+    if "fusion_blocks" in r:
+        b = r["fusion_blocks"]
+        print(f"  fusion in {b['count']} blocks of {b['side_m']:g} m (+ {b['margin_m']:g} m "
+              f"margins: at most {b['largest_block_cells'] / 1e6:.2f} M cells a block, "
+              f"{b['cells_fused_per_cell']:.2f} cells fused per cell)")  # fmt: skip
+        print(f"              {b['wall_s']:8.1f} s  {peaks(b)}")
+        print_fusion_quality(b.get("quality", {}), "              ")
     m = r["superpixel"]
     print(f"  superpixel  {m['wall_s']:8.1f} s  {peaks(m)}; {m['buildings']} buildings, "
           f"{m['wall_s'] / (f['cells'] / 1e6):.1f} s per ortho megapixel")  # fmt: skip
@@ -191,10 +216,14 @@ def print_city(r: dict) -> None:
         print("              " + ", ".join(f"{k} {v:.1f}" for k, v in m["stages"].items()))
     print(f"  compare     {r['compare']['wall_s']:8.1f} s  {peaks(r['compare'])}")
     print(f"  total       {r['total_s']:8.1f} s")
-    q = f.get("quality", {})
+    print_fusion_quality(f.get("quality", {}), "  fusion ")
+
+
+def print_fusion_quality(q: dict, lead: str) -> None:
+    """A fusion's classes and DSM against the truth, on one line after ``lead``."""
     if q.get("classification"):
         off = q["dsm"].get("rmse_off_jumps_m", float("nan"))
-        print(f"  fusion classes overall {q['classification']['overall_accuracy']:.3f}, "
+        print(f"{lead}classes overall {q['classification']['overall_accuracy']:.3f}, "
               f"DSM RMSE off jumps {off:.2f} m")  # fmt: skip
 
 

@@ -22,13 +22,16 @@ from .interpolate import push_pull_fill
 # 14) and became terrain; at 2.5 m, part of a 3.3 m T-shaped building on a slope, its
 # roof 2.3-2.4 m above the ground uphill (dev seed 15), and every path lost that part.
 LOWEST_BUILDING_M = 2.0
+# the largest opening: about the largest building's width (a fused block's margin too,
+# fusion.blocks, so that the opening sees the whole of a building the block's edge cuts)
+LARGEST_WINDOW_M = 80.0
 
 
 def progressive_morphological_filter(
     dsm: np.ndarray,
     cell: float,
     *,
-    max_window: float = 80.0,
+    max_window: float = LARGEST_WINDOW_M,
     slope: float = 0.3,
     dh0: float = 0.5,
     dh_max: float = LOWEST_BUILDING_M,

@@ -18,9 +18,10 @@ from workbench.records import provenance
 from workbench.scene import load_scene
 from workbench.truth import truth_rasters
 
+from .blocks import block_size, fuse_in_blocks, planned_grid
 from .classifier import save_classifier
 from .options import FusionOptions
-from .outputs import write_fusion
+from .outputs import FusionWindows, read_fusion, write_fusion, write_record
 from .raster_forest import classify_rasters, synthetic_raster_forest
 from .scene_fusion import check_height_source, feature_set, fuse_views
 
@@ -94,18 +95,22 @@ def run_fusion(
     check_height_source(loaded)  # before the workers start: bad input stops at once
     inputs = {"scene": str(loaded.scene_json), "views": len(loaded.views)}
     signature = run_signature(options, {"scene": scene})
+    grid = planned_grid(loaded, options)
+    block_m = block_size(grid, options)
     with engine_for(out, signature, workers=options.workers, scheduler=scheduler,
                     resume=resume, preload=("fusion.scene_fusion",)) as engine:  # fmt: skip
+        if block_m is not None:
+            return _fuse_blocks(out, loaded, grid, block_m, engine, inputs, options, truth,
+                                save_classifier_to, overwrite, command, t0)  # fmt: skip
         result = fuse_views(loaded, options, engine)
         return _write(out, result, loaded.crs, inputs, options, truth, save_classifier_to,
                       overwrite, command, t0)  # fmt: skip
 
 
-def _write(out, result, crs, inputs, options, truth, save_classifier_to, overwrite, command, t0):
-    """The run's record (scored against ``truth`` if given), and the run folder written
-    atomically; returns the record."""
-    g = result.grid
-    record = {
+def _record(grid, crs, inputs, options, figures: dict, command, t0) -> dict:
+    """The run's record: what made it, its grid, the fusion's own figures."""
+    g = grid
+    return {
         "provenance": provenance(command),
         "inputs": inputs,
         "parameters": options_record(options),
@@ -113,18 +118,47 @@ def _write(out, result, crs, inputs, options, truth, save_classifier_to, overwri
             "xmin": g.xmin, "ymax": g.ymax, "gsd": g.gsd, "width": g.width, "height": g.height,
             "crs": crs.to_string() if crs else None,
         },
-        **result.record,
+        **figures,
         "stages_total_s": round(time.perf_counter() - t0, 3),
     }  # fmt: skip
+
+
+def _write(out, result, crs, inputs, options, truth, save_classifier_to, overwrite, command, t0):
+    """The run's record (scored against ``truth`` if given), and the run folder written
+    atomically; returns the record."""
+    record = _record(result.grid, crs, inputs, options, result.record, command, t0)
     if truth is not None:
         record["quality"] = fusion_quality(result, truth)
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
         write_fusion(tmp, result, crs, record)
-        if save_classifier_to is not None and result.forest is not None:
-            save_classifier(
-                save_classifier_to, result.forest, features=feature_set(options),
-                meta={"trained_on": record["inputs"], "seed": options.seed},
-            )  # fmt: skip
+        _save_forest(save_classifier_to, result.forest, record, options)
+    return record
+
+
+def _save_forest(path, forest, record: dict, options: FusionOptions) -> None:
+    if path is not None and forest is not None:
+        save_classifier(path, forest, features=feature_set(options),
+                        meta={"trained_on": record["inputs"], "seed": options.seed})  # fmt: skip
+
+
+def _fuse_blocks(out, scene, grid, block_m, engine, inputs, options, truth, save_classifier_to,
+                 overwrite, command, t0):  # fmt: skip
+    """The fusion block by block (:mod:`fusion.blocks`), its rasters written window by
+    window into the run folder, which appears atomically; returns the record. Scoring
+    against ``truth`` reads the whole rasters back."""
+    with atomic_output_dir(out, overwrite=overwrite) as tmp:
+        windows = FusionWindows(tmp, grid, scene.crs)
+        try:
+            grid, figures, forest = fuse_in_blocks(scene, options, engine, windows, block_m)
+        except BaseException:
+            windows.discard()
+            raise
+        record = _record(grid, scene.crs, inputs, options, figures, command, t0)
+        windows.close(record)
+        if truth is not None:
+            record["quality"] = fusion_quality(read_fusion(tmp), truth)
+            write_record(tmp, record)
+        _save_forest(save_classifier_to, forest, record, options)
     return record
 
 

@@ -349,67 +349,125 @@ def fuse_views(
     """
     opts = opts or FusionOptions()
     timer = StageTimer()
-    views, skipped, mode, given, opts = _depth_views(scene, opts, timer)
+    views, skipped, mode, given, opts = depth_views(scene, opts, timer)
     with timer.stage("grid"):
         grid = default_grid(scene, opts)
         check_memory(grid, opts, len(views))
         engine = engine or ThreadEngine(view_workers(views, opts))
-    with _scratch(engine) as folder:
-        cache = ObservationCache(folder, grid, opts.tile)
+    with scratch_folder(engine) as folder:
         shared_views = engine.share(views)
-        with timer.stage("observations"):
-            cache.observe(engine, shared_views, len(views), opts.tolerance)
-        with timer.stage("heights"):
-            h = fused_heights(cache, engine)
-        with timer.stage("ground"):
-            dsm, dtm, dtm_full, spikes, holes = _ground(h, grid, mode, given)
-        ctx = None
-        if opts.classifier is not None or scene.training_labels is not None:
-            # the surface that gives shadowed pixels their elevation cue: where no view saw
-            # the top surface (beside towers, in their shadows) the ground is the better guess
-            surface = DsmSurface(np.where(np.isfinite(dsm), dsm, dtm_full), grid)
-            cues = geometric_cues(dsm, h.spread, grid.gsd) if opts.geometry_cues else None
-            rasters = GridRasters.write(folder, grid, surface, dsm=dsm, dtm=dtm, cues=cues)
-            ctx = ViewContext(views, grid, opts, rasters)
+        s = fused_surface(views, shared_views, grid, mode, given, opts, engine, folder, timer,
+                          with_context=classifies(scene, opts))  # fmt: skip
         with timer.stage("training"):
-            forest, class_source = _forest(scene, ctx, opts, engine)
+            forest, class_source = view_forest(scene, s.context, opts, engine)
         with timer.stage("classification"):
-            n_px = classify_views(cache, ctx, forest, engine)
-        with timer.stage("colour_and_class"):
-            c = colours_and_classes(cache, shared_views, forest is not None, dsm, h, mode, opts,
-                                    engine)  # fmt: skip
-    dsm, ndsm, class_prob, classes, ortho, count16, crowns, planar, class_source = _finish(
-        c, h, dsm, dtm, spikes, holes, forest, class_source, grid, mode, opts, timer, engine
-    )
-    observe_s = timer.stages["observations"]["wall_s"] + timer.stages["heights"]["wall_s"]
-    record = {
+            n_px = classify_views(s.cache, s.context, forest, engine)
+        result = fused_products(s, shared_views, forest, class_source, mode, opts, engine, timer)
+        result.record["pixels_classified"] = n_px
+    result.record = {
         "mode": mode,
         "views": {"used": len(views), "skipped_no_depth": len(skipped), "skipped_ids": skipped},
         "workers": engine.workers,
         **engine.describe(),
-        "tiles": len(cache.tiles),
-        "observations": int(h.n_obs),
-        "class_source": class_source,
-        "filled_cells": int(holes.sum()),
-        "rejected_isolated_spikes": int(spikes.sum()),
-        "planar_objects_made_building": planar,
-        "crown_cells_raised": int(crowns.sum()),
-        "crown_sightings_raised": int(np.isfinite(c.crown_z).sum()),
+        **result.record,
         "stages": timer.stages,
-        "observations_per_s": round(h.n_obs / max(observe_s, 1e-9)),
+        "observations_per_s": observations_per_s(result.record["observations"], timer.stages),
         "peak_memory_mb": round(peak_memory_mb(), 1),
     }
     if forest is not None and timer.stages["classification"]["wall_s"] > 0:
-        record["classification_mpx_per_s"] = round(
-            n_px / 1e6 / timer.stages["classification"]["wall_s"], 3
+        result.record["classification_mpx_per_s"] = round(
+            result.record["pixels_classified"] / 1e6 / timer.stages["classification"]["wall_s"], 3
         )
+    return result
+
+
+def observations_per_s(n_obs: int, stages: dict) -> int:
+    """Observations fused per second of the observing and the heights' stages."""
+    seconds = stages["observations"]["wall_s"] + stages["heights"]["wall_s"]
+    return round(n_obs / max(seconds, 1e-9))
+
+
+def classifies(scene: Scene, opts: FusionOptions) -> bool:
+    """Whether the views are classified (a forest given or trained on the scene's
+    strokes): their features need the fused rasters in files."""
+    return opts.classifier is not None or scene.training_labels is not None
+
+
+@dataclass
+class FusedSurface:
+    """The heights pass over a grid: what its colour pass and classes build on.
+
+    ``dsm`` has its isolated spikes dropped and small holes filled, ``dtm`` is NaN where
+    the DSM is, ``dtm_full`` defined everywhere; ``context`` is what a view's features
+    need (None when the views are not classified)."""
+
+    grid: Grid
+    cache: ObservationCache
+    heights: FusedHeights
+    dsm: np.ndarray
+    dtm: np.ndarray
+    dtm_full: np.ndarray
+    spikes: np.ndarray
+    holes: np.ndarray
+    context: ViewContext | None
+
+
+def fused_surface(views, shared_views, grid: Grid, mode: str, given, opts: FusionOptions,
+                  engine: Engine, folder: Path, timer: StageTimer, *,
+                  with_context: bool) -> FusedSurface:  # fmt: skip
+    """Pass 1 of the fusion (the module's docstring) on ``grid``: the views observed into
+    ``folder``, their heights fused, the ground filtered, and the rasters the views'
+    features read written beside them (``with_context``). ``shared_views`` is the
+    engine's handle on ``views``."""
+    cache = ObservationCache(folder, grid, opts.tile)
+    with timer.stage("observations"):
+        cache.observe(engine, shared_views, len(views), opts.tolerance)
+    with timer.stage("heights"):
+        h = fused_heights(cache, engine)
+    with timer.stage("ground"):
+        dsm, dtm, dtm_full, spikes, holes = fused_ground(h, grid, mode, given)
+    ctx = None
+    if with_context:
+        # the surface that gives shadowed pixels their elevation cue: where no view saw the
+        # top surface (beside towers, in their shadows) the ground is the better guess
+        surface = DsmSurface(np.where(np.isfinite(dsm), dsm, dtm_full), grid)
+        cues = geometric_cues(dsm, h.spread, grid.gsd) if opts.geometry_cues else None
+        rasters = GridRasters.write(folder, grid, surface, dsm=dsm, dtm=dtm, cues=cues)
+        ctx = ViewContext(views, grid, opts, rasters)
+    return FusedSurface(grid, cache, h, dsm, dtm, dtm_full, spikes, holes, ctx)
+
+
+def fused_products(s: FusedSurface, shared_views, forest, class_source, mode: str,
+                   opts: FusionOptions, engine: Engine,
+                   timer: StageTimer) -> FusionResult:  # fmt: skip
+    """Pass 3 of the fusion on ``s.grid``, the views classified (:func:`classify_views`)
+    by ``forest`` (or None): the colour pass, the classes and the crowns' corrections.
+    The result's record holds the figures of these products; the caller adds the run's."""
+    with timer.stage("colour_and_class"):
+        c = colours_and_classes(s.cache, shared_views, forest is not None, s.dsm, s.heights,
+                                mode, opts, engine)  # fmt: skip
+    h = s.heights
+    dsm, ndsm, class_prob, classes, ortho, count16, crowns, planar, class_source = _finish(
+        c, h, s.dsm, s.dtm, s.spikes, s.holes, forest, class_source, s.grid, mode, opts, timer,
+        engine,
+    )  # fmt: skip
+    record = {
+        "tiles": len(s.cache.tiles),
+        "observations": int(h.n_obs),
+        "class_source": class_source,
+        "filled_cells": int(s.holes.sum()),
+        "rejected_isolated_spikes": int(s.spikes.sum()),
+        "planar_objects_made_building": planar,
+        "crown_cells_raised": int(crowns.sum()),
+        "crown_sightings_raised": int(np.isfinite(c.crown_z).sum()),
+    }
     ablation = {"dsm_mean": h.dsm_mean, "ortho_mean": c.ortho_mean}
-    return FusionResult(grid, ortho, dsm, dtm, ndsm, class_prob, count16, ablation, record, forest,
-                        class_map=classes)  # fmt: skip
+    return FusionResult(s.grid, ortho, dsm, s.dtm, ndsm, class_prob, count16, ablation, record,
+                        forest, class_map=classes)  # fmt: skip
 
 
 @contextmanager
-def _scratch(engine: Engine):
+def scratch_folder(engine: Engine):
     """The folder of the views' observations and probabilities: in the engine's store
     (kept for --resume; on a cluster, on a file system every worker sees), else a
     temporary folder of this machine (workers on it only)."""
@@ -475,7 +533,7 @@ def feature_margin(patch: int) -> int:
     return patch // 2 + 1
 
 
-def _depth_views(scene: Scene, opts: FusionOptions, timer: StageTimer):
+def depth_views(scene: Scene, opts: FusionOptions, timer: StageTimer):
     """The views to fuse (with depth maps, or ray-cast from the scene's DSM), the ids of
     those skipped, the mode, the given DSM (or None) and the options (the DSM's grid by
     default in the true-orthophoto mode)."""
@@ -521,8 +579,11 @@ class ObservationCache:
 
     FIELDS = ("cells", "z", "weight", "top", "pixels")
 
-    def __init__(self, folder: Path, grid: Grid, tile: int):
+    def __init__(self, folder: Path, grid: Grid, tile: int, probs_folder: Path | None = None):
         self.folder, self.grid, self.tile = folder, grid, tile
+        # the views' class probabilities: beside the observations, or shared by the caches
+        # of every block (fusion.blocks)
+        self.probs_folder = probs_folder or folder
         self.tiles = list(_tiles(grid, tile))
         self.present: list[list[int]] = []
 
@@ -538,14 +599,26 @@ class ObservationCache:
     def path(self, i: int, t: int) -> Path:
         return self.folder / f"{i}_{t}.npz"
 
+    def probs_path(self, i: int) -> Path:
+        """View ``i``'s class probabilities per pixel (:func:`classify_view`)."""
+        return self.probs_folder / f"{i}_probs.npy"
+
     def touching(self, t: int) -> list[int]:
         """The views with observations in tile ``t``, in view order."""
         return [i for i, tiles in enumerate(self.present) if t in tiles]
 
-    def view_pixels(self, i: int) -> np.ndarray:
-        """(M,) int64 sorted flat indices of the pixels of view ``i`` with an observation."""
-        parts = [self.in_tile(i, t, "pixels")[0] for t in self.present[i]]
-        return np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+    def view_pixels(self, i: int, n_pixels: int) -> np.ndarray:
+        """(M,) int64 sorted flat indices of the pixels of view ``i`` (of ``n_pixels``)
+        with an observation."""
+        return np.flatnonzero(self.mark_view_pixels(i, np.zeros(n_pixels, bool)))
+
+    def mark_view_pixels(self, i: int, seen: np.ndarray) -> np.ndarray:
+        """``seen`` ((n_pixels,) bool) set at the pixels of view ``i`` with an observation
+        (marked rather than sorted: several tiles, or blocks, observe a pixel)."""
+        for t in self.present[i]:
+            with np.load(self.path(i, t)) as f:
+                seen[f["pixels"]] = True
+        return seen
 
     def in_tile(self, i: int, t: int, *names: str) -> tuple:
         """View ``i``'s observations in tile ``t``: the fields ``names``."""
@@ -633,7 +706,7 @@ def tile_heights(t: int, cache: ObservationCache) -> tuple:
         count, len(z)  # fmt: skip
 
 
-def _ground(h: FusedHeights, grid: Grid, mode: str, given):
+def fused_ground(h: FusedHeights, grid: Grid, mode: str, given):
     """The DSM with its isolated spikes dropped and small holes filled (or the given DSM
     on the grid), the DTM under it (NaN where the DSM is), the DTM everywhere, the spikes
     and the holes."""
@@ -651,7 +724,7 @@ def _ground(h: FusedHeights, grid: Grid, mode: str, given):
     return dsm, dtm, dtm_full, spikes, holes
 
 
-def _forest(scene: Scene, ctx: ViewContext | None, opts: FusionOptions, engine: Engine):
+def view_forest(scene: Scene, ctx: ViewContext | None, opts: FusionOptions, engine: Engine):
     """Section 4's per-view forest, loaded or trained on the scene's strokes (None
     without either), and a sentence on where it came from."""
     if opts.classifier is not None:
@@ -677,24 +750,27 @@ def classify_views(cache: ObservationCache, ctx: ViewContext | None, forest,
     if engine.workers > 1:  # a task per core: the forest's own threads would oversubscribe
         ctx.forest = copy.copy(forest)
         ctx.forest.set_params(n_jobs=1)
-    shared = engine.share(ctx)
+    # the cache once to each worker: a fusion in blocks gives every block's (fusion.blocks)
+    shared, cache = engine.share(ctx), engine.share(cache)
     return sum(engine.map(classify_view, range(len(ctx.views)), shared, cache,
                           stage="classification"))  # fmt: skip
 
 
 def classify_view(i: int, ctx: ViewContext, cache: ObservationCache) -> int:
     """Task: view ``i``'s class probabilities, (H*W, 4) uint8, to
-    ``cache.folder/<i>_probs.npy``; returns the number of pixels classified.
+    ``cache.probs_path(i)``; returns the number of pixels classified.
 
     Only the pixels the colour pass reads are classified, the view's visible
     observations (:meth:`ObservationCache.view_pixels`, half of the pixels that see the
     grid on `small`); the others are left 0."""
-    depth, feats, pixels, _, window = ctx.features(ctx.views[i], ctx.grid, cache.view_pixels(i))
+    camera = ctx.views[i].camera
+    observed = cache.view_pixels(i, camera.width * camera.height)
+    depth, feats, pixels, _, window = ctx.features(ctx.views[i], ctx.grid, observed)
     probs = np.zeros((depth.size, len(CLASSES)), np.uint8)
     if window is not None:
         p = np.round(predict_proba(ctx.forest, feats) * 255).astype(np.uint8)
         probs[window_pixels(window, pixels, depth.shape[1])] = p
-    np.save(cache.folder / f"{i}_probs.npy", probs)
+    np.save(cache.probs_path(i), probs)
     return 0 if window is None else len(pixels)
 
 
@@ -764,7 +840,7 @@ def tile_colours(item: tuple, views: list, cache: ObservationCache, how: TileCol
     for i in cache.touching(t):
         local, top, px, z, weight = cache.in_tile(i, t, "cells", "top", "pixels", "z", "weight")
         colour = views[i].read_image().reshape(-1, 3)[px]
-        prob = np.load(cache.folder / f"{i}_probs.npy", mmap_mode="r")[px] if how.with_probs \
+        prob = np.load(cache.probs_path(i), mmap_mode="r")[px] if how.with_probs \
             else None  # fmt: skip
         parts.append((local, top, colour, prob, z, weight))
     cells = _joined([p[0] for p in parts], np.int64)
@@ -831,8 +907,8 @@ def _finish(
             roof, planar = planar_tree_objects(classes, dsm, ndsm, grid.gsd, opts.seed)
             classes, class_prob = relabel_planar_objects(classes, class_prob, roof)
         class_source += (
-            f"; {planar} objects classed tree made building in both rasters: planes explain "
-            "most of their cells (fusion.planar_objects)"
+            "; objects classed tree made building in both rasters where planes explain most "
+            "of their cells (fusion.planar_objects; counted in planar_objects_made_building)"
         )
     with timer.stage("crowns"):
         crowns = np.zeros(grid.shape, bool)

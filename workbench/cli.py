@@ -657,7 +657,8 @@ def main(argv: list[str] | None = None) -> int:
         for name in ("workbench", "fusion", "modeling", "data_samples"):
             logging.getLogger(name).setLevel(logging.DEBUG)
     if getattr(args, "resume", False):  # say what is kept
-        logging.getLogger("workbench.engine").setLevel(logging.INFO)
+        for name in ("workbench.engine", "fusion.blocks"):
+            logging.getLogger(name).setLevel(logging.INFO)
     try:
         return args.func(args)
     except WorkbenchError as exc:

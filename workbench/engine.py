@@ -20,6 +20,7 @@ and submits only the rest.
 
 from __future__ import annotations
 
+import copy
 import errno
 import importlib
 import json
@@ -70,16 +71,10 @@ class TaskStore:
         path = self.path(stage, key)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(f".tmp-{os.getpid()}")
-        try:
+        with full_disk_named(path, partial=tmp):
             with open(tmp, "wb") as f:
                 pickle.dump(result, f, protocol=5)
             os.replace(tmp, path)
-        except OSError as e:
-            tmp.unlink(missing_ok=True)
-            full = disk_full(e, path)
-            if full is None:
-                raise
-            raise full from None
 
     def finished(self, stage: str) -> int:
         """How many of ``stage``'s tasks are in the store."""
@@ -87,8 +82,9 @@ class TaskStore:
         return len(list(d.glob("*.pkl"))) if d.is_dir() else 0
 
     def empty(self) -> bool:
-        """Whether no task has finished (the folder holds its manifest at most)."""
-        return not any(self.folder.glob("*/*.pkl"))
+        """Whether no task has finished (the folder holds its manifest at most), its
+        nested stores' (:meth:`Engine.kept_in`) included."""
+        return not any(self.folder.rglob("*.pkl"))
 
     def scratch(self, name: str) -> Path:
         """A folder of the store for a stage's own files (every worker must see it)."""
@@ -105,6 +101,21 @@ def disk_full(e: OSError, path=None) -> WorkbenchError | None:
         f"{path or e.filename}: disk full while keeping a finished task; the tasks finished "
         "before it are kept: free some space and run again with --resume"
     )
+
+
+@contextmanager
+def full_disk_named(path, partial: Path | None = None):
+    """A full disk met inside the block becomes :func:`disk_full`'s one-line error naming
+    ``path``, ``partial`` (a file half written) removed first; other errors pass."""
+    try:
+        yield
+    except OSError as e:
+        if partial is not None:
+            partial.unlink(missing_ok=True)
+        full = disk_full(e, path)
+        if full is None:
+            raise
+        raise full from None
 
 
 def _raise_disk_full(e: OSError) -> None:
@@ -229,6 +240,13 @@ class Engine:
     def close(self) -> None:
         pass
 
+    def kept_in(self, store: TaskStore | None, name: str) -> Engine:
+        """The same workers, keeping their finished tasks in folder ``name`` of ``store``
+        (a block of a fusion: its stages' names are those of every other block's)."""
+        sub = copy.copy(self)
+        sub.store = None if store is None else TaskStore(store.folder / name)
+        return sub
+
     def describe(self) -> dict:
         """The engine for the run's record."""
         return {"engine": self.name, "workers": self.workers}
@@ -289,6 +307,7 @@ class DaskEngine(Engine):
 
     def __init__(self, client, cluster=None, store: TaskStore | None = None):
         self.client, self.store, self.cluster = client, store, cluster
+        self.settings = None  # dask settings kept while a local cluster lives
         self.workers = max(1, sum(client.nthreads().values()))
         self.address = client.scheduler.address
 
@@ -352,6 +371,9 @@ class DaskEngine(Engine):
         self.client.close()
         if self.cluster is not None:
             self.cluster.close()
+        if self.settings is not None:
+            self.settings.__exit__(None, None, None)
+            self.settings = None
 
     def describe(self) -> dict:
         """The engine, and each worker's peak resident memory so far (MiB)."""
@@ -393,7 +415,17 @@ def start_engine(
     elif (workers or default_workers()) == 1:
         return ThreadEngine(1, store)
     else:
-        engine = DaskEngine(*local_cluster(workers or default_workers()), store=store)
+        import dask
+
+        # the scheduler reads some of its log lengths when it first logs: for as long as it
+        # lives (this process's dask settings, until the engine closes)
+        settings = dask.config.set(SHORT_SCHEDULER_LOGS)
+        try:
+            engine = DaskEngine(*local_cluster(workers or default_workers()), store=store)
+        except BaseException:
+            settings.__exit__(None, None, None)
+            raise
+        engine.settings = settings
     engine.client.run(glibc_malloc_defaults)
     engine.client.run(one_opencv_thread)
     for module in preload:
@@ -425,6 +457,16 @@ def glibc_malloc_defaults() -> None:
 # from it (the fusion's ray-casting surface: 8 s a time on the city, where 29 of 124
 # views' tasks met a new copy). The contexts are few and bounded: keep every copy.
 KEEP_SHARED_REPLICAS = {"distributed.scheduler.active-memory-manager.start": False}
+# A local cluster's scheduler lives in the command's process, and its logs of transitions
+# and events (100,000 entries each by default) keep what every task was sent with: on the
+# city, the command grew by 250 MiB while its 495 views were classified, every task
+# carrying the blocks' list of the tiles each view reaches. The logs are for operators'
+# debugging; a run needs none.
+SHORT_SCHEDULER_LOGS = {
+    "distributed.scheduler.transition-log-length": 100,
+    "distributed.scheduler.events-log-length": 100,
+    "distributed.admin.log-length": 100,
+}
 
 
 def one_opencv_thread() -> None:

@@ -9,12 +9,15 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import rasterio
+import rasterio.shutil
 from rasterio.crs import CRS
 from rasterio.errors import CRSError, RasterioIOError
 from rasterio.transform import Affine
+from rasterio.windows import Window
 
 from .errors import InputError
 from .parallel import default_workers
@@ -210,21 +213,32 @@ def write_raster(
     arr = data[None] if data.ndim == 2 else data
     if arr.shape[1:] != grid.shape:
         raise ValueError(f"data shape {arr.shape[1:]} does not match grid {grid.shape}")
-    if nodata is None and np.issubdtype(arr.dtype, np.floating):
+    with rasterio.open(path, "w", **cog_profile(grid, crs, arr.dtype, arr.shape[0], nodata)) as dst:
+        dst.write(arr)
+        if descriptions:
+            for i, d in enumerate(descriptions, start=1):
+                dst.set_band_description(i, d)
+
+
+def cog_profile(grid: Grid, crs: CRS | None, dtype, count: int, nodata=None) -> dict:
+    """The profile of :func:`write_raster`'s Cloud-Optimized GeoTIFFs: tiled, compressed,
+    with overviews inside, readable in parts over HTTP; ``nodata`` NaN by default for
+    float data, none for integer data."""
+    floating = np.issubdtype(dtype, np.floating)
+    if nodata is None and floating:
         nodata = float("nan")
-    image = np.issubdtype(arr.dtype, np.floating) or (arr.dtype == np.uint8 and arr.shape[0] == 3)
-    # a Cloud-Optimized GeoTIFF: tiled, overviews inside, readable in parts over HTTP
-    profile = dict(
+    image = floating or (np.dtype(dtype) == np.uint8 and count == 3)
+    return dict(
         driver="COG",
         width=grid.width,
         height=grid.height,
-        count=arr.shape[0],
-        dtype=arr.dtype,
+        count=count,
+        dtype=dtype,
         crs=crs,
         transform=grid.transform,
         nodata=nodata,
         compress="deflate",
-        predictor="FLOATING_POINT" if np.issubdtype(arr.dtype, np.floating) else "STANDARD",
+        predictor="FLOATING_POINT" if floating else "STANDARD",
         blocksize=256,
         # heights and colours average into an overview; classes and ids must not
         overview_resampling="average" if image else "nearest",
@@ -232,11 +246,77 @@ def write_raster(
         # one a single thread writes
         num_threads=default_workers(),
     )
-    with rasterio.open(path, "w", **profile) as dst:
-        dst.write(arr)
-        if descriptions:
-            for i, d in enumerate(descriptions, start=1):
+
+
+class WindowedRaster:
+    """A raster written window by window, the Cloud-Optimized GeoTIFF of
+    :func:`write_raster` once closed: the whole raster is never in memory.
+
+    The windows go into a tiled GeoTIFF beside ``path``, opened for each window and
+    closed after it (GDAL keeps a file's written blocks in its cache until then, up to 5 %
+    of the machine's memory), which GDAL copies into the COG, overviews included, block
+    by block when :meth:`close` is called.
+
+    Parameters
+    ----------
+    path : path
+    grid : Grid
+    crs : CRS or None
+    dtype, count
+        The raster's data type and number of bands.
+    nodata, descriptions
+        As for :func:`write_raster`.
+    """
+
+    def __init__(self, path, grid: Grid, crs: CRS | None, dtype, count: int = 1, *,
+                 nodata=None, descriptions: list[str] | None = None):  # fmt: skip
+        self.path = Path(path)
+        self.profile = cog_profile(grid, crs, dtype, count, nodata)
+        self.staging = self.path.with_name(f".{self.path.name}.windows.tif")
+        cog_only = ("driver", "blocksize", "overview_resampling", "predictor")
+        staging = {k: v for k, v in self.profile.items() if k not in cog_only}
+        with _gdal_cache(), rasterio.open(self.staging, "w", driver="GTiff", tiled=True,
+                                          blockxsize=256, blockysize=256, bigtiff="IF_SAFER",
+                                          **staging) as dst:  # fmt: skip
+            for i, d in enumerate(descriptions or [], start=1):
                 dst.set_band_description(i, d)
+
+    def write(self, data: np.ndarray, rows: slice, cols: slice) -> None:
+        """Write ``data`` ((h, w) or (B, h, w)) at the cells ``rows`` x ``cols``."""
+        arr = data[None] if data.ndim == 2 else data
+        window = Window(cols.start, rows.start, cols.stop - cols.start, rows.stop - rows.start)
+        with _gdal_cache(), rasterio.open(self.staging, "r+") as dst:
+            dst.write(arr, window=window)
+
+    def close(self) -> None:
+        """The COG at ``path``; the staging file removed."""
+        options = {k: self.profile[k] for k in ("compress", "predictor", "blocksize",
+                                               "overview_resampling", "num_threads")}  # fmt: skip
+        try:
+            with _gdal_cache():
+                rasterio.shutil.copy(self.staging, self.path, driver="COG", **options)
+        finally:
+            self.staging.unlink(missing_ok=True)
+
+    def discard(self) -> None:
+        """Remove the staging file (the run failed)."""
+        self.staging.unlink(missing_ok=True)
+
+
+GDAL_CACHE_MB = 256  # GDAL's block cache while windows are written and copied
+
+
+def _gdal_cache():
+    return rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB)
+
+
+def read_decimated(path, longest: int) -> np.ndarray:
+    """(B, h, w) a raster read at most ``longest`` cells on its longer side, from its
+    overviews where it has them (a preview of a raster too large to hold whole)."""
+    with rasterio.open(path) as src:
+        f = max(1, int(np.ceil(max(src.height, src.width) / longest)))
+        shape = (src.count, -(-src.height // f), -(-src.width // f))
+        return src.read(out_shape=shape, masked=False)
 
 
 def read_raster(path: str | os.PathLike, *, field: str | None = None, as_float: bool = False):

@@ -1,0 +1,370 @@
+"""A fusion larger than memory: the grid cut into blocks, each fused with a margin around
+it, the inside of each written into windows of the output rasters.
+
+The command's memory then follows the block, not the area: every whole-grid step of the
+fusion (the ground filter, the class CRF, the planar objects, the crowns) runs on one
+block and its margin at a time. The margin is the ground filter's largest window
+(:data:`~fusion.ground.LARGEST_WINDOW_M`): a building cut by a block's edge is whole in
+the block that keeps it, and the opening that takes it off the terrain sees all of it.
+A cell's fused height and colour are those of its own observations, the same in any
+block. What depends on the cells around can differ: the terrain interpolated under
+buildings and crowns (the push-pull pyramid's cells fall elsewhere in a block), and
+through it the elevation the forest learns from, the classes and the crowns' heights.
+
+The forest is trained once, and every view classified once, over whole-grid rasters
+(the DSM, DTM, surface heights and cues) that the blocks write inside themselves into
+files on disk: the training and the classification are those of one grid, and the
+classes do not change from one block to the next because a block holds fewer strokes.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import rasterio
+from rasterio.errors import RasterioIOError
+
+from workbench.engine import Engine, TaskStore, ThreadEngine, full_disk_named
+from workbench.errors import InputError
+from workbench.progress import progress
+from workbench.raster import Grid
+from workbench.records import StageTimer, peak_memory_mb
+from workbench.scene import Scene
+
+from .geometry_cues import geometric_cues
+from .grid_rasters import GridRasters
+from .ground import LARGEST_WINDOW_M
+from .options import FusionOptions
+from .scene_fusion import (
+    FusedSurface,
+    ObservationCache,
+    ViewContext,
+    check_memory,
+    classifies,
+    classify_views,
+    default_grid,
+    depth_views,
+    fused_ground,
+    fused_heights,
+    fused_products,
+    observations_per_s,
+    scratch_folder,
+    view_forest,
+    view_workers,
+)
+
+log = logging.getLogger(__name__)
+
+AUTO_BLOCK_CELLS = 4096  # a grid of at most this many cells a side is fused at once
+PRODUCTS = ("ortho", "dsm", "dtm", "ndsm", "class_prob", "classes", "count")
+SUMMED = ("tiles", "observations", "pixels_classified", "filled_cells",
+          "rejected_isolated_spikes", "planar_objects_made_building", "crown_cells_raised",
+          "crown_sightings_raised")  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Block:
+    """A block of the grid: the cells it writes (``inner``) and the cells it is fused
+    over (``outer``: ``inner`` and the margin, clipped to the grid), as (rows, cols)
+    slices of the whole grid."""
+
+    index: int
+    inner: tuple[slice, slice]
+    outer: tuple[slice, slice]
+
+    @property
+    def inside(self) -> tuple[slice, slice]:
+        """``inner`` as slices of the outer block's arrays."""
+        return tuple(
+            slice(i.start - o.start, i.stop - o.start)
+            for i, o in zip(self.inner, self.outer, strict=True)
+        )
+
+
+def block_layout(grid: Grid, block_m: float, margin_m: float = LARGEST_WINDOW_M) -> list[Block]:
+    """The blocks of at most ``block_m`` metres a side that cut ``grid`` most evenly, each
+    with ``margin_m`` metres of margin, row by row from the north-west.
+
+    Parameters
+    ----------
+    grid : Grid
+    block_m, margin_m : float
+        A block's side and its margin, metres.
+    """
+    size = max(1, int(block_m / grid.gsd))
+    margin = int(np.ceil(margin_m / grid.gsd))
+    cuts = []
+    for n in (grid.height, grid.width):
+        k = -(-n // size)  # blocks along the axis
+        cuts.append(np.linspace(0, n, k + 1).round().astype(int))
+    blocks = []
+    for r0, r1 in zip(cuts[0][:-1], cuts[0][1:], strict=True):
+        for c0, c1 in zip(cuts[1][:-1], cuts[1][1:], strict=True):
+            inner = (slice(int(r0), int(r1)), slice(int(c0), int(c1)))
+            outer = tuple(
+                slice(max(0, a - margin), min(n, b + margin))
+                for a, b, n in ((int(r0), int(r1), grid.height), (int(c0), int(c1), grid.width))
+            )
+            blocks.append(Block(len(blocks), inner, outer))
+    return blocks
+
+
+def planned_grid(scene: Scene, opts: FusionOptions) -> Grid:
+    """The grid :func:`~fusion.scene_fusion.fuse_views` will fuse on, known before it
+    starts (for a scene without depth maps, the grid of its DSM by default)."""
+    if (not any(v.depth_path is not None for v in scene.views) and scene.dsm is not None
+            and opts.gsd is None and opts.bounds is None):  # fmt: skip
+        try:
+            with rasterio.open(scene.dsm) as src:
+                g = Grid.from_transform(src.transform, src.width, src.height)
+        except (RasterioIOError, ValueError) as e:
+            raise InputError(scene.dsm, "dsm", f"not a readable north-up raster ({e})") from None
+        opts = replace(opts, gsd=g.gsd, bounds=g.bounds)
+    return default_grid(scene, opts)
+
+
+def block_size(grid: Grid, opts: FusionOptions) -> float | None:
+    """The side of the fusion's blocks, metres: ``opts.block``; by default none (the
+    whole grid at once) up to :data:`AUTO_BLOCK_CELLS` cells a side, else blocks of that
+    many cells less their margins."""
+    if opts.block is not None:
+        return opts.block
+    if max(grid.shape) <= AUTO_BLOCK_CELLS:
+        return None
+    return (AUTO_BLOCK_CELLS - 2 * np.ceil(LARGEST_WINDOW_M / grid.gsd)) * grid.gsd
+
+
+def fuse_in_blocks(scene: Scene, opts: FusionOptions, engine: Engine | None, write,
+                   block_m: float) -> tuple[Grid, dict, object]:  # fmt: skip
+    """Fuse ``scene`` block by block; ``write(block, products)`` receives each block's
+    products inside it, in block order.
+
+    1. Each block (with its margin) is observed, its heights fused and its ground
+       filtered; the inside of its DSM, DTM and cues goes into whole-grid files
+       (:class:`GridFiles`).
+    2. The forest is trained and every view classified once, over those files, as
+       :func:`~fusion.scene_fusion.fuse_views` does over its grid's.
+    3. Each block's colours, classes and crowns, from its observations and heights (kept
+       in the task store by step 1) and the files' DSM and DTM over it.
+
+    Parameters
+    ----------
+    scene : Scene
+    opts : FusionOptions
+    engine : Engine, optional
+        Runs every block's tasks; with a store, each block's finished tasks and
+        products are kept there for ``--resume``.
+    write : callable
+        ``write(block, products)``: ``products`` maps each name of :data:`PRODUCTS` to
+        the block's inner cells (``ortho`` (h, w, 3) uint8, ``class_prob`` (4, h, w)
+        float32, ``classes`` (h, w) uint8, ``count`` (h, w) int16, the heights (h, w)
+        float32).
+    block_m : float
+        A block's side, metres.
+
+    Returns
+    -------
+    the whole grid, the run's record, the forest (None without one)
+    """
+    timer = StageTimer()
+    views, skipped, mode, given, opts = depth_views(scene, opts, timer)
+    with timer.stage("grid"):
+        grid = default_grid(scene, opts)
+        blocks = block_layout(grid, block_m)
+        for b in blocks:
+            check_memory(grid.window(*b.outer), opts, len(views))
+        engine = engine or ThreadEngine(view_workers(views, opts))
+    with scratch_folder(engine) as folder:
+        folder = Path(folder)
+        # the third step takes the first one's observations and heights from the store
+        store = engine.store or TaskStore(folder / "tasks")
+        shared_views = engine.share(views)
+        files = GridFiles(folder / "grid", grid)
+        probs = folder / "probs"
+        probs.mkdir(exist_ok=True)
+
+        def heights(b: Block):
+            """The block's observations and fused heights (kept in the store)."""
+            sub = engine.kept_in(store, f"block{b.index}")
+            cache = ObservationCache(folder / f"block{b.index}", grid.window(*b.outer),
+                                     opts.tile, probs_folder=probs)  # fmt: skip
+            cache.folder.mkdir(exist_ok=True)
+            with timer.stage("observations"):
+                cache.observe(sub, shared_views, len(views), opts.tolerance)
+            with timer.stage("heights"):
+                h = fused_heights(cache, sub)
+            return sub, cache, h
+
+        caches, levels = [], []
+        for b in progress(blocks, "blocks' heights"):
+            sub, cache, h = heights(b)
+            caches.append(cache)
+            if store.has("surfaces", str(b.index)):
+                levels.append(store.load("surfaces", str(b.index)))
+                continue
+            with timer.stage("ground"):
+                surface = fused_ground(h, cache.grid, mode, given)
+            levels.append(files.write(b, surface, h.spread, opts.geometry_cues))
+            store.save("surfaces", str(b.index), levels[-1])
+            del h, surface
+        ctx = files.context(views, opts, levels) if classifies(scene, opts) else None
+        with timer.stage("training"):
+            forest, class_source = view_forest(scene, ctx, opts, engine)
+        with timer.stage("classification"):
+            n_px = classify_views(ViewsInBlocks(caches, probs), ctx, forest, engine)
+        record = {k: 0 for k in SUMMED}
+        record["pixels_classified"] = n_px
+        for b in progress(blocks, "blocks"):
+            (r, c) = b.inner
+            log.info("block %d of %d: rows %d-%d, columns %d-%d", b.index + 1, len(blocks),
+                     r.start, r.stop, c.start, c.stop)  # fmt: skip
+            if store.has("blocks", str(b.index)):
+                products, figures = store.load("blocks", str(b.index))
+                log.info("block %d finished before, kept", b.index + 1)
+            else:
+                products, figures = _block_products(b, heights, files, shared_views, forest,
+                                                    class_source, mode, opts, timer)  # fmt: skip
+                store.save("blocks", str(b.index), (products, figures))
+            write(b, products)
+            for k in SUMMED:
+                record[k] += figures.get(k, 0)
+            record["class_source"] = figures["class_source"]
+    grid_cells = grid.width * grid.height
+    record = {
+        "mode": mode,
+        "views": {"used": len(views), "skipped_no_depth": len(skipped), "skipped_ids": skipped},
+        "workers": engine.workers,
+        **engine.describe(),
+        "blocks": {
+            "count": len(blocks),
+            "side_m": round(float(block_m), 3),
+            "margin_m": LARGEST_WINDOW_M,
+            # the work the margins add: every block's cells, margins included, over the grid's
+            "cells_fused_per_cell": round(sum(_cells(b.outer) for b in blocks) / grid_cells, 3),
+            "largest_block_cells": max(_cells(b.outer) for b in blocks),
+        },  # fmt: skip
+        **record,
+        "stages": timer.stages,
+        "observations_per_s": observations_per_s(record["observations"], timer.stages),
+        "peak_memory_mb": round(peak_memory_mb(), 1),
+    }
+    return grid, record, forest
+
+
+def _block_products(b: Block, heights, files: GridFiles, shared_views, forest, class_source,
+                    mode: str, opts: FusionOptions, timer: StageTimer) -> tuple:  # fmt: skip
+    """Step 3 on block ``b``: its products inside it, and their figures."""
+    sub, cache, h = heights(b)
+    dsm, dtm, dtm_full, spikes, holes = (files.read(name, b.outer) for name in SURFACE)
+    h.count[spikes] = 0  # as the first step's ground filter left it
+    s = FusedSurface(cache.grid, cache, h, dsm, dtm, dtm_full, spikes, holes, None)
+    result = fused_products(s, shared_views, forest, class_source, mode, opts, sub, timer)
+    del s, h
+    inside = b.inside
+    products = {
+        "ortho": result.ortho[inside], "dsm": result.dsm[inside], "dtm": result.dtm[inside],
+        "ndsm": result.ndsm[inside], "class_prob": result.class_prob[(slice(None), *inside)],
+        "classes": result.classes[inside], "count": result.count[inside],
+    }  # fmt: skip
+    return {k: np.ascontiguousarray(v) for k, v in products.items()}, result.record
+
+
+def _cells(window: tuple[slice, slice]) -> int:
+    return (window[0].stop - window[0].start) * (window[1].stop - window[1].start)
+
+
+SURFACE = ("dsm", "dtm", "dtm_full", "spikes", "holes")  # what fused_ground gives, in its order
+
+
+class GridFiles:
+    """The whole grid's DSM, DTM, cues and surface heights as ``.npy`` files that each
+    block writes inside itself: what the views' features read
+    (:class:`~fusion.grid_rasters.GridRasters`), and each block's DSM and DTM over its
+    margin. A file is mapped only while a block writes or reads it, so that the
+    command's memory holds no whole grid.
+
+    Parameters
+    ----------
+    folder : path
+    grid : Grid
+        The whole grid.
+    """
+
+    DTYPES = {"dsm": np.float32, "dtm": np.float32, "dtm_full": np.float32, "spikes": bool,
+              "holes": bool, "filled": np.float64}  # fmt: skip
+
+    def __init__(self, folder: Path, grid: Grid):
+        self.folder, self.grid = Path(folder), grid
+        self.folder.mkdir(exist_ok=True)
+        for name, dtype in self.DTYPES.items():
+            self._create(name, dtype, grid.shape)
+
+    def _create(self, name: str, dtype, shape: tuple) -> None:
+        path = self.path(name)
+        if path.exists():  # kept by an interrupted run, for --resume
+            return
+        np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=shape).flush()
+        # the file's blocks taken now: a mapped write to a disk that is full would kill the
+        # process (SIGBUS) rather than raise
+        with full_disk_named(path, partial=path), open(path, "r+b") as f:
+            os.posix_fallocate(f.fileno(), 0, path.stat().st_size)
+
+    def path(self, name: str) -> Path:
+        return self.folder / f"{name}.npy"
+
+    def write(self, b: Block, surface: tuple, spread: np.ndarray, cues: bool) -> tuple:
+        """Block ``b``'s :func:`~fusion.scene_fusion.fused_ground` arrays over its outer cells
+        (and the geometric cues of its DSM and heights' ``spread``) written inside it;
+        returns the median, lowest and highest height of its surface there."""
+        inside = b.inside
+        named = dict(zip(SURFACE, surface, strict=True))
+        dsm, dtm_full = named["dsm"], named["dtm_full"]
+        named["filled"] = np.where(np.isfinite(dsm), dsm, dtm_full).astype(np.float64)
+        if cues:
+            named["cues"] = geometric_cues(dsm, spread, self.grid.gsd)
+            self._create("cues", np.float32, (len(named["cues"]), *self.grid.shape))
+        for name, data in named.items():
+            f = np.load(self.path(name), mmap_mode="r+")
+            f[(..., *b.inner)] = data[(..., *inside)]
+            f.flush()
+            del f
+        filled = named["filled"][inside]
+        return float(np.nanmedian(filled)), float(np.nanmin(filled)), float(np.nanmax(filled))
+
+    def read(self, name: str, window: tuple[slice, slice]) -> np.ndarray:
+        """The file ``name`` at the cells ``window``, in memory."""
+        f = np.load(self.path(name), mmap_mode="r")
+        out = np.array(f[(..., *window)])
+        del f
+        return out
+
+    def context(self, views, opts: FusionOptions, levels: list) -> ViewContext:
+        """What the views' features need over the whole grid (``levels``: what
+        :meth:`write` returned for each block)."""
+        x0, y0, x1, y1 = self.grid.bounds
+        median, low, high = np.array(levels).T
+        origin = np.array([(x0 + x1) / 2, (y0 + y1) / 2, float(np.median(median))])
+        names = ("dsm", "dtm", "filled") + (("cues",) if self.path("cues").exists() else ())
+        rasters = GridRasters(self.grid, self.folder, names, origin, (low.min(), high.max()))
+        return ViewContext(views, self.grid, opts, rasters)
+
+
+class ViewsInBlocks:
+    """The blocks' observation caches as one, for the views' classification: a view's
+    observed pixels are those of every block, its probabilities in one folder."""
+
+    def __init__(self, caches: list[ObservationCache], probs_folder: Path):
+        self.caches, self.probs_folder = caches, probs_folder
+
+    def view_pixels(self, i: int, n_pixels: int) -> np.ndarray:
+        seen = np.zeros(n_pixels, bool)
+        for c in self.caches:
+            c.mark_view_pixels(i, seen)
+        return np.flatnonzero(seen)
+
+    def probs_path(self, i: int) -> Path:
+        return self.probs_folder / f"{i}_probs.npy"
