@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -29,7 +30,7 @@ import rasterio
 from rasterio.errors import RasterioIOError
 
 from workbench.engine import Engine, TaskStore, ThreadEngine, full_disk_named
-from workbench.errors import InputError
+from workbench.errors import InputError, WorkbenchError
 from workbench.progress import progress
 from workbench.raster import Grid
 from workbench.records import StageTimer, peak_memory_mb
@@ -125,6 +126,26 @@ def planned_grid(scene: Scene, opts: FusionOptions) -> Grid:
             raise InputError(scene.dsm, "dsm", f"not a readable north-up raster ({e})") from None
         opts = replace(opts, gsd=g.gsd, bounds=g.bounds)
     return default_grid(scene, opts)
+
+
+GRID_FILE_BYTES = 22  # per cell: the whole-grid files (GridFiles.DTYPES) and 1 band of cues
+OUTPUT_BYTES = 38  # per cell: the run's rasters, uncompressed, while they are written
+
+
+def check_disk(grid: Grid, folder: Path) -> None:
+    """Refuse, before any work, a grid in blocks whose files would not fit on the disk of
+    ``folder`` (where the partial folder and the output go; its nearest existing parent)."""
+    folder = Path(folder).absolute()
+    while not folder.exists():
+        folder = folder.parent
+    need = grid.width * grid.height * (GRID_FILE_BYTES + OUTPUT_BYTES)
+    free = shutil.disk_usage(folder).free
+    if need > free:
+        raise WorkbenchError(
+            f"--gsd {grid.gsd:g}: a {grid.width} x {grid.height} grid in blocks needs about "
+            f"{need / 2**30:.0f} GiB of disk for its rasters, more than the {free / 2**30:.0f}"
+            f" GiB free in {folder}; use a larger --gsd or smaller --bounds"
+        )
 
 
 def block_size(grid: Grid, opts: FusionOptions) -> float | None:

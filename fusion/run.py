@@ -18,7 +18,7 @@ from workbench.records import provenance
 from workbench.scene import load_scene
 from workbench.truth import truth_rasters
 
-from .blocks import block_size, fuse_in_blocks, planned_grid
+from .blocks import block_size, check_disk, fuse_in_blocks, planned_grid
 from .classifier import save_classifier
 from .options import FusionOptions
 from .outputs import FusionWindows, read_fusion, write_fusion, write_record
@@ -97,6 +97,8 @@ def run_fusion(
     signature = run_signature(options, {"scene": scene})
     grid = planned_grid(loaded, options)
     block_m = block_size(grid, options)
+    if block_m is not None:
+        check_disk(grid, Path(out).absolute().parent)
     with engine_for(out, signature, workers=options.workers, scheduler=scheduler,
                     resume=resume, preload=("fusion.scene_fusion",)) as engine:  # fmt: skip
         if block_m is not None:

@@ -416,6 +416,7 @@ def start_engine(
         return ThreadEngine(1, store)
     else:
         import dask
+        import distributed  # noqa: F401 - its defaults in dask's config, which the exit restores
 
         # the scheduler reads some of its log lengths when it first logs: for as long as it
         # lives (this process's dask settings, until the engine closes)
@@ -463,8 +464,7 @@ KEEP_SHARED_REPLICAS = {"distributed.scheduler.active-memory-manager.start": Fal
 # carrying the blocks' list of the tiles each view reaches. The logs are for operators'
 # debugging; a run needs none.
 SHORT_SCHEDULER_LOGS = {
-    "distributed.scheduler.transition-log-length": 100,
-    "distributed.scheduler.events-log-length": 100,
+    "distributed.admin.low-level-log-length": 100,  # the transitions and the events
     "distributed.admin.log-length": 100,
 }
 
