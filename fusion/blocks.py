@@ -33,7 +33,7 @@ from workbench.engine import Engine, TaskStore, ThreadEngine, full_disk_named
 from workbench.errors import InputError, WorkbenchError
 from workbench.progress import progress
 from workbench.raster import Grid
-from workbench.records import StageTimer, peak_memory_mb
+from workbench.records import StageTimer
 from workbench.scene import Scene
 
 from .geometry_cues import geometric_cues
@@ -52,7 +52,7 @@ from .scene_fusion import (
     fused_ground,
     fused_heights,
     fused_products,
-    observations_per_s,
+    run_figures,
     scratch_folder,
     view_forest,
     view_workers,
@@ -62,7 +62,7 @@ log = logging.getLogger(__name__)
 
 AUTO_BLOCK_CELLS = 4096  # a grid of at most this many cells a side is fused at once
 PRODUCTS = ("ortho", "dsm", "dtm", "ndsm", "class_prob", "classes", "count")
-SUMMED = ("tiles", "observations", "pixels_classified", "filled_cells",
+SUMMED = ("tiles", "observations", "filled_cells",
           "rejected_isolated_spikes", "planar_objects_made_building", "crown_cells_raised",
           "crown_sightings_raised")  # fmt: skip
 
@@ -237,8 +237,7 @@ def fuse_in_blocks(scene: Scene, opts: FusionOptions, engine: Engine | None, wri
             forest, class_source = view_forest(scene, ctx, opts, engine)
         with timer.stage("classification"):
             n_px = classify_views(ViewsInBlocks(caches, probs), ctx, forest, engine)
-        record = {k: 0 for k in SUMMED}
-        record["pixels_classified"] = n_px
+        record = {"pixels_classified": n_px, **{k: 0 for k in SUMMED}}
         for b in progress(blocks, "blocks"):
             (r, c) = b.inner
             log.info("block %d of %d: rows %d-%d, columns %d-%d", b.index + 1, len(blocks),
@@ -252,27 +251,19 @@ def fuse_in_blocks(scene: Scene, opts: FusionOptions, engine: Engine | None, wri
                 store.save("blocks", str(b.index), (products, figures))
             write(b, products)
             for k in SUMMED:
-                record[k] += figures.get(k, 0)
+                record[k] += figures[k]
             record["class_source"] = figures["class_source"]
     grid_cells = grid.width * grid.height
-    record = {
-        "mode": mode,
-        "views": {"used": len(views), "skipped_no_depth": len(skipped), "skipped_ids": skipped},
-        "workers": engine.workers,
-        **engine.describe(),
-        "blocks": {
-            "count": len(blocks),
-            "side_m": round(float(block_m), 3),
-            "margin_m": LARGEST_WINDOW_M,
-            # the work the margins add: every block's cells, margins included, over the grid's
-            "cells_fused_per_cell": round(sum(_cells(b.outer) for b in blocks) / grid_cells, 3),
-            "largest_block_cells": max(_cells(b.outer) for b in blocks),
-        },  # fmt: skip
-        **record,
-        "stages": timer.stages,
-        "observations_per_s": observations_per_s(record["observations"], timer.stages),
-        "peak_memory_mb": round(peak_memory_mb(), 1),
+    blocks_figures = {
+        "count": len(blocks),
+        "side_m": round(float(block_m), 3),
+        "margin_m": LARGEST_WINDOW_M,
+        # the work the margins add: every block's cells, margins included, over the grid's
+        "cells_fused_per_cell": round(sum(_cells(b.outer) for b in blocks) / grid_cells, 3),
+        "largest_block_cells": max(_cells(b.outer) for b in blocks),
     }
+    record = run_figures(mode, views, skipped, engine, timer,
+                         {"blocks": blocks_figures, **record}, forest)  # fmt: skip
     return grid, record, forest
 
 

@@ -364,27 +364,32 @@ def fuse_views(
             n_px = classify_views(s.cache, s.context, forest, engine)
         result = fused_products(s, shared_views, forest, class_source, mode, opts, engine, timer)
         result.record["pixels_classified"] = n_px
-    result.record = {
+    result.record = run_figures(mode, views, skipped, engine, timer, result.record, forest)
+    return result
+
+
+def run_figures(mode: str, views, skipped, engine: Engine, timer: StageTimer, figures: dict,
+                forest) -> dict:  # fmt: skip
+    """The fusion's record: its mode, views and engine, ``figures`` (the products',
+    ``observations`` and ``pixels_classified`` among them), the stages' times and
+    memory, and the throughputs."""
+    stages = timer.stages
+    observing_s = stages["observations"]["wall_s"] + stages["heights"]["wall_s"]
+    record = {
         "mode": mode,
         "views": {"used": len(views), "skipped_no_depth": len(skipped), "skipped_ids": skipped},
         "workers": engine.workers,
         **engine.describe(),
-        **result.record,
-        "stages": timer.stages,
-        "observations_per_s": observations_per_s(result.record["observations"], timer.stages),
+        **figures,
+        "stages": stages,
+        "observations_per_s": round(figures["observations"] / max(observing_s, 1e-9)),
         "peak_memory_mb": round(peak_memory_mb(), 1),
     }
-    if forest is not None and timer.stages["classification"]["wall_s"] > 0:
-        result.record["classification_mpx_per_s"] = round(
-            result.record["pixels_classified"] / 1e6 / timer.stages["classification"]["wall_s"], 3
+    if forest is not None and stages["classification"]["wall_s"] > 0:
+        record["classification_mpx_per_s"] = round(
+            figures["pixels_classified"] / 1e6 / stages["classification"]["wall_s"], 3
         )
-    return result
-
-
-def observations_per_s(n_obs: int, stages: dict) -> int:
-    """Observations fused per second of the observing and the heights' stages."""
-    seconds = stages["observations"]["wall_s"] + stages["heights"]["wall_s"]
-    return round(n_obs / max(seconds, 1e-9))
+    return record
 
 
 def classifies(scene: Scene, opts: FusionOptions) -> bool:
