@@ -215,9 +215,14 @@ from workbench.model_run import write_model_run
 from workbench.evaluate import evaluate
 from workbench.runs import load_run
 from workbench.truth import load_scene_truth
+from workbench.engine import start_engine
 fusion, scene, out = (Path(a) for a in sys.argv[1:4])
-r = write_model_run(run_superpixel(fusion, SuperpixelOptions(), truth=scene), out,
-                    overwrite=True)
+engine = start_engine(preload=("modeling.superpixel.path",))  # as the command: every core
+try:
+    r = write_model_run(run_superpixel(fusion, SuperpixelOptions(), truth=scene,
+                                       engine=engine), out, overwrite=True)  # fmt: skip
+finally:
+    engine.close()
 m = evaluate(load_run(out), load_scene_truth(scene)).metrics
 table1 = {k: v["overall_accuracy"] for k, v in r["classification_table"].items()}
 print(json.dumps({"stages": r["stages"], "grid": r["inputs"]["grid"], "counts": r["counts"],

@@ -243,14 +243,17 @@ def test_two_worker_processes_give_the_products_of_one_process(
         a, _, _ = read_raster(one / name)
         b, _, _ = read_raster(two / name)
         np.testing.assert_array_equal(a, b, err_msg=name)
-    vx1, vx2 = tmp_path / "vx1", tmp_path / "vx2"
-    for out, how in ((vx1, ["--workers", "1"]), (vx2, ["--scheduler", cluster.scheduler_address])):
-        proc = run_cli("model", "voxel", tiny_scene, "--fusion", one, "-o", out, *how)
-        assert proc.returncode == 0, proc.stderr
-    meshes = sorted(p.name for p in (vx1 / "buildings").iterdir())
-    assert meshes == sorted(p.name for p in (vx2 / "buildings").iterdir()) and meshes
-    for name in meshes:
-        assert (vx1 / "buildings" / name).read_bytes() == (vx2 / "buildings" / name).read_bytes()
+    for path, inputs in (("voxel", [tiny_scene, "--fusion", one]), ("superpixel", [one])):
+        m1, m2 = tmp_path / f"{path}1", tmp_path / f"{path}2"
+        for out, how in ((m1, ["--workers", "1"]),
+                         (m2, ["--scheduler", cluster.scheduler_address])):  # fmt: skip
+            proc = run_cli("model", path, *inputs, "-o", out, *how)
+            assert proc.returncode == 0, proc.stderr
+        assert json.loads((m2 / "model.json").read_text())["workers"] == 2
+        meshes = sorted(p.name for p in (m1 / "buildings").iterdir())
+        assert meshes == sorted(p.name for p in (m2 / "buildings").iterdir()) and meshes
+        for name in meshes:
+            assert (m1 / "buildings" / name).read_bytes() == (m2 / "buildings" / name).read_bytes()
 
 
 @pytest.mark.slow

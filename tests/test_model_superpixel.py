@@ -73,7 +73,9 @@ def test_outputs_are_complete_and_readable(modelled):
     _, fgrid, fcrs = read_raster(fusion / "dsm.tif")
     assert grid == fgrid and crs == fcrs and set(np.unique(cls)) <= {0, 1, 2, 3, 4}
     assert (out / "preview.png").exists()
-    assert set(record["stages"]) >= {"superpixels", "class_crf", "prototypes", "roof_modeling"}
+    assert set(record["stages"]) >= {"superpixels", "class_crf", "roofs", "write"}
+    assert set(record["roof_steps_s"]) == {"plane_hypotheses", "prototypes", "prototype_crf",
+                                           "roof_modeling"}  # fmt: skip
 
 
 @pytest.mark.parametrize("case", ["missing", "grid", "crs"])

@@ -20,10 +20,10 @@ from modeling.shared.roof_mesh import (
 )
 from modeling.shared.roof_types import roof_type
 from modeling.superpixel.aggregation import plane_residuals, superpixel_graph
+from modeling.superpixel.building_tasks import adjacency_lists, building_shares, points_of
 from modeling.superpixel.buildings import split_buildings
 from modeling.superpixel.class_crf import geometry_factor
 from modeling.superpixel.options import SuperpixelOptions
-from modeling.superpixel.path import adjacency_lists
 from modeling.superpixel.plane_hypotheses import SuperpixelPoints
 from modeling.superpixel.prototype_crf import edges_within, label_prototypes
 from modeling.superpixel.prototypes import cluster_prototypes, hypothesis_similarity
@@ -36,7 +36,7 @@ from modeling.superpixel.quickshift import (
 from modeling.superpixel.rooftop import model_building, observed_faces
 from workbench.graph_cuts import alpha_expansion, binary_cut, crf_energy, pairwise_cut
 from workbench.meshes import is_watertight, unpaired_edges
-from workbench.planes import plane_heights, ransac_plane
+from workbench.planes import plane_heights, ransac_plane, ransac_planes
 from workbench.raster import Grid
 
 
@@ -288,6 +288,55 @@ def test_ransac_recovers_a_plane_despite_outliers():
     assert plane_heights(plane, 2.0, 3.0) == pytest.approx(0.3 * 2 - 0.2 * 3 + 5, abs=0.02)
     wall = np.column_stack([x, np.full(400, 1.0), 10 * y])  # vertical: not a roof
     assert ransac_plane(wall) is None
+
+
+def test_a_buildings_share_numbers_its_own_superpixels_from_zero():
+    """Two buildings of two super-pixels each, and ground between: each share holds its
+    super-pixels' points, the one edge between them and its window, renumbered."""
+    labels = np.repeat(np.array([[0, 1, 2, 2, 3, 4]]), 3, axis=0)
+    dsm = np.where(np.isin(labels, [0, 1, 3, 4]), 10.0, 0.0)
+    dsm[0, 4] = np.nan
+    grid = Grid(100.0, 50.0, 1.0, 6, 3)
+    graph = superpixel_graph(labels, np.zeros((3, 6, 3), np.uint8), np.ones((4, 3, 6)), dsm)
+    owner = np.array([1, 1, 0, 2, 2])
+    X, Y = grid.cell_centers()
+    order = np.argsort(labels.ravel(), kind="stable")
+    pts = SuperpixelPoints(np.column_stack([X.ravel(), Y.ravel(), dsm.ravel()])[order],
+                           np.array([0, 3, 6, 12, 15]), np.array([3, 6, 12, 15, 18]))  # fmt: skip
+    first, second = building_shares(graph, owner, pts, dsm, np.zeros((3, 6)), grid)
+    assert first.window == (0, 3, 0, 3) and second.window == (0, 3, 3, 6)
+    assert second.grid.xmin == 103.0 and second.grid.width == 3
+    np.testing.assert_array_equal(second.graph.labels, np.repeat([[-1, 0, 1]], 3, axis=0))
+    np.testing.assert_array_equal(second.graph.edges, [[0, 1]])
+    assert second.graph.boundary.tolist() == [3.0] and second.graph.count.tolist() == [3, 3]
+    np.testing.assert_array_equal(second.points.of(1), pts.of(4))
+    assert not second.known[0, 1] and second.known[1, 1]
+    picked = points_of(pts, np.array([4, 0]))
+    np.testing.assert_array_equal(picked.points, np.r_[pts.of(4), pts.of(0)])
+
+
+def test_ransac_of_many_sets_at_once_is_each_sets_own():
+    """Sets of different sizes stacked and scored together: each gets the plane it gets
+    alone, and a NaN row where alone it gets none (too few points, a wall, a line)."""
+    rng = np.random.default_rng(1)
+    sets = []
+    for n in (3, 7, 40, 40, 250, 9, 1200):
+        x, y = rng.uniform(0, 5, (2, n))
+        z = rng.normal(0, 0.5) * x + rng.normal(0, 0.5) * y + rng.normal(0, 0.04, n)
+        z[: n // 5] += rng.uniform(1, 3, n // 5)  # a fifth of them off the plane
+        sets.append(np.column_stack([x + 500, y - 300, z + 40]))
+    sets.append(np.column_stack([np.full(30, 2.0), rng.uniform(0, 5, (2, 30)).T]))  # a wall
+    sets.append(np.column_stack([np.arange(20.0), np.arange(20.0), np.zeros(20)]))  # a line
+    planes = ransac_planes(sets)
+    assert planes.shape == (len(sets), 4)
+    for points, plane in zip(sets, planes, strict=True):
+        alone = ransac_plane(points)
+        if alone is None:
+            assert np.isnan(plane).all()
+        else:
+            np.testing.assert_allclose(plane, alone, atol=1e-9)
+    assert np.isnan(planes[[0, -2, -1], 0]).all() and np.isfinite(planes[1:-2]).all()
+    assert ransac_planes([]).shape == (0, 4)
 
 
 def test_prototypes_group_hypotheses_of_one_plane():

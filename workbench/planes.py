@@ -30,44 +30,109 @@ def ransac_plane(
     seed: int = 0,
 ) -> np.ndarray | None:
     """The plane with most inliers among ``points`` (N, 3) by RANSAC, refined by total
-    least squares (the inliers' principal axes).
-
-    All ``iterations`` samples of three points are drawn and scored at once, and ties go
-    to the first: the result depends on ``seed`` alone. (Open3D's ``segment_plane`` scores
-    its samples in parallel and, on the small point sets of super-pixels, breaks ties by
-    thread timing, so its planes change from run to run.)
+    least squares (the inliers' principal axes): :func:`ransac_planes` for one point set.
 
     Returns (4,) plane with n_z > 0, or None for fewer than 6 points or a plane steeper
     than ``max_tilt_deg`` (a wall or a tree, not a roof).
     """
-    if len(points) < 6:
-        return None
-    centre = points.mean(axis=0)
-    local = points - centre
-    rng = np.random.default_rng(seed)
-    a, b, c = (local[rng.integers(0, len(local), iterations)] for _ in range(3))
-    u, v = b - a, c - a  # their cross product, written out: np.cross costs more on (200, 3)
-    normals = u[:, [1, 2, 0]] * v[:, [2, 0, 1]] - u[:, [2, 0, 1]] * v[:, [1, 2, 0]]
-    length = np.sqrt(np.sum(normals * normals, axis=1))
-    ok = length > 1e-12
-    if not ok.any():
-        return None
-    normals = normals[ok] / length[ok, None]
-    offsets = -np.sum(normals * a[ok], axis=1)
-    distance = local @ normals.T  # (N, samples), in place: the largest arrays of the path
-    distance += offsets
+    plane = ransac_planes([points], threshold, iterations, max_tilt_deg, seed)[0]
+    return None if np.isnan(plane[0]) else plane
+
+
+RANSAC_CHUNK_CELLS = 4_000_000  # (sets, points, samples) distances scored at once: 32 MB
+
+
+def ransac_planes(
+    point_sets: list[np.ndarray],
+    threshold: float = 0.15,
+    iterations: int = 200,
+    max_tilt_deg: float = 80.0,
+    seed: int = 0,
+) -> np.ndarray:
+    """:func:`ransac_plane` of each of many point sets, scored together.
+
+    Super-pixels hold tens to hundreds of points, and one RANSAC per set in Python is
+    mostly call overhead; here sets of about the same size are stacked, and all samples
+    of all of them are scored by one stacked matrix product.
+
+    Each set draws ``iterations`` samples of three points with ``seed``, all scored at
+    once, and ties go to the first sample: a set's plane depends on ``seed`` and on its
+    own points alone, not on the other sets. (Open3D's ``segment_plane`` scores its
+    samples in parallel and, on the small point sets of super-pixels, breaks ties by
+    thread timing, so its planes change from run to run.)
+
+    Parameters
+    ----------
+    point_sets : list of (N_k, 3) float
+        Metres, near a local origin.
+    threshold : float
+        Inlier distance, metres.
+    iterations : int
+        Samples per set.
+    max_tilt_deg : float
+        Steeper planes are walls or trees, not roofs.
+    seed : int
+
+    Returns
+    -------
+    (S, 4) planes (nx, ny, nz, d) with n_z > 0; a row of NaN for a set with fewer than 6
+    points, no three points off a line, fewer than 3 inliers or a plane steeper than
+    ``max_tilt_deg``.
+    """
+    sizes = np.array([len(p) for p in point_sets], np.int64)
+    out = np.full((len(sizes), 4), np.nan)
+    draws: dict[int, np.ndarray] = {}  # sets of one size draw the same samples
+    for n in np.unique(sizes[sizes >= 6]).tolist():
+        rng = np.random.default_rng(seed)
+        draws[n] = np.stack([rng.integers(0, n, iterations) for _ in range(3)])
+    order = [k for k in np.argsort(sizes, kind="stable").tolist() if sizes[k] >= 6]
+    while order:  # sets of similar size together: little padding
+        count = min(len(order), max(1, RANSAC_CHUNK_CELLS // (iterations * sizes[order[0]])))
+        while count > 1 and count * iterations * sizes[order[count - 1]] > RANSAC_CHUNK_CELLS:
+            count //= 2
+        chunk, order = order[:count], order[count:]
+        out[chunk] = _stacked_ransac([point_sets[k] for k in chunk], draws, threshold,
+                                     max_tilt_deg)  # fmt: skip
+    return out
+
+
+def _stacked_ransac(
+    point_sets: list[np.ndarray], draws: dict, threshold: float, max_tilt_deg: float
+) -> np.ndarray:
+    """(S, 4) planes of :func:`ransac_planes` for sets of 6 points or more, padded to the
+    largest and scored by one stacked matrix product."""
+    sizes = np.array([len(p) for p in point_sets], np.int64)
+    S, N = len(sizes), int(sizes.max())
+    real = np.arange(N) < sizes[:, None]  # (S, N)
+    points = np.zeros((S, N, 3))
+    points[real] = np.concatenate(point_sets)
+    centre = points.sum(axis=1) / sizes[:, None]
+    local = points - centre[:, None]
+    local[~real] = np.nan  # padding: never an inlier, whatever the plane
+    picks = np.stack([draws[n] for n in sizes.tolist()])  # (S, 3, I)
+    a, b, c = (np.take_along_axis(local, picks[:, j, :, None], axis=1) for j in range(3))
+    u, v = b - a, c - a  # their cross product, written out: np.cross costs more
+    normals = u[..., [1, 2, 0]] * v[..., [2, 0, 1]] - u[..., [2, 0, 1]] * v[..., [1, 2, 0]]
+    length = np.sqrt(np.sum(normals * normals, axis=-1))  # (S, I)
+    drawn = length > 1e-12  # three points off a line
+    normals = np.divide(normals, length[..., None], out=np.zeros_like(normals),
+                        where=drawn[..., None])  # fmt: skip
+    distance = local @ normals.transpose(0, 2, 1)  # (S, N, I): the largest arrays of the path
+    distance -= np.sum(normals * a, axis=-1)[:, None, :]
     np.abs(distance, out=distance)
     inlier = distance < threshold
-    inl = local[inlier[:, np.argmax(np.count_nonzero(inlier, axis=0))]]
-    if len(inl) < 3:
-        return None
-    mean = inl.mean(axis=0)
-    normal = np.linalg.svd(inl - mean, full_matrices=False)[2][-1]
-    if normal[2] < 0:
-        normal = -normal
-    if normal[2] < np.cos(np.radians(max_tilt_deg)):
-        return None
-    return np.r_[normal, -normal @ (mean + centre)]
+    votes = np.where(drawn, np.count_nonzero(inlier, axis=1), -1)
+    best = np.argmax(votes, axis=1)
+    inl = np.take_along_axis(inlier, best[:, None, None], axis=2)[..., 0]  # (S, N)
+    counts = inl.sum(axis=1)
+    mean = np.where(inl[..., None], local, 0.0).sum(axis=1) / np.maximum(counts, 1)[:, None]
+    centred = np.where(inl[..., None], local - mean[:, None], 0.0)
+    scatter = np.einsum("sni,snj->sij", centred, centred)
+    normal = np.linalg.eigh(scatter)[1][:, :, 0]  # the inliers' least principal axis
+    normal *= np.where(normal[:, 2] < 0, -1.0, 1.0)[:, None]
+    planes = np.c_[normal, -np.sum(normal * (mean + centre), axis=1)]
+    planes[(counts < 3) | (normal[:, 2] < np.cos(np.radians(max_tilt_deg)))] = np.nan
+    return planes
 
 
 def sequential_planes(

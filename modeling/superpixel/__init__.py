@@ -31,6 +31,8 @@ SPEC = PathSpec(
     ),  # fmt: skip
     run="modeling.superpixel.path:run_superpixel",
     summary="modeling.superpixel.path:summary_lines",
+    tasks=True,
+    check="modeling.superpixel.path:check_inputs",
 )
 
 __all__ = ["SPEC", "SuperpixelOptions"]

@@ -26,9 +26,10 @@ class SuperpixelGraph:
         Mean CIELab colour (L 0-100).
     height_median : (N,) float64
         Median DSM height, NaN where no cell has one.
-    plane_residual : (N,) float64
+    plane_residual : (N,) float64 or None
         RMS residual of the least-squares plane through its DSM cells, metres: a roof
-        face is planar, a crown lumpy (NaN under 6 known cells).
+        face is planar, a crown lumpy (NaN under 6 known cells). None unless asked for
+        (only the class CRF's geometric unary reads it).
     edges : (E, 2) int64
         Adjacent super-pixel pairs, i < j.
     boundary : (E,) float64
@@ -42,7 +43,7 @@ class SuperpixelGraph:
     class_sum: np.ndarray
     colour: np.ndarray
     height_median: np.ndarray
-    plane_residual: np.ndarray
+    plane_residual: np.ndarray | None
     edges: np.ndarray
     boundary: np.ndarray
     colour_distance: np.ndarray
@@ -58,7 +59,11 @@ class SuperpixelGraph:
 
 
 def superpixel_graph(
-    labels: np.ndarray, rgb: np.ndarray, class_prob: np.ndarray, dsm: np.ndarray
+    labels: np.ndarray,
+    rgb: np.ndarray,
+    class_prob: np.ndarray,
+    dsm: np.ndarray,
+    residuals: bool = True,
 ) -> SuperpixelGraph:
     """Aggregate the fused rasters over super-pixels and build their adjacency graph.
 
@@ -71,6 +76,9 @@ def superpixel_graph(
         Class probabilities; cells whose probabilities are NaN or sum to 0 count as uniform.
     dsm : (H, W) float
         Metres, NaN unknown.
+    residuals : bool
+        Fit each super-pixel's plane (``plane_residual``): on a city, its moments are
+        the largest arrays of the aggregation.
     """
     n = int(labels.max()) + 1
     flat = labels.ravel()
@@ -100,7 +108,8 @@ def superpixel_graph(
     edges = np.stack([key // n, key % n], axis=1)
     g = np.linalg.norm(colour[edges[:, 0]] - colour[edges[:, 1]], axis=1)
     return SuperpixelGraph(
-        labels, count, class_sum, colour, height_median, plane_residuals(labels, dsm, n), edges,
+        labels, count, class_sum, colour, height_median,
+        plane_residuals(labels, dsm, n) if residuals else None, edges,
         boundary.astype(np.float64), g,
     )  # fmt: skip
 

@@ -82,6 +82,7 @@ class SuperpixelOptions:
     )  # fmt: skip
     seed: int = option(0, "seed of RANSAC and affinity propagation", kind="non_negative")
     workers: int | None = option(
-        None, "Quickshift tiles segmented at once, in threads (the labels do not depend on it)",
-        auto="every core",
+        None, "buildings modelled at once: worker processes of a local Dask cluster (1: in "
+        "this process), and Quickshift tiles segmented at once in threads; the model does "
+        "not depend on it", auto="every core",
     )  # fmt: skip

@@ -3,7 +3,8 @@
 The steps of the paper, each in the module named after it: :mod:`.quickshift` (4.1),
 :mod:`.aggregation`, :mod:`.class_crf` (4.2), :mod:`.buildings`,
 :mod:`.plane_hypotheses` (5.1), :mod:`.prototypes` (5.2), :mod:`.prototype_crf` (5.2),
-:mod:`.rooftop` (5.3). This module only reads, orders the steps and times them.
+:mod:`.rooftop` (5.3), the last four one building at a time as tasks
+(:mod:`.building_tasks`). This module only reads, orders the steps and times them.
 """
 
 from __future__ import annotations
@@ -15,31 +16,32 @@ import numpy as np
 
 from modeling.shared.raster_ground import ground_surface, vertex_colours
 from workbench import metrics
+from workbench.engine import Engine, ThreadEngine
 from workbench.errors import InputError
 from workbench.fusion_run import FusionRun, read_fusion_run
-from workbench.model_run import Building, ModelRun, stage_record
+from workbench.model_run import Building, ModelRun
 from workbench.parallel import default_workers
-from workbench.progress import progress
 from workbench.raster import BUILDING, Grid, class_codes, read_raster
-from workbench.records import StageTimer
+from workbench.records import StageTimer, peak_memory_mb
 
 from .aggregation import SuperpixelGraph, superpixel_graph
+from .building_tasks import ROOF_STEPS, building_shares, model_building_roofs
 from .buildings import split_buildings
 from .class_crf import choose_omega_class, geometry_factor, refine_classes, stroke_classes
 from .options import SuperpixelOptions
-from .plane_hypotheses import SuperpixelPoints, plane_hypotheses, superpixel_points
+from .plane_hypotheses import SuperpixelPoints, superpixel_points
 from .preview import superpixel_preview
-from .prototype_crf import edges_within, label_prototypes, refit_planes
-from .prototypes import roof_prototypes
 from .quickshift import quickshift_superpixels, relief_image
-from .rooftop import model_building, observed_faces
 
 FUSION_RASTERS = ("ortho", "dsm", "dtm", "class_prob")
-BUILDING_STEPS = ("plane_hypotheses", "prototypes", "prototype_crf", "roof_modeling")
 
 
 def run_superpixel(
-    fusion_dir: Path, options: SuperpixelOptions | None = None, *, truth: Path | None = None
+    fusion_dir: Path,
+    options: SuperpixelOptions | None = None,
+    *,
+    truth: Path | None = None,
+    engine: Engine | None = None,
 ) -> ModelRun:
     """The super-pixel path on the rasters of ``workbench fusion``.
 
@@ -50,9 +52,13 @@ def run_superpixel(
     options : SuperpixelOptions
     truth : path, optional
         A scene with truth/: the paper's Table 1 rows go into the record.
+    engine : Engine, optional
+        Runs the buildings' tasks (default: this process, one after another).
     """
     options = options or SuperpixelOptions()
+    engine = engine or ThreadEngine(1)
     timer = StageTimer()
+    t_start = time.perf_counter()
     with timer.stage("read"):
         fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
         dsm, dtm, grid = fusion.band("dsm"), fusion.band("dtm"), fusion.grid
@@ -65,7 +71,8 @@ def run_superpixel(
             height_weight=decided["height_weight"],
         )  # fmt: skip
     with timer.stage("aggregation"):
-        graph = superpixel_graph(labels, fusion.rgb, fusion.rasters["class_prob"], dsm)
+        graph = superpixel_graph(labels, fusion.rgb, fusion.rasters["class_prob"], dsm,
+                                 residuals=options.geometry_unary)  # fmt: skip
     with timer.stage("class_crf"):
         sp_class, crf_choices = class_crf(graph, labels, fusion, options)
         unseen = ~(np.nan_to_num(fusion.rasters["class_prob"]).sum(axis=0) > 0)
@@ -75,16 +82,25 @@ def run_superpixel(
         owner = split_buildings(
             sp_class == BUILDING, labels, grid.gsd, opening, options.min_area_m2
         )
-        pts = superpixel_points(labels, dsm, grid)
-    buildings, faces, seconds = model_buildings(
-        graph, labels, owner, pts, dsm, dtm, grid, options, decided["edge_reach_m"]
-    )
-    timer.stages.update({name: stage_record(sec) for name, sec in seconds.items()})
+        pts = superpixel_points(labels, dsm, grid, wanted=owner > 0)
+    with timer.stage("roofs"):
+        buildings, faces, seconds = model_buildings(
+            graph, owner, pts, dsm, dtm, grid, options, decided["edge_reach_m"], engine
+        )
     for b in buildings:
         b.mesh.vertex_colors = vertex_colours(b.mesh.vertices, fusion.rgb, grid)
     with timer.stage("preview"):
         preview = superpixel_preview(fusion.rgb, labels, crf_class, faces, buildings, grid, dtm)
-    record = {"superpixels": graph.n, **crf_choices}
+    elapsed = time.perf_counter() - t_start
+    record = {
+        "superpixels": graph.n, **crf_choices,
+        # the tasks' own time in each step, summed over the buildings and the workers
+        "roof_steps_s": {step: round(sec, 3) for step, sec in seconds.items()},
+        **engine.describe(),
+        "seconds_per_building": round(elapsed / max(len(buildings), 1), 3),
+        "seconds_per_megapixel": round(elapsed / (grid.width * grid.height / 1e6), 3),
+        "peak_memory_mb": round(peak_memory_mb(), 1),
+    }  # fmt: skip
     if truth is not None:
         sp_argmax = np.where(unseen, 0, graph.class_sum.argmax(axis=1)[labels] + 1)
         # the paper's pixel column: each cell's most probable class (the fusion's class.tif
@@ -101,6 +117,15 @@ def run_superpixel(
         inputs={"fusion": str(Path(fusion_dir).absolute()),
                 "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd}},
     )  # fmt: skip
+
+
+def check_inputs(fusion_dir: Path, options: SuperpixelOptions, truth: Path | None = None) -> None:
+    """Read what :func:`run_superpixel` refuses, before a command starts its workers: the
+    fusion run's rasters, and the training strokes ``--omega-class auto`` needs (one line,
+    with no worker's shutdown noise after it)."""
+    fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
+    if options.omega_class is None and not options.all_building:
+        training_strokes(fusion, required=True)
 
 
 def decide_defaults(options: SuperpixelOptions, from_points: bool) -> dict:
@@ -143,7 +168,6 @@ def class_crf(
 
 def model_buildings(
     graph: SuperpixelGraph,
-    labels: np.ndarray,
     owner: np.ndarray,
     pts: SuperpixelPoints,
     dsm: np.ndarray,
@@ -151,104 +175,31 @@ def model_buildings(
     grid: Grid,
     options: SuperpixelOptions,
     edge_reach_m: float,
+    engine: Engine,
 ) -> tuple[list[Building], np.ndarray, dict]:
-    """Sections 5.1-5.3 building by building.
+    """Sections 5.1-5.3, each building a task of ``engine``
+    (:func:`~.building_tasks.model_building_roofs`).
 
     Returns
     -------
     buildings, (H, W) int32 prototype face of every building cell (1000 * building +
-    face), and the seconds spent in each of ``BUILDING_STEPS``.
+    face), and the seconds the tasks spent in each of ``ROOF_STEPS``, summed.
     """
-    neighbours = adjacency_lists(graph.edges)
-    cell_building = owner[labels]
-    boxes = building_boxes(cell_building, int(owner.max()))
-    members_of = np.split(np.argsort(owner, kind="stable"), np.cumsum(np.bincount(owner)))
-    inner_edges = edges_within(graph.edges, owner)
-    reach = int(round(edge_reach_m / grid.gsd))
-    faces = np.zeros(labels.shape, np.int32)
-    seconds = dict.fromkeys(BUILDING_STEPS, 0.0)
+    shares = building_shares(graph, owner, pts, dsm, dtm, grid)
+    faces = np.zeros(graph.labels.shape, np.int32)
+    seconds = dict.fromkeys(ROOF_STEPS, 0.0)
     out: list[Building] = []
-    for b in progress(range(1, int(owner.max()) + 1), "modeling buildings"):
-        r0, r1, c0, c1 = boxes[b]
-        window = (slice(r0, r1), slice(c0, c1))
-        crop_grid = Grid(grid.xmin + c0 * grid.gsd, grid.ymax - r0 * grid.gsd, grid.gsd,
-                         c1 - c0, r1 - r0)  # fmt: skip
-        timed = _timed(seconds)
-        members = members_of[b]
-        hyps = timed("plane_hypotheses", plane_hypotheses, members, pts, neighbours, options)
-        protos, anchors = timed("prototypes", _prototypes, hyps, members, graph, neighbours,
-                                options)  # fmt: skip
-        if not len(protos):
-            continue
-        assign = timed("prototype_crf", label_prototypes, members, protos, pts, graph, options,
-                       anchors, inner_edges[b])  # fmt: skip
-        protos = timed("prototype_crf", refit_planes, members, assign, protos, pts, options)
-        sp_face = np.zeros(graph.n, np.int32)
-        sp_face[members] = assign + 1
-        crop = np.where(cell_building[window] == b, sp_face[labels[window]], 0)
-        crop = observed_faces(crop, np.isfinite(dsm[window]), reach)
-        parts = timed("roof_modeling", model_building, crop, crop_grid, protos, dtm[window],
-                      options)  # fmt: skip
-        faces[window][crop > 0] = crop[crop > 0] + 1000 * b
-        counts = {"superpixels": len(members), "hypotheses": len(hyps),
-                  "prototypes": len(protos)}  # fmt: skip
-        for k, part in enumerate(parts):
-            part.id = f"{b}" if k == 0 else f"{b}-{k}"
-            part.record.update(counts)
-            out.append(part)
+    done = engine.map(model_building_roofs, shares, options, edge_reach_m, stage="buildings",
+                      keys=[str(s.id) for s in shares])  # fmt: skip
+    for share, roofs in zip(shares, done, strict=True):
+        r0, r1, c0, c1 = share.window
+        window = faces[r0:r1, c0:c1]
+        on = roofs.faces > 0
+        window[on] = roofs.faces[on] + 1000 * roofs.id
+        out.extend(roofs.parts)
+        for step, sec in roofs.seconds.items():
+            seconds[step] += sec
     return out, faces, seconds
-
-
-def adjacency_lists(edges: np.ndarray) -> dict[int, list[int]]:
-    """{node: its neighbours} on the ``edges`` (E, 2), each node's neighbours in the order
-    of the edges that name it; only nodes with an edge appear."""
-    if not len(edges):
-        return {}
-    node = np.r_[edges[:, 0], edges[:, 1]]
-    other = np.r_[edges[:, 1], edges[:, 0]]
-    order = np.lexsort((np.tile(np.arange(len(edges)), 2), node))
-    node, other = node[order], other[order]
-    starts = np.flatnonzero(np.r_[True, node[1:] != node[:-1]])
-    lists = np.split(other, starts[1:])
-    return dict(zip(node[starts].tolist(), (part.tolist() for part in lists), strict=True))
-
-
-def _timed(seconds: dict):
-    def call(step: str, fn, *args):
-        t0 = time.perf_counter()
-        result = fn(*args)
-        seconds[step] += time.perf_counter() - t0
-        return result
-
-    return call
-
-
-def _prototypes(hyps, members, graph: SuperpixelGraph, neighbours, options):
-    """Section 5.2's prototypes and their anchors, or with no plane anywhere one flat roof
-    at the median, anchored nowhere (allowed everywhere)."""
-    if hyps:
-        return roof_prototypes(hyps, neighbours, options)
-    z = np.nanmedian(graph.height_median[members])
-    flat = np.array([[0.0, 0.0, 1.0, -z]]) if np.isfinite(z) else np.empty((0, 4))
-    return flat, None
-
-
-def building_boxes(cell_building: np.ndarray, n: int) -> np.ndarray:
-    """(n + 1, 4) row and column bounds (r0, r1, c0, c1), one cell of margin, of each
-    building 1..n in a raster of building ids (row 0 unused)."""
-    H, W = cell_building.shape
-    rr, cc = np.nonzero(cell_building)
-    bb = cell_building[rr, cc]
-    lo_r, lo_c = np.full(n + 1, H), np.full(n + 1, W)
-    hi_r, hi_c = np.full(n + 1, -1), np.full(n + 1, -1)
-    np.minimum.at(lo_r, bb, rr)
-    np.minimum.at(lo_c, bb, cc)
-    np.maximum.at(hi_r, bb, rr)
-    np.maximum.at(hi_c, bb, cc)
-    return np.stack(
-        [np.maximum(lo_r - 1, 0), np.minimum(hi_r + 2, H), np.maximum(lo_c - 1, 0),
-         np.minimum(hi_c + 2, W)], axis=1
-    )  # fmt: skip
 
 
 def training_strokes(fusion: FusionRun, required: bool = True) -> np.ndarray | None:

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workbench.planes import ransac_plane
+from workbench.planes import ransac_planes
 from workbench.raster import Grid
 
 from .options import SuperpixelOptions
@@ -24,18 +24,35 @@ class SuperpixelPoints:
         return self.points[self.starts[i] : self.ends[i]]
 
 
-def superpixel_points(labels: np.ndarray, dsm: np.ndarray, grid: Grid) -> SuperpixelPoints:
-    """Group the DSM's known cells, as 3D points, by super-pixel."""
-    X, Y = grid.cell_centers()
-    ok = np.isfinite(dsm)
-    lab = labels[ok]
+def superpixel_points(
+    labels: np.ndarray, dsm: np.ndarray, grid: Grid, wanted: np.ndarray | None = None
+) -> SuperpixelPoints:
+    """Group the DSM's known cells, as 3D points, by super-pixel.
+
+    Parameters
+    ----------
+    labels : (H, W) int
+        Super-pixels 0..N-1.
+    dsm : (H, W) float
+        Metres, NaN unknown.
+    grid : Grid
+    wanted : (N,) bool, optional
+        The super-pixels whose points are kept (the others get none): a city's buildings
+        cover a third of its cells.
+    """
+    known = np.isfinite(dsm)
+    if wanted is not None:
+        known &= wanted[labels]
+    rows, cols = np.nonzero(known)  # raster order, kept within each super-pixel
+    lab = labels[rows, cols]
     order = np.argsort(lab, kind="stable")
-    pts = np.column_stack([X[ok], Y[ok], dsm[ok]])[order]
+    rows, cols, lab = rows[order], cols[order], lab[order]
+    x, y = grid.cell_center(rows, cols)
     n = int(labels.max()) + 1
-    sl = lab[order]
     return SuperpixelPoints(
-        pts, np.searchsorted(sl, np.arange(n)), np.searchsorted(sl, np.arange(n), side="right")
-    )
+        np.column_stack([x, y, dsm[rows, cols]]), np.searchsorted(lab, np.arange(n)),
+        np.searchsorted(lab, np.arange(n), side="right"),
+    )  # fmt: skip
 
 
 def plane_hypotheses(
@@ -62,25 +79,12 @@ def plane_hypotheses(
     with enough points and a roof-like plane.
     """
     inside = set(int(i) for i in members)
-    out = {}
-
-    def fit(i: int, group: set[int]) -> None:
-        points = np.concatenate([pts.of(j) for j in sorted(group)])
-        plane = ransac_plane(
-            points, options.ransac_threshold_m, options.ransac_iterations, seed=options.seed
-        )
-        if plane is not None:
-            out[i] = (plane, points)
-
-    small = []
-    for i in map(int, members):
-        if len(pts.of(i)) >= options.min_plane_points:
-            fit(i, {i})
-        else:
-            small.append(i)
-    own = set(out)
+    own = [int(i) for i in members if len(pts.of(i)) >= options.min_plane_points]
+    out = _fit(own, [pts.of(i) for i in own], options)
+    small = [int(i) for i in members if len(pts.of(i)) < options.min_plane_points]
+    borrowing, groups = [], []
     for i in small:
-        if any(k in own for k in adjacency.get(i, ())):
+        if any(k in out for k in adjacency.get(i, ())):
             continue  # a neighbour's plane can stand for it
         group, ring = {i}, {i}
         for _ in range(2):
@@ -88,5 +92,21 @@ def plane_hypotheses(
             group |= ring
             if sum(len(pts.of(j)) for j in group) >= options.min_plane_points:
                 break
-        fit(i, group)
+        borrowing.append(i)
+        groups.append(np.concatenate([pts.of(j) for j in sorted(group)]))
+    out.update(_fit(borrowing, groups, options))
     return out
+
+
+def _fit(
+    ids: list[int], point_sets: list[np.ndarray], options: SuperpixelOptions
+) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """{id: (plane, its points)} of the point sets with a roof-like RANSAC plane."""
+    planes = ransac_planes(
+        point_sets, options.ransac_threshold_m, options.ransac_iterations, seed=options.seed
+    )
+    return {
+        i: (plane, points)
+        for i, plane, points in zip(ids, planes, point_sets, strict=True)
+        if np.isfinite(plane[0])
+    }

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from workbench.graph_cuts import alpha_expansion
-from workbench.planes import point_plane_distances, ransac_plane
+from workbench.planes import point_plane_distances, ransac_planes
 
 from .aggregation import SuperpixelGraph
 from .options import SuperpixelOptions
@@ -113,11 +113,11 @@ def refit_planes(
 ) -> np.ndarray:
     """Each used prototype refitted (RANSAC) to all points of the super-pixels it won."""
     out = prototypes.copy()
-    for k in np.unique(assignment):
-        p = np.concatenate([pts.of(i) for i in members[assignment == k]] or [np.empty((0, 3))])
-        plane = ransac_plane(
-            p, options.ransac_threshold_m, options.ransac_iterations, seed=options.seed
-        )
-        if plane is not None:
-            out[k] = plane
+    used = np.unique(assignment)
+    groups = [np.concatenate([pts.of(i) for i in members[assignment == k]]) for k in used]
+    planes = ransac_planes(
+        groups, options.ransac_threshold_m, options.ransac_iterations, seed=options.seed
+    )
+    fitted = np.isfinite(planes[:, 0])
+    out[used[fitted]] = planes[fitted]
     return out
