@@ -360,7 +360,9 @@ def read_raster(path: str | os.PathLike, *, field: str | None = None, as_float: 
         wide = masked.dtype.itemsize >= 8 or (
             masked.dtype.kind in "iu" and masked.dtype.itemsize >= 4
         )
-        data = masked.astype(np.float64 if wide else np.float32).filled(np.nan)
+        # no copy where the file is float32 already: filled() makes the one copy (a
+        # city's class probabilities are 100 MB)
+        data = masked.astype(np.float64 if wide else np.float32, copy=False).filled(np.nan)
     else:
         data = masked.filled(0)
     return data, grid, crs
