@@ -192,6 +192,11 @@ def discard_store(store: TaskStore | None) -> None:
         shutil.rmtree(store.folder, ignore_errors=True)
 
 
+# tasks in flight per worker for a stage whose results are small (a building's model, a
+# few hundred kilobytes): enough that one large building does not hold the others back
+BUILDINGS_IN_FLIGHT = 16
+
+
 class Engine:
     """Runs a stage's tasks and yields their results in the tasks' order.
 
@@ -218,6 +223,7 @@ class Engine:
         *shared,
         stage: str,
         keys: Sequence[str] | None = None,
+        in_flight: int | None = None,
     ) -> Iterator:
         """``fn(item, *shared)`` for each item, yielded in the items' order.
 
@@ -234,6 +240,11 @@ class Engine:
         keys : sequence of str, optional
             Unique keys of the tasks in the store (default: their positions). Without a
             store the results are not kept.
+        in_flight : int, optional
+            Tasks submitted and not yet yielded (default: twice the workers). The results
+            of that many are held at most; a larger window keeps the workers busy when
+            the tasks' costs differ (buildings: one large building otherwise holds the
+            next ones back while the other workers wait).
         """
         raise NotImplementedError
 
@@ -269,7 +280,7 @@ class ThreadEngine(Engine):
         self.workers = workers or default_workers()
         self.store = store
 
-    def map(self, fn, items, *shared, stage, keys=None):
+    def map(self, fn, items, *shared, stage, keys=None, in_flight=None):
         keys = self._keys(items, keys)
         store = self.store
         if store is not None:
@@ -284,8 +295,8 @@ class ThreadEngine(Engine):
             return result
 
         try:
-            yield from progress(ordered_map(one, range(len(items)), self.workers), stage,
-                                total=len(items))  # fmt: skip
+            yield from progress(ordered_map(one, range(len(items)), self.workers, in_flight),
+                                stage, total=len(items))  # fmt: skip
         except OSError as e:  # a task's own files (the fusion's observations, say)
             _raise_disk_full(e)
             raise
@@ -315,14 +326,14 @@ class DaskEngine(Engine):
         # one copy per worker, deserialised once; tasks receive that object
         return self.client.scatter(obj, broadcast=True, hash=False)
 
-    def map(self, fn, items, *shared, stage, keys=None):
+    def map(self, fn, items, *shared, stage, keys=None, in_flight=None):
         from distributed import as_completed
 
         keys = self._keys(items, keys)
         store = self.store
         stored = [store is not None and store.has(stage, k) for k in keys]
         self._log_resumed(stage, sum(stored), len(keys))
-        window = 2 * self.workers
+        window = max(in_flight or 0, 2 * self.workers)
         run_id = os.urandom(4).hex()  # task keys unique on a shared scheduler
         done: dict[int, object] = {}
         index: dict = {}

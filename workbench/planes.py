@@ -86,10 +86,10 @@ def ransac_planes(
         rng = np.random.default_rng(seed)
         draws[n] = np.stack([rng.integers(0, n, iterations) for _ in range(3)])
     order = [k for k in np.argsort(sizes, kind="stable").tolist() if sizes[k] >= 6]
-    while order:  # sets of similar size together: little padding
-        count = min(len(order), max(1, RANSAC_CHUNK_CELLS // (iterations * sizes[order[0]])))
-        while count > 1 and count * iterations * sizes[order[count - 1]] > RANSAC_CHUNK_CELLS:
-            count //= 2
+    while order:  # sets of up to twice the smallest's size together: at most half padding
+        first = int(sizes[order[0]])
+        count = np.searchsorted(sizes[order], 2 * first, side="right")
+        count = int(max(1, min(count, RANSAC_CHUNK_CELLS // (iterations * 2 * first))))
         chunk, order = order[:count], order[count:]
         out[chunk] = _stacked_ransac([point_sets[k] for k in chunk], draws, threshold,
                                      max_tilt_deg)  # fmt: skip

@@ -24,7 +24,7 @@ from modeling.shared.opened_parts import building_segments, mid_wall_region
 from modeling.shared.raster_ground import ground_surface, vertex_colours
 from modeling.shared.roof_envelope import BuildingMesh, building_solid, face_planes
 from modeling.shared.roof_model import closed_roof_model
-from workbench.engine import Engine, ThreadEngine
+from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
 from workbench.errors import InputError
 from workbench.fusion_run import class_map, read_fusion_run, tree_cells
 from workbench.meshes import is_watertight
@@ -136,7 +136,8 @@ def run_blocks(
     with timer.stage("blocks"):
         shared = engine.share(inputs)
         results = list(engine.map(building_task, keys, shared, options, stage="buildings",
-                                  keys=[str(k) for k in keys]))  # fmt: skip
+                                  keys=[str(k) for k in keys],
+                                  in_flight=BUILDINGS_IN_FLIGHT * engine.workers))  # fmt: skip
     buildings = [x.building for x in results if x.building is not None]
     skipped = [{"building": str(x.key), "reason": x.skipped} for x in results if x.skipped]
     for b in buildings:

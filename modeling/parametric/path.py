@@ -33,7 +33,7 @@ from modeling.shared.footprint_priors import (
 from modeling.shared.opened_parts import building_segments, opened_parts
 from modeling.shared.raster_ground import ground_surface, vertex_colours
 from modeling.shared.roof_envelope import building_solid, face_planes
-from workbench.engine import Engine, ThreadEngine
+from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
 from workbench.errors import InputError
 from workbench.fusion_run import building_cells, class_map, read_fusion_run, tree_cells
 from workbench.meshes import is_watertight
@@ -184,7 +184,8 @@ def run_parametric(
             shared = engine.share(inputs)
             results = list(engine.map(building_task, list(range(1, q + 1)), shared, options,
                                       stage=f"segments_{r + 1}",
-                                      keys=[str(i) for i in range(1, q + 1)]))  # fmt: skip
+                                      keys=[str(i) for i in range(1, q + 1)],
+                                      in_flight=BUILDINGS_IN_FLIGHT * engine.workers))  # fmt: skip
         k, nu = label_count(q)
         rounds.append({"segments": q, "labels_k": k, "regions_nu": nu,
                        "buildings": sum(x.building is not None for x in results)})  # fmt: skip

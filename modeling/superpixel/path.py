@@ -16,7 +16,7 @@ import numpy as np
 
 from modeling.shared.raster_ground import ground_surface, vertex_colours
 from workbench import metrics
-from workbench.engine import Engine, ThreadEngine
+from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
 from workbench.errors import InputError
 from workbench.fusion_run import FusionRun, read_fusion_run
 from workbench.model_run import Building, ModelRun
@@ -190,7 +190,8 @@ def model_buildings(
     seconds = dict.fromkeys(ROOF_STEPS, 0.0)
     out: list[Building] = []
     done = engine.map(model_building_roofs, shares, options, edge_reach_m, stage="buildings",
-                      keys=[str(s.id) for s in shares])  # fmt: skip
+                      keys=[str(s.id) for s in shares],
+                      in_flight=BUILDINGS_IN_FLIGHT * engine.workers)  # fmt: skip
     for share, roofs in zip(shares, done, strict=True):
         r0, r1, c0, c1 = share.window
         window = faces[r0:r1, c0:c1]
