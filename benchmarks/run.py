@@ -219,10 +219,10 @@ from workbench.engine import start_engine
 fusion, scene, out = (Path(a) for a in sys.argv[1:4])
 engine = start_engine(preload=("modeling.superpixel.path",))  # as the command: every core
 try:
-    r = write_model_run(run_superpixel(fusion, SuperpixelOptions(), truth=scene,
-                                       engine=engine), out, overwrite=True)  # fmt: skip
+    run = run_superpixel(fusion, SuperpixelOptions(), truth=scene, engine=engine)
 finally:
-    engine.close()
+    engine.close()  # before the writing, as the command does
+r = write_model_run(run, out, overwrite=True)
 m = evaluate(load_run(out), load_scene_truth(scene)).metrics
 table1 = {k: v["overall_accuracy"] for k, v in r["classification_table"].items()}
 print(json.dumps({"stages": r["stages"], "grid": r["inputs"]["grid"], "counts": r["counts"],
@@ -307,10 +307,11 @@ if spec.tasks:  # as the command: every core
 if any(i.name == "labels" for i in spec.inputs):  # the scene's training strokes
     kwargs["labels"] = scene / "training" / "labels.tif"
 try:
-    r = write_model_run(spec.load()(fusion, spec.options(), **kwargs), out, overwrite=True)
+    run = spec.load()(fusion, spec.options(), **kwargs)
 finally:
     if "engine" in kwargs:
-        kwargs["engine"].close()
+        kwargs["engine"].close()  # before the writing, as the command does
+r = write_model_run(run, out, overwrite=True)
 m = evaluate(load_run(out), load_scene_truth(scene)).metrics
 print(json.dumps({"stages": r["stages"], "grid": r["inputs"]["grid"], "counts": r["counts"],
                   "buildings": len(r["buildings"]),
@@ -422,10 +423,10 @@ options = VoxelOptions(fusion_flat_roofs=variant != "photo", pitched_roofs=varia
 from workbench.engine import start_engine
 engine = start_engine(preload=("modeling.voxel.path",))  # as the command: every core
 try:
-    r = write_model_run(run_voxel(scene, options, fusion_dir=fusion, engine=engine), out,
-                        overwrite=True)
+    run = run_voxel(scene, options, fusion_dir=fusion, engine=engine)
 finally:
-    engine.close()
+    engine.close()  # before the writing, as the command does
+r = write_model_run(run, out, overwrite=True)
 truth = load_scene_truth(scene)
 ev = evaluate(load_run(out), truth)
 m = ev.metrics

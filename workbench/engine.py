@@ -379,6 +379,9 @@ class DaskEngine(Engine):
                 fut.cancel()
 
     def close(self) -> None:
+        """Close the client and a cluster this run started (again: nothing)."""
+        if self.client.status in ("closing", "closed"):
+            return
         self.client.close()
         if self.cluster is not None:
             self.cluster.close()
