@@ -158,6 +158,43 @@ def test_a_local_cluster_keeps_the_shared_context_in_every_worker():
     assert len(seen) == 2  # two workers, one copy each
 
 
+def test_a_long_task_does_not_hold_the_others_back_within_the_window(tmp_path):
+    """One building that takes long, then six short ones: with 8 tasks in flight the other
+    worker runs the short ones while the long one runs (all but the one Dask may have
+    queued behind it); with the default window (twice the workers) it stops after three at
+    most, waiting for the long one to be yielded. The results come in the tasks' order
+    either way. (The long task is 40 times a short one.)"""
+    from workbench.engine import start_engine
+
+    engine = start_engine(2)
+    try:
+        finished = {}
+        for in_flight in (8, None):
+            log = tmp_path / f"log{in_flight}"
+            log.mkdir()
+            out = list(engine.map(_long_then_short, range(7), str(log), stage="test",
+                                  in_flight=in_flight))  # fmt: skip
+            assert out == list(range(7))
+            # the short tasks that had finished when the long one did
+            finished[in_flight] = int((log / "0").read_text())
+    finally:
+        engine.close()
+    assert finished[8] >= 5 and finished[None] <= 3, finished
+
+
+def _long_then_short(i, log):
+    import time
+    from pathlib import Path
+
+    if i == 0:
+        time.sleep(2.0)
+        (Path(log) / "0").write_text(str(len(list(Path(log).iterdir()))))
+    else:
+        time.sleep(0.05)
+        (Path(log) / str(i)).write_text("")
+    return i
+
+
 def _worker_and_object(i, context):
     import os
     import time
