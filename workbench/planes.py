@@ -51,9 +51,11 @@ def ransac_planes(
 ) -> np.ndarray:
     """:func:`ransac_plane` of each of many point sets, scored together.
 
-    Super-pixels hold tens to hundreds of points, and one RANSAC per set in Python is
-    mostly call overhead; here sets of about the same size are stacked, and all samples
-    of all of them are scored by one stacked matrix product.
+    Sets of up to twice the smallest one's size are stacked (padded with points that are
+    never inliers) and all their samples scored by one stacked matrix product, instead of
+    a call per set. Scoring 200 samples is most of the work, so this gains little (the
+    2,600 super-pixels of `small` seed 0: 0.10 against 0.12 s); stacking sets of any size
+    together padded them to the largest and was slower than the calls.
 
     Each set draws ``iterations`` samples of three points with ``seed``, all scored at
     once, and ties go to the first sample: a set's plane depends on ``seed`` and on its

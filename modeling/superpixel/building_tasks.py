@@ -122,11 +122,10 @@ def building_shares(
             np.searchsorted(members, graph.edges[inner]), graph.boundary[inner],
             graph.colour_distance[inner],
         )  # fmt: skip
-        window_grid = Grid(grid.xmin + c0 * grid.gsd, grid.ymax - r0 * grid.gsd, grid.gsd,
-                           c1 - c0, r1 - r0)  # fmt: skip
         shares.append(BuildingShare(
-            b, (int(r0), int(r1), int(c0), int(c1)), window_grid, sub, points_of(pts, members),
-            np.isfinite(dsm[r0:r1, c0:c1]), dtm[r0:r1, c0:c1].copy(),
+            b, (int(r0), int(r1), int(c0), int(c1)), grid.window(slice(r0, r1), slice(c0, c1)),
+            sub, points_of(pts, members), np.isfinite(dsm[r0:r1, c0:c1]),
+            dtm[r0:r1, c0:c1].copy(),
         ))  # fmt: skip
     return shares
 
@@ -158,9 +157,8 @@ def model_building_roofs(
 
     hyps = timed("plane_hypotheses", plane_hypotheses, members, pts, neighbours, options)
     protos, anchors = timed("prototypes", _prototypes, hyps, members, graph, neighbours, options)
-    empty = np.zeros(share.known.shape, np.int32)
     if not len(protos):
-        return BuildingRoofs(share.id, [], empty, seconds)
+        return BuildingRoofs(share.id, [], np.zeros(share.known.shape, np.int32), seconds)
     inner = np.arange(len(graph.edges))
     assign = timed("prototype_crf", label_prototypes, members, protos, pts, graph, options,
                    anchors, inner)  # fmt: skip
