@@ -79,9 +79,10 @@ def plane_hypotheses(
     with enough points and a roof-like plane.
     """
     inside = set(int(i) for i in members)
-    own = [int(i) for i in members if len(pts.of(i)) >= options.min_plane_points]
+    enough = (pts.ends[members] - pts.starts[members]) >= options.min_plane_points
+    own = [int(i) for i in members[enough]]
     out = _fit(own, [pts.of(i) for i in own], options)
-    small = [int(i) for i in members if len(pts.of(i)) < options.min_plane_points]
+    small = [int(i) for i in members[~enough]]
     borrowing, groups = [], []
     for i in small:
         if any(k in out for k in adjacency.get(i, ())):
