@@ -63,8 +63,8 @@ log = logging.getLogger(__name__)
 AUTO_BLOCK_CELLS = 4096  # a grid of at most this many cells a side is fused at once
 PRODUCTS = ("ortho", "dsm", "dtm", "ndsm", "class_prob", "classes", "count")
 SUMMED = ("tiles", "observations", "filled_cells",
-          "rejected_isolated_spikes", "planar_objects_made_building", "crown_cells_raised",
-          "crown_sightings_raised")  # fmt: skip
+          "rejected_isolated_spikes", "planar_objects_made_building",
+          "roof_faces_made_building", "crown_cells_raised", "crown_sightings_raised")  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,7 @@ from workbench.records import StageTimer
 from .ground import dtm_from_dsm
 from .interpolate import fill_small_holes, small_holes
 from .options import FusionOptions
-from .planar_objects import planar_tree_objects, relabel_planar_objects
+from .planar_objects import planar_roofs_classed_tree
 from .raster_forest import classify_rasters, synthetic_raster_forest
 from .scene_fusion import FILLED, HOLE_CELLS, FusionResult, check_memory
 
@@ -283,12 +283,13 @@ def fuse_mesh(path, opts: FusionOptions | None = None, *, crs: str | None = None
         ndsm = (dsm - dtm).astype(np.float32)
     with timer.stage("classes"):
         prob = classify_rasters(synthetic_raster_forest(), dsm, dtm, ortho, grid.gsd)
-    class_map, planar = None, 0
+    class_map = None
+    planar = {"planar_objects_made_building": 0, "roof_faces_made_building": 0}
     if opts.planar_objects:
         with timer.stage("planar_objects"):
-            most_probable = class_codes(prob)
-            roof, planar = planar_tree_objects(most_probable, dsm, ndsm, grid.gsd, opts.seed)
-            class_map, prob = relabel_planar_objects(most_probable, prob, roof)
+            class_map, prob, planar = planar_roofs_classed_tree(
+                class_codes(prob), prob, dsm, ndsm, grid.gsd, opts.seed
+            )
     count = hit.astype(np.int16)
     count[holes] = FILLED
     inputs = {
@@ -304,8 +305,9 @@ def fuse_mesh(path, opts: FusionOptions | None = None, *, crs: str | None = None
         "class_source": "a forest trained on the synthetic city's rasters (nDSM, slope, "
         "roughness, curvature, brightness, greenness): no training labels"
         + ("; objects classed tree made building where planes explain most of their cells "
+           "and roof faces joined to crowns where they continue a building "
            "(fusion.planar_objects)" if opts.planar_objects else ""),
-        "planar_objects_made_building": planar,
+        **planar,
         "missed_cells": int((~hit).sum()), "filled_cells": int(holes.sum()),
         "seconds_per_million_triangles": round(
             (time.perf_counter() - t0) / max(len(mesh.triangles) / 1e6, 1e-6), 2),

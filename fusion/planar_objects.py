@@ -15,6 +15,12 @@ What is left of an object once its roof is taken out is an object of its own, te
 again (:data:`PASSES`): where the DSM rounds a ridge off both planes, the faces make two
 parts, and the second face, a wing's shaded side, stayed tree (dev seed 16).
 
+A roof's face can also join a crown instead: the shaded, steep faces of a mansard roof
+beside a tree read as tree, and the class CRF joins them to the crown, one object whose
+planes explain too little of it. :func:`roof_faces_beside_buildings` takes such faces
+out of the objects: a plane's cells that are dense, share an edge with the building
+class, and continue its heights across that edge.
+
 On the fusion runs of ``small`` seeds 0-2 and 6-14 (12 cities, 471 tree objects of
 20 m² or more that are crowns) the planes explain at most 0.63 of a crown's cells.
 Taken as objects, the 322 roofs of those cities score 0.59-1.0, 7 of them under 0.7:
@@ -42,6 +48,11 @@ MAX_TILT_DEG = 75.0  # steeper is a wall (a mansard's lower faces are 60-70 degr
 MAX_POINTS = 4000  # a larger object is tested on a sample: RANSAC holds (points, 300)
 NEAR_M = 1.0  # the object's cells this near the roof are its rim: the walls' blur
 PASSES = 3  # what is left of objects after their roofs, tested again (a shaded face)
+FACE_MIN_M2 = 5.0  # a roof face beside a building: a hipped end of a small house is larger
+MAX_FACES = 12  # planes sought per object: a crown's come first, a face's after them
+FACE_DENSITY = MIN_EXPLAINED  # share of a face's cells on its plane (a crown's: speckles)
+FACE_EDGE_M = 4.0  # the edge a face shares with the building class
+FACE_CONTINUES = 0.5  # share of that edge where the heights carry on across it
 
 
 def dsm_noise(dsm: np.ndarray, classes: np.ndarray, gsd: float) -> float:
@@ -154,12 +165,170 @@ def object_planes(
     return (part | (np.isin(holes, small) & (holes > 0))) & inside
 
 
+def roof_faces_beside_buildings(
+    classes: np.ndarray, dsm: np.ndarray, ndsm: np.ndarray, gsd: float, seed: int = 0
+) -> tuple[np.ndarray, int]:
+    """Cells of the objects classed tree that are faces of a building's roof.
+
+    In each object classed tree, a storey above the DTM and touching the building
+    class, sequential RANSAC seeks up to :data:`MAX_FACES` planes of at least
+    :data:`FACE_MIN_M2` each (at most :data:`MAX_TILT_DEG` steep, inliers within twice
+    the DSM's noise, as :func:`planar_tree_objects`). Each cell goes to the first plane
+    it lies on; the cells of one plane, gaps of a cell closed, make parts. A part is a
+    face of the roof beside it when all three hold:
+
+    - at least :data:`FACE_DENSITY` of its cells lie on the plane: a crown's surface
+      crosses a plane in rings and speckles;
+    - it shares an edge of at least :data:`FACE_EDGE_M` with cells classed building: a
+      face meets the rest of its roof along a ridge, a hip or a break of slope;
+    - along at least :data:`FACE_CONTINUES` of that edge the heights carry on: a cell of
+      the part and its building neighbour differ by at most the plane's own rise over
+      the diagonal of a cell, plus the inlier distance. A crown beside a roof stands
+      above it or falls away from it.
+
+    Faces found make the building class larger; faces beyond them are sought again,
+    up to :data:`PASSES` times.
+
+    Parameters
+    ----------
+    classes : (H, W) uint8
+        Class codes, with :func:`planar_tree_objects`' roofs made building.
+    dsm, ndsm : (H, W) float
+        Heights and heights above the DTM, metres, NaN unknown.
+    gsd : float
+        Cell size, metres.
+    seed : int
+        Seed of the RANSAC draws.
+
+    Returns
+    -------
+    faces : (H, W) bool
+    found : int
+        How many faces.
+    """
+    faces = np.zeros(classes.shape, bool)
+    tolerance = NOISE_FACTOR * dsm_noise(dsm, classes, gsd)
+    if not np.isfinite(tolerance):
+        return faces, 0
+    with np.errstate(invalid="ignore"):
+        tall_tree = (classes == TREE) & (ndsm > STOREY_M) & np.isfinite(dsm)
+    building = classes == BUILDING
+    found = 0
+    for _round in range(PASSES):
+        near_building = ndimage.binary_dilation(building, np.ones((3, 3), bool))
+        labels, _ = ndimage.label(tall_tree & ~faces)
+        new = np.zeros(classes.shape, bool)
+        for k, window in enumerate(ndimage.find_objects(labels), 1):
+            window = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in window)
+            inside = labels[window] == k
+            if inside.sum() < FACE_MIN_M2 / gsd**2 or not (inside & near_building[window]).any():
+                continue
+            part = object_faces(inside, dsm[window], building[window], gsd, tolerance, seed)
+            new[window] |= part
+            found += int(ndimage.label(part, np.ones((3, 3), bool))[1])
+        if not new.any():
+            break
+        faces |= new
+        building |= new
+    return faces, found
+
+
+def object_faces(
+    inside: np.ndarray,
+    dsm: np.ndarray,
+    building: np.ndarray,
+    gsd: float,
+    tolerance: float,
+    seed: int,
+) -> np.ndarray:
+    """(h, w) bool the parts of one object that are faces of the roof beside it (see
+    :func:`roof_faces_beside_buildings`); ``building`` the cells classed building in the
+    object's window, ``tolerance`` the inlier distance in metres."""
+    r, c = np.nonzero(inside)
+    points = np.column_stack([c * gsd, -r * gsd, dsm[r, c]]).astype(np.float64)
+    points -= points.mean(axis=0)  # near a local origin: heights of tens of metres
+    min_cells = int(np.ceil(FACE_MIN_M2 / gsd**2))
+    planes = sequential_planes(points, tolerance, min_cells, MAX_FACES, MAX_TILT_DEG, seed)
+    faces = np.zeros(inside.shape, bool)
+    if len(planes) == 0:
+        return faces
+    on = point_plane_distances(planes, points).reshape(len(points), -1) < tolerance
+    first = np.where(on.any(axis=1), on.argmax(axis=1), -1)
+    step_to_building = _step_to_building(dsm, building)
+    near_building = ndimage.binary_dilation(building, np.ones((3, 3), bool))
+    eight = np.ones((3, 3), bool)
+    for p, plane in enumerate(planes):
+        cells = np.zeros(inside.shape, bool)
+        cells[r[first == p], c[first == p]] = True
+        closed = ndimage.binary_closing(np.pad(cells, 1), eight)[1:-1, 1:-1] & inside
+        parts, n = ndimage.label(closed, eight)
+        # a cell of the face and its building neighbour: the plane's rise over a
+        # cell's diagonal apart, and the inliers' tolerance
+        rise = gsd * np.sqrt(2) * np.hypot(plane[0], plane[1]) / abs(plane[2]) + tolerance
+        for q, where in enumerate(ndimage.find_objects(parts), 1):
+            part = parts[where] == q
+            if part.sum() < min_cells or (cells[where] & part).sum() < FACE_DENSITY * part.sum():
+                continue
+            edge = part & near_building[where]
+            if edge.sum() < FACE_EDGE_M / gsd:
+                continue
+            if (step_to_building[where][edge] <= rise).mean() >= FACE_CONTINUES:
+                faces[where] |= part
+    return faces
+
+
+def _step_to_building(dsm: np.ndarray, building: np.ndarray) -> np.ndarray:
+    """(h, w) float the smallest absolute height difference, metres, between each cell
+    and its 8 neighbours classed building; inf without such a neighbour."""
+    h, w = dsm.shape
+    z = np.pad(dsm, 1, constant_values=np.nan)
+    b = np.pad(building, 1)
+    step = np.full((h, w), np.inf)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy == dx == 0:
+                continue
+            nz = z[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
+            nb = b[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
+            with np.errstate(invalid="ignore"):
+                diff = np.abs(nz - dsm)
+            step = np.fmin(step, np.where(nb & np.isfinite(diff), diff, np.inf))
+    return step
+
+
 def largest_component(mask: np.ndarray) -> np.ndarray:
     """(h, w) bool the largest 8-connected component of ``mask`` (empty if it is)."""
     labels, n = ndimage.label(mask, np.ones((3, 3), bool))
     if n == 0:
         return mask.copy()
     return labels == np.bincount(labels.ravel())[1:].argmax() + 1
+
+
+def planar_roofs_classed_tree(
+    classes: np.ndarray,
+    class_prob: np.ndarray,
+    dsm: np.ndarray,
+    ndsm: np.ndarray,
+    gsd: float,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The class map and probabilities with the roofs colour called tree made building:
+    whole objects (:func:`planar_tree_objects`), then faces joined to a crown
+    (:func:`roof_faces_beside_buildings`).
+
+    Returns
+    -------
+    classes, class_prob
+        New arrays (see :func:`relabel_planar_objects`).
+    counts : dict
+        ``planar_objects_made_building`` and ``roof_faces_made_building``.
+    """
+    roof, objects = planar_tree_objects(classes, dsm, ndsm, gsd, seed)
+    classes, class_prob = relabel_planar_objects(classes, class_prob, roof)
+    faces, found = roof_faces_beside_buildings(classes, dsm, ndsm, gsd, seed)
+    classes, class_prob = relabel_planar_objects(classes, class_prob, faces)
+    counts = {"planar_objects_made_building": objects, "roof_faces_made_building": found}
+    return classes, class_prob, counts
 
 
 def relabel_planar_objects(

@@ -84,7 +84,7 @@ from .observations import (
     window_pixels,
 )
 from .options import FusionOptions
-from .planar_objects import planar_tree_objects, relabel_planar_objects
+from .planar_objects import planar_roofs_classed_tree
 from .raster_forest import classify_rasters, synthetic_raster_forest
 from .sigma_points import MEAN_ELEVATION, N_FEATURES, feature_cues, sigma_points
 
@@ -462,7 +462,7 @@ def fused_products(s: FusedSurface, shared_views, forest, class_source, mode: st
         "class_source": class_source,
         "filled_cells": int(s.holes.sum()),
         "rejected_isolated_spikes": int(s.spikes.sum()),
-        "planar_objects_made_building": planar,
+        **planar,
         "crown_cells_raised": int(crowns.sum()),
         "crown_sightings_raised": int(np.isfinite(c.crown_z).sum()),
     }
@@ -906,14 +906,17 @@ def _finish(
             f"; class.tif: a contrast-sensitive Potts model (omega {opts.class_crf:g}) on "
             "the ortho's colour and the DSM"
         )
-    planar = 0
+    planar = {"planar_objects_made_building": 0, "roof_faces_made_building": 0}
     if opts.planar_objects:
         with timer.stage("planar_objects"):
-            roof, planar = planar_tree_objects(classes, dsm, ndsm, grid.gsd, opts.seed)
-            classes, class_prob = relabel_planar_objects(classes, class_prob, roof)
+            classes, class_prob, planar = planar_roofs_classed_tree(
+                classes, class_prob, dsm, ndsm, grid.gsd, opts.seed
+            )
         class_source += (
             "; objects classed tree made building in both rasters where planes explain most "
-            "of their cells (fusion.planar_objects; counted in planar_objects_made_building)"
+            "of their cells, and roof faces joined to crowns where they continue a building "
+            "(fusion.planar_objects; counted in planar_objects_made_building and "
+            "roof_faces_made_building)"
         )
     with timer.stage("crowns"):
         crowns = np.zeros(grid.shape, bool)

@@ -6,10 +6,13 @@ import pytest
 from scipy import ndimage
 
 from fusion.planar_objects import (
+    FACE_EDGE_M,
     MIN_AREA_M2,
     dsm_noise,
+    planar_roofs_classed_tree,
     planar_tree_objects,
     relabel_planar_objects,
+    roof_faces_beside_buildings,
 )
 from workbench.planes import plane_heights, sequential_planes
 from workbench.raster import BUILDING, TREE
@@ -145,6 +148,68 @@ def test_a_roof_face_left_out_of_the_largest_part_is_tested_on_its_own(monkeypat
     monkeypatch.setattr("fusion.planar_objects.PASSES", 1)
     roof, found = planar_tree_objects(classes, dsm, dsm.copy(), GSD)
     assert found == 1 and 0.4 < roof[faces].mean() < 0.6
+
+
+def _mansard_beside_a_crown(rng):
+    """(dsm, classes, crown, shed, faces) of a mansard roof of 16 x 12 m (flat top at 12 m, faces
+    of 68 degrees over 1.75 m) whose north and west faces are classed tree, a crown of
+    6 m radius against the north face (dev seed 0's building 21: the shaded faces and the crown one
+    tree object), and a flat shed of 5 x 3 m classed tree against the east wall, 3.7 m
+    below the eaves; ``faces`` the north and west faces off their break and eaves."""
+    rows, cols = np.indices((120, 120))
+    x, y = cols * GSD, (120 - rows) * GSD
+    house = (x > 4) & (x < 20) & (y > 4) & (y < 16)
+    d = np.minimum.reduce([x - 4, 20 - x, y - 4, 16 - y])
+    rise = np.tan(np.radians(68.0))
+    dsm = np.where(house, 12.0 - rise * 1.75 + rise * np.minimum(d, 1.75), 0.0)
+    north = house & (d == 16 - y) & (d < 1.75)  # each cell on the face of its nearest side
+    west = house & (d == x - 4) & (d < 1.75) & ~north
+    crown = _crown(x, y, 12.0, 21.5, 6.0, 4.0, 11.0, rng)
+    crown_only = np.isfinite(crown) & ~house
+    dsm = np.where(crown_only, crown, dsm)
+    shed = (x >= 20) & (x < 23) & (y > 7) & (y < 12)
+    dsm[shed] = 4.0
+    dsm += rng.normal(0, SIGMA, dsm.shape)
+    classes = np.where(house, BUILDING, 1).astype(np.uint8)
+    classes[north | west | crown_only | shed] = TREE
+    inner = (north | west) & (d > 0.3) & (d < 1.45)  # off the eaves and the break
+    return dsm, classes, crown_only, shed, inner
+
+
+def test_a_roofs_faces_joined_to_a_crown_are_roof_and_the_crown_stays_tree(monkeypatch):
+    rng = np.random.default_rng(11)
+    dsm, classes, crown, shed, faces_inner = _mansard_beside_a_crown(rng)
+    tall = (classes == TREE) & (dsm > 2.5)
+    labels, _ = ndimage.label(tall)
+    assert len(np.unique(labels[faces_inner | crown])) == 1  # the case: one tree object
+    roof, found = planar_tree_objects(classes, dsm, dsm.copy(), GSD)
+    assert found == 0  # the crown outweighs the faces: the whole-object test says tree
+    faces, found = roof_faces_beside_buildings(classes, dsm, dsm.copy(), GSD)
+    assert found >= 1 and faces[faces_inner].mean() > 0.97
+    assert faces[crown].mean() < 0.01
+    # the shed touches the house along 5 m, planar, but 3.7 m below the eaves: no face;
+    # without the heights' continuity across the edge it would be one
+    assert 5.0 > FACE_EDGE_M and not faces[shed].any()
+    monkeypatch.setattr("fusion.planar_objects.FACE_CONTINUES", 0.0)
+    faces, _ = roof_faces_beside_buildings(classes, dsm, dsm.copy(), GSD)
+    assert faces[shed].mean() > 0.9
+
+
+def test_faces_are_made_building_in_both_rasters():
+    rng = np.random.default_rng(12)
+    dsm, classes, crown, shed, faces_inner = _mansard_beside_a_crown(rng)
+    prob = np.zeros((4,) + classes.shape)
+    prob[
+        np.where(classes == TREE, 2, np.where(classes == BUILDING, 3, 0)),
+        *np.indices(classes.shape),
+    ] = 1.0
+    new_classes, new_prob, counts = planar_roofs_classed_tree(classes, prob, dsm, dsm.copy(), GSD)
+    assert counts["planar_objects_made_building"] == 0 and counts["roof_faces_made_building"] >= 1
+    assert (new_classes[faces_inner] == BUILDING).mean() > 0.97
+    assert (new_classes[crown] == TREE).mean() > 0.99
+    made = (classes == TREE) & (new_classes == BUILDING)
+    assert (new_prob[:, made].argmax(axis=0) == BUILDING - 1).all()
+    assert (new_prob[:, ~made] == prob[:, ~made]).all()
 
 
 def test_no_ground_no_noise_no_change():
