@@ -75,8 +75,9 @@ class FusionOptions:
     )  # fmt: skip
     planar_objects: bool = option(
         True, "views and meshes: an object classed tree, a storey or more above the DTM, becomes "
-        "building where a few planes explain most of its cells (a green roof); off: the "
-        "classes as the forest and the class CRF leave them",
+        "building where a few planes explain most of its cells (a green roof), and so does a "
+        "planar part of one that continues a building's roof (a shaded face beside a crown); "
+        "off: the classes as the forest and the class CRF leave them",
     )  # fmt: skip
     raster_prior: bool = option(
         False, "multiply the views' class probabilities by those of a forest on the fused "
