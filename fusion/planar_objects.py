@@ -64,8 +64,25 @@ def dsm_noise(dsm: np.ndarray, classes: np.ndarray, gsd: float) -> float:
     return float(np.median(residual[on_ground])) if on_ground.any() else float("nan")
 
 
+def inlier_tolerance(dsm: np.ndarray, classes: np.ndarray, gsd: float) -> float:
+    """The planes' inlier distance, metres: :data:`NOISE_FACTOR` times
+    :func:`dsm_noise` (NaN without ground)."""
+    return NOISE_FACTOR * dsm_noise(dsm, classes, gsd)
+
+
+def tall_trees(classes: np.ndarray, dsm: np.ndarray, ndsm: np.ndarray) -> np.ndarray:
+    """(H, W) bool cells classed tree, known, more than :data:`STOREY_M` above the DTM."""
+    with np.errstate(invalid="ignore"):
+        return (classes == TREE) & (ndsm > STOREY_M) & np.isfinite(dsm)
+
+
 def planar_tree_objects(
-    classes: np.ndarray, dsm: np.ndarray, ndsm: np.ndarray, gsd: float, seed: int = 0
+    classes: np.ndarray,
+    dsm: np.ndarray,
+    ndsm: np.ndarray,
+    gsd: float,
+    seed: int = 0,
+    tolerance: float | None = None,
 ) -> tuple[np.ndarray, int]:
     """Cells of the objects classed tree whose planes make them roofs.
 
@@ -79,6 +96,8 @@ def planar_tree_objects(
         Cell size, metres.
     seed : int
         Seed of the RANSAC draws and of the sample of a large object.
+    tolerance : float, optional
+        RANSAC inlier distance, metres; :func:`inlier_tolerance` by default.
 
     Returns
     -------
@@ -90,11 +109,10 @@ def planar_tree_objects(
         was left of it.
     """
     roof = np.zeros(classes.shape, bool)
-    tolerance = NOISE_FACTOR * dsm_noise(dsm, classes, gsd)
+    tolerance = inlier_tolerance(dsm, classes, gsd) if tolerance is None else tolerance
     if not np.isfinite(tolerance):
         return roof, 0
-    with np.errstate(invalid="ignore"):
-        tall_tree = (classes == TREE) & (ndsm > STOREY_M) & np.isfinite(dsm)
+    tall_tree = tall_trees(classes, dsm, ndsm)
     min_cells = MIN_AREA_M2 / gsd**2
     rng = np.random.default_rng(seed)
     found = 0
@@ -166,7 +184,12 @@ def object_planes(
 
 
 def roof_faces_beside_buildings(
-    classes: np.ndarray, dsm: np.ndarray, ndsm: np.ndarray, gsd: float, seed: int = 0
+    classes: np.ndarray,
+    dsm: np.ndarray,
+    ndsm: np.ndarray,
+    gsd: float,
+    seed: int = 0,
+    tolerance: float | None = None,
 ) -> tuple[np.ndarray, int]:
     """Cells of the objects classed tree that are faces of a building's roof.
 
@@ -199,6 +222,8 @@ def roof_faces_beside_buildings(
         Cell size, metres.
     seed : int
         Seed of the RANSAC draws.
+    tolerance : float, optional
+        RANSAC inlier distance, metres; :func:`inlier_tolerance` by default.
 
     Returns
     -------
@@ -207,11 +232,10 @@ def roof_faces_beside_buildings(
         How many faces.
     """
     faces = np.zeros(classes.shape, bool)
-    tolerance = NOISE_FACTOR * dsm_noise(dsm, classes, gsd)
+    tolerance = inlier_tolerance(dsm, classes, gsd) if tolerance is None else tolerance
     if not np.isfinite(tolerance):
         return faces, 0
-    with np.errstate(invalid="ignore"):
-        tall_tree = (classes == TREE) & (ndsm > STOREY_M) & np.isfinite(dsm)
+    tall_tree = tall_trees(classes, dsm, ndsm)
     building = classes == BUILDING
     found = 0
     for _round in range(PASSES):
@@ -323,9 +347,11 @@ def planar_roofs_classed_tree(
     counts : dict
         ``planar_objects_made_building`` and ``roof_faces_made_building``.
     """
-    roof, objects = planar_tree_objects(classes, dsm, ndsm, gsd, seed)
+    # the noise is measured on the ground, which neither step relabels
+    tolerance = inlier_tolerance(dsm, classes, gsd)
+    roof, objects = planar_tree_objects(classes, dsm, ndsm, gsd, seed, tolerance)
     classes, class_prob = relabel_planar_objects(classes, class_prob, roof)
-    faces, found = roof_faces_beside_buildings(classes, dsm, ndsm, gsd, seed)
+    faces, found = roof_faces_beside_buildings(classes, dsm, ndsm, gsd, seed, tolerance)
     classes, class_prob = relabel_planar_objects(classes, class_prob, faces)
     counts = {"planar_objects_made_building": objects, "roof_faces_made_building": found}
     return classes, class_prob, counts
