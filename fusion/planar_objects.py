@@ -229,7 +229,7 @@ def roof_faces_beside_buildings(
     -------
     faces : (H, W) bool
     found : int
-        How many faces.
+        How many connected parts were made building (faces that meet count once).
     """
     faces = np.zeros(classes.shape, bool)
     tolerance = inlier_tolerance(dsm, classes, gsd) if tolerance is None else tolerance
@@ -285,7 +285,7 @@ def object_faces(
         cells = np.zeros(inside.shape, bool)
         cells[r[first == p], c[first == p]] = True
         closed = ndimage.binary_closing(np.pad(cells, 1), eight)[1:-1, 1:-1] & inside
-        parts, n = ndimage.label(closed, eight)
+        parts, _ = ndimage.label(closed, eight)
         # a cell of the face and its building neighbour: the plane's rise over a
         # cell's diagonal apart, and the inliers' tolerance
         rise = gsd * np.sqrt(2) * np.hypot(plane[0], plane[1]) / abs(plane[2]) + tolerance
