@@ -350,9 +350,10 @@ def planar_roofs_classed_tree(
     # the noise is measured on the ground, which neither step relabels
     tolerance = inlier_tolerance(dsm, classes, gsd)
     roof, objects = planar_tree_objects(classes, dsm, ndsm, gsd, seed, tolerance)
-    classes, class_prob = relabel_planar_objects(classes, class_prob, roof)
-    faces, found = roof_faces_beside_buildings(classes, dsm, ndsm, gsd, seed, tolerance)
-    classes, class_prob = relabel_planar_objects(classes, class_prob, faces)
+    with_roofs = np.where(roof, BUILDING, classes).astype(classes.dtype)
+    faces, found = roof_faces_beside_buildings(with_roofs, dsm, ndsm, gsd, seed, tolerance)
+    # one relabelling of both: each copies the probabilities (100 MB on the 1 km² city)
+    classes, class_prob = relabel_planar_objects(classes, class_prob, roof | faces)
     counts = {"planar_objects_made_building": objects, "roof_faces_made_building": found}
     return classes, class_prob, counts
 
