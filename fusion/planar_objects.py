@@ -247,7 +247,8 @@ def roof_faces_beside_buildings(
             inside = labels[window] == k
             if inside.sum() < FACE_MIN_M2 / gsd**2 or not (inside & near_building[window]).any():
                 continue
-            part = object_faces(inside, dsm[window], building[window], gsd, tolerance, seed)
+            part = object_faces(inside, dsm[window], building[window], near_building[window],
+                                gsd, tolerance, seed)  # fmt: skip
             new[window] |= part
             found += int(ndimage.label(part, np.ones((3, 3), bool))[1])
         if not new.any():
@@ -261,13 +262,15 @@ def object_faces(
     inside: np.ndarray,
     dsm: np.ndarray,
     building: np.ndarray,
+    near_building: np.ndarray,
     gsd: float,
     tolerance: float,
     seed: int,
 ) -> np.ndarray:
     """(h, w) bool the parts of one object that are faces of the roof beside it (see
     :func:`roof_faces_beside_buildings`); ``building`` the cells classed building in the
-    object's window, ``tolerance`` the inlier distance in metres."""
+    object's window, ``near_building`` those and their 8 neighbours, ``tolerance`` the
+    inlier distance in metres."""
     r, c = np.nonzero(inside)
     points = np.column_stack([c * gsd, -r * gsd, dsm[r, c]]).astype(np.float64)
     points -= points.mean(axis=0)  # near a local origin: heights of tens of metres
@@ -279,7 +282,6 @@ def object_faces(
     on = point_plane_distances(planes, points).reshape(len(points), -1) < tolerance
     first = np.where(on.any(axis=1), on.argmax(axis=1), -1)
     step_to_building = _step_to_building(dsm, building)
-    near_building = ndimage.binary_dilation(building, np.ones((3, 3), bool))
     eight = np.ones((3, 3), bool)
     for p, plane in enumerate(planes):
         cells = np.zeros(inside.shape, bool)
