@@ -19,7 +19,9 @@ A roof's face can also join a crown instead: the shaded, steep faces of a mansar
 beside a tree read as tree, and the class CRF joins them to the crown, one object whose
 planes explain too little of it. :func:`roof_faces_beside_buildings` takes such faces
 out of the objects: a plane's cells that are dense, share an edge with the building
-class, and continue its heights across that edge.
+class, and continue its heights across that edge. On the fusion runs of ``small`` seeds
+0-2 and 6-10 it took 5 parts, each at least 0.99 on a true roof, and no crown; the
+heights carried on along 0.63-1.0 of the faces' edges, 0-0.23 of the other parts'.
 
 On the fusion runs of ``small`` seeds 0-2 and 6-14 (12 cities, 471 tree objects of
 20 m² or more that are crowns) the planes explain at most 0.63 of a crown's cells.
