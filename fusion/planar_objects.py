@@ -240,8 +240,10 @@ def roof_faces_beside_buildings(
     tall_tree = tall_trees(classes, dsm, ndsm)
     building = classes == BUILDING
     found = 0
+    eight = np.ones((3, 3), bool)
+    near_new = None  # after the first pass: the last pass's faces and their neighbours
     for _round in range(PASSES):
-        near_building = ndimage.binary_dilation(building, np.ones((3, 3), bool))
+        near_building = ndimage.binary_dilation(building, eight)
         labels, _ = ndimage.label(tall_tree & ~faces)
         new = np.zeros(classes.shape, bool)
         for k, window in enumerate(ndimage.find_objects(labels), 1):
@@ -249,14 +251,19 @@ def roof_faces_beside_buildings(
             inside = labels[window] == k
             if inside.sum() < FACE_MIN_M2 / gsd**2 or not (inside & near_building[window]).any():
                 continue
+            # an object no new face touches has the cells and building neighbours it
+            # had in the pass before, where it gave none: the same draws give none again
+            if near_new is not None and not (inside & near_new[window]).any():
+                continue
             part = object_faces(inside, dsm[window], building[window], near_building[window],
                                 gsd, tolerance, seed)  # fmt: skip
             new[window] |= part
-            found += int(ndimage.label(part, np.ones((3, 3), bool))[1])
+            found += int(ndimage.label(part, eight)[1])
         if not new.any():
             break
         faces |= new
         building |= new
+        near_new = ndimage.binary_dilation(new, eight)
     return faces, found
 
 
