@@ -40,6 +40,7 @@ from .geometry_cues import geometric_cues
 from .grid_rasters import GridRasters
 from .ground import LARGEST_WINDOW_M
 from .options import FusionOptions
+from .planar_objects import COUNTS as PLANAR_COUNTS
 from .scene_fusion import (
     FusedSurface,
     ObservationCache,
@@ -62,9 +63,8 @@ log = logging.getLogger(__name__)
 
 AUTO_BLOCK_CELLS = 4096  # a grid of at most this many cells a side is fused at once
 PRODUCTS = ("ortho", "dsm", "dtm", "ndsm", "class_prob", "classes", "count")
-SUMMED = ("tiles", "observations", "filled_cells",
-          "rejected_isolated_spikes", "planar_objects_made_building",
-          "roof_faces_made_building", "crown_cells_raised", "crown_sightings_raised")  # fmt: skip
+SUMMED = ("tiles", "observations", "filled_cells", "rejected_isolated_spikes",
+          *PLANAR_COUNTS, "crown_cells_raised", "crown_sightings_raised")  # fmt: skip
 
 
 @dataclass(frozen=True)

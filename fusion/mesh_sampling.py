@@ -27,6 +27,7 @@ from workbench.records import StageTimer
 from .ground import dtm_from_dsm
 from .interpolate import fill_small_holes, small_holes
 from .options import FusionOptions
+from .planar_objects import COUNTS as PLANAR_COUNTS
 from .planar_objects import planar_roofs_classed_tree
 from .raster_forest import classify_rasters, synthetic_raster_forest
 from .scene_fusion import FILLED, HOLE_CELLS, FusionResult, check_memory
@@ -284,7 +285,7 @@ def fuse_mesh(path, opts: FusionOptions | None = None, *, crs: str | None = None
     with timer.stage("classes"):
         prob = classify_rasters(synthetic_raster_forest(), dsm, dtm, ortho, grid.gsd)
     class_map = None
-    planar = {"planar_objects_made_building": 0, "roof_faces_made_building": 0}
+    planar = dict.fromkeys(PLANAR_COUNTS, 0)
     if opts.planar_objects:
         with timer.stage("planar_objects"):
             class_map, prob, planar = planar_roofs_classed_tree(

@@ -55,6 +55,7 @@ MAX_FACES = 12  # planes sought per object: a crown's come first, a face's after
 FACE_DENSITY = MIN_EXPLAINED  # share of a face's cells on its plane (a crown's: speckles)
 FACE_EDGE_M = 4.0  # the edge a face shares with the building class
 FACE_CONTINUES = 0.5  # share of that edge where the heights carry on across it
+COUNTS = ("planar_objects_made_building", "roof_faces_made_building")  # in fusion.json
 
 
 def dsm_noise(dsm: np.ndarray, classes: np.ndarray, gsd: float) -> float:
@@ -356,7 +357,7 @@ def planar_roofs_classed_tree(
     classes, class_prob
         New arrays (see :func:`relabel_planar_objects`).
     counts : dict
-        ``planar_objects_made_building`` and ``roof_faces_made_building``.
+        How many of each were made building, by the names in :data:`COUNTS`.
     """
     # the noise is measured on the ground, which neither step relabels
     tolerance = inlier_tolerance(dsm, classes, gsd)
@@ -365,8 +366,7 @@ def planar_roofs_classed_tree(
     faces, found = roof_faces_beside_buildings(with_roofs, dsm, ndsm, gsd, seed, tolerance)
     # one relabelling of both: each copies the probabilities (100 MB on the 1 km² city)
     classes, class_prob = relabel_planar_objects(classes, class_prob, roof | faces)
-    counts = {"planar_objects_made_building": objects, "roof_faces_made_building": found}
-    return classes, class_prob, counts
+    return classes, class_prob, dict(zip(COUNTS, (objects, found), strict=True))
 
 
 def relabel_planar_objects(

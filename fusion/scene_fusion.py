@@ -84,6 +84,7 @@ from .observations import (
     window_pixels,
 )
 from .options import FusionOptions
+from .planar_objects import COUNTS as PLANAR_COUNTS
 from .planar_objects import planar_roofs_classed_tree
 from .raster_forest import classify_rasters, synthetic_raster_forest
 from .sigma_points import MEAN_ELEVATION, N_FEATURES, feature_cues, sigma_points
@@ -906,7 +907,7 @@ def _finish(
             f"; class.tif: a contrast-sensitive Potts model (omega {opts.class_crf:g}) on "
             "the ortho's colour and the DSM"
         )
-    planar = {"planar_objects_made_building": 0, "roof_faces_made_building": 0}
+    planar = dict.fromkeys(PLANAR_COUNTS, 0)
     if opts.planar_objects:
         with timer.stage("planar_objects"):
             classes, class_prob, planar = planar_roofs_classed_tree(
