@@ -55,6 +55,7 @@ from .scene_fusion import (
     fused_products,
     run_figures,
     scratch_folder,
+    training_strokes,
     view_forest,
     view_workers,
 )
@@ -237,7 +238,9 @@ def fuse_in_blocks(scene: Scene, opts: FusionOptions, engine: Engine | None, wri
             forest, class_source = view_forest(scene, ctx, opts, engine)
         with timer.stage("classification"):
             n_px = classify_views(ViewsInBlocks(caches, probs), ctx, forest, engine)
+        strokes = training_strokes(scene) if forest is not None and opts.flat_colours else None
         record = {"pixels_classified": n_px, **{k: 0 for k in SUMMED}}
+        colours_fitted = 0
         for b in progress(blocks, "blocks"):
             (r, c) = b.inner
             log.info("block %d of %d: rows %d-%d, columns %d-%d", b.index + 1, len(blocks),
@@ -247,12 +250,17 @@ def fuse_in_blocks(scene: Scene, opts: FusionOptions, engine: Engine | None, wri
                 log.info("block %d finished before, kept", b.index + 1)
             else:
                 products, figures = _block_products(b, heights, files, shared_views, forest,
-                                                    class_source, mode, opts, timer)  # fmt: skip
+                                                    strokes, class_source, mode, opts,
+                                                    timer)  # fmt: skip
                 store.save("blocks", str(b.index), (products, figures))
             write(b, products)
             for k in SUMMED:
                 record[k] += figures[k]
+            colours_fitted += figures["flat_colours"]["used"]
             record["class_source"] = figures["class_source"]
+    # each block fits ground's and grass's colours to its own window, margin included
+    record["flat_colours"] = {"used": colours_fitted > 0, "blocks_fitted": colours_fitted,
+                              "blocks": len(blocks)}  # fmt: skip
     grid_cells = grid.width * grid.height
     blocks_figures = {
         "count": len(blocks),
@@ -267,14 +275,16 @@ def fuse_in_blocks(scene: Scene, opts: FusionOptions, engine: Engine | None, wri
     return grid, record, forest
 
 
-def _block_products(b: Block, heights, files: GridFiles, shared_views, forest, class_source,
-                    mode: str, opts: FusionOptions, timer: StageTimer) -> tuple:  # fmt: skip
+def _block_products(b: Block, heights, files: GridFiles, shared_views, forest, strokes,
+                    class_source, mode: str, opts: FusionOptions,
+                    timer: StageTimer) -> tuple:  # fmt: skip
     """Step 3 on block ``b``: its products inside it, and their figures."""
     sub, cache, h = heights(b)
     dsm, dtm, dtm_full, spikes, holes = (files.read(name, b.outer) for name in SURFACE)
     h.count[spikes] = 0  # as the first step's ground filter left it
     s = FusedSurface(cache.grid, cache, h, dsm, dtm, dtm_full, spikes, holes, None)
-    result = fused_products(s, shared_views, forest, class_source, mode, opts, sub, timer)
+    result = fused_products(s, shared_views, forest, strokes, class_source, mode, opts, sub,
+                            timer)  # fmt: skip
     del s, h
     inside = b.inside
     products = {

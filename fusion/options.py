@@ -66,6 +66,12 @@ class FusionOptions:
         "heights the views see in each cell, beside colour and elevation (off: the "
         "paper's features)",
     )  # fmt: skip
+    flat_colours: bool = option(
+        True, "views with training strokes: weigh each cell's ground and grass "
+        "probabilities by its ortho colour's likelihood under colour models of the ortho "
+        "under the ground and the grass strokes (off: the forest's patches alone, the "
+        "paper's)",
+    )  # fmt: skip
     class_crf: float = option(
         8.0, "views: weight omega of the contrast-sensitive Potts model that makes "
         "class.tif's classes stop at the ortho's colour edges and the DSM's height jumps (0: "

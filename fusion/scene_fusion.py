@@ -71,6 +71,7 @@ from .classifier import (
 )
 from .crowns import BENEATH_TOP_M, CROWN_QUANTILE, crown_sightings, crown_tops
 from .dsm_depth import DsmSurface
+from .flat_colours import weigh_by_stroke_colours
 from .geometry_cues import cue_columns, geometric_cues
 from .grid_rasters import GridRasters
 from .ground import dtm_from_dsm
@@ -363,7 +364,9 @@ def fuse_views(
             forest, class_source = view_forest(scene, s.context, opts, engine)
         with timer.stage("classification"):
             n_px = classify_views(s.cache, s.context, forest, engine)
-        result = fused_products(s, shared_views, forest, class_source, mode, opts, engine, timer)
+        strokes = training_strokes(scene) if forest is not None and opts.flat_colours else None
+        result = fused_products(s, shared_views, forest, strokes, class_source, mode, opts,
+                                engine, timer)  # fmt: skip
         result.record["pixels_classified"] = n_px
     result.record = run_figures(mode, views, skipped, engine, timer, result.record, forest)
     return result
@@ -443,19 +446,21 @@ def fused_surface(views, shared_views, grid: Grid, mode: str, given, opts: Fusio
     return FusedSurface(grid, cache, h, dsm, dtm, dtm_full, spikes, holes, ctx)
 
 
-def fused_products(s: FusedSurface, shared_views, forest, class_source, mode: str,
+def fused_products(s: FusedSurface, shared_views, forest, strokes, class_source, mode: str,
                    opts: FusionOptions, engine: Engine,
                    timer: StageTimer) -> FusionResult:  # fmt: skip
     """Pass 3 of the fusion on ``s.grid``, the views classified (:func:`classify_views`)
-    by ``forest`` (or None): the colour pass, the classes and the crowns' corrections.
+    by ``forest`` (or None), ground and grass weighed by the colours of the ortho under
+    the training ``strokes`` (:func:`training_strokes`, or None): the colour pass, the
+    classes and the crowns' corrections.
     The result's record holds the figures of these products; the caller adds the run's."""
     with timer.stage("colour_and_class"):
         c = colours_and_classes(s.cache, shared_views, forest is not None, s.dsm, s.heights,
                                 mode, opts, engine)  # fmt: skip
     h = s.heights
-    dsm, ndsm, class_prob, classes, ortho, count16, crowns, planar, class_source = _finish(
-        c, h, s.dsm, s.dtm, s.spikes, s.holes, forest, class_source, s.grid, mode, opts, timer,
-        engine,
+    dsm, ndsm, class_prob, classes, ortho, count16, crowns, planar, flat, class_source = (
+        _finish(c, h, s.dsm, s.dtm, s.spikes, s.holes, forest, strokes, class_source, s.grid,
+                mode, opts, timer, engine)
     )  # fmt: skip
     record = {
         "tiles": len(s.cache.tiles),
@@ -464,6 +469,7 @@ def fused_products(s: FusedSurface, shared_views, forest, class_source, mode: st
         "filled_cells": int(s.holes.sum()),
         "rejected_isolated_spikes": int(s.spikes.sum()),
         **planar,
+        "flat_colours": flat,
         "crown_cells_raised": int(crowns.sum()),
         "crown_sightings_raised": int(np.isfinite(c.crown_z).sum()),
     }
@@ -746,6 +752,15 @@ def view_forest(scene: Scene, ctx: ViewContext | None, opts: FusionOptions, engi
     )
 
 
+def training_strokes(scene: Scene) -> tuple | None:
+    """The scene's training labels ((H, W) uint8 codes 1-4, 0 none) and their grid, or
+    None without them."""
+    if scene.training_labels is None:
+        return None
+    data, label_grid, _ = read_raster(scene.training_labels, field="training_labels")
+    return data[0], label_grid
+
+
 def classify_views(cache: ObservationCache, ctx: ViewContext | None, forest,
                    engine: Engine) -> int:  # fmt: skip
     """Each view's class probabilities per pixel (uint8, 0-255), kept beside the cache
@@ -886,6 +901,7 @@ def _finish(
     spikes,
     holes,
     forest,
+    strokes,
     class_source,
     grid: Grid,
     mode: str,
@@ -897,8 +913,8 @@ def _finish(
     classed tree made building, the crowns' corrections of the DSM (none of them in the
     paper), the small holes of the ortho filled, the count flagged."""
     with timer.stage("finish"):
-        dsm, ndsm, class_prob, ortho, class_source = _class_confidences(
-            c, h, dsm, dtm, holes, forest, class_source, grid, opts
+        dsm, ndsm, class_prob, ortho, flat, class_source = _class_confidences(
+            c, h, dsm, dtm, holes, forest, strokes, class_source, grid, opts
         )
     with timer.stage("class_crf"):
         classes = contrast_class_crf(class_prob, ortho, dsm, opts.class_crf, engine=engine)
@@ -927,13 +943,15 @@ def _finish(
             ndsm = (dsm - dtm).astype(np.float32)
         count16 = np.minimum(h.count, np.iinfo(np.int16).max).astype(np.int16)
         count16[holes] = FILLED
-    return dsm, ndsm, class_prob, classes, ortho, count16, crowns, planar, class_source
+    return dsm, ndsm, class_prob, classes, ortho, count16, crowns, planar, flat, class_source
 
 
-def _class_confidences(c: FusedColours, h: FusedHeights, dsm, dtm, holes, forest,
+def _class_confidences(c: FusedColours, h: FusedHeights, dsm, dtm, holes, forest, strokes,
                        class_source, grid: Grid, opts: FusionOptions):  # fmt: skip
-    """The accumulated class confidences normalised, with the elevation prior and the
-    raster forest; the DSM with the crowns' sightings; the ortho's small holes filled."""
+    """The accumulated class confidences normalised, with the elevation prior, ground
+    and grass weighed by their colours (:mod:`fusion.flat_colours`) and the raster
+    forest; the DSM with the crowns' sightings; the ortho's small holes filled; the
+    colour models' record."""
     seen = h.count > 0
     class_prob = c.prob_sum  # normalised in place: the sums are not needed after
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -949,9 +967,15 @@ def _class_confidences(c: FusedColours, h: FusedHeights, dsm, dtm, holes, forest
             f"and grass above {opts.label_split + 2:g} m"
         )
     ortho = fill_small_holes(c.ortho, seen, holes, HOLE_CELLS)
+    flat = {"used": False, "reason": "--no-flat-colours, or no training strokes"}
+    if strokes is not None:
+        flat = weigh_by_stroke_colours(class_prob, ortho, sample_to_grid(*strokes, grid),
+                                       opts.seed)  # fmt: skip
+        if flat["used"]:
+            class_source += "; ground and grass weighed by each cell's colour (flat_colours)"
     class_prob, class_source = _raster_forest(class_prob, class_source, forest, dsm, dtm, ortho,
                                               grid, opts)  # fmt: skip
-    return dsm, ndsm, class_prob, ortho, class_source
+    return dsm, ndsm, class_prob, ortho, flat, class_source
 
 
 def _raster_forest(class_prob, class_source, forest, dsm, dtm, ortho, grid: Grid, opts):

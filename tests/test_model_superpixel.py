@@ -44,15 +44,17 @@ def test_models_match_the_truth_from_fused_rasters(modelled):
 
 
 def test_table1_rows_are_scored_off_the_strokes(modelled):
-    """Table 1 of the super-pixel paper from fused rasters (measured: pixel 0.950, super-
-    pixel 0.965, CRF 0.959; the scored cells exclude the training strokes; binary
-    building accuracy 0.996)."""
+    """Table 1 of the super-pixel paper from fused rasters (measured: pixel 0.989, super-
+    pixel 0.992, CRF 0.993; the scored cells exclude the training strokes; binary
+    building accuracy 0.996). Before the fusion weighed ground and grass by each cell's
+    colour, the pixels' 11 x 11 patches blurred the classes, and the super-pixels gained
+    1.5 points over them (0.950, 0.965, 0.959)."""
     assert modelled[2]["parameters"]["height_weight"] == 10.0  # colour and height
     table = modelled[2]["classification_table"]
-    assert table["superpixel"]["overall_accuracy"] > table["pixel"]["overall_accuracy"] + 0.01
-    assert table["crf"]["overall_accuracy"] > table["pixel"]["overall_accuracy"]
+    assert table["superpixel"]["overall_accuracy"] > table["pixel"]["overall_accuracy"] + 0.002
+    assert table["crf"]["overall_accuracy"] > table["pixel"]["overall_accuracy"] + 0.002
     c = modelled[3]["classification"]
-    assert c["excluded_cells"] > 0 and c["overall_accuracy"] > 0.95
+    assert c["excluded_cells"] > 0 and c["overall_accuracy"] > 0.99
     assert c["building_accuracy"] > 0.99
 
 
