@@ -33,7 +33,7 @@ from scipy.sparse import csgraph
 from modeling.superpixel.aggregation import superpixel_graph
 from modeling.superpixel.class_crf import OMEGA_CANDIDATES, refine_classes
 from workbench import metrics
-from workbench.fusion_run import read_fusion_run
+from workbench.fusion_run import class_map, read_fusion_run
 from workbench.raster import class_codes, read_raster
 from workbench.truth import training_cells, truth_rasters
 
@@ -116,8 +116,9 @@ def crf_ceiling(run_dir: Path, scene: Path) -> dict:
     labels = read_raster(run_dir / "superpixels.tif")[0][0].astype(np.int64)
     labels -= labels.min()
     graph = superpixel_graph(
-        labels, np.moveaxis(rasters["ortho"], 0, -1), prob, rasters["dsm"][0].astype(np.float64)
-    )
+        labels, np.moveaxis(rasters["ortho"], 0, -1), prob, rasters["dsm"][0].astype(np.float64),
+        classes=class_map(record["inputs"]["fusion"], grid),
+    )  # fmt: skip
     truth = truth_rasters(scene, grid)["class"]
     strokes = training_cells(scene, grid)  # not scored, as in the run's own Table 1
     no_data = ~(np.nan_to_num(prob).sum(axis=0) > 0)

@@ -45,7 +45,7 @@ def test_models_match_the_truth_from_fused_rasters(modelled):
 
 def test_table1_rows_are_scored_off_the_strokes(modelled):
     """Table 1 of the super-pixel paper from fused rasters (measured: pixel 0.989, super-
-    pixel 0.992, CRF 0.993; the scored cells exclude the training strokes; binary
+    pixel 0.993, CRF 0.993; the scored cells exclude the training strokes; binary
     building accuracy 0.996). Before the fusion weighed ground and grass by each cell's
     colour, the pixels' 11 x 11 patches blurred the classes, and the super-pixels gained
     1.5 points over them (0.950, 0.965, 0.959)."""

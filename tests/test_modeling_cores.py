@@ -19,7 +19,7 @@ from modeling.shared.roof_mesh import (
     vertex_matched,
 )
 from modeling.shared.roof_types import roof_type
-from modeling.superpixel.aggregation import plane_residuals, superpixel_graph
+from modeling.superpixel.aggregation import LABEL_SHARE, plane_residuals, superpixel_graph
 from modeling.superpixel.building_tasks import adjacency_lists, building_shares, points_of
 from modeling.superpixel.buildings import split_buildings
 from modeling.superpixel.class_crf import geometry_factor
@@ -147,6 +147,21 @@ def test_superpixel_graph_boundaries_and_aggregates():
     assert g.height_median.tolist() == [2.0, 3.5, 7.0]
     assert g.colour_distance[0] > 50  # black against white in Lab
     assert np.isnan(g.plane_residual).all()  # under 6 cells each: no plane to fit
+
+
+def test_the_fusions_class_map_takes_half_of_each_seen_cells_likelihood():
+    """A roof's shaded hip: the forest says tree at 0.7, the fusion's map building."""
+    labels = np.array([[0, 0, 1]])
+    prob = np.zeros((4, 1, 3), np.float32)
+    prob[2], prob[3] = 0.7, 0.3
+    prob[:, 0, 2] = np.nan  # unseen: uniform, whatever the map says
+    classes = np.array([[4, 3, 0]], np.uint8)
+    g = superpixel_graph(labels, np.zeros((1, 3, 3), np.uint8), prob, np.zeros((1, 3)),
+                         residuals=False, classes=classes)  # fmt: skip
+    assert LABEL_SHARE == 0.5
+    # cell 0: tree 0.35, building 0.15 + 0.5; cell 1: tree 0.35 + 0.5, building 0.15
+    np.testing.assert_allclose(g.class_sum[0], [0, 0, 1.2, 0.8], atol=1e-6)
+    np.testing.assert_allclose(g.class_sum[1], [0.25] * 4)
 
 
 def test_plane_residuals_of_a_roof_face_and_a_crown():

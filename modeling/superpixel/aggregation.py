@@ -9,6 +9,11 @@ import numpy as np
 
 from workbench.robust import group_median, plane_residual_from_moments
 
+# the fusion's class map's share of a cell's likelihoods: on seeds 0-2 and 6-10 the class
+# CRF's accuracy, footprint quality and height RMSE were flat from 0.25 to 1, and far
+# from 0 (the probabilities alone); an even mixture of the two experts
+LABEL_SHARE = 0.5
+
 
 @dataclass
 class SuperpixelGraph:
@@ -64,6 +69,7 @@ def superpixel_graph(
     class_prob: np.ndarray,
     dsm: np.ndarray,
     residuals: bool = True,
+    classes: np.ndarray | None = None,
 ) -> SuperpixelGraph:
     """Aggregate the fused rasters over super-pixels and build their adjacency graph.
 
@@ -79,6 +85,12 @@ def superpixel_graph(
     residuals : bool
         Fit each super-pixel's plane (``plane_residual``): on a city, its moments are
         the largest arrays of the aggregation.
+    classes : (H, W) uint8, optional
+        The fusion's class map (codes 1..C, 0 unseen). Each seen cell's likelihoods are
+        then ``LABEL_SHARE`` of its class as a certainty and the rest its probabilities
+        (ours, not the paper's): the map holds what the probabilities do not, the
+        fusion's CRF across cells and its planar objects, a roof's shaded hip that the
+        forest gave to tree at 0.6-0.74 and the map to building.
     """
     n = int(labels.max()) + 1
     flat = labels.ravel()
@@ -91,6 +103,9 @@ def superpixel_graph(
     for c in range(C):
         p = np.nan_to_num(class_prob[c].ravel().astype(np.float64), nan=0.0, copy=False)
         p[empty] = 1.0 / C
+        if classes is not None:
+            seen = classes.ravel() > 0
+            p[seen] = (1.0 - LABEL_SHARE) * p[seen] + LABEL_SHARE * (classes.ravel()[seen] == c + 1)
         class_sum[:, c] = np.bincount(flat, weights=p, minlength=n)
     scaled = rgb.astype(np.float32)
     scaled /= 255.0

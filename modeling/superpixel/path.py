@@ -18,7 +18,7 @@ from modeling.shared.raster_ground import ground_surface, vertex_colours
 from workbench import metrics
 from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
 from workbench.errors import InputError
-from workbench.fusion_run import FusionRun, read_fusion_run
+from workbench.fusion_run import FusionRun, class_map, read_fusion_run
 from workbench.model_run import Building, ModelRun
 from workbench.parallel import default_workers
 from workbench.raster import BUILDING, Grid, class_codes, read_raster
@@ -72,7 +72,8 @@ def run_superpixel(
         )  # fmt: skip
     with timer.stage("aggregation"):
         graph = superpixel_graph(labels, fusion.rgb, fusion.rasters["class_prob"], dsm,
-                                 residuals=options.geometry_unary)  # fmt: skip
+                                 residuals=options.geometry_unary,
+                                 classes=class_map(fusion_dir, grid))  # fmt: skip
     with timer.stage("class_crf"):
         sp_class, crf_choices = class_crf(graph, labels, fusion, options)
         unseen = ~(np.nan_to_num(fusion.rasters["class_prob"]).sum(axis=0) > 0)
