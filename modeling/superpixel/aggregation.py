@@ -100,12 +100,14 @@ def superpixel_graph(
     # are not negative, so a cell whose sum is 0 is one with none above 0
     empty = ~(class_prob.reshape(C, -1) > 0).any(axis=0)
     class_sum = np.zeros((n, C))
+    if classes is not None:
+        seen = classes.ravel() > 0
+        seen_class = classes.ravel()[seen]
     for c in range(C):
         p = np.nan_to_num(class_prob[c].ravel().astype(np.float64), nan=0.0, copy=False)
         p[empty] = 1.0 / C
         if classes is not None:
-            seen = classes.ravel() > 0
-            p[seen] = (1.0 - LABEL_SHARE) * p[seen] + LABEL_SHARE * (classes.ravel()[seen] == c + 1)
+            p[seen] = (1.0 - LABEL_SHARE) * p[seen] + LABEL_SHARE * (seen_class == c + 1)
         class_sum[:, c] = np.bincount(flat, weights=p, minlength=n)
     scaled = rgb.astype(np.float32)
     scaled /= 255.0
