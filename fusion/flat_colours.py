@@ -31,8 +31,8 @@ from .classifier import CLASSES
 
 GROUND, GRASS = 1, 2
 COMPONENTS = 5  # GrabCut's: paving, asphalt and soil; lawns in sun and in shade
-MIN_PIXELS = 50  # cells per class, to fit a mixture of COMPONENTS full covariances to
-MAX_PIXELS = 5000  # cells per class, drawn at random: 100 a parameter; the fit's time follows it
+MIN_CELLS = 50  # per class, to fit a mixture of COMPONENTS full covariances to
+MAX_CELLS = 5000  # per class, drawn at random: 100 a parameter; the fit's time follows it
 REG_COVAR = 1.0  # Lab units squared: a colour's spread is never below a unit
 OUTLIER_SHARE = 0.05  # of each class's colours drawn from no mixture component
 LAB_VOLUME = 100.0 * 256.0 * 256.0  # L 0-100, a and b -128-127
@@ -45,10 +45,10 @@ class FlatColours:
 
     ground: GaussianMixture
     grass: GaussianMixture
-    pixels: dict
+    cells: dict
 
     def record(self) -> dict:
-        return {"used": True, "components": COMPONENTS, "training_cells": self.pixels}
+        return {"used": True, "components": COMPONENTS, "training_cells": self.cells}
 
 
 def fit_flat_colours(rgb: np.ndarray, labels: np.ndarray, seed: int) -> tuple:
@@ -61,29 +61,29 @@ def fit_flat_colours(rgb: np.ndarray, labels: np.ndarray, seed: int) -> tuple:
     labels : (N,) int
         Their class codes 1-4.
     seed : int
-        The draw of at most ``MAX_PIXELS`` pixels per class and the mixtures'
+        The draw of at most ``MAX_CELLS`` cells per class and the mixtures'
         initialisation.
 
     Returns
     -------
-    :class:`FlatColours`, or None and why (fewer than ``MIN_PIXELS`` of either class),
+    :class:`FlatColours`, or None and why (fewer than ``MIN_CELLS`` of either class),
     and a record for ``fusion.json``.
     """
-    models, pixels = {}, {}
+    models, cells = {}, {}
     rng = np.random.default_rng(seed)
     for code, name in ((GROUND, "ground"), (GRASS, "grass")):
         idx = np.flatnonzero(labels == code)
-        pixels[name] = len(idx)
-        if len(idx) > MAX_PIXELS:
-            idx = np.sort(rng.choice(idx, MAX_PIXELS, replace=False))
+        cells[name] = len(idx)
+        if len(idx) > MAX_CELLS:
+            idx = np.sort(rng.choice(idx, MAX_CELLS, replace=False))
         x = rgb_to_lab(rgb[idx]).astype(np.float64)
-        if len(x) < MIN_PIXELS:
-            return None, {"used": False, "reason": f"fewer than {MIN_PIXELS} {name} "
+        if len(x) < MIN_CELLS:
+            return None, {"used": False, "reason": f"fewer than {MIN_CELLS} {name} "
                           "cells under the training strokes"}  # fmt: skip
         models[name] = GaussianMixture(
             COMPONENTS, covariance_type="full", reg_covar=REG_COVAR, random_state=seed
         ).fit(x)
-    model = FlatColours(models["ground"], models["grass"], pixels)
+    model = FlatColours(models["ground"], models["grass"], cells)
     return model, model.record()
 
 

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from fusion.flat_colours import MIN_PIXELS, fit_flat_colours, ground_factor, weigh_flat_classes
+from fusion.flat_colours import MIN_CELLS, fit_flat_colours, ground_factor, weigh_flat_classes
 
 PAVING, LAWN = (150, 150, 145), (70, 120, 50)
 
@@ -42,6 +42,6 @@ def test_unseen_cells_stay_unknown_and_too_few_pixels_fit_nothing():
     prob = np.full((4, 1, 1), np.nan, np.float32)
     weigh_flat_classes(prob, np.zeros((1, 1, 3), np.uint8), model)
     assert np.isnan(prob).all()
-    rgb, labels = _training(n=MIN_PIXELS - 1)
+    rgb, labels = _training(n=MIN_CELLS - 1)
     model, record = fit_flat_colours(rgb, labels, seed=0)
     assert model is None and not record["used"] and "ground" in record["reason"]
