@@ -65,7 +65,8 @@ log = logging.getLogger(__name__)
 AUTO_BLOCK_CELLS = 4096  # a grid of at most this many cells a side is fused at once
 PRODUCTS = ("ortho", "dsm", "dtm", "ndsm", "class_prob", "classes", "count")
 SUMMED = ("tiles", "observations", "filled_cells", "rejected_isolated_spikes",
-          *PLANAR_COUNTS, "crown_cells_raised", "crown_sightings_raised")  # fmt: skip
+          *PLANAR_COUNTS, "crown_cells_raised", "crown_sightings_raised",
+          "crown_sightings_cleared_beside_buildings")  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,10 @@ weighted median reads the ground. Two corrections, not in the paper:
   observations, their height is the crown's (needs only the per-view classes);
 - :func:`crown_tops`: in and beside the fused tree cells, an upper quantile of the
   trusted heights instead of their median (needs the fused classes).
+
+Beside a building neither holds: the higher observations there are the wall's and the
+roof edge's, so once the classes are known, the cells beside a building keep their median
+(:func:`sightings_clear_of_buildings`, and :func:`crown_tops` itself).
 """
 
 from __future__ import annotations
@@ -70,6 +74,54 @@ def crown_sightings(
     return np.where(enough & beneath, height, np.nan).astype(np.float32)
 
 
+def near_class(classes: np.ndarray, code: int, metres: float, gsd: float) -> np.ndarray:
+    """(H, W) bool: cells within ``metres`` (a square of whole cells, at least one) of a
+    cell of class ``code``."""
+    r = max(1, int(round(metres / gsd)))
+    mask = (classes == code).astype(np.uint8)
+    return cv2.dilate(mask, np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0
+
+
+def sightings_clear_of_buildings(
+    dsm: np.ndarray,
+    median: np.ndarray,
+    sighted: np.ndarray,
+    classes: np.ndarray,
+    gsd: float,
+    clear_m: float = CROWN_CLEAR_M,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The DSM with the crown sightings (:func:`crown_sightings`) undone beside buildings.
+
+    The views' forest calls tree some of the points on a wall and on the ramps that dense
+    matching draws from a roof's edge down to the ground, and in the ground cells at the
+    wall's foot those sightings, metres above the ground, raised the cell to a height
+    between the ground and the eaves. Known only once the classes are, the cells within
+    ``clear_m`` of a building cell take back their median, as :func:`crown_tops` leaves
+    them. On ``small`` seeds 0, 1 and 2 it took the DSM RMSE off the height jumps from
+    0.481, 0.432 and 0.451 m to 0.460, 0.436 and 0.430 m, the classes unchanged.
+
+    Parameters
+    ----------
+    dsm : (H, W) float
+        Heights with the sightings' heights, metres (NaN unknown).
+    median : (H, W) float
+        The same cells' weighted medians, before the sightings, metres.
+    sighted : (H, W) bool
+        Cells whose height the sightings gave.
+    classes : (H, W) int
+        Class codes (4 building).
+    gsd : float
+        Cell size, metres.
+
+    Returns
+    -------
+    dsm : (H, W) float32
+    cleared : (H, W) bool, the sighted cells given back their median
+    """
+    cleared = sighted & near_class(classes, 4, clear_m, gsd)
+    return np.where(cleared, median, dsm).astype(np.float32), cleared
+
+
 def crown_tops(
     dsm: np.ndarray,
     upper: np.ndarray,
@@ -106,11 +158,6 @@ def crown_tops(
     dsm : (H, W) float32
     raised : (H, W) bool, the cells that took the upper quantile
     """
-
-    def near(mask: np.ndarray, metres: float) -> np.ndarray:
-        r = max(1, int(round(metres / gsd)))
-        return cv2.dilate(mask.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0
-
-    raised = near(classes == 3, reach_m) & ~near(classes == 4, clear_m)
+    raised = near_class(classes, 3, reach_m, gsd) & ~near_class(classes, 4, clear_m, gsd)
     raised &= np.isfinite(upper) & np.isfinite(dsm) & (upper > dsm)
     return np.where(raised, upper, dsm).astype(np.float32), raised

@@ -69,7 +69,13 @@ from .classifier import (
     predict_proba,
     train_forest,
 )
-from .crowns import BENEATH_TOP_M, CROWN_QUANTILE, crown_sightings, crown_tops
+from .crowns import (
+    BENEATH_TOP_M,
+    CROWN_QUANTILE,
+    crown_sightings,
+    crown_tops,
+    sightings_clear_of_buildings,
+)
 from .dsm_depth import DsmSurface
 from .flat_colours import weigh_by_stroke_colours
 from .geometry_cues import cue_columns, geometric_cues
@@ -458,7 +464,7 @@ def fused_products(s: FusedSurface, shared_views, forest, strokes, class_source,
         c = colours_and_classes(s.cache, shared_views, forest is not None, s.dsm, s.heights,
                                 mode, opts, engine)  # fmt: skip
     h = s.heights
-    dsm, ndsm, class_prob, classes, ortho, count16, crowns, planar, flat, class_source = (
+    dsm, ndsm, class_prob, classes, ortho, count16, crowns, cleared, planar, flat, class_source = (
         _finish(c, h, s.dsm, s.dtm, s.spikes, s.holes, forest, strokes, class_source, s.grid,
                 mode, opts, timer, engine)
     )  # fmt: skip
@@ -471,7 +477,8 @@ def fused_products(s: FusedSurface, shared_views, forest, strokes, class_source,
         **planar,
         "flat_colours": flat,
         "crown_cells_raised": int(crowns.sum()),
-        "crown_sightings_raised": int(np.isfinite(c.crown_z).sum()),
+        "crown_sightings_raised": int((np.isfinite(c.crown_z) & ~cleared).sum()),
+        "crown_sightings_cleared_beside_buildings": int(cleared.sum()),
     }
     ablation = {"dsm_mean": h.dsm_mean, "ortho_mean": c.ortho_mean}
     return FusionResult(s.grid, ortho, dsm, s.dtm, ndsm, class_prob, count16, ablation, record,
@@ -912,6 +919,7 @@ def _finish(
     """Normalised classes with the elevation prior, the class CRF's labels, planar objects
     classed tree made building, the crowns' corrections of the DSM (none of them in the
     paper), the small holes of the ortho filled, the count flagged."""
+    median = dsm
     with timer.stage("finish"):
         dsm, ndsm, class_prob, ortho, flat, class_source = _class_confidences(
             c, h, dsm, dtm, holes, forest, strokes, class_source, grid, opts
@@ -936,14 +944,17 @@ def _finish(
             "roof_faces_made_building)"
         )
     with timer.stage("crowns"):
-        crowns = np.zeros(grid.shape, bool)
+        crowns = cleared = np.zeros(grid.shape, bool)
         if mode == "depth maps":
+            dsm, cleared = sightings_clear_of_buildings(dsm, median, np.isfinite(c.crown_z),
+                                                        classes, grid.gsd)  # fmt: skip
             h.dsm_upper[spikes | isolated_spikes(h.dsm_upper, h.count)] = np.nan
             dsm, crowns = crown_tops(dsm, h.dsm_upper, classes, grid.gsd)
             ndsm = (dsm - dtm).astype(np.float32)
         count16 = np.minimum(h.count, np.iinfo(np.int16).max).astype(np.int16)
         count16[holes] = FILLED
-    return dsm, ndsm, class_prob, classes, ortho, count16, crowns, planar, flat, class_source
+    return (dsm, ndsm, class_prob, classes, ortho, count16, crowns, cleared, planar, flat,
+            class_source)  # fmt: skip
 
 
 def _class_confidences(c: FusedColours, h: FusedHeights, dsm, dtm, holes, forest, strokes,

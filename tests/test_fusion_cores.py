@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from fusion.classifier import elevation_consistent, elevation_prior
-from fusion.crowns import crown_sightings, crown_tops
+from fusion.crowns import crown_sightings, crown_tops, sightings_clear_of_buildings
 from fusion.geometry_cues import UNKNOWN, cue_columns, plane_residual, window_cells
 from fusion.ground import dtm_from_dsm
 from fusion.interpolate import fill_small_holes, push_pull_fill, small_holes
@@ -204,6 +204,28 @@ def test_crown_tops_raise_tree_edges_but_not_beside_buildings():
     np.testing.assert_allclose(out[3:8, 3], 8.2, rtol=1e-6)  # inside the crown too (float32)
     assert not raised[:, 8:].any() and not raised[10:].any()  # more than 0.5 m from the tree
     assert raised[3:8, 2:7].all()
+
+
+def test_sightings_beside_a_building_take_back_their_median():
+    """Ground cells at a wall's foot that the sightings raised to heights between the
+    ground and the eaves (wall and ramp points called tree) take back their median, within
+    0.75 m (3 cells of 0.25 m) of the building; a crown's rim keeps its sightings."""
+    classes = np.full((10, 30), 2)
+    classes[2:8, 20:26] = 4  # building, eaves at 9 m
+    classes[2:8, 2:7] = 3  # crown, 8 m
+    median = np.where(classes >= 3, np.where(classes == 4, 9.0, 8.0), 0.0)
+    sighted = np.zeros(classes.shape, bool)
+    sighted[2:8, 7] = True  # the crown's rim, read on the ground beneath it
+    sighted[2:8, 14:20] = True  # west of the wall: 6 cells, 1.5 m to 0.25 m from it
+    dsm = np.where(sighted, 5.0, median)
+    out, cleared = sightings_clear_of_buildings(dsm, median, sighted, classes, gsd=0.25)
+    assert out.dtype == np.float32
+    np.testing.assert_array_equal(cleared[2:8, 17:20], True)  # 0.25 to 0.75 m from the wall
+    np.testing.assert_array_equal(out[2:8, 17:20], 0.0)
+    np.testing.assert_array_equal(out[2:8, 14:17], 5.0)  # 1 m and more: kept
+    np.testing.assert_array_equal(out[2:8, 7], 5.0)  # the crown's rim: kept
+    assert cleared.sum() == 18
+    np.testing.assert_array_equal(out[~sighted], median[~sighted])
 
 
 def test_height_weights_are_the_squared_cosine_from_the_vertical():

@@ -363,11 +363,17 @@ def test_raster_prior_is_reported_and_optional(fused, tiny_scene, tmp_path):
     seen = np.isfinite(prob[0])
     np.testing.assert_allclose(prob[:, seen].sum(axis=0), 1.0, atol=1e-5)
     # the same views and forest: the prior changes the classes, and the heights only where
-    # the classes make crown cells (crown_tops: within 0.5 m of a tree cell)
+    # the classes make crown cells (crown_tops: within 0.5 m of a tree cell) or change
+    # which cells lie within 0.75 m of a building (sightings_clear_of_buildings)
     dsm, prior_dsm = (read_raster(d / "dsm.tif")[0][0] for d in (out, tmp_path / "p"))
-    trees = [read_raster(d / "class.tif")[0][0] == 3 for d in (out, tmp_path / "p")]
-    near = cv2.dilate((trees[0] | trees[1]).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-    np.testing.assert_array_equal(dsm[~near], prior_dsm[~near])
+    classes = [read_raster(d / "class.tif")[0][0] for d in (out, tmp_path / "p")]
+
+    def near(mask, r):
+        return cv2.dilate(mask.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0
+
+    moved = near((classes[0] == 3) | (classes[1] == 3), 2)
+    moved |= near(classes[0] == 4, 3) != near(classes[1] == 4, 3)
+    np.testing.assert_array_equal(dsm[~moved], prior_dsm[~moved])
 
 
 def test_point_cloud_scored_against_a_scene_truth(tiny_scene, tmp_path):
