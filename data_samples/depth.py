@@ -117,9 +117,9 @@ def depth_error_stats(
     -------
     dict
         ``noise_ratio``: robust standard deviation of the normalised residual on smooth
-        surfaces (1 when the map follows the model); ``outlier_fraction``: share of those
-        residuals beyond 8 sigma; ``valid_fraction``: share of the truly seen pixels
-        that have a depth.
+        surfaces (1 when the map follows the model; metres when ``sigma`` is 0);
+        ``outlier_fraction``: share of those residuals beyond 8 sigma;
+        ``valid_fraction``: share of the truly seen pixels that have a depth.
     """
     seen = np.isfinite(true_depth)
     ok = np.isfinite(depth) & seen
@@ -127,7 +127,9 @@ def depth_error_stats(
     gy, gx = np.gradient(t)
     # corners are rounded near depth edges on purpose: judge the noise on smooth surfaces
     smooth = ok & (np.hypot(gx, gy) < 0.05 * np.where(seen, t, 1.0))
-    z = (depth[smooth] - t[smooth]) / (sigma * (t[smooth] / reference_depth) ** 2)
+    # without noise (sigma 0, the floors' samples) the residual is judged in metres
+    scale = sigma * (t[smooth] / reference_depth) ** 2 if sigma > 0 else 1.0
+    z = (depth[smooth] - t[smooth]) / scale
     mad = np.median(np.abs(z - np.median(z))) if z.size else np.nan
     return {
         "noise_ratio": float(1.4826 * mad),

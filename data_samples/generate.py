@@ -263,15 +263,18 @@ def _render_views(tmp: Path, world, scene, cams, sun, p: Preset, rng):
         )
         r = render_view(world, scene, cam, sun, exposure, vr)
         gray = cv2.cvtColor(r.rgb, cv2.COLOR_RGB2GRAY)
-        depth = degrade_depth(
-            r.depth,
-            gray,
-            r.lit,
-            vr,
-            sigma=p.depth_sigma,
-            reference_depth=p.flying_height,
-            outliers=p.depth_outliers,
-        )
+        if p.depth_matching:
+            depth = degrade_depth(
+                r.depth,
+                gray,
+                r.lit,
+                vr,
+                sigma=p.depth_sigma,
+                reference_depth=p.flying_height,
+                outliers=p.depth_outliers,
+            )
+        else:
+            depth = r.depth.astype(np.float32)
         depth_stats.append(
             depth_error_stats(depth, r.depth, sigma=p.depth_sigma, reference_depth=p.flying_height)
         )

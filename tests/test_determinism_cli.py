@@ -60,6 +60,9 @@ def test_cli_unexpected_error_is_one_line(tmp_path):
     assert proc.returncode == 2
     assert len(proc.stderr.strip().splitlines()) == 1
     assert "--calibration-error" in proc.stderr
+    proc = run_cli("sample", tmp_path / "x", "--true-depth", "--depth-noise", "0.1")
+    assert proc.returncode == 2 and "--depth-noise" in proc.stderr
+    assert not (tmp_path / "x").exists()
 
 
 def test_cli_help_lists_commands_and_units():

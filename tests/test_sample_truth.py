@@ -8,6 +8,7 @@ import pytest
 import shapely
 
 from data_samples.depth import depth_error_stats
+from tests.conftest import run_cli
 from workbench.camera import Camera
 from workbench.footprints import read_footprints
 from workbench.meshio import read_ply
@@ -146,6 +147,28 @@ def test_depth_maps_follow_the_noise_model(tiny_scene, tiny_meta, truth_mesh, tr
     assert 0.6 < valid < 0.995, stats  # holes exist, but not everywhere
 
 
+def test_true_depth_sample_holds_the_renderers_depth(
+    tiny_scene, truth_mesh, true_cameras, tmp_path
+):
+    out = tmp_path / "true"
+    proc = run_cli("sample", out, "--true-depth")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((out / "sample.json").read_text())["preset"]["depth_matching"] is False
+    _, _, _, scene = truth_mesh
+    sampled, true = load_scene(tiny_scene), load_scene(out)
+    for matched, view in list(zip(sampled.views, true.views, strict=True))[::6]:
+        cam = true_cameras[view.id]
+        origin, dirs = cam.pixel_grid_rays()
+        cast_depth = _cast(scene, origin, dirs)[0].reshape(cam.height, cam.width)
+        depth = view.read_depth()
+        seen = np.isfinite(cast_depth)
+        assert np.array_equal(np.isfinite(depth), seen)  # no holes
+        np.testing.assert_allclose(depth[seen], cast_depth[seen], rtol=1e-6, atol=1e-4)
+        # the same views: only their depth maps differ from the matched sample's
+        assert view.image_path.read_bytes() == matched.image_path.read_bytes()
+        assert np.nanmax(np.abs(matched.read_depth() - depth)) > 1.0
+
+
 def test_depth_error_stats_on_a_hand_made_case():
     rng = np.random.default_rng(0)
     true = np.full((200, 200), 50.0)
@@ -160,6 +183,10 @@ def test_depth_error_stats_on_a_hand_made_case():
         true + rng.normal(0, 0.3, true.shape), true, sigma=0.15, reference_depth=50.0
     )
     assert twice["noise_ratio"] == pytest.approx(2.0, rel=0.03)
+    # without a noise model (the floors' noise-free samples) the residual is in metres
+    metres = depth_error_stats(noisy, true, sigma=0.0, reference_depth=50.0)
+    assert metres["noise_ratio"] == pytest.approx(0.15, rel=0.03)
+    assert metres["outlier_fraction"] == st["outlier_fraction"]  # 20 m errors, beyond 8 m
 
 
 def test_buildings_json_matches_rasters(tiny_scene, truth_mesh):

@@ -76,6 +76,12 @@ def _add_sample(sub) -> None:
         help="depth-map noise sigma at the flying height, metres (default 0.15)",
     )
     p.add_argument(
+        "--true-depth",
+        action="store_true",
+        help="depth maps are the renderer's true depth: no noise, outliers, holes or "
+        "rounded edges (what the fusion reaches with a perfect matcher)",
+    )
+    p.add_argument(
         "--origin", type=float, nargs=2, metavar=("E", "N"),
         help="write the city centred there (metres), as real data lies far from its CRS's "
         "zero; for example 500000 5700000 with --crs EPSG:32631",
@@ -332,6 +338,10 @@ def cmd_sample(args) -> int:
         if args.depth_noise < 0:
             raise WorkbenchError("--depth-noise: must be >= 0 metres")
         overrides["depth_sigma"] = args.depth_noise
+    if args.true_depth:
+        if args.depth_noise is not None:
+            raise WorkbenchError("--depth-noise: not with --true-depth (its depth has no noise)")
+        overrides.update(depth_matching=False, depth_sigma=0.0, depth_outliers=0.0)
     if overrides:
         preset = preset.with_overrides(**overrides)
     if args.crs and not args.origin:
