@@ -94,26 +94,27 @@ def run_variant(seed: int, name: str, work: Path, preset: str, sampled: Path | N
 
 
 def table(results: dict[int, dict[str, dict]]) -> str:
-    """Each seed's DSM RMSE off the jumps per variant, then its gross cells' share."""
+    """Each seed's DSM RMSE off the jumps per variant, and its gross cells' share."""
     names = list(VARIANTS)
     width = max(map(len, names)) + 2
     lines = [
-        "fusion DSM RMSE off the height jumps (m) / cells > 2 m off (% of cells, "
-        "% of the squared error), default options",
-        " " * 10 + "".join(f"{n:>{width + 14}}" for n in names),
+        "fusion DSM RMSE off the height jumps (m); cells > 2 m off: % of the cells, % of the "
+        "squared error; default options",
+        " " * 19 + "".join(f"{n:>{width}}" for n in names),
     ]
     for seed, row in results.items():
         group = "tuned" if seed in TUNED else "held out" if seed in HELD_OUT else "other"
-        cells = []
+        rmse, gross = [], []
         for n in names:
             r = row.get(n)
-            cells.append(
-                f"{r['dsm_rmse_off_jumps_m']:.3f} / {100 * r['gross_cells']:.2f}, "
-                f"{100 * r['gross_share_of_squared_error']:.0f}"
+            rmse.append(f"{r['dsm_rmse_off_jumps_m']:.3f}" if r else "-")
+            gross.append(
+                f"{100 * r['gross_cells']:.2f}, {100 * r['gross_share_of_squared_error']:.0f}"
                 if r
                 else "-"
             )
-        lines.append(f"seed {seed:<2} {group:<9}" + "".join(f"{c:>{width + 14}}" for c in cells))
+        lines.append(f"seed {seed:<2} {group:<9} m   " + "".join(f"{c:>{width}}" for c in rmse))
+        lines.append(f"{'':<16} > 2 m" + "".join(f"{c:>{width}}" for c in gross))
     return "\n".join(lines)
 
 

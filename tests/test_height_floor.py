@@ -74,3 +74,23 @@ def test_outlines_inside_the_true_ones_by_hand():
     assert f["0.25"]["rmse_off_jumps_m"] == 0.0
     assert f["0.25"]["rmse_m"] == pytest.approx(10 * np.sqrt(76 / 400))
     assert f["0.5"]["rmse_off_jumps_m"] == pytest.approx(10 * np.sqrt(68 / 324))
+
+
+def test_dsm_floor_gross_share_on_a_hand_made_dsm(tmp_path):
+    from dsm_floor import gross_share
+
+    from workbench.raster import write_raster
+
+    grid = Grid(0.0, 10.0, 0.5, 20, 20)
+    truth = np.full(grid.shape, 10.0, np.float32)
+    dsm = truth + np.float32(0.1)
+    dsm[5, 5] += 3.0  # one gross cell among 399 off by 0.1 m
+    dsm[0, :] = np.nan  # unseen cells are not scored
+    (tmp_path / "scene" / "truth").mkdir(parents=True)
+    (tmp_path / "fusion").mkdir()
+    write_raster(tmp_path / "scene" / "truth" / "dsm.tif", truth, grid, None)
+    write_raster(tmp_path / "fusion" / "dsm.tif", dsm, grid, None)
+    got = gross_share(tmp_path / "fusion", tmp_path / "scene")
+    assert got["gross_cells"] == pytest.approx(1 / 380)
+    share = 3.1**2 / (3.1**2 + 379 * 0.01)
+    assert got["gross_share_of_squared_error"] == pytest.approx(share, rel=1e-5)  # float32
