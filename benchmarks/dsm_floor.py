@@ -33,19 +33,14 @@ import rasterio
 from seeds import HELD_OUT, TUNED, _cli
 
 from data_samples.generate import generate_sample
-from data_samples.presets import PRESETS
+from data_samples.presets import PRESETS, TRUE_DEPTH
 from workbench.metrics import height_jumps
 
 VARIANTS = {
     "sampled": {},
     "no noise": {"depth_sigma": 0.0, "depth_outliers": 0.0},
-    "true depth": {"depth_sigma": 0.0, "depth_outliers": 0.0, "depth_matching": False},
-    "true depth and poses": {
-        "depth_sigma": 0.0,
-        "depth_outliers": 0.0,
-        "depth_matching": False,
-        "calibration_error_px": 0.0,
-    },
+    "true depth": TRUE_DEPTH,
+    "true depth and poses": {**TRUE_DEPTH, "calibration_error_px": 0.0},
 }
 GROSS_M = 2.0  # a cell this far off the truth is a gross error
 

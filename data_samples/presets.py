@@ -50,6 +50,9 @@ class Preset:
         return asdict(self)
 
 
+# the overrides that make a preset's depth maps the renderer's true depth (floors)
+TRUE_DEPTH = {"depth_matching": False, "depth_sigma": 0.0, "depth_outliers": 0.0}
+
 PRESETS = {
     "tiny": Preset(
         name="tiny",

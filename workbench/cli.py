@@ -326,7 +326,7 @@ def _add_demo(sub) -> None:
 
 def cmd_sample(args) -> int:
     from data_samples.generate import generate_sample
-    from data_samples.presets import PRESETS
+    from data_samples.presets import PRESETS, TRUE_DEPTH
 
     preset = PRESETS[args.preset]
     overrides = {}
@@ -341,7 +341,7 @@ def cmd_sample(args) -> int:
     if args.true_depth:
         if args.depth_noise is not None:
             raise WorkbenchError("--depth-noise: not with --true-depth (its depth has no noise)")
-        overrides.update(depth_matching=False, depth_sigma=0.0, depth_outliers=0.0)
+        overrides.update(TRUE_DEPTH)
     if overrides:
         preset = preset.with_overrides(**overrides)
     if args.crs and not args.origin:
