@@ -11,6 +11,7 @@ scores it:
 - ``sampled``: the sample as ``workbench sample`` makes it;
 - ``no noise``: no depth noise and no outliers (rounded corners, holes and the pose
   error kept);
+- ``sharp edges``: and no rounding across depth edges (the holes kept);
 - ``true depth``: the renderer's true depth (no rounding, no holes either);
 - ``true depth and poses``: and the true poses.
 
@@ -39,6 +40,7 @@ from workbench.metrics import height_jumps
 VARIANTS = {
     "sampled": {},
     "no noise": {"depth_sigma": 0.0, "depth_outliers": 0.0},
+    "sharp edges": {"depth_sigma": 0.0, "depth_outliers": 0.0, "depth_round_edges": False},
     "true depth": TRUE_DEPTH,
     "true depth and poses": {**TRUE_DEPTH, "calibration_error_px": 0.0},
 }

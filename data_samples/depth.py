@@ -56,6 +56,7 @@ def degrade_depth(
     sigma: float,
     reference_depth: float,
     outliers: float,
+    round_edges: bool = True,
 ) -> np.ndarray:
     """Turn a true z-depth map into a dense-matching-like one.
 
@@ -74,6 +75,8 @@ def degrade_depth(
         Depth at which the noise is ``sigma`` (the flying height), metres.
     outliers : float
         Fraction of valid pixels replaced by gross errors.
+    round_edges : bool
+        Smooth across depth edges (False: sharp edges, the holes and noise kept).
 
     Returns
     -------
@@ -81,9 +84,9 @@ def degrade_depth(
     """
     out = depth.astype(np.float64).copy()
     edge, occluded = depth_edges(depth)
-    band = cv2.dilate(edge.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-    smooth = _blur_valid(depth, 1.5)
-    out[band] = smooth[band]
+    if round_edges:
+        band = cv2.dilate(edge.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+        out[band] = _blur_valid(depth, 1.5)[band]
     # occlusion holes extend a few pixels to the right of the nearer surface's edge
     holes = cv2.dilate(occluded.astype(np.uint8), np.ones((1, 7), np.uint8), anchor=(0, 0))
     holes = holes.astype(bool)

@@ -272,6 +272,7 @@ def _render_views(tmp: Path, world, scene, cams, sun, p: Preset, rng):
                 sigma=p.depth_sigma,
                 reference_depth=p.flying_height,
                 outliers=p.depth_outliers,
+                round_edges=p.depth_round_edges,
             )
         else:
             depth = r.depth.astype(np.float32)

@@ -36,6 +36,7 @@ class Preset:
     depth_sigma: float = 0.15  # depth noise at the flying height
     depth_outliers: float = 0.02  # fraction of outlier depths
     depth_matching: bool = True  # False: depth maps are the renderer's true depth (floors)
+    depth_round_edges: bool = True  # False: matched depth with sharp edges (floors)
     calibration_error_px: float = 0.5  # RMS reprojection error of the written poses
     attitude_jitter: float = 1.5  # degrees of random roll/pitch/yaw of the rig
     trees_per_hectare: float = 45.0

@@ -7,7 +7,7 @@ import open3d as o3d
 import pytest
 import shapely
 
-from data_samples.depth import depth_error_stats
+from data_samples.depth import degrade_depth, depth_error_stats
 from tests.conftest import run_cli
 from workbench.camera import Camera
 from workbench.footprints import read_footprints
@@ -167,6 +167,22 @@ def test_true_depth_sample_holds_the_renderers_depth(
         # the same views: only their depth maps differ from the matched sample's
         assert view.image_path.read_bytes() == matched.image_path.read_bytes()
         assert np.nanmax(np.abs(matched.read_depth() - depth)) > 1.0
+
+
+def test_depth_edges_are_rounded_unless_asked_sharp():
+    depth = np.full((40, 60), 100.0)
+    depth[:, 30:] = 80.0  # a roof's edge: the right half 20 m nearer
+    gray = np.full(depth.shape, 128, np.uint8)  # textured enough: no shadow holes
+    lit = np.ones(depth.shape, bool)
+    kw = dict(sigma=0.0, reference_depth=100.0, outliers=0.0)
+    rounded = degrade_depth(depth, gray, lit, np.random.default_rng(0), **kw)
+    sharp = degrade_depth(depth, gray, lit, np.random.default_rng(0), round_edges=False, **kw)
+    seen = np.isfinite(sharp)
+    assert np.array_equal(np.isfinite(rounded), seen)  # the same holes either way
+    assert np.array_equal(sharp[seen], depth[seen])
+    ramp = seen & (rounded != depth)
+    assert ramp[:, 27:30].all() and not ramp[:, :27].any()  # within 2 pixels of the edge
+    assert np.all((rounded[ramp] > 80.0) & (rounded[ramp] < 100.0))
 
 
 def test_depth_error_stats_on_a_hand_made_case():
