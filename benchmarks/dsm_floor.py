@@ -37,10 +37,11 @@ from data_samples.generate import generate_sample
 from data_samples.presets import PRESETS, TRUE_DEPTH
 from workbench.metrics import height_jumps
 
+NO_NOISE = {"depth_sigma": 0.0, "depth_outliers": 0.0}
 VARIANTS = {
     "sampled": {},
-    "no noise": {"depth_sigma": 0.0, "depth_outliers": 0.0},
-    "sharp edges": {"depth_sigma": 0.0, "depth_outliers": 0.0, "depth_round_edges": False},
+    "no noise": NO_NOISE,
+    "sharp edges": {**NO_NOISE, "depth_round_edges": False},
     "true depth": TRUE_DEPTH,
     "true depth and poses": {**TRUE_DEPTH, "calibration_error_px": 0.0},
 }
