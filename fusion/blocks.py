@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +31,7 @@ from rasterio.errors import RasterioIOError
 
 from workbench.engine import Engine, TaskStore, ThreadEngine, full_disk_named
 from workbench.errors import InputError, WorkbenchError
+from workbench.grid_blocks import Block, auto_block_size, block_layout
 from workbench.progress import progress
 from workbench.raster import Grid
 from workbench.records import StageTimer
@@ -62,58 +63,10 @@ from .scene_fusion import (
 
 log = logging.getLogger(__name__)
 
-AUTO_BLOCK_CELLS = 4096  # a grid of at most this many cells a side is fused at once
 PRODUCTS = ("ortho", "dsm", "dtm", "ndsm", "class_prob", "classes", "count")
 SUMMED = ("tiles", "observations", "filled_cells", "rejected_isolated_spikes",
           *PLANAR_COUNTS, "crown_cells_raised", "crown_sightings_raised",
           "crown_sightings_cleared_beside_buildings")  # fmt: skip
-
-
-@dataclass(frozen=True)
-class Block:
-    """A block of the grid: the cells it writes (``inner``) and the cells it is fused
-    over (``outer``: ``inner`` and the margin, clipped to the grid), as (rows, cols)
-    slices of the whole grid."""
-
-    index: int
-    inner: tuple[slice, slice]
-    outer: tuple[slice, slice]
-
-    @property
-    def inside(self) -> tuple[slice, slice]:
-        """``inner`` as slices of the outer block's arrays."""
-        return tuple(
-            slice(i.start - o.start, i.stop - o.start)
-            for i, o in zip(self.inner, self.outer, strict=True)
-        )
-
-
-def block_layout(grid: Grid, block_m: float, margin_m: float = LARGEST_WINDOW_M) -> list[Block]:
-    """The blocks of at most ``block_m`` metres a side that cut ``grid`` most evenly, each
-    with ``margin_m`` metres of margin, row by row from the north-west.
-
-    Parameters
-    ----------
-    grid : Grid
-    block_m, margin_m : float
-        A block's side and its margin, metres.
-    """
-    size = max(1, int(block_m / grid.gsd))
-    margin = int(np.ceil(margin_m / grid.gsd))
-    cuts = []
-    for n in (grid.height, grid.width):
-        k = -(-n // size)  # blocks along the axis
-        cuts.append(np.linspace(0, n, k + 1).round().astype(int))
-    blocks = []
-    for r0, r1 in zip(cuts[0][:-1], cuts[0][1:], strict=True):
-        for c0, c1 in zip(cuts[1][:-1], cuts[1][1:], strict=True):
-            inner = (slice(int(r0), int(r1)), slice(int(c0), int(c1)))
-            outer = tuple(
-                slice(max(0, a - margin), min(n, b + margin))
-                for a, b, n in ((int(r0), int(r1), grid.height), (int(c0), int(c1), grid.width))
-            )
-            blocks.append(Block(len(blocks), inner, outer))
-    return blocks
 
 
 def planned_grid(scene: Scene, opts: FusionOptions) -> Grid:
@@ -154,11 +107,7 @@ def block_size(grid: Grid, opts: FusionOptions) -> float | None:
     """The side of the fusion's blocks, metres: ``opts.block``; by default none (the
     whole grid at once) up to :data:`AUTO_BLOCK_CELLS` cells a side, else blocks of that
     many cells less their margins."""
-    if opts.block is not None:
-        return opts.block
-    if max(grid.shape) <= AUTO_BLOCK_CELLS:
-        return None
-    return (AUTO_BLOCK_CELLS - 2 * np.ceil(LARGEST_WINDOW_M / grid.gsd)) * grid.gsd
+    return opts.block if opts.block is not None else auto_block_size(grid, LARGEST_WINDOW_M)
 
 
 def fuse_in_blocks(scene: Scene, opts: FusionOptions, engine: Engine | None, write,

@@ -12,6 +12,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from workbench.grid_blocks import LARGEST_BUILDING_M
+
 from .interpolate import push_pull_fill
 
 # Zhang et al. set the largest height threshold to the height of the lowest building: an
@@ -24,7 +26,7 @@ from .interpolate import push_pull_fill
 LOWEST_BUILDING_M = 2.0
 # the largest opening: about the largest building's width (a fused block's margin too,
 # fusion.blocks, so that the opening sees the whole of a building the block's edge cuts)
-LARGEST_WINDOW_M = 80.0
+LARGEST_WINDOW_M = LARGEST_BUILDING_M
 
 
 def progressive_morphological_filter(

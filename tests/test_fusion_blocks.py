@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 import rasterio
 
-from fusion.blocks import AUTO_BLOCK_CELLS, block_layout, block_size
+from fusion.blocks import block_layout, block_size
 from fusion.ground import LARGEST_WINDOW_M
 from fusion.options import FusionOptions
 from fusion.outputs import RASTERS
 from fusion.run import run_fusion
 from workbench.engine import partial_folder
 from workbench.errors import WorkbenchError
+from workbench.grid_blocks import AUTO_BLOCK_CELLS
 from workbench.raster import Grid, WindowedRaster, read_raster, write_raster
 
 

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import rasterio
+from rasterio.errors import RasterioIOError
 
 from .errors import InputError
 from .raster import BUILDING, TREE, Grid, class_codes, read_raster
@@ -57,9 +59,12 @@ class FusionRun:
         return np.moveaxis(self.rasters["ortho"], 0, -1)
 
 
-def read_fusion_run(folder: str | Path, names: tuple[str, ...]) -> FusionRun:
+def read_fusion_run(
+    folder: str | Path, names: tuple[str, ...], window: tuple[slice, slice] | None = None
+) -> FusionRun:
     """Read the rasters ``names`` ("ortho", "dsm", "dtm", "ndsm", "class_prob", "class")
-    of a fusion run, checked to share one grid and CRS.
+    of a fusion run, checked to share one grid and CRS; with ``window`` ((rows, cols)
+    slices of that grid) only those cells, on their own grid.
 
     Raises
     ------
@@ -74,7 +79,7 @@ def read_fusion_run(folder: str | Path, names: tuple[str, ...]) -> FusionRun:
         path = folder / f"{name}.tif"
         if not path.exists():
             raise InputError(path, None, "missing: not the output folder of `workbench fusion`")
-        data, g, c = read_raster(path)
+        data, g, c = read_raster(path, window=window)
         if grid is None:
             grid, crs, first = g, c, path.name
         elif g != grid:
@@ -95,12 +100,27 @@ def _record(path: Path) -> dict:
     return doc if isinstance(doc, dict) else {}
 
 
-def class_map(fusion_dir: Path, grid: Grid) -> np.ndarray | None:
-    """(H, W) the class codes of the fusion's class map (``class.tif``), or None when the
-    run has none (a cloud's, a run from another tool)."""
+def fusion_grid(folder: str | Path) -> Grid:
+    """The grid of a fusion run's rasters (its ``dsm.tif``'s), read from the header alone."""
+    path = Path(folder) / "dsm.tif"
+    if not path.exists():
+        raise InputError(path, None, "missing: not the output folder of `workbench fusion`")
+    try:
+        with rasterio.open(path) as src:
+            return Grid.from_transform(src.transform, src.width, src.height)
+    except (RasterioIOError, ValueError) as exc:
+        raise InputError(path, None, f"not a readable north-up raster ({exc})") from None
+
+
+def class_map(
+    fusion_dir: Path, grid: Grid, window: tuple[slice, slice] | None = None
+) -> np.ndarray | None:
+    """(H, W) the class codes of the fusion's class map (``class.tif``) on ``grid`` (the
+    cells ``window`` of the run's grid, if given), or None when the run has none (a
+    cloud's, a run from another tool)."""
     if not (Path(fusion_dir) / "class.tif").exists():
         return None
-    classes = read_fusion_run(fusion_dir, ("class",))
+    classes = read_fusion_run(fusion_dir, ("class",), window)
     if classes.grid != grid:
         raise InputError(Path(fusion_dir) / "class.tif", "transform", "grid differs from the "
                          "fusion's other rasters'")  # fmt: skip

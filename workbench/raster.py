@@ -319,8 +319,14 @@ def read_decimated(path, longest: int) -> np.ndarray:
         return src.read(out_shape=shape, masked=False)
 
 
-def read_raster(path: str | os.PathLike, *, field: str | None = None, as_float: bool = False):
-    """Read a north-up GeoTIFF, its nodata honoured.
+def read_raster(
+    path: str | os.PathLike,
+    *,
+    field: str | None = None,
+    as_float: bool = False,
+    window: tuple[slice, slice] | None = None,
+):
+    """Read a north-up GeoTIFF, or a window of it, its nodata honoured.
 
     Cells the file marks as nodata (its nodata value, NaN, or its mask band) become NaN in
     float rasters, and 0, the class rasters' "no data", in integer ones.
@@ -333,6 +339,9 @@ def read_raster(path: str | os.PathLike, *, field: str | None = None, as_float: 
     as_float : bool
         Read an integer raster as float with NaN at its nodata: heights (an int16 DEM with
         nodata -32768 is common), never classes.
+    window : (rows, cols) slices, optional
+        The cells to read (with start and stop, within the raster); the grid returned is
+        theirs.
 
     Returns
     -------
@@ -349,8 +358,12 @@ def read_raster(path: str | os.PathLike, *, field: str | None = None, as_float: 
         raise InputError(path, field, "file not found")
     try:
         with rasterio.open(path) as src:
-            masked = src.read(masked=True)
             grid = Grid.from_transform(src.transform, src.width, src.height)
+            if window is not None:
+                masked = src.read(masked=True, window=Window.from_slices(*window))
+                grid = grid.window(*window)
+            else:
+                masked = src.read(masked=True)
             crs = src.crs
     except RasterioIOError as exc:
         raise InputError(path, field, f"not a readable raster ({exc})") from None

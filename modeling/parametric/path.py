@@ -30,12 +30,26 @@ from modeling.shared.footprint_priors import (
     segment_frame,
     union_outline,
 )
+from modeling.shared.in_blocks import BlockRasters, SegmentClaims
 from modeling.shared.opened_parts import building_segments, opened_parts
 from modeling.shared.raster_ground import ground_surface, vertex_colours
 from modeling.shared.roof_envelope import building_solid, face_planes
 from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
 from workbench.errors import InputError
-from workbench.fusion_run import building_cells, class_map, read_fusion_run, tree_cells
+from workbench.fusion_run import (
+    building_cells,
+    class_map,
+    fusion_grid,
+    read_fusion_run,
+    tree_cells,
+)
+from workbench.grid_blocks import (
+    LARGEST_BUILDING_M,
+    Block,
+    auto_block_size,
+    block_layout,
+    whole_grid_block,
+)
 from workbench.meshes import is_watertight
 from workbench.model_run import Building, ModelRun, Surface
 from workbench.raster import BUILDING, Grid
@@ -138,6 +152,7 @@ def run_parametric(
     fusion_dir : path
         A fusion run folder (ortho, dsm, dtm, ndsm, class_prob).
     options : ParametricOptions
+        With ``block_m``, the grid is modelled block by block (:func:`model_block`).
     footprints : path, optional
         Building outlines (GeoJSON or any vector file GDAL reads) that initialise the
         level set instead of the fusion's building probability.
@@ -148,24 +163,100 @@ def run_parametric(
     engine = engine or ThreadEngine(1)
     timer = StageTimer()
     t_start = time.perf_counter()
+    grid = fusion_grid(fusion_dir)
+    block_m = options.block_m if options.block_m is not None else auto_block_size(grid)
+    if block_m is None:
+        blocks = [whole_grid_block(grid)]
+    else:
+        blocks = block_layout(grid, block_m)
+        log.info("%d blocks of %g m with %g m of margin", len(blocks), block_m,
+                 LARGEST_BUILDING_M)  # fmt: skip
+    claims, rasters = SegmentClaims(grid, blocks), BlockRasters(grid, blocks)
+    done: list[BlockModel] = []
+    for b in blocks:
+        on = engine if len(blocks) == 1 else engine.kept_in(engine.store, f"block_{b.index}")
+        done.append(model_block(fusion_dir, b, claims, rasters, options, footprints, on, timer))
+    dsm, dtm, rgb, segments = rasters["dsm"], rasters["dtm"], rasters["rgb"], claims.ids
+    results = [x for d in done for x in d.results]
+    buildings = [x.building for x in results if x.building is not None]
+    skipped = [{"segment": x.segment, "reason": x.skipped} for x in results if x.skipped]
+    with timer.stage("preview"):
+        outlines = [o for x in results for o in x.outlines]
+        preview = parametric_preview(rgb, grid, rasters["mask"], outlines, buildings,
+                                     skipped_outlines(results, segments, grid))  # fmt: skip
+    seconds = time.perf_counter() - t_start
+    rounds = done[0].rounds if len(done) == 1 else summed_rounds([d.rounds for d in done])
+    segmentation = {"initialised_from": done[0].init_source, "rounds": rounds}
+    if len(blocks) > 1:
+        segmentation["blocks"] = {
+            "count": len(blocks), "side_m": round(block_m, 3), "margin_m": LARGEST_BUILDING_M,
+            "segments_wider_than_the_margin": sum(d.cut for d in done),
+        }  # fmt: skip
+    return ModelRun(
+        "parametric", options, buildings, crs=done[0].crs, grid=grid, dtm=dtm, dsm=dsm,
+        ground=ground_surface(dtm, rgb, grid), preview=preview, stages=timer.stages,
+        rasters={"segments": (segments, 0)},
+        inputs={"fusion": str(Path(fusion_dir).absolute()),
+                "footprints": str(Path(footprints).absolute()) if footprints else None,
+                "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd}},
+        counts={"segments": claims.count, "skipped": len(skipped)},
+        record={
+            "segmentation": segmentation,
+            "skipped": skipped,
+            **engine.describe(),
+            "seconds_per_building": round(seconds / max(len(buildings), 1), 3),
+            "seconds_per_megapixel": round(seconds / (grid.width * grid.height / 1e6), 3),
+            "peak_memory_mb": round(peak_memory_mb(), 1),
+        },
+    )  # fmt: skip
+
+
+@dataclass
+class BlockModel:
+    """What :func:`model_block` gives beside its rasters: the results of the segments the
+    block models (numbered on the whole grid), how its rounds went, its CRS, and how many
+    of its segments wider than the margin it modelled from the part it holds."""
+
+    results: list
+    rounds: list
+    init_source: str
+    crs: object
+    cut: int
+
+
+def model_block(
+    fusion_dir: Path,
+    block: Block,
+    claims: SegmentClaims,
+    rasters: BlockRasters,
+    options: ParametricOptions,
+    footprints: Path | None,
+    engine: Engine,
+    timer: StageTimer,
+) -> BlockModel:
+    """Eq. 1-8 over the outer cells of ``block``: its rasters read, the level set's rounds,
+    and each segment's task, for the segments ``claims`` gives it in the last round
+    (every one when the block is the whole grid); the rasters the run writes put into
+    ``rasters``."""
     with timer.stage("read"):
-        fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
+        fusion = read_fusion_run(fusion_dir, FUSION_RASTERS, block.outer)
         grid = fusion.grid
         dsm, dtm, rgb = fusion.band("dsm"), fusion.band("dtm"), fusion.rgb
         if options.all_building:
             init, init_source = np.isfinite(dsm), "every cell with a height (--all-building)"
         else:
-            init, init_source = initial_region(fusion, footprints)
+            init, init_source = initial_region(fusion, footprints, claims.whole)
         sources = region_sources(fusion, options)
         prob = fusion.rasters["class_prob"]
         tree = building = None
         if not options.all_building:
-            classes = class_map(fusion_dir, grid)
+            classes = class_map(fusion_dir, grid, block.outer)
             tree, building = tree_cells(classes, prob), building_cells(classes, prob)
     pull = None
     results: list[SegmentResult] = []
     rounds = []
-    for r in range(1 if options.all_building else options.rounds):
+    n_rounds = 1 if options.all_building else options.rounds
+    for r in range(n_rounds):
         with timer.stage("segmentation" if r == 0 else f"segmentation_{r + 1}"):
             prior, weight = pull if pull is not None else (None, 0.0)
             if options.all_building:
@@ -178,46 +269,37 @@ def run_parametric(
                 opening = options.opening_m
             segments = building_segments(mask, grid.gsd, opening, options.min_area_m2)
             q = int(segments.max())
-            inputs = ParametricInputs(grid, dsm, dtm, rgb, segments, segment_boxes(segments, q),
-                                      tree, building)  # fmt: skip
+            boxes = segment_boxes(segments, q)
+            last = r + 1 == n_rounds
+            todo, cut = claims.segments_to_model(block, segments, q, boxes, last)
+            inputs = ParametricInputs(grid, dsm, dtm, rgb, segments, boxes, tree, building)
         with timer.stage("priors_and_roofs" if r == 0 else f"priors_and_roofs_{r + 1}"):
             shared = engine.share(inputs)
-            results = list(engine.map(building_task, list(range(1, q + 1)), shared, options,
-                                      stage=f"segments_{r + 1}",
-                                      keys=[str(i) for i in range(1, q + 1)],
+            results = list(engine.map(building_task, todo, shared, options,
+                                      stage=f"segments_{r + 1}", keys=[str(i) for i in todo],
                                       in_flight=BUILDINGS_IN_FLIGHT * engine.workers))  # fmt: skip
         k, nu = label_count(q)
-        rounds.append({"segments": q, "labels_k": k, "regions_nu": nu,
+        rounds.append({"segments": len(todo), "labels_k": k, "regions_nu": nu,
                        "buildings": sum(x.building is not None for x in results)})  # fmt: skip
-        if r + 1 < options.rounds and not options.all_building:
+        if not last:
             pull = prior_pull(results, grid, options)
             init = mask
-    buildings = [x.building for x in results if x.building is not None]
-    skipped = [{"segment": x.segment, "reason": x.skipped} for x in results if x.skipped]
-    for b in buildings:
-        b.mesh.vertex_colors = vertex_colours(b.mesh.vertices, rgb, grid)
-    with timer.stage("preview"):
-        outlines = [o for x in results for o in x.outlines]
-        preview = parametric_preview(rgb, grid, mask, outlines, buildings, skipped_outlines(
-            results, segments, grid))  # fmt: skip
-    seconds = time.perf_counter() - t_start
-    return ModelRun(
-        "parametric", options, buildings, crs=fusion.crs, grid=grid, dtm=dtm, dsm=dsm,
-        ground=ground_surface(dtm, rgb, grid), preview=preview, stages=timer.stages,
-        rasters={"segments": (segments.astype(np.int32), 0)},
-        inputs={"fusion": str(Path(fusion_dir).absolute()),
-                "footprints": str(Path(footprints).absolute()) if footprints else None,
-                "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd}},
-        counts={"segments": int(segments.max()), "skipped": len(skipped)},
-        record={
-            "segmentation": {"initialised_from": init_source, "rounds": rounds},
-            "skipped": skipped,
-            **engine.describe(),
-            "seconds_per_building": round(seconds / max(len(buildings), 1), 3),
-            "seconds_per_megapixel": round(seconds / (grid.width * grid.height / 1e6), 3),
-            "peak_memory_mb": round(peak_memory_mb(), 1),
-        },
-    )  # fmt: skip
+    for x in results:
+        if x.building is not None:
+            x.building.mesh.vertex_colors = vertex_colours(x.building.mesh.vertices, rgb, grid)
+    claims.claim(block, segments, todo, results)
+    rasters.put(block, mask=mask, dsm=dsm, dtm=dtm, rgb=rgb)
+    return BlockModel(results, rounds, init_source, fusion.crs, cut)
+
+
+def summed_rounds(per_block: list[list[dict]]) -> list[dict]:
+    """The blocks' rounds as one: segments and buildings summed, the largest labelling."""
+    return [
+        {"segments": sum(r["segments"] for r in rs), "labels_k": max(r["labels_k"] for r in rs),
+         "regions_nu": max(r["regions_nu"] for r in rs),
+         "buildings": sum(r["buildings"] for r in rs)}
+        for rs in zip(*per_block, strict=True)
+    ]  # fmt: skip
 
 
 def check_inputs(
@@ -233,9 +315,12 @@ def check_inputs(
         initial_region(fusion, footprints)
 
 
-def initial_region(fusion, footprints: Path | None) -> tuple[np.ndarray, str]:
+def initial_region(
+    fusion, footprints: Path | None, required: bool = True
+) -> tuple[np.ndarray, str]:
     """(H, W) bool initial object region: the footprints rasterised, or the cells whose
-    fused building probability exceeds one half."""
+    fused building probability exceeds one half. ``required``: footprints that cover no
+    cell are an error (a block of the grid may have none)."""
     grid = fusion.grid
     if footprints is None:
         p = np.nan_to_num(fusion.rasters["class_prob"][BUILDING - 1].astype(np.float64))
@@ -246,7 +331,7 @@ def initial_region(fusion, footprints: Path | None) -> tuple[np.ndarray, str]:
     shapes = [(f.polygon, 1) for f in items]
     mask = rasterio.features.rasterize(shapes, out_shape=grid.shape, transform=grid.transform,
                                        fill=0, dtype=np.uint8)  # fmt: skip
-    if not mask.any():
+    if required and not mask.any():
         raise InputError(footprints, None, "no footprint covers a cell of the fusion's grid")
     return mask.astype(bool), "footprints"
 

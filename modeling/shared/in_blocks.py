@@ -1,0 +1,167 @@
+"""A modeling path over a grid too large to hold: the grid cut into blocks
+(:mod:`workbench.grid_blocks`), each segmented over its outer cells, and each segment
+modelled by exactly one block.
+
+A block's margin is about the largest building's width, so a building the block's inner
+edge cuts is whole over its outer cells, in this block and in its neighbour. Each block
+segments its own outer cells, and two blocks may draw the same building a cell apart.
+:class:`SegmentClaims` therefore decides, block after block, which segments a block
+models: one whose centre lies in its inner cells, or in the inner cells of a block
+before it that did not model it, unless a block before it already modelled most of its
+cells. No building is then modelled twice or lost between two blocks. A segment cut by
+the outer edge is left to the block whose inner cells hold its centre, which models the
+part it holds when the segment is wider than the margin (counted, and warned of).
+
+:class:`BlockRasters` puts the blocks' inner cells of the rasters a run writes together.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from workbench.grid_blocks import Block
+from workbench.raster import Grid
+
+log = logging.getLogger(__name__)
+
+
+class SegmentClaims:
+    """Which block models which segment, and the segments modelled so far as one raster.
+
+    Parameters
+    ----------
+    grid : Grid
+        The whole grid.
+    blocks : list of Block
+        In the order they are modelled (their inner cells tile the grid).
+
+    Attributes
+    ----------
+    ids : (H, W) int32
+        The segments modelled so far, numbered on the whole grid; 0 elsewhere.
+    count : int
+        How many segments the blocks have given to be modelled.
+    """
+
+    def __init__(self, grid: Grid, blocks: list[Block]):
+        self.shape = grid.shape
+        self.blocks = blocks
+        self.whole = len(blocks) == 1
+        self.ids = np.zeros(grid.shape, np.int32)
+        self.count = 0
+        self._offset = 0  # the numbers of the segments of the blocks before
+        self._row_starts = np.unique([b.inner[0].start for b in blocks])
+        self._col_starts = np.unique([b.inner[1].start for b in blocks])
+        self._index = {(b.inner[0].start, b.inner[1].start): b.index for b in blocks}
+
+    def block_of(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Index of the block whose inner cells hold each cell (whole-grid rows, cols)."""
+        r0 = self._row_starts[np.searchsorted(self._row_starts, rows, side="right") - 1]
+        c0 = self._col_starts[np.searchsorted(self._col_starts, cols, side="right") - 1]
+        return np.array([self._index[(int(a), int(b))] for a, b in zip(r0, c0, strict=True)],
+                        np.int64)  # fmt: skip
+
+    def segments_to_model(
+        self, block: Block, segments: np.ndarray, q: int, boxes: np.ndarray, last: bool
+    ) -> tuple[list[int], int]:
+        """The segments (numbers 1..q of ``segments``, the block's outer cells) the block
+        models, and how many of those its outer edge cuts.
+
+        Before the ``last`` round (whose models stay), a block models every segment that
+        its edge does not cut and whose ``boxes`` ((q + 1, 4) r0, r1, c0, c1 on the outer
+        cells) reach its inner cells: their priors pull the next round's level set."""
+        if self.whole:
+            return list(range(1, q + 1)), 0
+        cut = self._cut_segments(block, segments, q)
+        if not last:
+            (ir, ic), rr, cc = block.inside, boxes[:, :2], boxes[:, 2:]
+            reach = (rr[:, 0] < ir.stop) & (rr[:, 1] > ir.start)
+            reach &= (cc[:, 0] < ic.stop) & (cc[:, 1] > ic.start)
+            return [k for k in range(1, q + 1) if reach[k] and not cut[k]], 0
+        labels = segments.ravel()
+        n = np.bincount(labels, minlength=q + 1).astype(np.float64)
+        rows, cols = np.indices(segments.shape)
+        centre_r = np.bincount(labels, rows.ravel(), q + 1) / np.maximum(n, 1)
+        centre_c = np.bincount(labels, cols.ravel(), q + 1) / np.maximum(n, 1)
+        taken = np.bincount(labels, (self.ids[block.outer] > 0).ravel(), q + 1)
+        (r, _), (c, _) = ((o.start, o.stop) for o in block.outer)
+        owner = self.block_of(np.floor(centre_r[1:]).astype(int) + r,
+                              np.floor(centre_c[1:]).astype(int) + c)  # fmt: skip
+        todo, wide = [], 0
+        for k in range(1, q + 1):
+            j = owner[k - 1]
+            if taken[k] > 0.5 * n[k]:  # a block before modelled it
+                continue
+            if cut[k]:
+                if j == block.index:  # wider than the margin: the part this block holds
+                    todo.append(k)
+                    wide += 1
+            elif j <= block.index:  # its centre is here, or a block before missed it
+                todo.append(k)
+        if wide:
+            log.warning("block %d: %d segment(s) wider than the blocks' margin, modelled "
+                        "from the part the block holds", block.index, wide)  # fmt: skip
+        return todo, wide
+
+    def _cut_segments(self, block: Block, segments: np.ndarray, q: int) -> np.ndarray:
+        """(q + 1,) bool: the segments on a side of the outer cells that cuts the grid."""
+        north, south, west, east = block.cut_edges(self.shape)
+        edges = [segments[0] if north else (), segments[-1] if south else (),
+                 segments[:, 0] if west else (), segments[:, -1] if east else ()]  # fmt: skip
+        cut = np.zeros(q + 1, bool)
+        for e in edges:
+            cut[np.asarray(e, np.int64)] = True
+        cut[0] = False
+        return cut
+
+    def claim(self, block: Block, segments: np.ndarray, todo: list[int], results: list) -> None:
+        """Number the modelled segments ``todo`` on the whole grid (``results``: their
+        tasks' answers, with ``segment`` and ``building.id``, renumbered in place) and
+        mark their cells not yet taken."""
+        q = int(segments.max())
+        if not self.whole:
+            for x in results:
+                x.segment += self._offset
+                if x.building is not None:
+                    x.building.id = str(x.segment)
+        number = np.zeros(q + 1, np.int32)
+        number[todo] = np.asarray(todo, np.int32) + self._offset
+        here = self.ids[block.outer]
+        free = here == 0
+        here[free] = number[segments[free]]
+        self._offset += q
+        self.count += len(todo)
+
+
+class BlockRasters:
+    """The rasters of a run put together from its blocks' inner cells; with one block,
+    that block's arrays as they are.
+
+    Parameters
+    ----------
+    grid : Grid
+    blocks : list of Block
+    """
+
+    def __init__(self, grid: Grid, blocks: list[Block]):
+        self.shape = grid.shape
+        self.whole = len(blocks) == 1
+        self.arrays: dict[str, np.ndarray] = {}
+
+    def put(self, block: Block, **arrays: np.ndarray) -> None:
+        """Each array ((h, w, ...) on the block's outer cells) at its inner cells; floats
+        kept as float32, NaN where no block has put them yet."""
+        for name, a in arrays.items():
+            if self.whole:
+                self.arrays[name] = a
+                continue
+            if name not in self.arrays:
+                dtype = np.float32 if a.dtype.kind == "f" else a.dtype
+                fill = np.nan if a.dtype.kind == "f" else 0
+                self.arrays[name] = np.full(self.shape + a.shape[2:], fill, dtype)
+            self.arrays[name][block.inner] = a[block.inside]
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.arrays[name]
