@@ -13,7 +13,7 @@ demo: setup
 
 test: setup
 	@bash scripts/setup.sh --browser
-	$(BIN)/python -m pytest -q -n auto --dist loadgroup
+	$(BIN)/python -m pytest -q -n auto --dist loadgroup --durations=15
 
 test-fast: setup
 	$(BIN)/python -m pytest -q -n auto --dist loadgroup -m "not slow"

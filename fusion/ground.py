@@ -12,7 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from workbench.grid_blocks import LARGEST_BUILDING_M
+from workbench.options import LARGEST_BUILDING_M
 
 from .interpolate import push_pull_fill
 

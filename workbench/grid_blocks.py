@@ -13,11 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .options import LARGEST_BUILDING_M
 from .raster import Grid
 
-# about the largest building's width, metres: a block's margin, so that a building its
-# inner edge cuts is whole over its outer cells (and the ground filter's largest opening)
-LARGEST_BUILDING_M = 80.0
 AUTO_BLOCK_CELLS = 4096  # a grid of at most this many cells a side is worked at once
 
 

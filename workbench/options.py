@@ -84,6 +84,31 @@ def option(
     return dataclasses.field(default=default, metadata={"option": meta})
 
 
+# about the largest building's width, metres: the margin of a block of the grid (the
+# fusion's and the modeling paths' --block), so that a building its edge cuts is whole in
+# it; also the fusion's ground filter's largest opening
+LARGEST_BUILDING_M = 80.0
+
+
+def block_side_option() -> Any:
+    """A modeling path's ``--block``: the side of the blocks it models the grid in."""
+    return option(
+        None, "model the grid in blocks of this side, each segmented with a margin around "
+        "it and each building modelled in one block: the command's memory follows the "
+        "block, not the area", unit="m", flag="--block", kind="positive",
+        auto="the whole grid up to 4096 cells a side",
+    )  # fmt: skip
+
+
+def block_margin_option() -> Any:
+    """A modeling path's ``--block-margin``."""
+    return option(
+        LARGEST_BUILDING_M, "a block's margin: about the largest building's width (a wider "
+        "building is modelled from the part of it a block holds)", unit="m",
+        flag="--block-margin",
+    )  # fmt: skip
+
+
 def _meta(f: dataclasses.Field) -> dict:
     return f.metadata.get("option", {})
 

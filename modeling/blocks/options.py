@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from workbench.options import documented, option
+from workbench.options import block_margin_option, block_side_option, documented, option
 
 
 @documented
@@ -65,6 +65,8 @@ class BlocksOptions:
         False, "every cell with a height is building (clouds of single buildings, such as "
         "City3D's building instances, have no ground to segment against)",
     )  # fmt: skip
+    block_m: float | None = block_side_option()
+    block_margin_m: float = block_margin_option()
     workers: int | None = option(
         None, "buildings modelled at once: worker processes of a local Dask cluster (1: in "
         "this process; the models do not depend on it)", auto="every core",

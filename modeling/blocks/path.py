@@ -14,19 +14,28 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import rasterio.features
 import shapely
 from scipy import ndimage as ndi
 from shapely.geometry import mapping
 from shapely.ops import unary_union
 
 from modeling.shared.footprint_priors import rasterize_on
+from modeling.shared.in_blocks import (
+    BlockRasters,
+    SegmentClaims,
+    block_engine,
+    blocks_record,
+    model_blocks,
+)
 from modeling.shared.opened_parts import building_segments, mid_wall_region
 from modeling.shared.raster_ground import ground_surface, vertex_colours
 from modeling.shared.roof_envelope import BuildingMesh, building_solid, face_planes
 from modeling.shared.roof_model import closed_roof_model
 from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
 from workbench.errors import InputError
-from workbench.fusion_run import class_map, read_fusion_run, tree_cells
+from workbench.fusion_run import class_map, fusion_grid, read_fusion_run, tree_cells
+from workbench.grid_blocks import Block as GridBlock
 from workbench.meshes import is_watertight
 from workbench.model_run import Building, ModelRun, Surface
 from workbench.raster import BUILDING, Grid
@@ -99,6 +108,7 @@ def run_blocks(
         A fusion run folder (ortho, dsm, dtm, ndsm, class_prob; its class.tif, when it has
         one, says where crowns are), from images or points.
     options : BlocksOptions
+        With ``block_m``, the grid is modelled block by block (:func:`model_block`).
     supports : path, optional
         2D supports (convex quadrilaterals or triangles, any vector file GDAL reads);
         default: extracted from the DSM and the building class.
@@ -109,53 +119,39 @@ def run_blocks(
     engine = engine or ThreadEngine(1)
     timer = StageTimer()
     t_start = time.perf_counter()
-    with timer.stage("read"):
-        fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
-        grid = fusion.grid
-        dsm, dtm, rgb = fusion.band("dsm"), fusion.band("dtm"), fusion.rgb
-        prob = np.nan_to_num(fusion.rasters["class_prob"].astype(np.float64))
-        # crowns are no roof: left out of every likelihood (the class map's where the run
-        # has one: the probabilities cell by cell leave a crown over a roof ragged)
-        crowns = None if options.all_building else tree_cells(class_map(fusion_dir, grid), prob)
-    with timer.stage("supports"):
-        if supports is not None:
-            inputs = _given_supports(supports, fusion, grid, dsm, dtm, crowns)
-            source = "file"
-        else:
-            mask = np.isfinite(dsm) if options.all_building else prob[BUILDING - 1] > 0.5
-            mask &= np.isfinite(dsm)
-            opening = 0.0 if options.all_building else options.opening_m
-            segments = building_segments(mask, grid.gsd, opening, options.min_area_m2)
-            if not segments.any():
-                raise InputError(Path(fusion_dir) / "class_prob.tif", None, "no building "
-                                 "cells of at least --min-area: nothing to model")  # fmt: skip
-            margin = int(np.ceil(options.outline_reach_m / grid.gsd)) + 4
-            inputs = BlocksInputs(grid, dsm, dtm, crowns, _boxes(segments, margin), segments)
-            source = "automatic (footprint priors of the height regions)"
-    keys = list(range(1, len(inputs.boxes)))
-    with timer.stage("blocks"):
-        shared = engine.share(inputs)
-        results = list(engine.map(building_task, keys, shared, options, stage="buildings",
-                                  keys=[str(k) for k in keys],
-                                  in_flight=BUILDINGS_IN_FLIGHT * engine.workers))  # fmt: skip
+    grid = fusion_grid(fusion_dir)
+    blocks, block_m = model_blocks(grid, options.block_m, options.block_margin_m)
+    claims, rasters = SegmentClaims(grid, blocks), BlockRasters(grid, blocks)
+    results, wide, crs = [], 0, None
+    for b in blocks:
+        found, cut, crs = model_block(fusion_dir, b, claims, rasters, options, supports,
+                                      block_engine(engine, blocks, b), timer)  # fmt: skip
+        results += found
+        wide += cut
+    if not claims.count:
+        raise InputError(Path(fusion_dir) / "class_prob.tif", None, "no building cells of "
+                         "at least --min-area: nothing to model")  # fmt: skip
+    dsm, dtm, rgb = rasters["dsm"], rasters["dtm"], rasters["rgb"]
     buildings = [x.building for x in results if x.building is not None]
     skipped = [{"building": str(x.key), "reason": x.skipped} for x in results if x.skipped]
-    for b in buildings:
-        b.mesh.vertex_colors = vertex_colours(b.mesh.vertices, rgb, grid)
     with timer.stage("preview"):
         preview = blocks_preview(rgb, grid, results, buildings)
     seconds = time.perf_counter() - t_start
     iterations = sum(b.record["iterations"] for b in buildings)
     anneal_s = sum(b.record["annealing_seconds"] for b in buildings)
+    record = {"supports_from": "file" if supports is not None else
+              "automatic (footprint priors of the height regions)"}  # fmt: skip
+    if len(blocks) > 1:
+        record["blocks"] = blocks_record(blocks, block_m, options.block_margin_m, wide)
     return ModelRun(
-        "blocks", options, buildings, crs=fusion.crs, grid=grid, dtm=dtm, dsm=fusion.band("dsm"),
+        "blocks", options, buildings, crs=crs, grid=grid, dtm=dtm, dsm=dsm,
         ground=ground_surface(dtm, rgb, grid), preview=preview, stages=timer.stages,
         inputs={"fusion": str(Path(fusion_dir).absolute()),
                 "supports": str(Path(supports).absolute()) if supports else None,
                 "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd}},
-        counts={"candidates": len(keys), "skipped": len(skipped)},
+        counts={"candidates": claims.count, "skipped": len(skipped)},
         record={
-            "supports_from": source,
+            **record,
             "skipped": skipped,
             **engine.describe(),
             "iterations_per_second": round(iterations / max(anneal_s, 1e-9), 1),
@@ -164,6 +160,59 @@ def run_blocks(
             "peak_memory_mb": round(peak_memory_mb(), 1),
         },
     )  # fmt: skip
+
+
+def model_block(
+    fusion_dir: Path,
+    block: GridBlock,
+    claims: SegmentClaims,
+    rasters: BlockRasters,
+    options: BlocksOptions,
+    supports: Path | None,
+    engine: Engine,
+    timer: StageTimer,
+) -> tuple[list[BuildingResult], int, object]:
+    """The supports over the outer cells of ``block`` and a task for each building
+    ``claims`` gives it (every one when the block is the whole grid); the rasters the
+    run writes put into ``rasters``. Returns the tasks' answers (numbered on the whole
+    grid), how many buildings wider than the margin it modelled from the part it holds,
+    and the rasters' CRS."""
+    with timer.stage("read"):
+        fusion = read_fusion_run(fusion_dir, FUSION_RASTERS, block.outer)
+        grid = fusion.grid
+        dsm, dtm, rgb = fusion.band("dsm"), fusion.band("dtm"), fusion.rgb
+        prob = np.nan_to_num(fusion.rasters["class_prob"].astype(np.float64))
+        # crowns are no roof: left out of every likelihood (the class map's where the run
+        # has one: the probabilities cell by cell leave a crown over a roof ragged)
+        crowns = None
+        if not options.all_building:
+            crowns = tree_cells(class_map(fusion_dir, grid, block.outer), prob)
+    with timer.stage("supports"):
+        if supports is not None:
+            inputs = _given_supports(supports, fusion, grid, dsm, dtm, crowns, claims.grid)
+            segments = _group_cells(inputs.given, grid)
+        else:
+            mask = np.isfinite(dsm) if options.all_building else prob[BUILDING - 1] > 0.5
+            mask &= np.isfinite(dsm)
+            opening = 0.0 if options.all_building else options.opening_m
+            segments = building_segments(mask, grid.gsd, opening, options.min_area_m2)
+            margin = int(np.ceil(options.outline_reach_m / grid.gsd)) + 4
+            inputs = BlocksInputs(grid, dsm, dtm, crowns, _boxes(segments, margin), segments)
+        q = len(inputs.boxes) - 1
+        todo, wide = claims.segments_to_model(block, segments, q, inputs.boxes, last=True)
+    with timer.stage("blocks"):
+        shared = engine.share(inputs)
+        results = list(engine.map(building_task, todo, shared, options, stage="buildings",
+                                  keys=[str(k) for k in todo],
+                                  in_flight=BUILDINGS_IN_FLIGHT * engine.workers))  # fmt: skip
+    number = claims.claim(block, segments, q, todo)
+    for x in results:  # numbered on the whole grid
+        x.key = int(number[x.key])
+        if x.building is not None:
+            x.building.id = str(x.key)
+            x.building.mesh.vertex_colors = vertex_colours(x.building.mesh.vertices, rgb, grid)
+    rasters.put(block, dsm=dsm, dtm=dtm, rgb=rgb)
+    return results, wide, fusion.crs
 
 
 def check_inputs(fusion_dir: Path, options: BlocksOptions, supports: Path | None = None) -> None:
@@ -175,6 +224,15 @@ def check_inputs(fusion_dir: Path, options: BlocksOptions, supports: Path | None
         class_map(fusion_dir, fusion.grid)  # a class map on another grid
     if supports is not None:
         _given_supports(supports, fusion, fusion.grid, None, None, None)
+
+
+def _group_cells(groups: list, grid: Grid) -> np.ndarray:
+    """(H, W) int32 each group of supports' cells on ``grid``, numbered from 1."""
+    shapes = [(unary_union([s.polygon for s in g]), k) for k, g in enumerate(groups, start=1)]
+    if not shapes:
+        return np.zeros(grid.shape, np.int32)
+    return rasterio.features.rasterize(shapes, out_shape=grid.shape, transform=grid.transform,
+                                       fill=0, dtype=np.int32)  # fmt: skip
 
 
 def _boxes(segments: np.ndarray, margin: int) -> np.ndarray:
@@ -190,12 +248,15 @@ def _boxes(segments: np.ndarray, margin: int) -> np.ndarray:
     return out
 
 
-def _given_supports(path: Path, fusion, grid: Grid, dsm, dtm, crowns) -> BlocksInputs:
-    """The supports of a vector file grouped into buildings, with their boxes."""
+def _given_supports(
+    path: Path, fusion, grid: Grid, dsm, dtm, crowns, whole: Grid | None = None
+) -> BlocksInputs:
+    """The supports of a vector file that reach ``grid`` (a block of the ``whole`` grid,
+    by default the whole grid itself) grouped into buildings, with their boxes."""
     from workbench.footprints import read_footprints
 
     items = read_footprints(path, crs=fusion.crs, extent=grid.bounds)
-    groups = supports_from_file(path, [f.polygon for f in items], grid)
+    groups = supports_from_file(path, [f.polygon for f in items], whole or grid)
     boxes = [np.zeros(4, np.int64)]
     for group in groups:
         xmin, ymin, xmax, ymax = unary_union([s.polygon for s in group]).bounds

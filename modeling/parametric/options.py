@@ -4,7 +4,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from workbench.options import comma_choices, documented, option
+from workbench.options import (
+    block_margin_option,
+    block_side_option,
+    comma_choices,
+    documented,
+    option,
+)
 
 FAMILIES = ("rect", "L", "T", "U", "courtyard")
 
@@ -77,12 +83,8 @@ class ParametricOptions:
         False, "every cell with a height is building, with no level set (clouds of single "
         "buildings, such as City3D's building instances, have no ground to segment against)",
     )  # fmt: skip
-    block_m: float | None = option(
-        None, "model the grid in blocks of this side, each segmented with 80 m of margin "
-        "(the largest building's width) and each building modelled in one block: the "
-        "command's memory follows the block, not the area", unit="m", flag="--block",
-        kind="positive", auto="the whole grid up to 4096 cells a side",
-    )  # fmt: skip
+    block_m: float | None = block_side_option()
+    block_margin_m: float = block_margin_option()
     workers: int | None = option(
         None, "buildings modelled at once: worker processes of a local Dask cluster (1: in "
         "this process; the models do not depend on it)", auto="every core",

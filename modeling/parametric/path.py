@@ -30,7 +30,13 @@ from modeling.shared.footprint_priors import (
     segment_frame,
     union_outline,
 )
-from modeling.shared.in_blocks import BlockRasters, SegmentClaims
+from modeling.shared.in_blocks import (
+    BlockRasters,
+    SegmentClaims,
+    block_engine,
+    blocks_record,
+    model_blocks,
+)
 from modeling.shared.opened_parts import building_segments, opened_parts
 from modeling.shared.raster_ground import ground_surface, vertex_colours
 from modeling.shared.roof_envelope import building_solid, face_planes
@@ -43,13 +49,7 @@ from workbench.fusion_run import (
     read_fusion_run,
     tree_cells,
 )
-from workbench.grid_blocks import (
-    LARGEST_BUILDING_M,
-    Block,
-    auto_block_size,
-    block_layout,
-    whole_grid_block,
-)
+from workbench.grid_blocks import Block
 from workbench.meshes import is_watertight
 from workbench.model_run import Building, ModelRun, Surface
 from workbench.raster import BUILDING, Grid
@@ -164,17 +164,11 @@ def run_parametric(
     timer = StageTimer()
     t_start = time.perf_counter()
     grid = fusion_grid(fusion_dir)
-    block_m = options.block_m if options.block_m is not None else auto_block_size(grid)
-    if block_m is None:
-        blocks = [whole_grid_block(grid)]
-    else:
-        blocks = block_layout(grid, block_m)
-        log.info("%d blocks of %g m with %g m of margin", len(blocks), block_m,
-                 LARGEST_BUILDING_M)  # fmt: skip
+    blocks, block_m = model_blocks(grid, options.block_m, options.block_margin_m)
     claims, rasters = SegmentClaims(grid, blocks), BlockRasters(grid, blocks)
     done: list[BlockModel] = []
     for b in blocks:
-        on = engine if len(blocks) == 1 else engine.kept_in(engine.store, f"block_{b.index}")
+        on = block_engine(engine, blocks, b)
         done.append(model_block(fusion_dir, b, claims, rasters, options, footprints, on, timer))
     dsm, dtm, rgb, segments = rasters["dsm"], rasters["dtm"], rasters["rgb"], claims.ids
     results = [x for d in done for x in d.results]
@@ -188,10 +182,8 @@ def run_parametric(
     rounds = done[0].rounds if len(done) == 1 else summed_rounds([d.rounds for d in done])
     segmentation = {"initialised_from": done[0].init_source, "rounds": rounds}
     if len(blocks) > 1:
-        segmentation["blocks"] = {
-            "count": len(blocks), "side_m": round(block_m, 3), "margin_m": LARGEST_BUILDING_M,
-            "segments_wider_than_the_margin": sum(d.cut for d in done),
-        }  # fmt: skip
+        segmentation["blocks"] = blocks_record(blocks, block_m, options.block_margin_m,
+                                               sum(d.cut for d in done))  # fmt: skip
     return ModelRun(
         "parametric", options, buildings, crs=done[0].crs, grid=grid, dtm=dtm, dsm=dsm,
         ground=ground_surface(dtm, rgb, grid), preview=preview, stages=timer.stages,
@@ -287,7 +279,11 @@ def model_block(
     for x in results:
         if x.building is not None:
             x.building.mesh.vertex_colors = vertex_colours(x.building.mesh.vertices, rgb, grid)
-    claims.claim(block, segments, todo, results)
+    number = claims.claim(block, segments, q, todo)
+    for x in results:  # numbered on the whole grid
+        x.segment = int(number[x.segment])
+        if x.building is not None:
+            x.building.id = str(x.segment)
     rasters.put(block, mask=mask, dsm=dsm, dtm=dtm, rgb=rgb)
     return BlockModel(results, rounds, init_source, fusion.crs, cut)
 

@@ -21,10 +21,36 @@ import logging
 
 import numpy as np
 
-from workbench.grid_blocks import Block
+from workbench.engine import Engine
+from workbench.grid_blocks import Block, auto_block_size, block_layout, whole_grid_block
 from workbench.raster import Grid
 
 log = logging.getLogger(__name__)
+
+
+def model_blocks(grid: Grid, block_m: float | None, margin_m: float) -> tuple[list[Block], float]:
+    """The blocks a path models ``grid`` in: of ``block_m`` metres a side with
+    ``margin_m`` of margin; by default (None) the whole grid at once up to
+    :data:`~workbench.grid_blocks.AUTO_BLOCK_CELLS` cells a side. Returns them and their
+    side (None for the whole grid)."""
+    block_m = block_m if block_m is not None else auto_block_size(grid, margin_m)
+    if block_m is None:
+        return [whole_grid_block(grid)], None
+    blocks = block_layout(grid, block_m, margin_m)
+    log.info("%d blocks of %g m with %g m of margin", len(blocks), block_m, margin_m)
+    return blocks, block_m
+
+
+def block_engine(engine: Engine, blocks: list[Block], block: Block) -> Engine:
+    """The engine a block's tasks run on: with several blocks, each keeps its finished
+    tasks in a folder of its own (for --resume: its segments' numbers are its own)."""
+    return engine if len(blocks) == 1 else engine.kept_in(engine.store, f"block_{block.index}")
+
+
+def blocks_record(blocks: list[Block], block_m: float, margin_m: float, wide: int) -> dict:
+    """model.json's record of the blocks (``wide``: segments wider than the margin)."""
+    return {"count": len(blocks), "side_m": round(block_m, 3), "margin_m": margin_m,
+            "segments_wider_than_the_margin": wide}  # fmt: skip
 
 
 class SegmentClaims:
@@ -39,6 +65,7 @@ class SegmentClaims:
 
     Attributes
     ----------
+    grid : Grid
     ids : (H, W) int32
         The segments modelled so far, numbered on the whole grid; 0 elsewhere.
     count : int
@@ -46,7 +73,7 @@ class SegmentClaims:
     """
 
     def __init__(self, grid: Grid, blocks: list[Block]):
-        self.shape = grid.shape
+        self.grid, self.shape = grid, grid.shape
         self.blocks = blocks
         self.whole = len(blocks) == 1
         self.ids = np.zeros(grid.shape, np.int32)
@@ -92,7 +119,7 @@ class SegmentClaims:
         todo, wide = [], 0
         for k in range(1, q + 1):
             j = owner[k - 1]
-            if taken[k] > 0.5 * n[k]:  # a block before modelled it
+            if n[k] == 0 or taken[k] > 0.5 * n[k]:  # none here, or a block before modelled it
                 continue
             if cut[k]:
                 if j == block.index:  # wider than the margin: the part this block holds
@@ -116,16 +143,10 @@ class SegmentClaims:
         cut[0] = False
         return cut
 
-    def claim(self, block: Block, segments: np.ndarray, todo: list[int], results: list) -> None:
-        """Number the modelled segments ``todo`` on the whole grid (``results``: their
-        tasks' answers, with ``segment`` and ``building.id``, renumbered in place) and
-        mark their cells not yet taken."""
-        q = int(segments.max())
-        if not self.whole:
-            for x in results:
-                x.segment += self._offset
-                if x.building is not None:
-                    x.building.id = str(x.segment)
+    def claim(self, block: Block, segments: np.ndarray, q: int, todo: list[int]) -> np.ndarray:
+        """Number the modelled segments ``todo`` (of 1..q in ``segments``) on the whole
+        grid, and mark their cells not yet taken; returns (q + 1,) each segment's number
+        (its own when the block is the whole grid; 0 for those not modelled)."""
         number = np.zeros(q + 1, np.int32)
         number[todo] = np.asarray(todo, np.int32) + self._offset
         here = self.ids[block.outer]
@@ -133,6 +154,7 @@ class SegmentClaims:
         here[free] = number[segments[free]]
         self._offset += q
         self.count += len(todo)
+        return number
 
 
 class BlockRasters:
