@@ -9,8 +9,8 @@ import pytest
 
 from modeling.shared.in_blocks import BlockRasters, SegmentClaims
 from tests.conftest import model_and_score
-from workbench.grid_blocks import block_layout
-from workbench.raster import Grid
+from workbench.grid_blocks import block_layout, whole_grid_block
+from workbench.raster import Grid, RasterWindows, write_raster
 
 
 def _rect(shape, rows, cols, label, out=None):
@@ -69,19 +69,42 @@ def test_before_the_last_round_a_block_runs_what_reaches_its_inner_cells():
     assert claims.segments_to_model(b0, s, 3, boxes, last=False) == ([1, 2], 0)
 
 
-def test_block_rasters_put_the_inner_cells_together():
-    grid = Grid(0.0, 20.0, 1.0, 40, 20)
-    blocks = block_layout(grid, 20.0, 8.0)
-    rasters = BlockRasters(grid, blocks)
+def test_block_rasters_join_the_ground_on_the_whole_grids_lattice(tmp_path):
+    """Three blocks across a 40 x 90 cell grid (0.5 m cells, the ground's lattice every 4
+    cells): the pieces' vertices are the whole grid's mesh's, each shared edge once per
+    side; the preview's mosaic samples every 2nd cell; the DSM and DTM stay on disk."""
+    grid = Grid(0.0, 20.0, 0.5, 90, 40)
+    blocks = block_layout(grid, 20.0, 4.0)
+    assert [b.inner[1].start for b in blocks] == [0, 30, 60]
+    rows, cols = np.indices(grid.shape)
+    dtm = (rows * 0.1 + cols * 0.01).astype(np.float64)
+    rgb = np.stack([rows, cols, rows + cols], axis=-1).astype(np.uint8)
+    rasters = BlockRasters(grid, blocks, tmp_path, preview_cells=45)
     for b in blocks:
-        h, w = (s.stop - s.start for s in b.outer)
-        rasters.put(b, dsm=np.full((h, w), float(b.index + 1)), rgb=np.zeros((h, w, 3), np.uint8))
-    assert rasters["dsm"].dtype == np.float32 and rasters["rgb"].shape == (20, 40, 3)
-    assert (rasters["dsm"][:, :20] == 1).all() and (rasters["dsm"][:, 20:] == 2).all()
-    one = BlockRasters(grid, block_layout(grid, 40.0, 8.0))
-    dsm = np.zeros((20, 40))
-    one.put(block_layout(grid, 40.0, 8.0)[0], dsm=dsm)
-    assert one["dsm"] is dsm  # the whole grid at once: no copy
+        rasters.put(b, grid.window(*b.outer), dtm=dtm[b.outer], rgb=rgb[b.outer],
+                    mask=(cols > 44)[b.outer])  # fmt: skip
+    whole = BlockRasters(grid, [whole_grid_block(grid)], tmp_path)
+    whole.put(whole_grid_block(grid), grid, dtm=dtm, rgb=rgb)
+    joined, one = rasters.ground(), whole.ground()
+    unique = np.unique(joined.vertices, axis=0)
+    assert np.array_equal(unique, np.unique(one.vertices, axis=0))
+    assert len(joined.triangles) == len(one.triangles)  # no gap, no overlap
+    assert len(joined.vertices) == len(one.vertices) + 2 * 10  # two shared columns of 10
+    mosaic, mask, coarse = rasters.preview_layers()
+    assert coarse.gsd == 1.0 and mosaic.shape == (20, 45, 3)
+    assert np.array_equal(mosaic, rgb[::2, ::2]) and np.array_equal(mask, (cols > 44)[::2, ::2])
+    files = rasters.model_rasters()
+    assert files["dtm"] is None and files["raster_files"]["dtm"] == tmp_path / "dtm.tif"
+
+
+def test_raster_windows_read_what_the_whole_array_gives(tmp_path):
+    grid = Grid(100.0, 200.0, 0.5, 30, 20)
+    data = np.arange(600, dtype=np.float32).reshape(20, 30)
+    data[3, 4] = np.nan
+    write_raster(tmp_path / "dsm.tif", data, grid, None)
+    r = RasterWindows(tmp_path / "dsm.tif", grid)
+    assert r.shape == (20, 30)
+    np.testing.assert_array_equal(r[2:9, 3:17], data[2:9, 3:17])
 
 
 @pytest.mark.parametrize("path", ["parametric", "blocks"])

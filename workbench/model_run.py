@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -157,13 +158,17 @@ class ModelRun:
         The grid of ``dtm`` and ``rasters``.
     dtm : (H, W) float or None
         The ground the buildings stand on, metres, NaN unknown.
-    dsm : (H, W) float or None
+    dsm : (H, W) float, RasterWindows or None
         The heights the path modelled, metres, NaN unknown: each building's ``rmse_m`` in
-        model.city.json is the model's RMS distance to them, vertically.
+        model.city.json is the model's RMS distance to them, vertically (read in the
+        building's window).
     ground : Surface or None
         The ground as a mesh (default: none written).
     rasters : {name: ((H, W) or (B, H, W) array, nodata)}
         The path's own rasters on ``grid``.
+    raster_files : {name: path}
+        Rasters on ``grid`` already on disk (GeoTIFFs), copied into the run as NAME.tif:
+        those a path in blocks does not hold whole ("dtm" among them in place of ``dtm``).
     preview : (h, w, 3) uint8 or None
     stages : {stage: {"wall_s": float, "peak_memory_mb": float}}
     inputs : dict
@@ -185,6 +190,7 @@ class ModelRun:
     dsm: np.ndarray | None = None
     ground: Surface | None = None
     rasters: dict = field(default_factory=dict)
+    raster_files: dict = field(default_factory=dict)
     preview: np.ndarray | None = None
     stages: dict = field(default_factory=dict)
     inputs: dict = field(default_factory=dict)
@@ -257,6 +263,8 @@ def _write_files(run: ModelRun, tmp: Path) -> None:
         write_raster(tmp / "dtm.tif", run.dtm.astype(np.float32), run.grid, run.crs)
     for name, (data, nodata) in run.rasters.items():
         write_raster(tmp / f"{name}.tif", data, run.grid, run.crs, nodata=nodata)
+    for name, path in run.raster_files.items():
+        shutil.copyfile(path, tmp / f"{name}.tif")
     write_city_model(tmp / "model.city.json", run, run.dsm)
     preview = run.preview if run.preview is not None else np.full((64, 64, 3), 255, np.uint8)
     write_rgb(tmp / "preview.png", preview)

@@ -303,6 +303,29 @@ class WindowedRaster:
         self.staging.unlink(missing_ok=True)
 
 
+class RasterWindows:
+    """A one-band raster on disk that reads the cells it is sliced at: ``r[rows, cols]``
+    (slices with start and stop) is what the whole array sliced so would be, NaN at its
+    nodata, without the whole array in memory.
+
+    Parameters
+    ----------
+    path : path
+    grid : Grid
+        The raster's grid.
+    """
+
+    def __init__(self, path, grid: Grid):
+        self.path, self.grid = Path(path), grid
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.grid.shape
+
+    def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
+        return read_raster(self.path, window=key)[0][0]
+
+
 GDAL_CACHE_MB = 256  # GDAL's block cache while windows are written and copied
 
 

@@ -29,7 +29,7 @@ from modeling.shared.in_blocks import (
     model_blocks,
 )
 from modeling.shared.opened_parts import building_segments, mid_wall_region
-from modeling.shared.raster_ground import ground_surface, vertex_colours
+from modeling.shared.raster_ground import vertex_colours
 from modeling.shared.roof_envelope import BuildingMesh, building_solid, face_planes
 from modeling.shared.roof_model import closed_roof_model
 from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
@@ -121,7 +121,7 @@ def run_blocks(
     t_start = time.perf_counter()
     grid = fusion_grid(fusion_dir)
     blocks, block_m = model_blocks(grid, options.block_m, options.block_margin_m)
-    claims, rasters = SegmentClaims(grid, blocks), BlockRasters(grid, blocks)
+    claims, rasters = SegmentClaims(grid, blocks), BlockRasters(grid, blocks, fusion_dir)
     results, wide, crs = [], 0, None
     for b in blocks:
         found, cut, crs = model_block(fusion_dir, b, claims, rasters, options, supports,
@@ -131,11 +131,11 @@ def run_blocks(
     if not claims.count:
         raise InputError(Path(fusion_dir) / "class_prob.tif", None, "no building cells of "
                          "at least --min-area: nothing to model")  # fmt: skip
-    dsm, dtm, rgb = rasters["dsm"], rasters["dtm"], rasters["rgb"]
     buildings = [x.building for x in results if x.building is not None]
     skipped = [{"building": str(x.key), "reason": x.skipped} for x in results if x.skipped]
     with timer.stage("preview"):
-        preview = blocks_preview(rgb, grid, results, buildings)
+        rgb, _, on = rasters.preview_layers()
+        preview = blocks_preview(rgb, on, results, buildings)
     seconds = time.perf_counter() - t_start
     iterations = sum(b.record["iterations"] for b in buildings)
     anneal_s = sum(b.record["annealing_seconds"] for b in buildings)
@@ -144,8 +144,8 @@ def run_blocks(
     if len(blocks) > 1:
         record["blocks"] = blocks_record(blocks, block_m, options.block_margin_m, wide)
     return ModelRun(
-        "blocks", options, buildings, crs=crs, grid=grid, dtm=dtm, dsm=dsm,
-        ground=ground_surface(dtm, rgb, grid), preview=preview, stages=timer.stages,
+        "blocks", options, buildings, crs=crs, grid=grid, **rasters.model_rasters(),
+        ground=rasters.ground(), preview=preview, stages=timer.stages,
         inputs={"fusion": str(Path(fusion_dir).absolute()),
                 "supports": str(Path(supports).absolute()) if supports else None,
                 "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd}},
@@ -211,7 +211,7 @@ def model_block(
         if x.building is not None:
             x.building.id = str(x.key)
             x.building.mesh.vertex_colors = vertex_colours(x.building.mesh.vertices, rgb, grid)
-    rasters.put(block, dsm=dsm, dtm=dtm, rgb=rgb)
+    rasters.put(block, grid, dtm=dtm, rgb=rgb, dsm=dsm)
     return results, wide, fusion.crs
 
 

@@ -38,7 +38,7 @@ from modeling.shared.in_blocks import (
     model_blocks,
 )
 from modeling.shared.opened_parts import building_segments, opened_parts
-from modeling.shared.raster_ground import ground_surface, vertex_colours
+from modeling.shared.raster_ground import vertex_colours
 from modeling.shared.roof_envelope import building_solid, face_planes
 from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
 from workbench.errors import InputError
@@ -165,19 +165,19 @@ def run_parametric(
     t_start = time.perf_counter()
     grid = fusion_grid(fusion_dir)
     blocks, block_m = model_blocks(grid, options.block_m, options.block_margin_m)
-    claims, rasters = SegmentClaims(grid, blocks), BlockRasters(grid, blocks)
+    claims, rasters = SegmentClaims(grid, blocks), BlockRasters(grid, blocks, fusion_dir)
     done: list[BlockModel] = []
     for b in blocks:
         on = block_engine(engine, blocks, b)
         done.append(model_block(fusion_dir, b, claims, rasters, options, footprints, on, timer))
-    dsm, dtm, rgb, segments = rasters["dsm"], rasters["dtm"], rasters["rgb"], claims.ids
     results = [x for d in done for x in d.results]
     buildings = [x.building for x in results if x.building is not None]
     skipped = [{"segment": x.segment, "reason": x.skipped} for x in results if x.skipped]
     with timer.stage("preview"):
         outlines = [o for x in results for o in x.outlines]
-        preview = parametric_preview(rgb, grid, rasters["mask"], outlines, buildings,
-                                     skipped_outlines(results, segments, grid))  # fmt: skip
+        rgb, mask, on = rasters.preview_layers()
+        preview = parametric_preview(rgb, on, mask, outlines, buildings,
+                                     [o for d in done for o in d.skipped_outlines])  # fmt: skip
     seconds = time.perf_counter() - t_start
     rounds = done[0].rounds if len(done) == 1 else summed_rounds([d.rounds for d in done])
     segmentation = {"initialised_from": done[0].init_source, "rounds": rounds}
@@ -185,9 +185,9 @@ def run_parametric(
         segmentation["blocks"] = blocks_record(blocks, block_m, options.block_margin_m,
                                                sum(d.cut for d in done))  # fmt: skip
     return ModelRun(
-        "parametric", options, buildings, crs=done[0].crs, grid=grid, dtm=dtm, dsm=dsm,
-        ground=ground_surface(dtm, rgb, grid), preview=preview, stages=timer.stages,
-        rasters={"segments": (segments, 0)},
+        "parametric", options, buildings, crs=done[0].crs, grid=grid, **rasters.model_rasters(),
+        ground=rasters.ground(), preview=preview, stages=timer.stages,
+        rasters={"segments": (claims.ids, 0)},
         inputs={"fusion": str(Path(fusion_dir).absolute()),
                 "footprints": str(Path(footprints).absolute()) if footprints else None,
                 "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd}},
@@ -206,14 +206,16 @@ def run_parametric(
 @dataclass
 class BlockModel:
     """What :func:`model_block` gives beside its rasters: the results of the segments the
-    block models (numbered on the whole grid), how its rounds went, its CRS, and how many
-    of its segments wider than the margin it modelled from the part it holds."""
+    block models (numbered on the whole grid), how its rounds went, its CRS, how many of
+    its segments wider than the margin it modelled from the part it holds, and the
+    outlines of those left to the data term (for the preview)."""
 
     results: list
     rounds: list
     init_source: str
     crs: object
     cut: int
+    skipped_outlines: list
 
 
 def model_block(
@@ -279,13 +281,14 @@ def model_block(
     for x in results:
         if x.building is not None:
             x.building.mesh.vertex_colors = vertex_colours(x.building.mesh.vertices, rgb, grid)
+    skipped = skipped_outlines(results, segments, grid)
     number = claims.claim(block, segments, q, todo)
     for x in results:  # numbered on the whole grid
         x.segment = int(number[x.segment])
         if x.building is not None:
             x.building.id = str(x.segment)
-    rasters.put(block, mask=mask, dsm=dsm, dtm=dtm, rgb=rgb)
-    return BlockModel(results, rounds, init_source, fusion.crs, cut)
+    rasters.put(block, grid, dtm=dtm, rgb=rgb, mask=mask, dsm=dsm)
+    return BlockModel(results, rounds, init_source, fusion.crs, cut, skipped)
 
 
 def summed_rounds(per_block: list[list[dict]]) -> list[dict]:

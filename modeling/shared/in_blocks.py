@@ -18,12 +18,16 @@ part it holds when the segment is wider than the margin (counted, and warned of)
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import numpy as np
 
+from modeling.shared.raster_ground import GROUND_CELL_M, ground_surface
 from workbench.engine import Engine
 from workbench.grid_blocks import Block, auto_block_size, block_layout, whole_grid_block
-from workbench.raster import Grid
+from workbench.meshes import concatenate_meshes
+from workbench.model_run import Surface
+from workbench.raster import Grid, RasterWindows
 
 log = logging.getLogger(__name__)
 
@@ -158,32 +162,94 @@ class SegmentClaims:
 
 
 class BlockRasters:
-    """The rasters of a run put together from its blocks' inner cells; with one block,
-    that block's arrays as they are.
+    """What a run writes of the whole grid, from its blocks. With one block, that block's
+    arrays as they are. With several, no whole-grid array: the DTM and the DSM stay the
+    fusion's files (the model's DTM is the fusion's; each building's RMS to the DSM is
+    read in its window), the ground mesh is the blocks' pieces joined on a lattice of the
+    whole grid, and the preview is drawn on a coarse mosaic of the ortho and the mask.
 
     Parameters
     ----------
     grid : Grid
+        The whole grid.
     blocks : list of Block
+    fusion_dir : path
+        The fusion run the blocks read.
+    preview_cells : int
+        The coarse mosaic's longest side, cells.
     """
 
-    def __init__(self, grid: Grid, blocks: list[Block]):
-        self.shape = grid.shape
+    def __init__(self, grid: Grid, blocks: list[Block], fusion_dir, preview_cells: int = 2048):
+        self.grid, self.fusion_dir = grid, Path(fusion_dir)
         self.whole = len(blocks) == 1
         self.arrays: dict[str, np.ndarray] = {}
+        self.step = max(1, round(GROUND_CELL_M / grid.gsd))
+        self.factor = max(1, -(-max(grid.shape) // preview_cells))
+        f = self.factor
+        self.coarse = Grid(grid.xmin, grid.ymax, grid.gsd * f, -(-grid.width // f),
+                           -(-grid.height // f))  # fmt: skip
+        self.pieces: list[Surface] = []
 
-    def put(self, block: Block, **arrays: np.ndarray) -> None:
-        """Each array ((h, w, ...) on the block's outer cells) at its inner cells; floats
-        kept as float32, NaN where no block has put them yet."""
-        for name, a in arrays.items():
-            if self.whole:
-                self.arrays[name] = a
-                continue
+    def put(self, block: Block, grid: Grid, *, dtm: np.ndarray, rgb: np.ndarray,
+            mask: np.ndarray | None = None, dsm: np.ndarray | None = None) -> None:  # fmt: skip
+        """The block's arrays ((h, w) or (h, w, 3) on its outer cells, ``grid``)."""
+        if self.whole:
+            self.arrays.update(dtm=dtm, rgb=rgb, dsm=dsm)
+            if mask is not None:
+                self.arrays["mask"] = mask
+            return
+        rows, cols = (self._lattice(i, o) for i, o in zip(block.inner, block.outer,
+                                                          strict=True))  # fmt: skip
+        piece = ground_surface(dtm[rows, cols], rgb[rows, cols], grid.window(rows, cols))
+        if piece is not None:
+            self.pieces.append(piece)
+        f = self.factor
+        (r0, r1), (c0, c1) = ((-(-i.start // f) * f, i.stop) for i in block.inner)
+        inside = (
+            slice(r0 - block.outer[0].start, r1 - block.outer[0].start, f),
+            slice(c0 - block.outer[1].start, c1 - block.outer[1].start, f),
+        )
+        at = (
+            slice(r0 // f, r0 // f + len(range(r0, r1, f))),
+            slice(c0 // f, c0 // f + len(range(c0, c1, f))),
+        )
+        layers = {"rgb": rgb} if mask is None else {"rgb": rgb, "mask": mask}
+        for name, a in layers.items():
             if name not in self.arrays:
-                dtype = np.float32 if a.dtype.kind == "f" else a.dtype
-                fill = np.nan if a.dtype.kind == "f" else 0
-                self.arrays[name] = np.full(self.shape + a.shape[2:], fill, dtype)
-            self.arrays[name][block.inner] = a[block.inside]
+                self.arrays[name] = np.zeros(self.coarse.shape + a.shape[2:], a.dtype)
+            self.arrays[name][at] = a[inside]
 
-    def __getitem__(self, name: str) -> np.ndarray:
-        return self.arrays[name]
+    def _lattice(self, inner: slice, outer: slice) -> slice:
+        """The cells (of the outer ones) of the ground's lattice rows (or columns) from the
+        first at or after the inner ones' start to the first at or after their end: a
+        block's piece meets the next one's on a shared row of vertices."""
+        step = self.step
+        a = -(-inner.start // step) * step
+        b = -(-inner.stop // step) * step
+        b = min(b, (outer.stop - 1) // step * step)
+        return slice(a - outer.start, b - outer.start + 1)
+
+    def ground(self) -> Surface | None:
+        """The ground mesh of 2 m cells, coloured by the ortho."""
+        if self.whole:
+            return ground_surface(self.arrays["dtm"], self.arrays["rgb"], self.grid)
+        if not self.pieces:
+            return None
+        V, T, _ = concatenate_meshes([(p.vertices, p.triangles) for p in self.pieces])
+        return Surface(V, T, vertex_colors=np.concatenate([p.vertex_colors for p in self.pieces]))
+
+    def preview_layers(self) -> tuple[np.ndarray, np.ndarray | None, Grid]:
+        """The ortho, the mask (None if none was put) and their grid, for the preview."""
+        if self.whole:
+            return self.arrays["rgb"], self.arrays.get("mask"), self.grid
+        return self.arrays["rgb"], self.arrays.get("mask"), self.coarse
+
+    def model_rasters(self) -> dict:
+        """``ModelRun``'s ``dtm``, ``dsm`` and ``raster_files`` for the run."""
+        if self.whole:
+            return {"dtm": self.arrays["dtm"], "dsm": self.arrays["dsm"]}
+        return {
+            "dtm": None,
+            "dsm": RasterWindows(self.fusion_dir / "dsm.tif", self.grid),
+            "raster_files": {"dtm": self.fusion_dir / "dtm.tif"},
+        }

@@ -9,6 +9,8 @@ from workbench.meshes import raster_mesh
 from workbench.model_run import Surface
 from workbench.raster import Grid
 
+GROUND_CELL_M = 2.0  # the ground mesh's cells, metres
+
 
 def vertex_colours(vertices: np.ndarray, rgb: np.ndarray, grid: Grid) -> np.ndarray:
     """(V, 3) uint8 ortho colour under each vertex."""
@@ -17,8 +19,8 @@ def vertex_colours(vertices: np.ndarray, rgb: np.ndarray, grid: Grid) -> np.ndar
 
 
 def ground_surface(dtm: np.ndarray, rgb: np.ndarray, grid: Grid) -> Surface | None:
-    """The DTM as a mesh of 2 m cells, coloured by the ortho."""
-    ground = raster_mesh(dtm, grid, step=max(1, round(2.0 / grid.gsd)))
+    """The DTM as a mesh of :data:`GROUND_CELL_M` cells, coloured by the ortho."""
+    ground = raster_mesh(dtm, grid, step=max(1, round(GROUND_CELL_M / grid.gsd)))
     if ground is None:
         return None
     return Surface(*ground, vertex_colors=vertex_colours(ground[0], rgb, grid))
