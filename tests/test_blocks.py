@@ -302,6 +302,15 @@ def test_blocks_from_given_supports(blocks_run, tiny_fusion, tmp_path):
     again = json.loads((tmp_path / "m" / "model.json").read_text())
     assert len(again["buildings"]) == len(model["buildings"])
     assert all(b["watertight"] for b in again["buildings"])
+    # in 4 blocks, each group given to one: the same buildings, none twice
+    proc = run_cli("model", "blocks", tiny_fusion, "--supports", path, "-o", tmp_path / "b",
+                   "--block", 32, "--block-margin", 12, "--workers", 1)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    blocked = json.loads((tmp_path / "b" / "model.json").read_text())
+    assert blocked["blocks"]["count"] == 4
+    assert sorted(len(b["supports"]) for b in blocked["buildings"]) == sorted(
+        len(b["supports"]) for b in again["buildings"]
+    )
 
 
 def test_blocks_bad_input_is_one_line(tiny_fusion, tmp_path):

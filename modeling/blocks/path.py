@@ -128,7 +128,7 @@ def run_blocks(
                                       block_engine(engine, blocks, b), timer)  # fmt: skip
         results += found
         wide += cut
-    if not claims.count:
+    if not claims.count and supports is None:
         raise InputError(Path(fusion_dir) / "class_prob.tif", None, "no building cells of "
                          "at least --min-area: nothing to model")  # fmt: skip
     buildings = [x.building for x in results if x.building is not None]
