@@ -77,8 +77,7 @@ class SegmentClaims:
     """
 
     def __init__(self, grid: Grid, blocks: list[Block]):
-        self.grid, self.shape = grid, grid.shape
-        self.blocks = blocks
+        self.grid = grid
         self.whole = len(blocks) == 1
         self.ids = np.zeros(grid.shape, np.int32)
         self.count = 0
@@ -117,7 +116,7 @@ class SegmentClaims:
         centre_r = np.bincount(labels, rows.ravel(), q + 1) / np.maximum(n, 1)
         centre_c = np.bincount(labels, cols.ravel(), q + 1) / np.maximum(n, 1)
         taken = np.bincount(labels, (self.ids[block.outer] > 0).ravel(), q + 1)
-        (r, _), (c, _) = ((o.start, o.stop) for o in block.outer)
+        r, c = block.outer[0].start, block.outer[1].start
         owner = self.block_of(np.floor(centre_r[1:]).astype(int) + r,
                               np.floor(centre_c[1:]).astype(int) + c)  # fmt: skip
         todo, wide = [], 0
@@ -138,7 +137,7 @@ class SegmentClaims:
 
     def _cut_segments(self, block: Block, segments: np.ndarray, q: int) -> np.ndarray:
         """(q + 1,) bool: the segments on a side of the outer cells that cuts the grid."""
-        north, south, west, east = block.cut_edges(self.shape)
+        north, south, west, east = block.cut_edges(self.grid.shape)
         edges = [segments[0] if north else (), segments[-1] if south else (),
                  segments[:, 0] if west else (), segments[:, -1] if east else ()]  # fmt: skip
         cut = np.zeros(q + 1, bool)
