@@ -1,4 +1,7 @@
+import fcntl
 import json
+import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -26,12 +29,32 @@ def pytest_collection_modifyitems(items):
             item.add_marker(pytest.mark.xdist_group(groups.pop()))
 
 
+def made_once(tmp_path_factory, name: str, make) -> Path:
+    """``make(folder)`` once for the whole session, whichever pytest-xdist worker asks
+    first; the others wait for it rather than make it again (the tiny city's fusion
+    takes some 30 s). Returns the folder, which no test may change."""
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the session's folder, above each worker's own
+    folder, done = root / "made_once" / name, root / "made_once" / f"{name}.done"
+    folder.parent.mkdir(exist_ok=True)
+    with open(root / "made_once" / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)  # a worker that failed making it
+            folder.mkdir()
+            make(folder)
+            done.touch()
+    return folder
+
+
 @pytest.fixture(scope="session")
 def tiny_scene(tmp_path_factory) -> Path:
     """The tiny sample city, seed 0, generated once per test session."""
-    out = tmp_path_factory.mktemp("tiny") / "scene"
-    generate_sample(out, "tiny", 0)
-    return out
+    return (
+        made_once(tmp_path_factory, "tiny", lambda d: generate_sample(d / "scene", "tiny", 0))
+        / "scene"
+    )
 
 
 @pytest.fixture(scope="session")
@@ -59,8 +82,13 @@ def model_and_score(root: Path, truth: Path, *model_args) -> tuple[Path, dict, d
     assert proc.returncode == 0, proc.stderr
     proc = run_cli("compare", out, "--truth", truth, "-o", report)
     assert proc.returncode == 0, proc.stderr
-    metrics = json.loads((report / "metrics.json").read_text())["runs"]["model"]
-    return out, json.loads((out / "model.json").read_text()), metrics
+    return scored(root)
+
+
+def scored(root: Path) -> tuple[Path, dict, dict]:
+    """:func:`model_and_score`'s answer read back from ``root``."""
+    metrics = json.loads((root / "report" / "metrics.json").read_text())["runs"]["model"]
+    return root / "model", json.loads((root / "model" / "model.json").read_text()), metrics
 
 
 @pytest.fixture(scope="session")
@@ -69,21 +97,25 @@ def tiny_fusion(tiny_scene, tmp_path_factory) -> Path:
     once per session; scored against the truth (``--truth``: the record's quality) and its
     forest kept beside it (``--save-classifier``: ``forest.joblib``), neither of which
     changes the rasters."""
-    out = tmp_path_factory.mktemp("tiny_fusion") / "fusion"
-    proc = run_cli("fusion", tiny_scene, "-o", out, "--truth", tiny_scene,
-                   "--save-classifier", out.parent / "forest.joblib")  # fmt: skip
-    assert proc.returncode == 0, proc.stderr
-    return out
+
+    def make(folder):
+        proc = run_cli("fusion", tiny_scene, "-o", folder / "fusion", "--truth", tiny_scene,
+                       "--save-classifier", folder / "forest.joblib")  # fmt: skip
+        assert proc.returncode == 0, proc.stderr
+
+    return made_once(tmp_path_factory, "tiny_fusion", make) / "fusion"
 
 
 @pytest.fixture(scope="session")
 def tiny_fusion_one_process(tiny_scene, tmp_path_factory) -> Path:
     """``workbench fusion --workers 1`` of the tiny city (no cluster: the command's own
     process), once per session: what the runs on other engines are compared with."""
-    out = tmp_path_factory.mktemp("tiny_fusion_one") / "fusion"
-    proc = run_cli("fusion", tiny_scene, "-o", out, "--workers", "1")
-    assert proc.returncode == 0, proc.stderr
-    return out
+
+    def make(folder):
+        proc = run_cli("fusion", tiny_scene, "-o", folder / "fusion", "--workers", "1")
+        assert proc.returncode == 0, proc.stderr
+
+    return made_once(tmp_path_factory, "tiny_fusion_one", make) / "fusion"
 
 
 @pytest.fixture(scope="session")
@@ -99,8 +131,10 @@ def tiny_models(tiny_scene, tiny_fusion, tmp_path_factory):
     def run(name: str) -> tuple[Path, dict, dict]:
         if name not in runs:
             given = {"scene_dir": tiny_scene, "fusion_dir": tiny_fusion}
-            root = tmp_path_factory.mktemp(f"tiny_{name}")
-            runs[name] = model_and_score(root, tiny_scene, name, *PATHS[name].arguments(given))
+            args = PATHS[name].arguments(given)
+            root = made_once(tmp_path_factory, f"tiny_{name}",
+                             lambda d: model_and_score(d, tiny_scene, name, *args))  # fmt: skip
+            runs[name] = scored(root)
         return runs[name]
 
     return run

@@ -68,7 +68,9 @@ def superpixel_run(tiny_scene, tmp_path_factory):
     write_raster(fusion / "class_prob.tif", noisy, grid, crs)
     write_raster(fusion / "class.tif", (noisy.argmax(axis=0) + 1).astype(np.uint8), grid, crs)
     out = root / "model"
-    proc = run_cli("model", "superpixel", fusion, "-o", out, "--truth", tiny_scene)
+    proc = run_cli(
+        "model", "superpixel", fusion, "-o", out, "--truth", tiny_scene, "--workers", "1"
+    )
     assert proc.returncode == 0, proc.stderr
     return out, json.loads((out / "model.json").read_text()), tiny_scene
 

@@ -10,7 +10,7 @@ import pytest
 from modeling.shared.in_blocks import BlockRasters, SegmentClaims
 from tests.conftest import model_and_score
 from workbench.grid_blocks import block_layout, whole_grid_block
-from workbench.raster import Grid, RasterWindows, write_raster
+from workbench.raster import Grid, RasterWindows, read_raster, write_raster
 
 
 def _rect(shape, rows, cols, label, out=None):
@@ -19,13 +19,15 @@ def _rect(shape, rows, cols, label, out=None):
     return out
 
 
-def test_each_segment_is_modelled_by_one_block_however_the_blocks_draw_it():
+@pytest.mark.parametrize("kept_in", ["memory", "file"])
+def test_each_segment_is_modelled_by_one_block_however_the_blocks_draw_it(kept_in, tmp_path):
     """Two blocks of 20 x 20 cells side by side, 8 cells of margin: block 0 is worked over
-    columns 0-28, block 1 over 12-40. Each block draws the same buildings a cell apart."""
+    columns 0-28, block 1 over 12-40. Each block draws the same buildings a cell apart.
+    The segments' numbers are kept in memory, or in a file written block by block."""
     grid = Grid(0.0, 20.0, 1.0, 40, 20)
     b0, b1 = block_layout(grid, 20.0, 8.0)
     assert (b0.outer[1].start, b0.outer[1].stop, b1.outer[1].start) == (0, 28, 12)
-    claims = SegmentClaims(grid, [b0, b1])
+    claims = SegmentClaims(grid, [b0, b1], tmp_path if kept_in == "file" else None)
     # block 0's segments, on its outer columns 0-28 (the whole grid's columns):
     # 1 straddles the inner edge, its centre 19.5 in block 0;
     # 2 has its centre at 20.5, in block 1, and block 1 will draw it at 19.5;
@@ -50,7 +52,14 @@ def test_each_segment_is_modelled_by_one_block_however_the_blocks_draw_it():
     # numbered on the whole grid: block 1's after block 0's four
     assert list(claims.claim(b1, s1, 4, todo)) == [0, 0, 6, 7, 0]
     assert claims.count == 4
-    ids = claims.ids
+    written = claims.written()
+    if kept_in == "file":
+        assert not isinstance(claims.ids, np.ndarray) and "rasters" not in written
+        ids, on, _ = read_raster(written["raster_files"]["segments"])
+        ids = ids[0]
+        assert on == grid and ids.dtype == np.int32
+    else:
+        ids = written["rasters"]["segments"][0]
     assert set(np.unique(ids)) == {0, 1, 4, 6, 7}
     assert (ids[1:4, 15:25] == 1).all() and ids[1, 25] == 0  # block 1's extra cell left
     assert (ids[16:19, 2:28] == 4).all() and (ids[16:19, 28:38] == 0).all()
@@ -127,3 +136,8 @@ def test_a_path_in_blocks_models_each_building_once(path, tiny_scene, tiny_fusio
     assert m["complexity"]["watertight_fraction"] == 1.0
     ids = [b["id"] for b in record["buildings"]]
     assert len(set(ids)) == len(ids)
+    if path == "parametric":  # the segments' numbers, written block by block
+        mine, theirs = (
+            read_raster(d / "segments.tif")[0][0] > 0 for d in (out, tiny_models(path)[0])
+        )
+        assert (mine == theirs).mean() > 0.98

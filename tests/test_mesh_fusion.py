@@ -102,7 +102,7 @@ def test_the_tiny_city_mesh_sampled_matches_the_truth(mesh_fusion, tiny_scene):
 
 def test_a_path_runs_from_the_mesh_fusion(mesh_fusion, tiny_scene):
     root, out, _ = mesh_fusion
-    proc = run_cli("model", "superpixel", out, "-o", root / "sp")
+    proc = run_cli("model", "superpixel", out, "-o", root / "sp", "--workers", "1")
     assert proc.returncode == 0, proc.stderr
     report = root / "report"
     proc = run_cli("compare", root / "sp", "--truth", tiny_scene, "-o", report)

@@ -96,7 +96,7 @@ def test_bad_fusion_folder_is_one_line(modelled, tmp_path, case):
             rewrite_raster(fusion / "dsm.tif", crs="EPSG:32631")
         expect = f"dsm.tif: {'transform' if case == 'grid' else 'crs'}"
     out = tmp_path / "out"
-    proc = run_cli("model", "superpixel", fusion, "-o", out)
+    proc = run_cli("model", "superpixel", fusion, "-o", out, "--workers", "1")
     assert proc.returncode == 2 and expect in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and not out.exists()
 
@@ -110,7 +110,7 @@ def test_no_building_pixels_give_an_empty_valid_model(modelled, tmp_path):
     prob[0] = 1  # everything ground
     rewrite_raster(fusion / "class_prob.tif", prob)
     out = tmp_path / "out"
-    proc = run_cli("model", "superpixel", fusion, "-o", out)
+    proc = run_cli("model", "superpixel", fusion, "-o", out, "--workers", "1")
     assert proc.returncode == 0, proc.stderr
     assert "empty" in proc.stdout
     record = json.loads((out / "model.json").read_text())
@@ -123,8 +123,11 @@ def test_ahn3_clouds_give_closed_models_near_their_points(tmp_path):
     for name in ("1.ply", "12.ply", "20.ply", "42.ply"):  # 42: 48 points, 4 m wide
         cloud = SHARED_DATA / "ahn3_buildings" / name
         fusion, out = tmp_path / f"{name}_f", tmp_path / f"{name}_m"
-        assert run_cli("fusion", "--points", cloud, "-o", fusion).returncode == 0
-        proc = run_cli("model", "superpixel", fusion, "-o", out, "--all-building", "--min-area", 5)
+        # one process each: a cluster's start would take longer than these small clouds
+        one = ("--workers", "1")
+        assert run_cli("fusion", "--points", cloud, "-o", fusion, *one).returncode == 0
+        proc = run_cli("model", "superpixel", fusion, "-o", out, "--all-building",
+                       "--min-area", 5, *one)  # fmt: skip
         assert proc.returncode == 0, proc.stderr
         record = json.loads((out / "model.json").read_text())
         assert record["buildings"] and all(b["watertight"] for b in record["buildings"])
@@ -149,11 +152,15 @@ def test_omega_auto_is_chosen_on_the_training_strokes(modelled, tiny_scene, tmp_
     record = json.loads((fusion / "fusion.json").read_text())
     record["inputs"] = {}  # a fusion run that does not say which scene it came from
     (fusion / "fusion.json").write_text(json.dumps(record))
-    proc = run_cli("model", "superpixel", fusion, "-o", out, "--omega-class", "auto")
+    proc = run_cli(
+        "model", "superpixel", fusion, "-o", out, "--omega-class", "auto", "--workers", "1"
+    )
     assert proc.returncode == 2 and "fusion.json: inputs.scene" in proc.stderr
     record["inputs"] = {"scene": str(tiny_scene / "scene.json")}
     (fusion / "fusion.json").write_text(json.dumps(record))
-    proc = run_cli("model", "superpixel", fusion, "-o", out, "--omega-class", "auto")
+    proc = run_cli(
+        "model", "superpixel", fusion, "-o", out, "--omega-class", "auto", "--workers", "1"
+    )
     assert proc.returncode == 0, proc.stderr
     choice = json.loads((out / "model.json").read_text())["omega_class_choice"]
     assert choice["scores"][str(choice["omega"])] == max(choice["scores"].values())
@@ -161,7 +168,7 @@ def test_omega_auto_is_chosen_on_the_training_strokes(modelled, tiny_scene, tmp_
 
 def test_same_seed_same_meshes(modelled, tmp_path):
     out = tmp_path / "again"
-    assert run_cli("model", "superpixel", modelled[0], "-o", out).returncode == 0
+    assert run_cli("model", "superpixel", modelled[0], "-o", out, "--workers", "1").returncode == 0
     first = sorted((modelled[1] / "buildings").glob("*.ply"))
     assert first and [p.read_bytes() for p in first] == [
         (out / "buildings" / p.name).read_bytes() for p in first
@@ -177,7 +184,7 @@ def test_autzen_models_sit_on_their_points_in_feet(tmp_path):
     cloud = SHARED_DATA / "autzen" / "autzen_trim.las"
     fusion, out = tmp_path / "f", tmp_path / "m"
     assert run_cli("fusion", "--points", cloud, "-o", fusion).returncode == 0
-    proc = run_cli("model", "superpixel", fusion, "-o", out)
+    proc = run_cli("model", "superpixel", fusion, "-o", out, "--workers", "1")
     assert proc.returncode == 0, proc.stderr
     record = json.loads((out / "model.json").read_text())
     assert 1 <= len(record["buildings"]) <= 3 and all(b["watertight"] for b in record["buildings"])

@@ -146,7 +146,7 @@ def test_terraced_block_from_tiles_is_one_region_modelled_on_its_planes(terrace,
     fusion, model, report = tmp_path / "f", tmp_path / "m", tmp_path / "r"
     proc = run_cli("fusion", "--points", terrace / "tiles", "-o", fusion)  # the default cell
     assert proc.returncode == 0, proc.stderr
-    proc = run_cli("model", "superpixel", fusion, "-o", model)
+    proc = run_cli("model", "superpixel", fusion, "-o", model, "--workers", "1")
     assert proc.returncode == 0, proc.stderr
     record = json.loads((model / "model.json").read_text())
     region = record["buildings"][0]

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import rasterio
+from rasterio.crs import CRS
 from rasterio.errors import RasterioIOError
 
 from .errors import InputError
@@ -102,12 +103,17 @@ def _record(path: Path) -> dict:
 
 def fusion_grid(folder: str | Path) -> Grid:
     """The grid of a fusion run's rasters (its ``dsm.tif``'s), read from the header alone."""
+    return fusion_header(folder)[0]
+
+
+def fusion_header(folder: str | Path) -> tuple[Grid, CRS | None]:
+    """The grid and CRS of a fusion run's rasters (its ``dsm.tif``'s header)."""
     path = Path(folder) / "dsm.tif"
     if not path.exists():
         raise InputError(path, None, "missing: not the output folder of `workbench fusion`")
     try:
         with rasterio.open(path) as src:
-            return Grid.from_transform(src.transform, src.width, src.height)
+            return Grid.from_transform(src.transform, src.width, src.height), src.crs
     except (RasterioIOError, ValueError) as exc:
         raise InputError(path, None, f"not a readable north-up raster ({exc})") from None
 

@@ -288,6 +288,13 @@ class WindowedRaster:
         with _gdal_cache(), rasterio.open(self.staging, "r+") as dst:
             dst.write(arr, window=window)
 
+    def read(self, rows: slice, cols: slice) -> np.ndarray:
+        """(B, h, w) the cells ``rows`` x ``cols`` as written so far (0, or the nodata
+        value, where nothing was)."""
+        window = Window(cols.start, rows.start, cols.stop - cols.start, rows.stop - rows.start)
+        with _gdal_cache(), rasterio.open(self.staging) as src:
+            return src.read(window=window)
+
     def close(self) -> None:
         """The COG at ``path``; the staging file removed."""
         options = {k: self.profile[k] for k in ("compress", "predictor", "blocksize",

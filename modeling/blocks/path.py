@@ -26,7 +26,7 @@ from modeling.shared.in_blocks import (
     SegmentClaims,
     block_engine,
     blocks_record,
-    model_blocks,
+    plan_blocks,
 )
 from modeling.shared.opened_parts import building_segments, mid_wall_region
 from modeling.shared.raster_ground import vertex_colours
@@ -34,7 +34,7 @@ from modeling.shared.roof_envelope import BuildingMesh, building_solid, face_pla
 from modeling.shared.roof_model import closed_roof_model
 from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
 from workbench.errors import InputError
-from workbench.fusion_run import class_map, fusion_grid, read_fusion_run, tree_cells
+from workbench.fusion_run import class_map, read_fusion_run, tree_cells
 from workbench.grid_blocks import Block as GridBlock
 from workbench.meshes import is_watertight
 from workbench.model_run import Building, ModelRun, Surface
@@ -119,9 +119,8 @@ def run_blocks(
     engine = engine or ThreadEngine(1)
     timer = StageTimer()
     t_start = time.perf_counter()
-    grid = fusion_grid(fusion_dir)
-    blocks, block_m = model_blocks(grid, options.block_m, options.block_margin_m)
-    claims, rasters = SegmentClaims(grid, blocks), BlockRasters(grid, blocks, fusion_dir)
+    plan = plan_blocks(fusion_dir, options.block_m, options.block_margin_m, engine)
+    grid, blocks, claims, rasters = plan.grid, plan.blocks, plan.claims, plan.rasters
     results, wide, crs = [], 0, None
     for b in blocks:
         found, cut, crs = model_block(fusion_dir, b, claims, rasters, options, supports,
@@ -142,7 +141,7 @@ def run_blocks(
     record = {"supports_from": "file" if supports is not None else
               "automatic (footprint priors of the height regions)"}  # fmt: skip
     if len(blocks) > 1:
-        record["blocks"] = blocks_record(blocks, block_m, options.block_margin_m, wide)
+        record["blocks"] = blocks_record(blocks, plan.side_m, options.block_margin_m, wide)
     return ModelRun(
         "blocks", options, buildings, crs=crs, grid=grid, **rasters.model_rasters(),
         ground=rasters.ground(), preview=preview, stages=timer.stages,

@@ -35,7 +35,7 @@ from modeling.shared.in_blocks import (
     SegmentClaims,
     block_engine,
     blocks_record,
-    model_blocks,
+    plan_blocks,
 )
 from modeling.shared.opened_parts import building_segments, opened_parts
 from modeling.shared.raster_ground import vertex_colours
@@ -45,7 +45,6 @@ from workbench.errors import InputError
 from workbench.fusion_run import (
     building_cells,
     class_map,
-    fusion_grid,
     read_fusion_run,
     tree_cells,
 )
@@ -163,9 +162,8 @@ def run_parametric(
     engine = engine or ThreadEngine(1)
     timer = StageTimer()
     t_start = time.perf_counter()
-    grid = fusion_grid(fusion_dir)
-    blocks, block_m = model_blocks(grid, options.block_m, options.block_margin_m)
-    claims, rasters = SegmentClaims(grid, blocks), BlockRasters(grid, blocks, fusion_dir)
+    plan = plan_blocks(fusion_dir, options.block_m, options.block_margin_m, engine)
+    grid, blocks, claims, rasters = plan.grid, plan.blocks, plan.claims, plan.rasters
     done: list[BlockModel] = []
     for b in blocks:
         on = block_engine(engine, blocks, b)
@@ -182,12 +180,12 @@ def run_parametric(
     rounds = done[0].rounds if len(done) == 1 else summed_rounds([d.rounds for d in done])
     segmentation = {"initialised_from": done[0].init_source, "rounds": rounds}
     if len(blocks) > 1:
-        segmentation["blocks"] = blocks_record(blocks, block_m, options.block_margin_m,
+        segmentation["blocks"] = blocks_record(blocks, plan.side_m, options.block_margin_m,
                                                sum(d.cut for d in done))  # fmt: skip
     return ModelRun(
-        "parametric", options, buildings, crs=done[0].crs, grid=grid, **rasters.model_rasters(),
-        ground=rasters.ground(), preview=preview, stages=timer.stages,
-        rasters={"segments": (claims.ids, 0)},
+        "parametric", options, buildings, crs=done[0].crs, grid=grid,
+        **rasters.model_rasters(claims), ground=rasters.ground(), preview=preview,
+        stages=timer.stages,
         inputs={"fusion": str(Path(fusion_dir).absolute()),
                 "footprints": str(Path(footprints).absolute()) if footprints else None,
                 "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd}},

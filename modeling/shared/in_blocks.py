@@ -18,16 +18,18 @@ part it holds when the segment is wider than the margin (counted, and warned of)
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from modeling.shared.raster_ground import GROUND_CELL_M, ground_surface
 from workbench.engine import Engine
+from workbench.fusion_run import fusion_header
 from workbench.grid_blocks import Block, auto_block_size, block_layout, whole_grid_block
 from workbench.meshes import concatenate_meshes
 from workbench.model_run import Surface
-from workbench.raster import Grid, RasterWindows
+from workbench.raster import Grid, RasterWindows, WindowedRaster
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +45,29 @@ def model_blocks(grid: Grid, block_m: float | None, margin_m: float) -> tuple[li
     blocks = block_layout(grid, block_m, margin_m)
     log.info("%d blocks of %g m with %g m of margin", len(blocks), block_m, margin_m)
     return blocks, block_m
+
+
+@dataclass
+class BlockPlan:
+    """A path's run over a fusion's grid in blocks: the grid, its blocks (``side_m``:
+    their side, None for the whole grid), which block models which segment, and the
+    rasters the run writes."""
+
+    grid: Grid
+    blocks: list[Block]
+    side_m: float | None
+    claims: SegmentClaims
+    rasters: BlockRasters
+
+
+def plan_blocks(fusion_dir, block_m: float | None, margin_m: float, engine: Engine) -> BlockPlan:
+    """The blocks of ``fusion_dir``'s grid (:func:`model_blocks`); the segments' numbers
+    are kept in ``engine``'s task store when it has one."""
+    grid, crs = fusion_header(fusion_dir)
+    blocks, side_m = model_blocks(grid, block_m, margin_m)
+    folder = engine.store.folder if engine.store is not None else None
+    return BlockPlan(grid, blocks, side_m, SegmentClaims(grid, blocks, folder, crs),
+                     BlockRasters(grid, blocks, fusion_dir))  # fmt: skip
 
 
 def block_engine(engine: Engine, blocks: list[Block], block: Block) -> Engine:
@@ -66,20 +91,29 @@ class SegmentClaims:
         The whole grid.
     blocks : list of Block
         In the order they are modelled (their inner cells tile the grid).
+    folder : path, optional
+        With several blocks, where the numbers are kept (``segments.tif``, written and
+        read back block by block), so that no whole-grid array is held; else in memory.
+    crs : CRS, optional
+        The grid's, for ``segments.tif``.
 
     Attributes
     ----------
     grid : Grid
-    ids : (H, W) int32
+    ids : (H, W) int32 array, or WindowedRaster
         The segments modelled so far, numbered on the whole grid; 0 elsewhere.
     count : int
         How many segments the blocks have given to be modelled.
     """
 
-    def __init__(self, grid: Grid, blocks: list[Block]):
+    def __init__(self, grid: Grid, blocks: list[Block], folder=None, crs=None):
         self.grid = grid
         self.whole = len(blocks) == 1
-        self.ids = np.zeros(grid.shape, np.int32)
+        if self.whole or folder is None:
+            self.ids = np.zeros(grid.shape, np.int32)
+        else:  # 4 bytes a cell: 2.5 GB for 100 km² at 0.4 m
+            self.ids = WindowedRaster(Path(folder) / "segments.tif", grid, crs, np.int32,
+                                      nodata=0)  # fmt: skip
         self.count = 0
         self._offset = 0  # the numbers of the segments of the blocks before
         self._row_starts = np.unique([b.inner[0].start for b in blocks])
@@ -115,7 +149,7 @@ class SegmentClaims:
         rows, cols = np.indices(segments.shape)
         centre_r = np.bincount(labels, rows.ravel(), q + 1) / np.maximum(n, 1)
         centre_c = np.bincount(labels, cols.ravel(), q + 1) / np.maximum(n, 1)
-        taken = np.bincount(labels, (self.ids[block.outer] > 0).ravel(), q + 1)
+        taken = np.bincount(labels, (self._numbers(block) > 0).ravel(), q + 1)
         r, c = block.outer[0].start, block.outer[1].start
         owner = self.block_of(np.floor(centre_r[1:]).astype(int) + r,
                               np.floor(centre_c[1:]).astype(int) + c)  # fmt: skip
@@ -152,12 +186,27 @@ class SegmentClaims:
         (its own when the block is the whole grid; 0 for those not modelled)."""
         number = np.zeros(q + 1, np.int32)
         number[todo] = np.asarray(todo, np.int32) + self._offset
-        here = self.ids[block.outer]
+        here = self._numbers(block)
         free = here == 0
         here[free] = number[segments[free]]
+        if isinstance(self.ids, WindowedRaster):
+            self.ids.write(here, *block.outer)
         self._offset += q
         self.count += len(todo)
         return number
+
+    def _numbers(self, block: Block) -> np.ndarray:
+        """(h, w) the numbers on the block's outer cells (a view of the array in memory)."""
+        if isinstance(self.ids, WindowedRaster):
+            return self.ids.read(*block.outer)[0]
+        return self.ids[block.outer]
+
+    def written(self) -> dict:
+        """``ModelRun``'s ``rasters`` or ``raster_files`` entry of ``segments.tif``."""
+        if isinstance(self.ids, WindowedRaster):
+            self.ids.close()
+            return {"raster_files": {"segments": self.ids.path}}
+        return {"rasters": {"segments": (self.ids, 0)}}
 
 
 class BlockRasters:
@@ -243,12 +292,17 @@ class BlockRasters:
             return self.arrays["rgb"], self.arrays.get("mask"), self.grid
         return self.arrays["rgb"], self.arrays.get("mask"), self.coarse
 
-    def model_rasters(self) -> dict:
-        """``ModelRun``'s ``dtm``, ``dsm`` and ``raster_files`` for the run."""
+    def model_rasters(self, segments: SegmentClaims | None = None) -> dict:
+        """``ModelRun``'s ``dtm``, ``dsm``, ``rasters`` and ``raster_files`` for the run;
+        with ``segments``, their numbers as ``segments.tif``."""
+        written = segments.written() if segments is not None else {}
+        files = written.get("raster_files", {})
         if self.whole:
-            return {"dtm": self.arrays["dtm"], "dsm": self.arrays["dsm"]}
+            return {"dtm": self.arrays["dtm"], "dsm": self.arrays["dsm"],
+                    "rasters": written.get("rasters", {}), "raster_files": files}  # fmt: skip
         return {
             "dtm": None,
             "dsm": RasterWindows(self.fusion_dir / "dsm.tif", self.grid),
-            "raster_files": {"dtm": self.fusion_dir / "dtm.tif"},
+            "rasters": written.get("rasters", {}),
+            "raster_files": {"dtm": self.fusion_dir / "dtm.tif", **files},
         }
