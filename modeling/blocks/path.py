@@ -133,7 +133,8 @@ def run_blocks(
     buildings = [x.building for x in results if x.building is not None]
     skipped = [{"building": str(x.key), "reason": x.skipped} for x in results if x.skipped]
     with timer.stage("preview"):
-        rgb, _, on = rasters.preview_layers()
+        layers, on = rasters.preview_layers()
+        rgb = layers["rgb"]
         preview = blocks_preview(rgb, on, results, buildings)
     seconds = time.perf_counter() - t_start
     iterations = sum(b.record["iterations"] for b in buildings)

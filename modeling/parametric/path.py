@@ -173,7 +173,8 @@ def run_parametric(
     skipped = [{"segment": x.segment, "reason": x.skipped} for x in results if x.skipped]
     with timer.stage("preview"):
         outlines = [o for x in results for o in x.outlines]
-        rgb, mask, on = rasters.preview_layers()
+        layers, on = rasters.preview_layers()
+        rgb, mask = layers["rgb"], layers.get("mask")
         preview = parametric_preview(rgb, on, mask, outlines, buildings,
                                      [o for d in done for o in d.skipped_outlines])  # fmt: skip
     seconds = time.perf_counter() - t_start

@@ -67,7 +67,7 @@ def plan_blocks(fusion_dir, block_m: float | None, margin_m: float, engine: Engi
     blocks, side_m = model_blocks(grid, block_m, margin_m)
     folder = engine.store.folder if engine.store is not None else None
     return BlockPlan(grid, blocks, side_m, SegmentClaims(grid, blocks, folder, crs),
-                     BlockRasters(grid, blocks, fusion_dir))  # fmt: skip
+                     BlockRasters(grid, blocks, fusion_dir, folder, crs))  # fmt: skip
 
 
 def block_engine(engine: Engine, blocks: list[Block], block: Block) -> Engine:
@@ -80,6 +80,69 @@ def blocks_record(blocks: list[Block], block_m: float, margin_m: float, wide: in
     """model.json's record of the blocks (``wide``: segments wider than the margin)."""
     return {"count": len(blocks), "side_m": round(block_m, 3), "margin_m": margin_m,
             "segments_wider_than_the_margin": wide}  # fmt: skip
+
+
+class GridRaster:
+    """A raster of the whole grid that a run writes, and reads back, block by block: in
+    memory, or with ``folder`` in a file there (:class:`~workbench.raster.WindowedRaster`)
+    so that no whole-grid array is held.
+
+    Parameters
+    ----------
+    name : str
+        The raster's name: ``NAME.tif`` in the run folder.
+    grid : Grid
+        The whole grid.
+    dtype, nodata
+        The raster's (``nodata`` also fills the cells not yet written).
+    folder : path, optional
+    crs : CRS, optional
+    """
+
+    def __init__(self, name: str, grid: Grid, dtype, nodata=None, folder=None, crs=None):
+        self.name, self.grid, self.dtype, self.nodata = name, grid, np.dtype(dtype), nodata
+        self.array: np.ndarray | None = None
+        self.file = None
+        if folder is not None:
+            self.file = WindowedRaster(Path(folder) / f"{name}.tif", grid, crs, self.dtype,
+                                       nodata=nodata)  # fmt: skip
+
+    def read(self, rows: slice, cols: slice) -> np.ndarray:
+        """(h, w) the cells as written so far (a view, in memory)."""
+        if self.file is not None:
+            return self.file.read(rows, cols)[0]
+        return self._memory()[rows, cols]
+
+    def write(self, data: np.ndarray, rows: slice, cols: slice) -> None:
+        """``data`` (h, w) at the cells ``rows`` x ``cols``."""
+        if self.file is not None:
+            self.file.write(data, rows, cols)
+        elif self.array is None and data.shape == self.grid.shape:
+            self.array = data  # the whole grid at once: kept as it is, not copied
+        else:
+            self._memory()[rows, cols] = data
+
+    def _memory(self) -> np.ndarray:
+        if self.array is None:
+            self.array = np.full(self.grid.shape, self.nodata or 0, self.dtype)
+        return self.array
+
+    def written(self) -> dict:
+        """``ModelRun``'s ``rasters`` or ``raster_files`` entry of the raster."""
+        if self.file is not None:
+            self.file.close()
+            return {"raster_files": {self.name: self.file.path}}
+        return {"rasters": {self.name: (self._memory(), self.nodata)}}
+
+
+def merged_outputs(*entries: dict) -> dict:
+    """``ModelRun``'s ``rasters`` and ``raster_files`` from several :meth:`GridRaster.
+    written` entries."""
+    out = {"rasters": {}, "raster_files": {}}
+    for entry in entries:
+        for key, value in entry.items():
+            out[key].update(value)
+    return out
 
 
 class SegmentClaims:
@@ -100,7 +163,7 @@ class SegmentClaims:
     Attributes
     ----------
     grid : Grid
-    ids : (H, W) int32 array, or WindowedRaster
+    ids : GridRaster
         The segments modelled so far, numbered on the whole grid; 0 elsewhere.
     count : int
         How many segments the blocks have given to be modelled.
@@ -109,11 +172,8 @@ class SegmentClaims:
     def __init__(self, grid: Grid, blocks: list[Block], folder=None, crs=None):
         self.grid = grid
         self.whole = len(blocks) == 1
-        if self.whole or folder is None:
-            self.ids = np.zeros(grid.shape, np.int32)
-        else:  # 4 bytes a cell: 2.5 GB for 100 km² at 0.4 m
-            self.ids = WindowedRaster(Path(folder) / "segments.tif", grid, crs, np.int32,
-                                      nodata=0)  # fmt: skip
+        # 4 bytes a cell: 2.5 GB for 100 km² at 0.4 m
+        self.ids = GridRaster("segments", grid, np.int32, 0, None if self.whole else folder, crs)
         self.count = 0
         self._offset = 0  # the numbers of the segments of the blocks before
         self._row_starts = np.unique([b.inner[0].start for b in blocks])
@@ -149,7 +209,7 @@ class SegmentClaims:
         rows, cols = np.indices(segments.shape)
         centre_r = np.bincount(labels, rows.ravel(), q + 1) / np.maximum(n, 1)
         centre_c = np.bincount(labels, cols.ravel(), q + 1) / np.maximum(n, 1)
-        taken = np.bincount(labels, (self._numbers(block) > 0).ravel(), q + 1)
+        taken = np.bincount(labels, (self.ids.read(*block.outer) > 0).ravel(), q + 1)
         r, c = block.outer[0].start, block.outer[1].start
         owner = self.block_of(np.floor(centre_r[1:]).astype(int) + r,
                               np.floor(centre_c[1:]).astype(int) + c)  # fmt: skip
@@ -186,35 +246,23 @@ class SegmentClaims:
         (its own when the block is the whole grid; 0 for those not modelled)."""
         number = np.zeros(q + 1, np.int32)
         number[todo] = np.asarray(todo, np.int32) + self._offset
-        here = self._numbers(block)
+        here = self.ids.read(*block.outer)
         free = here == 0
         here[free] = number[segments[free]]
-        if isinstance(self.ids, WindowedRaster):
-            self.ids.write(here, *block.outer)
+        self.ids.write(here, *block.outer)
         self._offset += q
         self.count += len(todo)
         return number
-
-    def _numbers(self, block: Block) -> np.ndarray:
-        """(h, w) the numbers on the block's outer cells (a view of the array in memory)."""
-        if isinstance(self.ids, WindowedRaster):
-            return self.ids.read(*block.outer)[0]
-        return self.ids[block.outer]
-
-    def written(self) -> dict:
-        """``ModelRun``'s ``rasters`` or ``raster_files`` entry of ``segments.tif``."""
-        if isinstance(self.ids, WindowedRaster):
-            self.ids.close()
-            return {"raster_files": {"segments": self.ids.path}}
-        return {"rasters": {"segments": (self.ids, 0)}}
 
 
 class BlockRasters:
     """What a run writes of the whole grid, from its blocks. With one block, that block's
     arrays as they are. With several, no whole-grid array: the DTM and the DSM stay the
     fusion's files (the model's DTM is the fusion's; each building's RMS to the DSM is
-    read in its window), the ground mesh is the blocks' pieces joined on a lattice of the
-    whole grid, and the preview is drawn on a coarse mosaic of the ortho and the mask.
+    read in its window), the path's own rasters are written block by block into files of
+    ``folder`` (:class:`GridRaster`), the ground mesh is the blocks' pieces joined on a
+    lattice of the whole grid, and the preview is drawn on a coarse mosaic of the ortho
+    and the layers the path draws over it.
 
     Parameters
     ----------
@@ -223,14 +271,21 @@ class BlockRasters:
     blocks : list of Block
     fusion_dir : path
         The fusion run the blocks read.
+    folder : path, optional
+        Where the path's own rasters are written with several blocks (else in memory).
+    crs : CRS, optional
+        The grid's.
     preview_cells : int
         The coarse mosaic's longest side, cells.
     """
 
-    def __init__(self, grid: Grid, blocks: list[Block], fusion_dir, preview_cells: int = 2048):
-        self.grid, self.fusion_dir = grid, Path(fusion_dir)
+    def __init__(self, grid: Grid, blocks: list[Block], fusion_dir, folder=None, crs=None,
+                 preview_cells: int = 2048):  # fmt: skip
+        self.grid, self.fusion_dir, self.crs = grid, Path(fusion_dir), crs
         self.whole = len(blocks) == 1
+        self.folder = None if self.whole else folder
         self.arrays: dict[str, np.ndarray] = {}
+        self.own: dict[str, GridRaster] = {}
         self.step = max(1, round(GROUND_CELL_M / grid.gsd))
         self.factor = max(1, -(-max(grid.shape) // preview_cells))
         f = self.factor
@@ -239,12 +294,11 @@ class BlockRasters:
         self.pieces: list[Surface] = []
 
     def put(self, block: Block, grid: Grid, *, dtm: np.ndarray, rgb: np.ndarray,
-            mask: np.ndarray | None = None, dsm: np.ndarray | None = None) -> None:  # fmt: skip
-        """The block's arrays ((h, w) or (h, w, 3) on its outer cells, ``grid``)."""
+            dsm: np.ndarray | None = None, **layers: np.ndarray) -> None:  # fmt: skip
+        """The block's arrays ((h, w) or (h, w, 3) on its outer cells, ``grid``): the DTM
+        and the ortho, the DSM, and the ``layers`` the preview draws (a mask, classes)."""
         if self.whole:
-            self.arrays.update(dtm=dtm, rgb=rgb, dsm=dsm)
-            if mask is not None:
-                self.arrays["mask"] = mask
+            self.arrays.update(dtm=dtm, rgb=rgb, dsm=dsm, **layers)
             return
         rows, cols = (self._lattice(i, o) for i, o in zip(block.inner, block.outer,
                                                           strict=True))  # fmt: skip
@@ -261,11 +315,18 @@ class BlockRasters:
             slice(r0 // f, r0 // f + len(range(r0, r1, f))),
             slice(c0 // f, c0 // f + len(range(c0, c1, f))),
         )
-        layers = {"rgb": rgb} if mask is None else {"rgb": rgb, "mask": mask}
-        for name, a in layers.items():
+        for name, a in {"rgb": rgb, **layers}.items():
             if name not in self.arrays:
                 self.arrays[name] = np.zeros(self.coarse.shape + a.shape[2:], a.dtype)
             self.arrays[name][at] = a[inside]
+
+    def keep(self, name: str, block: Block, data: np.ndarray, nodata=None) -> None:
+        """The path's own raster ``name``.tif: ``data`` (h, w) on the block's outer cells,
+        of which its inner ones are written."""
+        if name not in self.own:
+            self.own[name] = GridRaster(name, self.grid, data.dtype, nodata, self.folder,
+                                        self.crs)  # fmt: skip
+        self.own[name].write(data[block.inside], *block.inner)
 
     def _lattice(self, inner: slice, outer: slice) -> slice:
         """The cells (of the outer ones) of the ground's lattice rows (or columns) from the
@@ -286,23 +347,20 @@ class BlockRasters:
         V, T, _ = concatenate_meshes([(p.vertices, p.triangles) for p in self.pieces])
         return Surface(V, T, vertex_colors=np.concatenate([p.vertex_colors for p in self.pieces]))
 
-    def preview_layers(self) -> tuple[np.ndarray, np.ndarray | None, Grid]:
-        """The ortho, the mask (None if none was put) and their grid, for the preview."""
-        if self.whole:
-            return self.arrays["rgb"], self.arrays.get("mask"), self.grid
-        return self.arrays["rgb"], self.arrays.get("mask"), self.coarse
+    def preview_layers(self) -> tuple[dict[str, np.ndarray], Grid]:
+        """The ortho (``rgb``) and the layers put beside it, and their grid (the whole
+        grid's, or the coarse mosaic's), for the preview."""
+        layers = {k: v for k, v in self.arrays.items() if k not in ("dtm", "dsm")}
+        return layers, self.grid if self.whole else self.coarse
 
     def model_rasters(self, segments: SegmentClaims | None = None) -> dict:
-        """``ModelRun``'s ``dtm``, ``dsm``, ``rasters`` and ``raster_files`` for the run;
-        with ``segments``, their numbers as ``segments.tif``."""
-        written = segments.written() if segments is not None else {}
-        files = written.get("raster_files", {})
+        """``ModelRun``'s ``dtm``, ``dsm``, ``rasters`` and ``raster_files`` for the run:
+        the path's own rasters, and with ``segments`` their numbers as ``segments.tif``."""
+        own = [r.written() for r in self.own.values()]
+        if segments is not None:
+            own.append(segments.ids.written())
+        out = merged_outputs(*own)
         if self.whole:
-            return {"dtm": self.arrays["dtm"], "dsm": self.arrays["dsm"],
-                    "rasters": written.get("rasters", {}), "raster_files": files}  # fmt: skip
-        return {
-            "dtm": None,
-            "dsm": RasterWindows(self.fusion_dir / "dsm.tif", self.grid),
-            "rasters": written.get("rasters", {}),
-            "raster_files": {"dtm": self.fusion_dir / "dtm.tif", **files},
-        }
+            return {"dtm": self.arrays["dtm"], "dsm": self.arrays["dsm"], **out}
+        out["raster_files"]["dtm"] = self.fusion_dir / "dtm.tif"
+        return {"dtm": None, "dsm": RasterWindows(self.fusion_dir / "dsm.tif", self.grid), **out}

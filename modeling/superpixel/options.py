@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from workbench.options import documented, option
+from workbench.options import block_margin_option, block_side_option, documented, option
 
 
 @documented
@@ -81,6 +81,8 @@ class SuperpixelOptions:
         "City3D's building instances, have no ground to classify against)",
     )  # fmt: skip
     seed: int = option(0, "seed of RANSAC and affinity propagation", kind="non_negative")
+    block_m: float | None = block_side_option()
+    block_margin_m: float = block_margin_option()
     workers: int | None = option(
         None, "buildings modelled at once: worker processes of a local Dask cluster (1: in "
         "this process), and Quickshift tiles segmented at once in threads; the model does "

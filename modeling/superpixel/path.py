@@ -10,15 +10,24 @@ The steps of the paper, each in the module named after it: :mod:`.quickshift` (4
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from modeling.shared.raster_ground import ground_surface, vertex_colours
+from modeling.shared.in_blocks import (
+    BlockPlan,
+    block_engine,
+    blocks_record,
+    model_blocks,
+    plan_blocks,
+)
+from modeling.shared.raster_ground import vertex_colours
 from workbench import metrics
 from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
-from workbench.errors import InputError
+from workbench.errors import InputError, WorkbenchError
 from workbench.fusion_run import FusionRun, class_map, read_fusion_run
+from workbench.grid_blocks import Block
 from workbench.model_run import Building, ModelRun
 from workbench.parallel import default_workers
 from workbench.raster import BUILDING, Grid, class_codes, read_raster
@@ -50,6 +59,7 @@ def run_superpixel(
     fusion_dir : path
         A fusion run folder (ortho, dsm, dtm, class_prob, class).
     options : SuperpixelOptions
+        With ``block_m``, the grid is modelled block by block (:func:`model_block`).
     truth : path, optional
         A scene with truth/: the paper's Table 1 rows go into the record.
     engine : Engine, optional
@@ -59,8 +69,81 @@ def run_superpixel(
     engine = engine or ThreadEngine(1)
     timer = StageTimer()
     t_start = time.perf_counter()
+    plan = plan_blocks(fusion_dir, options.block_m, options.block_margin_m, engine)
+    grid, blocks = plan.grid, plan.blocks
+    if len(blocks) > 1:
+        refuse_in_blocks(options, truth)
+    done: list[BlockModel] = []
+    for b in blocks:
+        first = sum(d.superpixels for d in done)  # the super-pixels' numbers on the whole grid
+        done.append(model_block(fusion_dir, b, plan, options, first, truth,
+                                block_engine(engine, blocks, b), timer))  # fmt: skip
+    buildings = [x for d in done for x in d.buildings]
+    with timer.stage("preview"):
+        layers, on = plan.rasters.preview_layers()
+        preview = superpixel_preview(layers["rgb"], layers["labels"], layers["classes"],
+                                     layers["faces"], buildings, on,
+                                     min(d.ground_z for d in done))  # fmt: skip
+    elapsed = time.perf_counter() - t_start
+    seconds = {step: sum(d.seconds[step] for d in done) for step in ROOF_STEPS}
+    record = {
+        "superpixels": sum(d.superpixels for d in done), **done[0].crf_choices,
+        # the tasks' own time in each step, summed over the buildings and the workers
+        "roof_steps_s": {step: round(sec, 3) for step, sec in seconds.items()},
+        **engine.describe(),
+        "seconds_per_building": round(elapsed / max(len(buildings), 1), 3),
+        "seconds_per_megapixel": round(elapsed / (grid.width * grid.height / 1e6), 3),
+        "peak_memory_mb": round(peak_memory_mb(), 1),
+    }  # fmt: skip
+    if len(blocks) > 1:
+        record["blocks"] = blocks_record(blocks, plan.side_m, options.block_margin_m,
+                                         sum(d.cut for d in done))  # fmt: skip
+    if truth is not None:
+        record["classification_table"] = done[0].classification_table
+    return ModelRun(
+        "superpixel", options, buildings, crs=done[0].crs, grid=grid,
+        **plan.rasters.model_rasters(), ground=plan.rasters.ground(),
+        preview=preview, stages=timer.stages, parameters=done[0].decided, record=record,
+        inputs={"fusion": str(Path(fusion_dir).absolute()),
+                "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd}},
+    )  # fmt: skip
+
+
+@dataclass
+class BlockModel:
+    """What :func:`model_block` gives beside its rasters: the buildings it models
+    (numbered on the whole grid), its super-pixels, the seconds its buildings' tasks spent
+    in each of ``ROOF_STEPS``, the class CRF's choices, the options it decided, its CRS,
+    how many buildings wider than the margin it modelled from the part it holds, its
+    lowest ground (for the preview's view) and, with a truth, the paper's Table 1."""
+
+    buildings: list[Building]
+    superpixels: int
+    seconds: dict
+    crf_choices: dict
+    decided: dict
+    crs: object
+    cut: int
+    ground_z: float
+    classification_table: dict | None = None
+
+
+def model_block(
+    fusion_dir: Path,
+    block: Block,
+    plan: BlockPlan,
+    options: SuperpixelOptions,
+    first_label: int,
+    truth: Path | None,
+    engine: Engine,
+    timer: StageTimer,
+) -> BlockModel:
+    """Sections 4-5 over the outer cells of ``block``: its rasters read, its super-pixels
+    (numbered from ``first_label`` in ``superpixels.tif``) and their classes, and a task
+    for each building ``plan.claims`` gives it (every one when the block is the whole
+    grid); the rasters the run writes put into ``plan.rasters``."""
     with timer.stage("read"):
-        fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
+        fusion = read_fusion_run(fusion_dir, FUSION_RASTERS, block.outer)
         dsm, dtm, grid = fusion.band("dsm"), fusion.band("dtm"), fusion.grid
         decided = decide_defaults(options, fusion.from_points)
     with timer.stage("superpixels"):
@@ -73,7 +156,7 @@ def run_superpixel(
     with timer.stage("aggregation"):
         graph = superpixel_graph(labels, fusion.rgb, fusion.rasters["class_prob"], dsm,
                                  residuals=options.geometry_unary,
-                                 classes=class_map(fusion_dir, grid))  # fmt: skip
+                                 classes=class_map(fusion_dir, grid, block.outer))  # fmt: skip
     with timer.stage("class_crf"):
         sp_class, crf_choices = class_crf(graph, labels, fusion, options)
         unseen = ~(np.nan_to_num(fusion.rasters["class_prob"]).sum(axis=0) > 0)
@@ -83,50 +166,63 @@ def run_superpixel(
         owner = split_buildings(
             sp_class == BUILDING, labels, grid.gsd, opening, options.min_area_m2
         )
-        pts = superpixel_points(labels, dsm, grid, wanted=owner > 0)
+        segments, q = owner[labels], int(owner.max())
+        todo, cut = plan.claims.segments_to_model(block, segments, q, None, last=True)
+        number = plan.claims.claim(block, segments, q, todo)
+        pts = superpixel_points(labels, dsm, grid, wanted=number[owner] > 0)
     with timer.stage("roofs"):
         buildings, faces, seconds = model_buildings(
-            graph, owner, pts, dsm, dtm, grid, options, decided["edge_reach_m"], engine
+            graph, owner, number, pts, dsm, dtm, grid, options, decided["edge_reach_m"], engine
         )
     for b in buildings:
         b.mesh.vertex_colors = vertex_colours(b.mesh.vertices, fusion.rgb, grid)
-    with timer.stage("preview"):
-        preview = superpixel_preview(fusion.rgb, labels, crf_class, faces, buildings, grid, dtm)
-    elapsed = time.perf_counter() - t_start
-    record = {
-        "superpixels": graph.n, **crf_choices,
-        # the tasks' own time in each step, summed over the buildings and the workers
-        "roof_steps_s": {step: round(sec, 3) for step, sec in seconds.items()},
-        **engine.describe(),
-        "seconds_per_building": round(elapsed / max(len(buildings), 1), 3),
-        "seconds_per_megapixel": round(elapsed / (grid.width * grid.height / 1e6), 3),
-        "peak_memory_mb": round(peak_memory_mb(), 1),
-    }  # fmt: skip
+    table = None
     if truth is not None:
         sp_argmax = np.where(unseen, 0, graph.class_sum.argmax(axis=1)[labels] + 1)
         # the paper's pixel column: each cell's most probable class (the fusion's class.tif
         # has its own CRF on the cells)
-        record["classification_table"] = classification_table(
+        table = classification_table(
             truth, grid, class_codes(fusion.rasters["class_prob"]), sp_argmax.astype(np.uint8),
             crf_class,
         )  # fmt: skip
-    return ModelRun(
-        "superpixel", options, buildings, crs=fusion.crs, grid=grid, dtm=dtm, dsm=dsm,
-        ground=ground_surface(dtm, fusion.rgb, grid),
-        rasters={"class": (crf_class, 0), "superpixels": (labels.astype(np.int32), None)},
-        preview=preview, stages=timer.stages, parameters=decided, record=record,
-        inputs={"fusion": str(Path(fusion_dir).absolute()),
-                "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd}},
-    )  # fmt: skip
+    labels = labels.astype(np.int32)
+    if first_label:
+        labels += first_label
+    plan.rasters.keep("class", block, crf_class, 0)
+    plan.rasters.keep("superpixels", block, labels)
+    plan.rasters.put(block, grid, dtm=dtm, rgb=fusion.rgb, dsm=dsm, labels=labels,
+                     classes=crf_class, faces=faces)  # fmt: skip
+    ground_z = float(np.nanmin(dtm)) if np.isfinite(dtm).any() else np.inf
+    return BlockModel(buildings, graph.n, seconds, crf_choices, decided, fusion.crs, cut,
+                      ground_z, table)  # fmt: skip
 
 
 def check_inputs(fusion_dir: Path, options: SuperpixelOptions, truth: Path | None = None) -> None:
     """Read what :func:`run_superpixel` refuses, before a command starts its workers: the
-    fusion run's rasters, and the training strokes ``--omega-class auto`` needs (one line,
-    with no worker's shutdown noise after it)."""
+    fusion run's rasters, the training strokes ``--omega-class auto`` needs and the
+    options a run in blocks cannot take (one line, with no worker's shutdown noise after
+    it)."""
     fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
+    if len(model_blocks(fusion.grid, options.block_m, options.block_margin_m)[0]) > 1:
+        refuse_in_blocks(options, truth)
     if options.omega_class is None and not options.all_building:
         training_strokes(fusion, required=True)
+
+
+def refuse_in_blocks(options: SuperpixelOptions, truth: Path | None) -> None:
+    """What a run in blocks cannot do: learn the class CRF's parameters on the training
+    strokes (each block would learn its own), or score the whole grid's classes."""
+    if options.omega_class is None and not options.all_building:
+        raise WorkbenchError(
+            "--omega-class auto: not with --block (each block would choose its own); "
+            "choose it on a part of the city and give the value"
+        )
+    if options.geometry_unary:
+        raise WorkbenchError("--geometry-unary: not with --block (each block would learn "
+                             "its own residual factors)")  # fmt: skip
+    if truth is not None:
+        raise WorkbenchError("--truth: not with --block; score the run's class.tif with "
+                             "`workbench compare --truth` instead")  # fmt: skip
 
 
 def decide_defaults(options: SuperpixelOptions, from_points: bool) -> dict:
@@ -170,6 +266,7 @@ def class_crf(
 def model_buildings(
     graph: SuperpixelGraph,
     owner: np.ndarray,
+    number: np.ndarray,
     pts: SuperpixelPoints,
     dsm: np.ndarray,
     dtm: np.ndarray,
@@ -181,12 +278,17 @@ def model_buildings(
     """Sections 5.1-5.3, each building a task of ``engine``
     (:func:`~.building_tasks.model_building_roofs`).
 
+    ``owner`` (N,) is each super-pixel's building 1..B (0 none); ``number`` (B + 1,)
+    each building's number on the whole grid, 0 for those another block models.
+
     Returns
     -------
     buildings, (H, W) int32 prototype face of every building cell (1000 * building +
     face), and the seconds the tasks spent in each of ``ROOF_STEPS``, summed.
     """
-    shares = building_shares(graph, owner, pts, dsm, dtm, grid)
+    shares = [s for s in building_shares(graph, owner, pts, dsm, dtm, grid) if number[s.id]]
+    for s in shares:
+        s.id = int(number[s.id])
     faces = np.zeros(graph.labels.shape, np.int32)
     seconds = dict.fromkeys(ROOF_STEPS, 0.0)
     out: list[Building] = []

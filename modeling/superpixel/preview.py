@@ -19,7 +19,7 @@ def superpixel_preview(
     faces: np.ndarray,
     buildings: list[Building],
     grid: Grid,
-    dtm: np.ndarray,
+    ground_z: float,
 ) -> np.ndarray:
     """(h, w, 3) uint8 contact sheet.
 
@@ -27,7 +27,7 @@ def superpixel_preview(
     ----------
     rgb : (H, W, 3) uint8 ortho; labels : (H, W) super-pixels; classes : (H, W) CRF
     classes; faces : (H, W) int prototype face of every building cell (0 elsewhere);
-    dtm : (H, W) float, metres.
+    grid : their grid; ground_z : the lowest ground, metres (inf: none).
     """
     edges = rgb.copy()
     edges[find_boundaries(labels, mode="inner")] = (255, 255, 0)
@@ -42,7 +42,7 @@ def superpixel_preview(
     if buildings:
         V, T, _ = concatenate_meshes([(b.mesh.vertices, b.mesh.triangles) for b in buildings])
         # a single-building cloud's DTM can be all NaN: its models' foot is the ground then
-        low = float(np.nanmin(dtm)) if np.isfinite(dtm).any() else float(V[:, 2].min())
+        low = ground_z if np.isfinite(ground_z) else float(V[:, 2].min())
         cam = viewpoints(grid.bounds, (low, float(V[:, 2].max())))["south-west"]
         row.append((render_mesh(V, T, cam, np.full((len(T), 3), 205, np.uint8)), "models"))
     return contact_sheet([row], height=360)
