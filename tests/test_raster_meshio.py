@@ -73,6 +73,25 @@ def test_obj_roundtrip_keeps_utm_millimetres_and_texture(tmp_path):
     assert read_obj(plain)[2] is None and texture_of(plain) is None
 
 
+def test_obj_written_in_chunks_is_the_obj_written_at_once(tmp_path, monkeypatch):
+    """A city's ground is written a few rows at a time: the same bytes, whatever the
+    chunk, with colours, uvs and runs of materials that end inside a chunk."""
+    import workbench.meshio as meshio
+
+    rng = np.random.default_rng(0)
+    v, t = rng.random((53, 3)) * 1000, rng.integers(0, 53, (41, 3))
+    colours, uvs = rng.integers(0, 255, (53, 3)).astype(np.uint8), rng.random((41, 3, 2))
+    cases = [{"vertex_colors": colours}, {"material": [("a", 10), ("b", 31)], "uvs": uvs}]
+    for k, kw in enumerate(cases):
+        write_obj(tmp_path / f"one{k}.obj", v, t, **kw)
+        monkeypatch.setattr(meshio, "OBJ_CHUNK", 7)
+        write_obj(tmp_path / f"chunks{k}.obj", v, t, **kw)
+        monkeypatch.undo()
+        one = (tmp_path / f"one{k}.obj").read_bytes()
+        assert one == (tmp_path / f"chunks{k}.obj").read_bytes()
+        assert one.count(b"\nv ") == 53 and one.count(b"\nf ") == 41
+
+
 def test_cell_index_nearest_and_clipped():
     g = Grid.from_bounds(0, 0, 4, 2, 1.0)  # 2 rows x 4 columns
     r, c = g.cell_index(

@@ -149,39 +149,54 @@ def write_obj(
     uvs : (T, 3, 2) float, optional
         Texture coordinates (u right, v up, 0-1) of every triangle corner.
     """
-    lines = ["# city-workbench"]
-    if mtllib:
-        lines.append(f"mtllib {mtllib}")
-    if vertex_colors is None:
+    with open(path, "w") as f:
+        for lines in _obj_chunks(vertices, triangles, vertex_colors, material, mtllib, uvs):
+            if lines:
+                f.write("\n".join(lines) + "\n")
+
+
+# lines formatted at once by write_obj: a city's ground of 1.5 M vertices as one list of
+# lines took some 500 MB
+OBJ_CHUNK = 65536
+
+
+def _obj_chunks(vertices, triangles, vertex_colors, material, mtllib, uvs):
+    """:func:`write_obj`'s lines, at most ``OBJ_CHUNK`` rows of an array at a time."""
+    yield ["# city-workbench"] + ([f"mtllib {mtllib}"] if mtllib else [])
+    vertices = np.asarray(vertices)
+    c = None if vertex_colors is None else np.asarray(vertex_colors, np.float64) / 255.0
+    for i in range(0, len(vertices), OBJ_CHUNK):
         # rows as Python numbers: iterating an array's rows is several times slower
-        lines += [f"v {x:.3f} {y:.3f} {z:.3f}" for x, y, z in np.asarray(vertices).tolist()]
-    else:
-        c = np.asarray(vertex_colors, np.float64) / 255.0
-        lines += [
-            f"v {x:.3f} {y:.3f} {z:.3f} {r:.3f} {g:.3f} {b:.3f}"
-            for (x, y, z), (r, g, b) in zip(np.asarray(vertices).tolist(), c.tolist(), strict=True)
-        ]
+        v = vertices[i : i + OBJ_CHUNK].tolist()
+        if c is None:
+            yield [f"v {x:.3f} {y:.3f} {z:.3f}" for x, y, z in v]
+        else:
+            yield [
+                f"v {x:.3f} {y:.3f} {z:.3f} {r:.3f} {g:.3f} {b:.3f}"
+                for (x, y, z), (r, g, b) in zip(v, c[i : i + OBJ_CHUNK].tolist(), strict=True)
+            ]
     if uvs is not None:
-        lines += [f"vt {u:.6f} {v:.6f}" for u, v in np.asarray(uvs).reshape(-1, 2).tolist()]
-    corners = (np.asarray(triangles, np.int64) + 1).tolist()
-    if uvs is None:
-        faces = [f"f {a} {b} {c}" for a, b, c in corners]
-    else:
-        faces = [
-            f"f {a}/{3 * i + 1} {b}/{3 * i + 2} {c}/{3 * i + 3}"
-            for i, (a, b, c) in enumerate(corners)
-        ]
-    runs = (
-        [(material, len(faces))] if isinstance(material, str) else material or [(None, len(faces))]
-    )
+        uv = np.asarray(uvs).reshape(-1, 2)
+        for i in range(0, len(uv), OBJ_CHUNK):
+            yield [f"vt {u:.6f} {v:.6f}" for u, v in uv[i : i + OBJ_CHUNK].tolist()]
+    triangles = np.asarray(triangles, np.int64)
+    n = len(triangles)
+    runs = [(material, n)] if isinstance(material, str) else material or [(None, n)]
     start = 0
     for name, count in runs:
         if name:
-            lines.append(f"usemtl {name}")
-        lines += faces[start : start + count]
+            yield [f"usemtl {name}"]
+        for i in range(start, start + count, OBJ_CHUNK):
+            stop = min(i + OBJ_CHUNK, start + count)
+            corners = (triangles[i:stop] + 1).tolist()
+            if uvs is None:
+                yield [f"f {a} {b} {c}" for a, b, c in corners]
+            else:
+                yield [
+                    f"f {a}/{3 * k + 1} {b}/{3 * k + 2} {c}/{3 * k + 3}"
+                    for k, (a, b, c) in enumerate(corners, start=i)
+                ]
         start += count
-    with open(path, "w") as f:
-        f.write("\n".join(lines) + "\n")
 
 
 def write_mtl(
