@@ -10,6 +10,8 @@ import pytest
 from modeling.shared.in_blocks import BlockRasters, SegmentClaims
 from tests.conftest import model_and_score, run_cli
 from workbench.grid_blocks import block_layout, whole_grid_block
+from workbench.meshio import read_ply
+from workbench.model_run import SurfacePieces
 from workbench.raster import Grid, RasterWindows, read_raster, write_raster
 
 
@@ -89,6 +91,7 @@ def test_block_rasters_join_the_ground_on_the_whole_grids_lattice(tmp_path):
     rows, cols = np.indices(grid.shape)
     dtm = (rows * 0.1 + cols * 0.01).astype(np.float64)
     rgb = np.stack([rows, cols, rows + cols], axis=-1).astype(np.uint8)
+    write_raster(tmp_path / "dtm.tif", dtm.astype(np.float32), grid, None)  # the fusion's
     (tmp_path / "store").mkdir()
     rasters = BlockRasters(grid, blocks, tmp_path, tmp_path / "store", preview_cells=45)
     numbers = (rows * 1000 + cols).astype(np.int32)
@@ -101,10 +104,13 @@ def test_block_rasters_join_the_ground_on_the_whole_grids_lattice(tmp_path):
     whole = BlockRasters(grid, [whole_grid_block(grid)], tmp_path)
     whole.put(whole_grid_block(grid), grid, dtm=dtm, rgb=rgb)
     joined, one = rasters.ground(), whole.ground()
-    unique = np.unique(joined.vertices, axis=0)
+    assert isinstance(joined, SurfacePieces)  # on disk, for the writer to stream
+    vertices = np.concatenate([v for v, _, _ in joined.pieces()])
+    unique = np.unique(vertices, axis=0)
     assert np.array_equal(unique, np.unique(one.vertices, axis=0))
-    assert len(joined.triangles) == len(one.triangles)  # no gap, no overlap
-    assert len(joined.vertices) == len(one.vertices) + 2 * 10  # two shared columns of 10
+    assert joined.n_triangles == len(one.triangles)  # no gap, no overlap
+    assert joined.n_vertices == len(vertices) == len(one.vertices) + 2 * 10  # two shared
+    # columns of 10
     layers, coarse = rasters.preview_layers()
     mosaic, mask = layers["rgb"], layers["mask"]
     assert coarse.gsd == 1.0 and mosaic.shape == (20, 45, 3)
@@ -148,6 +154,19 @@ def test_a_path_in_blocks_models_each_building_once(path, tiny_scene, tiny_fusio
     assert m["complexity"]["watertight_fraction"] == 1.0
     ids = [b["id"] for b in record["buildings"]]
     assert len(set(ids)) == len(ids)
+    # the ground, written piece by piece: the whole grid's lattice, the pieces' shared rows
+    # of vertices at one height each (no crack), the same heights where the DTM is known
+    mine, theirs = (read_ply(d / "ground.ply")[0] for d in (out, whole_run))
+    mine = np.unique(mine, axis=0)
+    assert np.array_equal(np.unique(mine[:, :2], axis=0), np.unique(theirs[:, :2], axis=0))
+    assert len(mine) == len(np.unique(theirs, axis=0))
+    dtm, grid, _ = read_raster(tiny_fusion / "dtm.tif")
+    known = np.isfinite(dtm[0][grid.cell_index(mine[:, 0], mine[:, 1])])  # 93 % of them
+    same = {tuple(v) for v in theirs.tolist()}
+    assert all(tuple(v) in same for v in mine[known].tolist()) and known.mean() > 0.9
+    assert read_ply(out / "scene.ply")[1].shape[0] == sum(
+        read_ply(out / f)[1].shape[0] for f in ["ground.ply", *(f"buildings/{i}.ply" for i in ids)]
+    )
     if path == "parametric":  # the segments' numbers, written block by block
         mine, theirs = (read_raster(d / "segments.tif")[0][0] > 0 for d in (out, whole_run))
         assert (mine == theirs).mean() > 0.98

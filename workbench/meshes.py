@@ -188,9 +188,12 @@ def _outward(vertices: np.ndarray, triangles: np.ndarray) -> bool:
     return float(np.sum(a * np.cross(b, c))) > 0
 
 
-def raster_mesh(z: np.ndarray, grid, step: int = 1) -> tuple[np.ndarray, np.ndarray] | None:
+def raster_mesh(
+    z: np.ndarray, grid, step: int = 1, fill: float | None = None
+) -> tuple[np.ndarray, np.ndarray] | None:
     """A triangle mesh (facing up) of a height raster on ``grid`` through every ``step``-th
-    cell centre; NaN heights take the median. None when fewer than 2 x 2 samples are known.
+    cell centre; NaN heights take ``fill`` (default: the samples' median). None when fewer
+    than 2 x 2 samples are known.
 
     Returns
     -------
@@ -200,7 +203,7 @@ def raster_mesh(z: np.ndarray, grid, step: int = 1) -> tuple[np.ndarray, np.ndar
     zs = z[::step, ::step]
     if not np.isfinite(zs).any() or min(zs.shape) < 2:
         return None
-    zs = np.where(np.isfinite(zs), zs, np.nanmedian(zs))
+    zs = np.where(np.isfinite(zs), zs, np.nanmedian(zs) if fill is None else fill)
     X, Y = grid.cell_centers()
     vertices = np.column_stack([X[::step, ::step].ravel(), Y[::step, ::step].ravel(), zs.ravel()])
     h, w = zs.shape

@@ -8,6 +8,7 @@ properties. Open3D and other tools read the geometry and ignore the extras.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
@@ -36,44 +37,91 @@ def write_ply(
         Header comment lines (one line each, such as ``crs EPSG:32631``).
     """
     face_properties = face_properties or {}
-    V, T = len(vertices), len(triangles)
-    vfields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
-    if vertex_colors is not None:
-        vfields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-    vrec = np.empty(V, dtype=vfields)
-    vrec["x"], vrec["y"], vrec["z"] = vertices.T
-    if vertex_colors is not None:
-        vrec["red"], vrec["green"], vrec["blue"] = np.asarray(vertex_colors, np.uint8).T
-    ffields = [("n", "u1"), ("v", "<i4", (3,))]
-    ptypes = {}
-    for name, arr in face_properties.items():
-        kind = "u1" if arr.dtype == np.uint8 else "<i4"
-        ffields.append((name, kind))
-        ptypes[name] = "uchar" if kind == "u1" else "int"
-    frec = np.empty(T, dtype=ffields)
-    frec["n"] = 3
-    frec["v"] = triangles
-    for name, arr in face_properties.items():
-        frec[name] = arr
+    with open(path, "wb") as f:
+        f.write(_ply_header(len(vertices), len(triangles), vertex_colors is not None,
+                            face_properties, comments))  # fmt: skip
+        f.write(_vertex_records(vertices, vertex_colors).tobytes())
+        f.write(_face_records(triangles, face_properties).tobytes())
+
+
+def write_ply_pieces(
+    path: str | os.PathLike,
+    pieces: Callable[[], Iterable[MeshPiece]],
+    n_vertices: int,
+    n_triangles: int,
+    *,
+    colours: bool,
+) -> None:
+    """Write the pieces of a mesh as one binary PLY (what :func:`write_ply` writes of
+    them put together), one piece in memory at a time.
+
+    Parameters
+    ----------
+    pieces : callable
+        Gives the pieces, (vertices, triangles, vertex colours or None) each, its
+        triangles indexing its own vertices; called twice (vertices, then faces).
+    n_vertices, n_triangles : int
+        Their totals.
+    colours : bool
+        Whether the pieces have vertex colours.
+    """
+    with open(path, "wb") as f:
+        f.write(_ply_header(n_vertices, n_triangles, colours, {}, None))
+        for v, _, c in pieces():
+            f.write(_vertex_records(v, c if colours else None).tobytes())
+        offset = 0
+        for v, t, _ in pieces():
+            f.write(_face_records(np.asarray(t, np.int64) + offset, {}).tobytes())
+            offset += len(v)
+
+
+MeshPiece = tuple  # (vertices (V, 3), triangles (T, 3), vertex colours (V, 3) uint8 or None)
+
+
+def _ply_header(n_vertices: int, n_triangles: int, colours: bool, face_properties: dict,
+                comments: list[str] | None) -> bytes:  # fmt: skip
     header = [
         "ply",
         "format binary_little_endian 1.0",
         "comment city-workbench",
         *(f"comment {c}" for c in comments or []),
-        f"element vertex {V}",
+        f"element vertex {n_vertices}",
         "property double x",
         "property double y",
         "property double z",
     ]
-    if vertex_colors is not None:
+    if colours:
         header += ["property uchar red", "property uchar green", "property uchar blue"]
-    header += [f"element face {T}", "property list uchar int vertex_indices"]
-    header += [f"property {ptypes[n]} {n}" for n in face_properties]
+    header += [f"element face {n_triangles}", "property list uchar int vertex_indices"]
+    header += [f"property {_ply_type(a)[1]} {n}" for n, a in face_properties.items()]
     header.append("end_header")
-    with open(path, "wb") as f:
-        f.write(("\n".join(header) + "\n").encode("ascii"))
-        f.write(vrec.tobytes())
-        f.write(frec.tobytes())
+    return ("\n".join(header) + "\n").encode("ascii")
+
+
+def _ply_type(arr: np.ndarray) -> tuple[str, str]:
+    return ("u1", "uchar") if arr.dtype == np.uint8 else ("<i4", "int")
+
+
+def _vertex_records(vertices: np.ndarray, vertex_colors: np.ndarray | None) -> np.ndarray:
+    vfields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    if vertex_colors is not None:
+        vfields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    vrec = np.empty(len(vertices), dtype=vfields)
+    vrec["x"], vrec["y"], vrec["z"] = np.asarray(vertices).T
+    if vertex_colors is not None:
+        vrec["red"], vrec["green"], vrec["blue"] = np.asarray(vertex_colors, np.uint8).T
+    return vrec
+
+
+def _face_records(triangles: np.ndarray, face_properties: dict) -> np.ndarray:
+    ffields = [("n", "u1"), ("v", "<i4", (3,))]
+    ffields += [(name, _ply_type(arr)[0]) for name, arr in face_properties.items()]
+    frec = np.empty(len(triangles), dtype=ffields)
+    frec["n"] = 3
+    frec["v"] = triangles
+    for name, arr in face_properties.items():
+        frec[name] = arr
+    return frec
 
 
 def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
@@ -149,54 +197,99 @@ def write_obj(
     uvs : (T, 3, 2) float, optional
         Texture coordinates (u right, v up, 0-1) of every triangle corner.
     """
+    write_obj_pieces(path, lambda: [(vertices, triangles, vertex_colors)], len(triangles),
+                     material=material, mtllib=mtllib, uvs=uvs)  # fmt: skip
+
+
+def write_obj_pieces(
+    path: str | os.PathLike,
+    pieces: Callable[[], Iterable[MeshPiece]],
+    n_triangles: int,
+    *,
+    material: str | list[tuple[str, int]] | None = None,
+    mtllib: str | None = None,
+    uvs: np.ndarray | None = None,
+) -> None:
+    """Write the pieces of a mesh as one OBJ (what :func:`write_obj` writes of them put
+    together), one piece and at most ``OBJ_CHUNK`` of its rows formatted at a time.
+    ``pieces`` is as for :func:`write_ply_pieces`; the vertices are coloured when the
+    pieces' colours are not None."""
     with open(path, "w") as f:
-        for lines in _obj_chunks(vertices, triangles, vertex_colors, material, mtllib, uvs):
+        for lines in _obj_chunks(pieces, n_triangles, material, mtllib, uvs):
             if lines:
                 f.write("\n".join(lines) + "\n")
 
 
-# lines formatted at once by write_obj: a city's ground of 1.5 M vertices as one list of
-# lines took some 500 MB
+# rows of an array formatted at once by write_obj: a city's ground of 1.5 M vertices as
+# one list of lines took some 500 MB
 OBJ_CHUNK = 65536
 
 
-def _obj_chunks(vertices, triangles, vertex_colors, material, mtllib, uvs):
-    """:func:`write_obj`'s lines, at most ``OBJ_CHUNK`` rows of an array at a time."""
+def _obj_chunks(pieces, n_triangles, material, mtllib, uvs):
+    """:func:`write_obj_pieces`'s lines, a list at a time."""
     yield ["# city-workbench"] + ([f"mtllib {mtllib}"] if mtllib else [])
-    vertices = np.asarray(vertices)
-    c = None if vertex_colors is None else np.asarray(vertex_colors, np.float64) / 255.0
-    for i in range(0, len(vertices), OBJ_CHUNK):
-        # rows as Python numbers: iterating an array's rows is several times slower
-        v = vertices[i : i + OBJ_CHUNK].tolist()
-        if c is None:
-            yield [f"v {x:.3f} {y:.3f} {z:.3f}" for x, y, z in v]
-        else:
-            yield [
-                f"v {x:.3f} {y:.3f} {z:.3f} {r:.3f} {g:.3f} {b:.3f}"
-                for (x, y, z), (r, g, b) in zip(v, c[i : i + OBJ_CHUNK].tolist(), strict=True)
-            ]
+    for vertices, _, colours in pieces():
+        vertices = np.asarray(vertices)
+        c = None if colours is None else np.asarray(colours, np.float64) / 255.0
+        for i in range(0, len(vertices), OBJ_CHUNK):
+            # rows as Python numbers: iterating an array's rows is several times slower
+            v = vertices[i : i + OBJ_CHUNK].tolist()
+            if c is None:
+                yield [f"v {x:.3f} {y:.3f} {z:.3f}" for x, y, z in v]
+            else:
+                yield [
+                    f"v {x:.3f} {y:.3f} {z:.3f} {r:.3f} {g:.3f} {b:.3f}"
+                    for (x, y, z), (r, g, b) in zip(v, c[i : i + OBJ_CHUNK].tolist(), strict=True)
+                ]
     if uvs is not None:
         uv = np.asarray(uvs).reshape(-1, 2)
         for i in range(0, len(uv), OBJ_CHUNK):
             yield [f"vt {u:.6f} {v:.6f}" for u, v in uv[i : i + OBJ_CHUNK].tolist()]
-    triangles = np.asarray(triangles, np.int64)
-    n = len(triangles)
-    runs = [(material, n)] if isinstance(material, str) else material or [(None, n)]
-    start = 0
-    for name, count in runs:
+    runs = [(material, n_triangles)] if isinstance(material, str) else material
+    rows = _TriangleRows(pieces)
+    for name, count in runs or [(None, n_triangles)]:
         if name:
             yield [f"usemtl {name}"]
-        for i in range(start, start + count, OBJ_CHUNK):
-            stop = min(i + OBJ_CHUNK, start + count)
-            corners = (triangles[i:stop] + 1).tolist()
+        for first, corners in rows.take(count):
             if uvs is None:
                 yield [f"f {a} {b} {c}" for a, b, c in corners]
             else:
                 yield [
                     f"f {a}/{3 * k + 1} {b}/{3 * k + 2} {c}/{3 * k + 3}"
-                    for k, (a, b, c) in enumerate(corners, start=i)
+                    for k, (a, b, c) in enumerate(corners, start=first)
                 ]
-        start += count
+
+
+class _TriangleRows:
+    """The pieces' triangles as one run of OBJ corners (1-based, offset by the vertices
+    of the pieces before), taken in consecutive runs of at most ``OBJ_CHUNK`` rows."""
+
+    def __init__(self, pieces):
+        self._chunks = self._stream(pieces)
+        self._left = np.zeros((0, 3), np.int64)
+        self.first = 0  # the global index of the next triangle
+
+    @staticmethod
+    def _stream(pieces):
+        offset = 1
+        for v, t, _ in pieces():
+            t = np.asarray(t, np.int64)
+            for i in range(0, len(t), OBJ_CHUNK):
+                yield t[i : i + OBJ_CHUNK] + offset
+            offset += len(v)
+
+    def take(self, n: int):
+        """Yields (index of the first triangle, its corners as lists) up to ``n`` rows."""
+        while n > 0:
+            if not len(self._left):
+                self._left = next(self._chunks, None)
+                if self._left is None:  # fewer triangles than asked for
+                    self._left = np.zeros((0, 3), np.int64)
+                    return
+            rows, self._left = self._left[:n], self._left[n:]
+            yield self.first, rows.tolist()
+            self.first += len(rows)
+            n -= len(rows)
 
 
 def write_mtl(

@@ -32,8 +32,8 @@ from shapely.geometry import mapping
 from .atomic import atomic_output_dir
 from .cityjson import write_city_model
 from .imageio import write_rgb
-from .meshes import concatenate_meshes, is_watertight
-from .meshio import write_mtl, write_obj, write_ply
+from .meshes import is_watertight
+from .meshio import write_mtl, write_obj, write_obj_pieces, write_ply, write_ply_pieces
 from .options import options_record
 from .raster import Grid, write_raster
 from .records import StageTimer, peak_memory_mb, provenance
@@ -67,6 +67,45 @@ class Surface:
     triangles: np.ndarray
     vertex_colors: np.ndarray | None = None
     texture: Texture | None = None
+
+
+@dataclass
+class SurfacePieces:
+    """An untextured surface too large to hold, kept on disk in pieces (a city's ground,
+    block by block) and written piece by piece: what its pieces put together would be.
+
+    Attributes
+    ----------
+    folder : Path
+        Where the pieces are (one ``.npz`` each).
+    files : list of Path
+    n_vertices, n_triangles : int
+        Their totals.
+    colour_medians : list of (3,) uint8
+        Each piece's median vertex colour (its material's colour is their median).
+    """
+
+    folder: Path
+    files: list = field(default_factory=list)
+    n_vertices: int = 0
+    n_triangles: int = 0
+    colour_medians: list = field(default_factory=list)
+    texture = None  # never textured
+
+    def add(self, s: Surface) -> None:
+        """Keep ``s`` (with vertex colours) as the next piece."""
+        path = Path(self.folder) / f"piece_{len(self.files)}.npz"
+        np.savez(path, vertices=s.vertices, triangles=s.triangles, colours=s.vertex_colors)
+        self.files.append(path)
+        self.n_vertices += len(s.vertices)
+        self.n_triangles += len(s.triangles)
+        self.colour_medians.append(np.median(s.vertex_colors, axis=0))
+
+    def pieces(self):
+        """Yields each piece as (vertices, triangles, vertex colours), read from disk."""
+        for path in self.files:
+            with np.load(path) as z:
+                yield z["vertices"], z["triangles"], z["colours"]
 
 
 @dataclass
@@ -162,7 +201,7 @@ class ModelRun:
         The heights the path modelled, metres, NaN unknown: each building's ``rmse_m`` in
         model.city.json is the model's RMS distance to them, vertically (read in the
         building's window).
-    ground : Surface or None
+    ground : Surface, SurfacePieces or None
         The ground as a mesh (default: none written).
     rasters : {name: ((H, W) or (B, H, W) array, nodata)}
         The path's own rasters on ``grid``.
@@ -188,7 +227,7 @@ class ModelRun:
     grid: Grid | None = None
     dtm: np.ndarray | None = None
     dsm: np.ndarray | None = None
-    ground: Surface | None = None
+    ground: Surface | SurfacePieces | None = None
     rasters: dict = field(default_factory=dict)
     raster_files: dict = field(default_factory=dict)
     preview: np.ndarray | None = None
@@ -276,14 +315,39 @@ def _colours(s: Surface) -> np.ndarray:
     return np.full((len(s.vertices), 3), 128, np.uint8)
 
 
-def _material_colour(s: Surface) -> tuple[int, int, int]:
+def _material_colour(s: Surface | SurfacePieces) -> tuple[int, int, int]:
+    if isinstance(s, SurfacePieces):
+        if not s.colour_medians:
+            return _GREY
+        return tuple(int(v) for v in np.median(s.colour_medians, axis=0))
     if s.vertex_colors is None or not len(s.vertex_colors):
         return _GREY
     return tuple(int(v) for v in np.median(s.vertex_colors, axis=0))
 
 
-def _write_surface(folder: Path, name: str, s: Surface, material: str) -> None:
+def _pieces(s: Surface | SurfacePieces, colours: bool = True):
+    """The mesh's pieces for :func:`~.meshio.write_ply_pieces` (grey where uncoloured;
+    no colours with ``colours`` False)."""
+    if isinstance(s, SurfacePieces):
+        yield from s.pieces()
+    else:
+        yield s.vertices, s.triangles, _colours(s) if colours else None
+
+
+def _counts(s: Surface | SurfacePieces) -> tuple[int, int]:
+    if isinstance(s, SurfacePieces):
+        return s.n_vertices, s.n_triangles
+    return len(s.vertices), len(s.triangles)
+
+
+def _write_surface(folder: Path, name: str, s: Surface | SurfacePieces, material: str) -> None:
     """``name``.ply with vertex colours; ``name``.obj|.mtl, with ``name``.png if textured."""
+    if isinstance(s, SurfacePieces):  # never whole in memory
+        write_ply_pieces(folder / f"{name}.ply", s.pieces, *_counts(s), colours=True)
+        write_mtl(folder / f"{name}.mtl", {material: _material_colour(s)})
+        write_obj_pieces(folder / f"{name}.obj", s.pieces, s.n_triangles, material=material,
+                         mtllib=f"{name}.mtl")  # fmt: skip
+        return
     write_ply(folder / f"{name}.ply", s.vertices, s.triangles, vertex_colors=_colours(s))
     if s.texture is not None:
         write_rgb(folder / f"{name}.png", s.texture.image)
@@ -300,20 +364,27 @@ def _write_surface(folder: Path, name: str, s: Surface, material: str) -> None:
     )  # fmt: skip
 
 
-def _write_scene(tmp: Path, parts: list[tuple[str, Surface, str]]) -> None:
-    """scene.ply (vertex colours) and scene.obj|.mtl: textured when every part is."""
-    V, T, _ = concatenate_meshes([(s.vertices, s.triangles) for _, s, _ in parts])
-    C = np.concatenate([_colours(s) for _, s, _ in parts]) if parts else np.zeros((0, 3), np.uint8)
-    write_ply(tmp / "scene.ply", V, T, vertex_colors=C)
-    runs = [(name, len(s.triangles)) for name, s, _ in parts]
+def _write_scene(tmp: Path, parts: list[tuple[str, Surface | SurfacePieces, str]]) -> None:
+    """scene.ply (vertex colours) and scene.obj|.mtl: textured when every part is. Written
+    part by part, each part piece by piece, so that the scene is never whole in memory."""
+    n_vertices = sum(_counts(s)[0] for _, s, _ in parts)
+    n_triangles = sum(_counts(s)[1] for _, s, _ in parts)
+
+    def pieces(colours: bool = True):
+        for _, s, _ in parts:
+            yield from _pieces(s, colours)
+
+    write_ply_pieces(tmp / "scene.ply", pieces, n_vertices, n_triangles, colours=True)
+    runs = [(name, _counts(s)[1]) for name, s, _ in parts]
     if parts and all(s.texture is not None for _, s, _ in parts):
         white = {name: (255, 255, 255) for name, _, _ in parts}
         write_mtl(tmp / "scene.mtl", white, {name: png for name, _, png in parts})
         uvs = np.concatenate([s.texture.uvs for _, s, _ in parts])
-        write_obj(tmp / "scene.obj", V, T, material=runs, mtllib="scene.mtl", uvs=uvs)
+        write_obj_pieces(tmp / "scene.obj", lambda: pieces(colours=False), n_triangles,
+                         material=runs, mtllib="scene.mtl", uvs=uvs)  # fmt: skip
         return
     write_mtl(tmp / "scene.mtl", {name: _material_colour(s) for name, s, _ in parts})
-    write_obj(tmp / "scene.obj", V, T, vertex_colors=C, material=runs, mtllib="scene.mtl")
+    write_obj_pieces(tmp / "scene.obj", pieces, n_triangles, material=runs, mtllib="scene.mtl")
 
 
 def _rounded(v: float) -> float | None:

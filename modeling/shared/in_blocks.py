@@ -28,8 +28,8 @@ from workbench.engine import Engine
 from workbench.fusion_run import fusion_header
 from workbench.grid_blocks import Block, auto_block_size, block_layout, whole_grid_block
 from workbench.meshes import concatenate_meshes
-from workbench.model_run import Surface
-from workbench.raster import Grid, RasterWindows, WindowedRaster
+from workbench.model_run import Surface, SurfacePieces
+from workbench.raster import Grid, RasterWindows, WindowedRaster, read_decimated
 
 log = logging.getLogger(__name__)
 
@@ -291,7 +291,17 @@ class BlockRasters:
         f = self.factor
         self.coarse = Grid(grid.xmin, grid.ymax, grid.gsd * f, -(-grid.width // f),
                            -(-grid.height // f))  # fmt: skip
-        self.pieces: list[Surface] = []
+        # a piece's unknown heights: one value for every block, so that two pieces give
+        # their shared vertices the same height
+        self.fill = None
+        if not self.whole:
+            z = read_decimated(self.fusion_dir / "dtm.tif", preview_cells)
+            self.fill = float(np.nanmedian(z)) if np.isfinite(z).any() else None
+        # the ground's pieces: on disk with a folder, so that the writer streams them
+        self.pieces: list[Surface] | SurfacePieces = []
+        if self.folder is not None:
+            (Path(self.folder) / "ground").mkdir(parents=True, exist_ok=True)
+            self.pieces = SurfacePieces(Path(self.folder) / "ground")
 
     def put(self, block: Block, grid: Grid, *, dtm: np.ndarray, rgb: np.ndarray,
             dsm: np.ndarray | None = None, **layers: np.ndarray) -> None:  # fmt: skip
@@ -302,8 +312,11 @@ class BlockRasters:
             return
         rows, cols = (self._lattice(i, o) for i, o in zip(block.inner, block.outer,
                                                           strict=True))  # fmt: skip
-        piece = ground_surface(dtm[rows, cols], rgb[rows, cols], grid.window(rows, cols))
-        if piece is not None:
+        piece = ground_surface(dtm[rows, cols], rgb[rows, cols], grid.window(rows, cols),
+                               self.fill)  # fmt: skip
+        if piece is not None and isinstance(self.pieces, SurfacePieces):
+            self.pieces.add(piece)
+        elif piece is not None:
             self.pieces.append(piece)
         f = self.factor
         (r0, r1), (c0, c1) = ((-(-i.start // f) * f, i.stop) for i in block.inner)
@@ -338,10 +351,13 @@ class BlockRasters:
         b = min(b, (outer.stop - 1) // step * step)
         return slice(a - outer.start, b - outer.start + 1)
 
-    def ground(self) -> Surface | None:
-        """The ground mesh of 2 m cells, coloured by the ortho."""
+    def ground(self) -> Surface | SurfacePieces | None:
+        """The ground mesh of 2 m cells, coloured by the ortho (in pieces on disk, with
+        several blocks and a folder)."""
         if self.whole:
             return ground_surface(self.arrays["dtm"], self.arrays["rgb"], self.grid)
+        if isinstance(self.pieces, SurfacePieces):
+            return self.pieces if self.pieces.files else None
         if not self.pieces:
             return None
         V, T, _ = concatenate_meshes([(p.vertices, p.triangles) for p in self.pieces])

@@ -18,9 +18,12 @@ def vertex_colours(vertices: np.ndarray, rgb: np.ndarray, grid: Grid) -> np.ndar
     return rgb[r, c]
 
 
-def ground_surface(dtm: np.ndarray, rgb: np.ndarray, grid: Grid) -> Surface | None:
-    """The DTM as a mesh of :data:`GROUND_CELL_M` cells, coloured by the ortho."""
-    ground = raster_mesh(dtm, grid, step=max(1, round(GROUND_CELL_M / grid.gsd)))
+def ground_surface(
+    dtm: np.ndarray, rgb: np.ndarray, grid: Grid, fill: float | None = None
+) -> Surface | None:
+    """The DTM as a mesh of :data:`GROUND_CELL_M` cells, coloured by the ortho; unknown
+    heights take ``fill`` (default: the known ones' median)."""
+    ground = raster_mesh(dtm, grid, step=max(1, round(GROUND_CELL_M / grid.gsd)), fill=fill)
     if ground is None:
         return None
     return Surface(*ground, vertex_colors=vertex_colours(ground[0], rgb, grid))
