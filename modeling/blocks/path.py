@@ -25,7 +25,9 @@ from modeling.shared.in_blocks import (
     BlockRasters,
     SegmentClaims,
     block_engine,
+    blocks_lines,
     blocks_record,
+    each_block,
     plan_blocks,
 )
 from modeling.shared.opened_parts import building_segments, mid_wall_region
@@ -122,7 +124,7 @@ def run_blocks(
     plan = plan_blocks(fusion_dir, options.block_m, options.block_margin_m, engine)
     grid, blocks, claims, rasters = plan.grid, plan.blocks, plan.claims, plan.rasters
     results, wide, crs = [], 0, None
-    for b in blocks:
+    for b in each_block(blocks):
         found, cut, crs = model_block(fusion_dir, b, claims, rasters, options, supports,
                                       block_engine(engine, blocks, b), timer)  # fmt: skip
         results += found
@@ -511,4 +513,5 @@ def summary_lines(record: dict) -> list[str]:
         "  blocks: " + ", ".join(f"{k} {v}" for k, v in sorted(forms.items())),
         *([f"  {warned} buildings did not converge (see warnings in model.json)"]
           if warned else []),
+        *blocks_lines(record.get("blocks")),
     ]  # fmt: skip

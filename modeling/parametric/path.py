@@ -34,7 +34,9 @@ from modeling.shared.in_blocks import (
     BlockRasters,
     SegmentClaims,
     block_engine,
+    blocks_lines,
     blocks_record,
+    each_block,
     plan_blocks,
 )
 from modeling.shared.opened_parts import building_segments, opened_parts
@@ -165,7 +167,7 @@ def run_parametric(
     plan = plan_blocks(fusion_dir, options.block_m, options.block_margin_m, engine)
     grid, blocks, claims, rasters = plan.grid, plan.blocks, plan.claims, plan.rasters
     done: list[BlockModel] = []
-    for b in blocks:
+    for b in each_block(blocks):
         on = block_engine(engine, blocks, b)
         done.append(model_block(fusion_dir, b, claims, rasters, options, footprints, on, timer))
     results = [x for d in done for x in d.results]
@@ -867,4 +869,5 @@ def summary_lines(record: dict) -> list[str]:
         f"(unknown objects); {record['seconds_per_building']} s per building",
         "  footprint priors: " + ", ".join(f"{k} {v}" for k, v in sorted(families.items())),
         "  roof types: " + ", ".join(f"{k} {v}" for k, v in sorted(types.items())),
+        *blocks_lines(record["segmentation"].get("blocks")),
     ]

@@ -29,6 +29,7 @@ from workbench.fusion_run import fusion_header
 from workbench.grid_blocks import Block, auto_block_size, block_layout, whole_grid_block
 from workbench.meshes import concatenate_meshes
 from workbench.model_run import Surface, SurfacePieces
+from workbench.progress import progress
 from workbench.raster import Grid, RasterWindows, WindowedRaster, read_decimated
 
 log = logging.getLogger(__name__)
@@ -70,10 +71,25 @@ def plan_blocks(fusion_dir, block_m: float | None, margin_m: float, engine: Engi
                      BlockRasters(grid, blocks, fusion_dir, folder, crs))  # fmt: skip
 
 
+def each_block(blocks: list[Block]):
+    """The blocks, with a progress bar (or a line a minute) when there are several."""
+    return progress(blocks, "blocks") if len(blocks) > 1 else blocks
+
+
 def block_engine(engine: Engine, blocks: list[Block], block: Block) -> Engine:
     """The engine a block's tasks run on: with several blocks, each keeps its finished
     tasks in a folder of its own (for --resume: its segments' numbers are its own)."""
     return engine if len(blocks) == 1 else engine.kept_in(engine.store, f"block_{block.index}")
+
+
+def blocks_lines(record: dict | None) -> list[str]:
+    """What a path prints of its :func:`blocks_record` (nothing for the whole grid)."""
+    if not record:
+        return []
+    wide = record["segments_wider_than_the_margin"]
+    return [f"  in {record['count']} blocks of {record['side_m']:g} m with "
+            f"{record['margin_m']:g} m of margin"
+            + (f"; {wide} wider than the margin, modelled in part" if wide else "")]  # fmt: skip
 
 
 def blocks_record(blocks: list[Block], block_m: float, margin_m: float, wide: int) -> dict:

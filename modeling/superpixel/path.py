@@ -18,7 +18,9 @@ import numpy as np
 from modeling.shared.in_blocks import (
     BlockPlan,
     block_engine,
+    blocks_lines,
     blocks_record,
+    each_block,
     model_blocks,
     plan_blocks,
 )
@@ -74,7 +76,7 @@ def run_superpixel(
     if len(blocks) > 1:
         refuse_in_blocks(options, truth)
     done: list[BlockModel] = []
-    for b in blocks:
+    for b in each_block(blocks):
         first = sum(d.superpixels for d in done)  # the super-pixels' numbers on the whole grid
         done.append(model_block(fusion_dir, b, plan, options, first, truth,
                                 block_engine(engine, blocks, b), timer))  # fmt: skip
@@ -345,7 +347,7 @@ def classification_table(truth: Path, grid: Grid, pixel, superpixel, crf) -> dic
 
 def summary_lines(record: dict) -> list[str]:
     """What ``workbench model superpixel`` prints beside the counts."""
-    lines = [f"  {record['superpixels']} super-pixels"]
+    lines = [f"  {record['superpixels']} super-pixels", *blocks_lines(record.get("blocks"))]
     table = record.get("classification_table")
     if table:
         rows = ", ".join(f"{k} {v['overall_accuracy']:.3f}" for k, v in table.items())
