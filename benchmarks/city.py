@@ -76,7 +76,8 @@ def city_run(
 ) -> dict:
     """Every stage on one preset and seed; the figures of each. ``reuse`` keeps an
     existing sample scene; ``reuse_runs`` also the runs whose logs are there; with
-    ``block_m``, the fusion is run again in blocks of that side (``--block``)."""
+    ``block_m``, the fusion and the paths of ``BLOCK_PATHS`` are run again in blocks of
+    that side (``--block``)."""
     out.mkdir(parents=True, exist_ok=True)
     scene, fusion, report = out / "scene", out / "fusion", out / "report"
     w = ["--workers", str(workers)] if workers else []
@@ -124,6 +125,13 @@ def city_run(
         wall, peak = run("model", *args, "-o", folder, "--overwrite", log=out / f"{name}.log",
                          kept=kept)  # fmt: skip
         res[name] = model_figures(folder, wall, peak)
+    if block_m is not None:  # the paths that model in blocks: their memory follows the block
+        for name in BLOCK_PATHS:
+            folder = out / f"{name}_blocks"
+            kept = _recorded_s(folder / "model.json") if reuse_runs else None
+            wall, peak = run("model", *paths[name], "--block", block_m, "-o", folder,
+                             "--overwrite", log=out / f"{name}_blocks.log", kept=kept)  # fmt: skip
+            res[f"{name}_blocks"] = model_figures(folder, wall, peak)
     res.update(mesh_chain(scene, out, reuse_runs))
     runs = [fusion, *(out / name for name in paths), out / "lod"]
     kept = 0.0 if reuse_runs and (report / "metrics.json").exists() else None
@@ -133,6 +141,10 @@ def city_run(
     res["total_s"] = sum(v["wall_s"] for v in res.values() if isinstance(v, dict) and
                          "wall_s" in v)  # fmt: skip
     return res
+
+
+# the modeling paths that model a grid in blocks (``--block``)
+BLOCK_PATHS = ("superpixel", "parametric", "blocks")
 
 
 def mesh_chain(scene: Path, out: Path, reuse_runs: bool = False) -> dict:
@@ -204,14 +216,17 @@ def print_city(r: dict) -> None:
     m = r["superpixel"]
     print(f"  superpixel  {m['wall_s']:8.1f} s  {peaks(m)}; {m['buildings']} buildings, "
           f"{m['wall_s'] / (f['cells'] / 1e6):.1f} s per ortho megapixel")  # fmt: skip
-    for name in ("voxel", "parametric", "blocks", "mesh", "fusion_mesh", "lod"):
+    names = ("voxel", "parametric", "blocks", *(f"{n}_blocks" for n in BLOCK_PATHS), "mesh",
+             "fusion_mesh", "lod")  # fmt: skip
+    for name in names:
         if name not in r:  # a record from before the path was benched
             continue
         m = r[name]
         if "buildings" not in m:  # the mesh and its fusion
             print(f"  {name:<11} {m['wall_s']:8.1f} s  {peaks(m)}")
             continue
-        print(f"  {name:<11} {m['wall_s']:8.1f} s  {peaks(m)}; {m['buildings']} buildings, "
+        label = f"{name.removesuffix('_blocks')} --block" if name.endswith("_blocks") else name
+        print(f"  {label:<11} {m['wall_s']:8.1f} s  {peaks(m)}; {m['buildings']} buildings, "
               f"{m['seconds_per_building']:.2f} s per building")  # fmt: skip
         print("              " + ", ".join(f"{k} {v:.1f}" for k, v in m["stages"].items()))
     print(f"  compare     {r['compare']['wall_s']:8.1f} s  {peaks(r['compare'])}")

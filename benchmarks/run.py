@@ -18,7 +18,8 @@ on seeds 0-2, seeds 3-5 are held out. Everything printed is also written to
 ``docs/benchmarks.md``, with the commit it measured.
 
 ``--preset city`` runs instead the 1 km² city and small end to end, command by command
-(:mod:`city`), and writes ``docs/benchmarks-city.md``.
+(:mod:`city`), the city's fusion and its super-pixel, parametric and block paths also in
+blocks of 250 m (each against small's one grid), and writes ``docs/benchmarks-city.md``.
 
 Usage: python benchmarks/run.py [--presets tiny small] [--repeat 3] [--out bench_out]
        [--seeds 0 1 2 3 4 5] [--doc docs/benchmarks.md] [--preset small|city]
@@ -36,7 +37,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from city import city_run, print_city
+from city import BLOCK_PATHS, city_run, print_city
 from crf_ceiling import crf_ceiling, print_ceiling
 from height_floor import height_floor
 from seeds import HELD_OUT, TUNED, run_seed, tables
@@ -726,9 +727,9 @@ def run_city(args) -> dict:
         print_city(results[preset])
     small, city = results["small"], results["city"]
     for stage in ("fusion", "fusion_blocks", "superpixel", "voxel", "parametric", "blocks",
-                  "mesh", "fusion_mesh", "lod"):  # fmt: skip
-        # the fusion in blocks against small's fusion of one grid, about a block's size
-        a, b = small.get("fusion" if stage == "fusion_blocks" else stage), city.get(stage)
+                  *(f"{n}_blocks" for n in BLOCK_PATHS), "mesh", "fusion_mesh", "lod"):  # fmt: skip
+        # a run in blocks against small's run of one grid, about a block's size
+        a, b = small.get(stage.removesuffix("_blocks")), city.get(stage)
         if a is None or b is None:  # a record from before it was benched
             continue
         print(f"  {stage}: peak memory city / small {b['peak_mb'] / a['peak_mb']:.2f} (largest "
