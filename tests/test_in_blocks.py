@@ -4,6 +4,8 @@ each, as the whole grid does."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -180,10 +182,23 @@ def test_a_path_in_blocks_models_each_building_once(path, tiny_scene, tiny_fusio
         assert whole_n < n < 1.05 * whole_n
 
 
-def test_what_a_superpixel_run_in_blocks_cannot_do_is_one_line(tiny_fusion, tmp_path):
-    for option in (("--omega-class", "auto"), ("--geometry-unary",)):
-        proc = run_cli("model", "superpixel", tiny_fusion, "-o", tmp_path / "o", "--block", 32,
-                       *option)  # fmt: skip
-        assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
-        assert f"{' '.join(option)}: not with --block" in proc.stderr
-        assert not (tmp_path / "o").exists()
+def test_a_superpixel_run_in_blocks_learns_its_crf_once(tiny_scene, tiny_fusion, tmp_path):
+    """--omega-class auto and --geometry-unary in 4 blocks: learned on the block whose
+    inner cells the strokes cover most, then applied to every block; --truth is refused
+    in one line (each block would score its own classes)."""
+    strokes = read_raster(tiny_scene / "training" / "labels.tif")
+    assert strokes[0].any()
+    out = tmp_path / "auto"
+    args = ("model", "superpixel", tiny_fusion, "--block", 32, "--block-margin", 12,
+            "--workers", "1")  # fmt: skip
+    proc = run_cli(*args, "-o", out, "--omega-class", "auto", "--geometry-unary")
+    assert proc.returncode == 0, proc.stderr
+    record = json.loads((out / "model.json").read_text())
+    learned = record["learned_on_block"]
+    assert 0 <= learned["index"] < 4 and learned["stroke_cells"] > 0
+    choice = record["omega_class_choice"]
+    assert choice["scores"][str(choice["omega"])] == max(choice["scores"].values())
+    assert "used" in record["geometry"] and record["blocks"]["count"] == 4
+    proc = run_cli(*args, "-o", tmp_path / "o", "--truth", tiny_scene)
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert "--truth: not with --block" in proc.stderr and not (tmp_path / "o").exists()

@@ -66,6 +66,13 @@ def geometry_factor(graph: SuperpixelGraph, stroked: np.ndarray) -> tuple[np.nda
     -------
     factors or None, and a record of the fitted means and spread.
     """
+    fitted, record = fit_geometry(graph, stroked)
+    return (None if fitted is None else geometry_factors(graph, *fitted)), record
+
+
+def fit_geometry(graph: SuperpixelGraph, stroked: np.ndarray) -> tuple[tuple | None, dict]:
+    """:func:`geometry_factor`'s fit: ({class: mean log residual}, pooled spread) or None,
+    and its record."""
     r = np.log(np.maximum(graph.plane_residual, 1e-3))
     means, deviations, counts = {}, [], {}
     for c, name in ((TREE, "tree"), (BUILDING, "building")):
@@ -77,6 +84,17 @@ def geometry_factor(graph: SuperpixelGraph, stroked: np.ndarray) -> tuple[np.nda
         deviations.append(v - means[c])
     d = np.concatenate(deviations)
     sigma = max(float(np.sqrt(np.sum(d**2) / (len(d) - 2))), 0.1)
+    record = {"used": True, "log_sigma": round(sigma, 3)}
+    for c, name in ((TREE, "tree"), (BUILDING, "building")):
+        record[name] = {"median_residual_m": round(float(np.exp(means[c])), 4),
+                        "superpixels": counts[c]}  # fmt: skip
+    return (means, sigma), record
+
+
+def geometry_factors(graph: SuperpixelGraph, means: dict, sigma: float) -> np.ndarray:
+    """(N, C) :func:`geometry_factor`'s factors from a fit (:func:`fit_geometry`), which
+    may be another graph's: a grid in blocks applies one block's fit to every block."""
+    r = np.log(np.maximum(graph.plane_residual, 1e-3))
     log_density = {c: -0.5 * ((r - m) / sigma) ** 2 for c, m in means.items()}
     # the two factors 2 / (1 + exp(other - own)), computed from the difference
     diff = log_density[TREE] - log_density[BUILDING]
@@ -84,11 +102,7 @@ def geometry_factor(graph: SuperpixelGraph, stroked: np.ndarray) -> tuple[np.nda
     out = np.ones((graph.n, graph.class_sum.shape[1]))
     out[ok, TREE - 1] = 2.0 / (1.0 + np.exp(-diff[ok]))
     out[ok, BUILDING - 1] = 2.0 - out[ok, TREE - 1]
-    record = {"used": True, "log_sigma": round(sigma, 3)}
-    for c, name in ((TREE, "tree"), (BUILDING, "building")):
-        record[name] = {"median_residual_m": round(float(np.exp(means[c])), 4),
-                        "superpixels": counts[c]}  # fmt: skip
-    return out, record
+    return out
 
 
 def choose_omega_class(

@@ -38,7 +38,13 @@ from workbench.records import StageTimer, peak_memory_mb
 from .aggregation import SuperpixelGraph, superpixel_graph
 from .building_tasks import ROOF_STEPS, building_shares, model_building_roofs
 from .buildings import split_buildings
-from .class_crf import choose_omega_class, geometry_factor, refine_classes, stroke_classes
+from .class_crf import (
+    choose_omega_class,
+    fit_geometry,
+    geometry_factors,
+    refine_classes,
+    stroke_classes,
+)
 from .options import SuperpixelOptions
 from .plane_hypotheses import SuperpixelPoints, superpixel_points
 from .preview import superpixel_preview
@@ -73,12 +79,14 @@ def run_superpixel(
     t_start = time.perf_counter()
     plan = plan_blocks(fusion_dir, options.block_m, options.block_margin_m, engine)
     grid, blocks = plan.grid, plan.blocks
+    learned, learning = None, {}
     if len(blocks) > 1:
-        refuse_in_blocks(options, truth)
+        refuse_in_blocks(truth)
+        learned, learning = learn_in_blocks(fusion_dir, blocks, options, timer)
     done: list[BlockModel] = []
     for b in each_block(blocks):
         first = sum(d.superpixels for d in done)  # the super-pixels' numbers on the whole grid
-        done.append(model_block(fusion_dir, b, plan, options, first, truth,
+        done.append(model_block(fusion_dir, b, plan, options, first, truth, learned,
                                 block_engine(engine, blocks, b), timer))  # fmt: skip
     buildings = [x for d in done for x in d.buildings]
     with timer.stage("preview"):
@@ -89,7 +97,7 @@ def run_superpixel(
     elapsed = time.perf_counter() - t_start
     seconds = {step: sum(d.seconds[step] for d in done) for step in ROOF_STEPS}
     record = {
-        "superpixels": sum(d.superpixels for d in done), **done[0].crf_choices,
+        "superpixels": sum(d.superpixels for d in done), **done[0].crf_choices, **learning,
         # the tasks' own time in each step, summed over the buildings and the workers
         "roof_steps_s": {step: round(sec, 3) for step, sec in seconds.items()},
         **engine.describe(),
@@ -137,30 +145,19 @@ def model_block(
     options: SuperpixelOptions,
     first_label: int,
     truth: Path | None,
+    learned: dict | None,
     engine: Engine,
     timer: StageTimer,
 ) -> BlockModel:
     """Sections 4-5 over the outer cells of ``block``: its rasters read, its super-pixels
-    (numbered from ``first_label`` in ``superpixels.tif``) and their classes, and a task
-    for each building ``plan.claims`` gives it (every one when the block is the whole
-    grid); the rasters the run writes put into ``plan.rasters``."""
-    with timer.stage("read"):
-        fusion = read_fusion_run(fusion_dir, FUSION_RASTERS, block.outer)
-        dsm, dtm, grid = fusion.band("dsm"), fusion.band("dtm"), fusion.grid
-        decided = decide_defaults(options, fusion.from_points)
-    with timer.stage("superpixels"):
-        image = relief_image(dsm, grid.gsd) if decided["segment_on"] == "relief" else fusion.rgb
-        labels = quickshift_superpixels(
-            image, options.sigma, options.tau, options.ratio, seed=options.seed,
-            workers=options.workers or default_workers(), height=dsm,
-            height_weight=decided["height_weight"],
-        )  # fmt: skip
-    with timer.stage("aggregation"):
-        graph = superpixel_graph(labels, fusion.rgb, fusion.rasters["class_prob"], dsm,
-                                 residuals=options.geometry_unary,
-                                 classes=class_map(fusion_dir, grid, block.outer))  # fmt: skip
+    (numbered from ``first_label`` in ``superpixels.tif``) and their classes (with the
+    class CRF's parameters ``learned`` on another block, if given), and a task for each
+    building ``plan.claims`` gives it (every one when the block is the whole grid); the
+    rasters the run writes put into ``plan.rasters``."""
+    fusion, decided, labels, graph = block_superpixels(fusion_dir, block, options, timer)
+    dsm, dtm, grid = fusion.band("dsm"), fusion.band("dtm"), fusion.grid
     with timer.stage("class_crf"):
-        sp_class, crf_choices = class_crf(graph, labels, fusion, options)
+        sp_class, crf_choices, _ = class_crf(graph, labels, fusion, options, learned)
         unseen = ~(np.nan_to_num(fusion.rasters["class_prob"]).sum(axis=0) > 0)
         crf_class = np.where(unseen, 0, sp_class[labels]).astype(np.uint8)
     with timer.stage("buildings"):
@@ -199,29 +196,66 @@ def model_block(
                       ground_z, table)  # fmt: skip
 
 
+def block_superpixels(
+    fusion_dir: Path, block: Block, options: SuperpixelOptions, timer: StageTimer
+) -> tuple[FusionRun, dict, np.ndarray, SuperpixelGraph]:
+    """Section 4.1 over the outer cells of ``block``: its rasters, the options its fusion
+    decides, its super-pixels (H, W) and their graph."""
+    with timer.stage("read"):
+        fusion = read_fusion_run(fusion_dir, FUSION_RASTERS, block.outer)
+        dsm, grid = fusion.band("dsm"), fusion.grid
+        decided = decide_defaults(options, fusion.from_points)
+    with timer.stage("superpixels"):
+        image = relief_image(dsm, grid.gsd) if decided["segment_on"] == "relief" else fusion.rgb
+        labels = quickshift_superpixels(
+            image, options.sigma, options.tau, options.ratio, seed=options.seed,
+            workers=options.workers or default_workers(), height=dsm,
+            height_weight=decided["height_weight"],
+        )  # fmt: skip
+    with timer.stage("aggregation"):
+        graph = superpixel_graph(labels, fusion.rgb, fusion.rasters["class_prob"], dsm,
+                                 residuals=options.geometry_unary,
+                                 classes=class_map(fusion_dir, grid, block.outer))  # fmt: skip
+    return fusion, decided, labels, graph
+
+
+def learn_in_blocks(
+    fusion_dir: Path, blocks: list[Block], options: SuperpixelOptions, timer: StageTimer
+) -> tuple[dict | None, dict]:
+    """The class CRF's parameters a run in blocks learns on the training strokes
+    (``--omega-class auto``, ``--geometry-unary``), once for every block: on the block
+    whose inner cells the strokes cover most, as one grid learns them. Returns them (None
+    when there is nothing to learn) and their record."""
+    if options.all_building or (options.omega_class is not None and not options.geometry_unary):
+        return None, {}
+    with timer.stage("learning"):  # its block's super-pixels are timed in their stages
+        counts = []
+        for b in blocks:
+            strokes = training_strokes(read_fusion_run(fusion_dir, ("dsm",), b.outer),
+                                       required=options.omega_class is None)  # fmt: skip
+            counts.append(0 if strokes is None else int((strokes[b.inside] > 0).sum()))
+        best = blocks[int(np.argmax(counts))]
+    fusion, _, labels, graph = block_superpixels(fusion_dir, best, options, timer)
+    with timer.stage("learning"):
+        _, record, learned = class_crf(graph, labels, fusion, options)
+    record["learned_on_block"] = {"index": best.index, "stroke_cells": max(counts)}
+    return learned, record
+
+
 def check_inputs(fusion_dir: Path, options: SuperpixelOptions, truth: Path | None = None) -> None:
     """Read what :func:`run_superpixel` refuses, before a command starts its workers: the
-    fusion run's rasters, the training strokes ``--omega-class auto`` needs and the
-    options a run in blocks cannot take (one line, with no worker's shutdown noise after
-    it)."""
+    fusion run's rasters, the training strokes ``--omega-class auto`` needs and a
+    ``--truth`` a run in blocks cannot take (one line, with no worker's shutdown noise
+    after it)."""
     fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
     if len(model_blocks(fusion.grid, options.block_m, options.block_margin_m)[0]) > 1:
-        refuse_in_blocks(options, truth)
+        refuse_in_blocks(truth)
     if options.omega_class is None and not options.all_building:
         training_strokes(fusion, required=True)
 
 
-def refuse_in_blocks(options: SuperpixelOptions, truth: Path | None) -> None:
-    """What a run in blocks cannot do: learn the class CRF's parameters on the training
-    strokes (each block would learn its own), or score the whole grid's classes."""
-    if options.omega_class is None and not options.all_building:
-        raise WorkbenchError(
-            "--omega-class auto: not with --block (each block would choose its own); "
-            "choose it on a part of the city and give the value"
-        )
-    if options.geometry_unary:
-        raise WorkbenchError("--geometry-unary: not with --block (each block would learn "
-                             "its own residual factors)")  # fmt: skip
+def refuse_in_blocks(truth: Path | None) -> None:
+    """What a run in blocks cannot do: score the whole grid's classes against a truth."""
     if truth is not None:
         raise WorkbenchError("--truth: not with --block; score the run's class.tif with "
                              "`workbench compare --truth` instead")  # fmt: skip
@@ -241,14 +275,24 @@ def decide_defaults(options: SuperpixelOptions, from_points: bool) -> dict:
 
 
 def class_crf(
-    graph: SuperpixelGraph, labels: np.ndarray, fusion: FusionRun, options: SuperpixelOptions
-) -> tuple[np.ndarray, dict]:
-    """(N,) class of each super-pixel, and how its parameters were chosen: with
-    ``omega_class`` auto, the omega; with ``geometry_unary``, the plane residuals'
-    factors learned on the training strokes (:func:`~.class_crf.geometry_factor`)."""
+    graph: SuperpixelGraph,
+    labels: np.ndarray,
+    fusion: FusionRun,
+    options: SuperpixelOptions,
+    learned: dict | None = None,
+) -> tuple[np.ndarray, dict, dict]:
+    """(N,) class of each super-pixel, how its parameters were chosen (with
+    ``omega_class`` auto, the omega; with ``geometry_unary``, the plane residuals' fit on
+    the training strokes, :func:`~.class_crf.fit_geometry`), and the parameters
+    themselves ({"omega", "geometry_fit"}). With ``learned`` (another block's), those
+    are used as they are."""
     if options.all_building:
-        return np.where(np.isfinite(graph.height_median), BUILDING, 1), {}
-    omega, record, geometry = options.omega_class, {}, None
+        return np.where(np.isfinite(graph.height_median), BUILDING, 1), {}, {}
+    if learned is not None:
+        fit = learned["geometry_fit"]
+        geometry = None if fit is None else geometry_factors(graph, *fit)
+        return refine_classes(graph, learned["omega"], geometry), {}, learned
+    omega, record, geometry, fit = options.omega_class, {}, None, None
     strokes = None
     if omega is None or options.geometry_unary:
         strokes = training_strokes(fusion, required=omega is None)
@@ -256,13 +300,12 @@ def class_crf(
         if strokes is None:
             record["geometry"] = {"used": False, "reason": "no training strokes"}
         else:
-            geometry, record["geometry"] = geometry_factor(
-                graph, stroke_classes(labels, strokes, graph.n)
-            )
+            fit, record["geometry"] = fit_geometry(graph, stroke_classes(labels, strokes, graph.n))
+            geometry = None if fit is None else geometry_factors(graph, *fit)
     if omega is None:
         record["omega_class_choice"] = choose_omega_class(graph, labels, strokes, geometry)
         omega = record["omega_class_choice"]["omega"]
-    return refine_classes(graph, omega, geometry), record
+    return refine_classes(graph, omega, geometry), record, {"omega": omega, "geometry_fit": fit}
 
 
 def model_buildings(
