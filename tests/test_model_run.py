@@ -12,6 +12,7 @@ from workbench.meshes import read_mesh
 from workbench.model_run import (
     BUILDING_KEYS,
     Building,
+    BuildingsOnDisk,
     ModelRun,
     Surface,
     Texture,
@@ -96,3 +97,38 @@ def test_a_failed_write_leaves_nothing(tmp_path):
     with pytest.raises(Exception):  # noqa: B017 - the raster does not fit the grid
         write_model_run(run, tmp_path / "run")
     assert not (tmp_path / "run").exists() and not list(tmp_path.iterdir())
+
+
+def test_buildings_kept_on_disk_write_the_same_folder(tmp_path):
+    def buildings():
+        return [_box_building(k, x) for k, x in (("a", 0.0), ("b", 15.0), ("c", 30.0))]
+
+    kept = BuildingsOnDisk(tmp_path / "kept")
+    kept.add(buildings()[:2])
+    kept.add([])  # a block with none
+    kept.add(buildings()[2:])
+    assert len(kept) == 3 and [b.id for b in kept] == ["a", "b", "c"]
+    assert [b.id for b in kept] == ["a", "b", "c"]  # read again from disk
+    records = {}
+    for name, held in (("list", buildings()), ("disk", kept)):
+        records[name] = write_model_run(_run(held), tmp_path / name)
+        for r in (records[name], json.loads((tmp_path / name / "model.json").read_text())):
+            assert r.pop("stages") and r.pop("peak_memory_mb") > 0
+    assert records["list"] == records["disk"]
+    assert records["disk"]["counts"] == {"buildings": 3, "faces": 36, "watertight": 3}
+    files = sorted(p.relative_to(tmp_path / "list") for p in (tmp_path / "list").rglob("*"))
+    assert files == sorted(p.relative_to(tmp_path / "disk") for p in (tmp_path / "disk").rglob("*"))
+    for f in files:
+        if f.name != "model.json" and f.is_file():
+            assert (tmp_path / "list" / f).read_bytes() == (tmp_path / "disk" / f).read_bytes(), f
+    # model.json, written a building at a time, is what json.dumps(indent=1) writes
+    text = (tmp_path / "disk" / "model.json").read_text()
+    assert text == json.dumps(json.loads(text), indent=1) + "\n"
+
+
+def test_an_empty_run_writes_an_empty_list(tmp_path):
+    write_model_run(_run([]), tmp_path / "run")
+    text = (tmp_path / "run" / "model.json").read_text()
+    assert '"buildings": [],' in text and text == json.dumps(json.loads(text), indent=1) + "\n"
+    city = json.loads((tmp_path / "run" / "model.city.json").read_text())
+    assert city["CityObjects"] == {} and city["vertices"] == []

@@ -11,16 +11,21 @@ Each building is a ``Building`` city object with three geometries:
   and ``OuterCeilingSurface`` (a downward face above the base).
 
 A mesh in several closed parts is a ``MultiSolid``. Vertices are integers under the
-file's ``transform`` (millimetres from a whole-metre origin) and shared between
-geometries and buildings; the CRS, where it has an EPSG code, is the metadata's
+file's ``transform`` (millimetres from a whole-metre origin), listed building after
+building and shared between a building's geometries (not between buildings: the file is
+written one building at a time); the CRS, where it has an EPSG code, is the metadata's
 ``referenceSystem``.
 """
 
 from __future__ import annotations
 
+import io
 import json
 import logging
 import math
+import shutil
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import shapely
@@ -40,6 +45,7 @@ WALL_SLOPE = math.sin(math.radians(10.0))  # |n_z| below this: a wall
 MERGE_M = 0.005  # vertices closer than this are one (see mesh_faces.weld)
 MIN_AREA_M2 = 0.01  # footprint holes and parts smaller than this are slivers
 BASE_TOLERANCE_M = 0.05  # a downward face this close to the base is the ground surface
+SPOOL_BYTES = 2**26  # the writer's city objects and vertices go to disk beyond this
 
 
 def city_model(run, dsm: np.ndarray | None = None) -> dict:
@@ -57,45 +63,102 @@ def city_model(run, dsm: np.ndarray | None = None) -> dict:
     -------
     dict, ready for ``json.dump``.
     """
-    meshes = [b.mesh.vertices for b in run.buildings if len(b.mesh.vertices)]
-    lo = np.floor(np.min([m.min(axis=0) for m in meshes], axis=0)) if meshes else np.zeros(3)
-    pool = _VertexPool(lo)
-    objects = {}
-    for b in run.buildings:
-        key = f"{run.method}-{b.id}"
-        objects[key] = _building_object(b, pool, _rms_to_heights(b, dsm, run.grid))
-    vertices, inverse = pool.finish()
-    for obj in objects.values():
-        for g in obj["geometry"]:
-            g["boundaries"] = _remap(g["boundaries"], inverse)
-    metadata = {"title": f"{run.method} model (city-workbench)"}
-    epsg = run.crs.to_epsg() if run.crs is not None else None
-    if epsg:
-        metadata["referenceSystem"] = f"https://www.opengis.net/def/crs/EPSG/0/{epsg}"
-    elif run.crs is not None:
-        log.warning("model.city.json: the CRS has no EPSG code; referenceSystem left out "
-                    "(model.json holds its WKT)")  # fmt: skip
-    if len(vertices):
-        world = vertices * SCALE_M + lo
-        extent = np.concatenate([world.min(axis=0), world.max(axis=0)])
-        metadata["geographicalExtent"] = [round(float(v), 3) for v in extent]
-    return {
-        "type": "CityJSON",
-        "version": VERSION,
-        "transform": {"scale": [SCALE_M] * 3, "translate": lo.tolist()},
-        "metadata": metadata,
-        "CityObjects": objects,
-        "vertices": vertices.tolist(),
-    }
+    text = io.StringIO()
+    _write_run(text, run, dsm)
+    return json.loads(text.getvalue())
 
 
 def write_city_model(path, run, dsm: np.ndarray | None = None) -> None:
-    """Write :func:`city_model` of ``run`` to ``path`` (compact JSON, one line)."""
-    # dumps, not dump: json streams into a file with its pure-Python encoder, five times
-    # slower (a city's file is tens of megabytes either way)
-    text = json.dumps(city_model(run, dsm), separators=(",", ":"))
+    """Write :func:`city_model` of ``run`` to ``path`` (compact JSON, one line), one
+    building in memory at a time."""
     with open(path, "w") as f:
-        f.write(text)
+        _write_run(f, run, dsm, scratch=Path(path).parent)
+
+
+def _write_run(f, run, dsm, scratch=None) -> None:
+    writer = CityModelWriter(f, run.method, run.crs, city_origin(run.buildings), scratch)
+    for b in run.buildings:
+        writer.add(b, rms_to_heights(b, dsm, run.grid))
+    writer.finish()
+
+
+def city_origin(buildings) -> np.ndarray:
+    """(3,) the file's origin: the whole metres below every building's vertices."""
+    lows = [b.mesh.vertices.min(axis=0) for b in buildings if len(b.mesh.vertices)]
+    return np.floor(np.min(lows, axis=0)) if lows else np.zeros(3)
+
+
+class CityModelWriter:
+    """model.city.json written building by building, so that no more than one building
+    is held: its city objects and its vertices are kept in two spooled files (on disk
+    in ``scratch`` once large) until :meth:`finish` puts the document together.
+
+    Parameters
+    ----------
+    f : text file
+        Where the document goes.
+    method : str
+        The path's name (city objects are ``METHOD-ID``).
+    crs : rasterio CRS or None
+    origin : (3,) float
+        The transform's translation (:func:`city_origin`): whole metres at or below
+        every vertex.
+    scratch : path, optional
+        The spooled files' folder (default: the system's).
+    """
+
+    def __init__(self, f, method: str, crs, origin: np.ndarray, scratch=None):
+        self.f, self.method, self.crs, self.origin = f, method, crs, np.asarray(origin)
+        spool = {"max_size": SPOOL_BYTES, "mode": "w+", "dir": scratch}
+        self.objects = tempfile.SpooledTemporaryFile(**spool)
+        self.vertices = tempfile.SpooledTemporaryFile(**spool)
+        self.count = 0  # vertices written
+        self.low = np.full(3, np.iinfo(np.int64).max)
+        self.high = np.full(3, np.iinfo(np.int64).min)
+
+    def add(self, b, rms_m: float | None) -> None:
+        """Building ``b`` (a :class:`~workbench.model_run.Building`), with its RMS to the
+        heights (:func:`rms_to_heights`)."""
+        pool = _VertexPool(self.origin)
+        obj = _building_object(b, pool, rms_m)
+        cells, inverse = pool.finish()
+        for g in obj["geometry"]:
+            g["boundaries"] = _remap(g["boundaries"], inverse + self.count)
+        sep = "," if self.objects.tell() else ""
+        self.objects.write(sep + json.dumps(f"{self.method}-{b.id}") + ":"
+                           + json.dumps(obj, separators=(",", ":")))  # fmt: skip
+        if len(cells):
+            sep = "," if self.count else ""
+            self.vertices.write(sep + json.dumps(cells.tolist(), separators=(",", ":"))[1:-1])
+            self.low = np.minimum(self.low, cells.min(axis=0))
+            self.high = np.maximum(self.high, cells.max(axis=0))
+        self.count += len(cells)
+
+    def finish(self) -> None:
+        """Write the document: its header, then the city objects and the vertices."""
+        metadata = {"title": f"{self.method} model (city-workbench)"}
+        epsg = self.crs.to_epsg() if self.crs is not None else None
+        if epsg:
+            metadata["referenceSystem"] = f"https://www.opengis.net/def/crs/EPSG/0/{epsg}"
+        elif self.crs is not None:
+            log.warning("model.city.json: the CRS has no EPSG code; referenceSystem left "
+                        "out (model.json holds its WKT)")  # fmt: skip
+        if self.count:
+            extent = np.concatenate([self.low * SCALE_M + self.origin,
+                                     self.high * SCALE_M + self.origin])  # fmt: skip
+            metadata["geographicalExtent"] = [round(float(v), 3) for v in extent]
+        head = {
+            "type": "CityJSON",
+            "version": VERSION,
+            "transform": {"scale": [SCALE_M] * 3, "translate": self.origin.tolist()},
+            "metadata": metadata,
+        }
+        self.f.write(json.dumps(head, separators=(",", ":"))[:-1] + ',"CityObjects":{')
+        for spool, tail in ((self.objects, '},"vertices":['), (self.vertices, "]}")):
+            spool.seek(0)
+            shutil.copyfileobj(spool, self.f)
+            spool.close()
+            self.f.write(tail)
 
 
 class _VertexPool:
@@ -117,6 +180,7 @@ class _VertexPool:
         return first
 
     def finish(self) -> tuple[np.ndarray, np.ndarray]:
+        """The distinct vertices, and the index among them of each one added."""
         if not self.chunks:
             return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
         unique, inverse = np.unique(np.concatenate(self.chunks), axis=0, return_inverse=True)
@@ -301,7 +365,7 @@ def _bottom_area(V: np.ndarray, T: np.ndarray) -> float:
     return float(-cross[down, 2].sum() / 2.0)
 
 
-def _rms_to_heights(b, dsm: np.ndarray | None, grid) -> float | None:
+def rms_to_heights(b, dsm: np.ndarray | None, grid) -> float | None:
     """RMS (m) of the model's top minus ``dsm`` over the cells of ``b``'s footprint."""
     if dsm is None or grid is None or b.footprint is None or not len(b.mesh.triangles):
         return None

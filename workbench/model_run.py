@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import json
 import logging
+import pickle
 import shutil
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,7 +32,7 @@ import numpy as np
 from shapely.geometry import mapping
 
 from .atomic import atomic_output_dir
-from .cityjson import write_city_model
+from .cityjson import CityModelWriter, city_origin, rms_to_heights
 from .imageio import write_rgb
 from .meshes import is_watertight
 from .meshio import write_mtl, write_obj, write_obj_pieces, write_ply, write_ply_pieces
@@ -106,6 +108,41 @@ class SurfacePieces:
         for path in self.files:
             with np.load(path) as z:
                 yield z["vertices"], z["triangles"], z["colours"]
+
+
+class BuildingsOnDisk:
+    """Buildings too many to hold (a city's, modelled block by block), kept on disk a
+    batch at a time and read back a batch at a time: iterating gives them in the order
+    they were added, holding one batch. :func:`write_model_run` iterates them a few times.
+
+    Parameters
+    ----------
+    folder : path
+        Where the batches are kept (one pickle each); made if missing.
+    """
+
+    def __init__(self, folder):
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.files: list[Path] = []
+        self.count = 0
+
+    def add(self, buildings: list[Building]) -> None:
+        """Keep ``buildings`` as the next batch."""
+        path = self.folder / f"batch_{len(self.files)}.pickle"
+        with open(path, "wb") as f:
+            pickle.dump(buildings, f, protocol=pickle.HIGHEST_PROTOCOL)
+        self.files.append(path)
+        self.count += len(buildings)
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __iter__(self):
+        for path in self.files:
+            with open(path, "rb") as f:
+                batch = pickle.load(f)
+            yield from batch
 
 
 @dataclass
@@ -191,7 +228,7 @@ class ModelRun:
         The path's registered name.
     options : dataclass instance
         The options it ran with (model.json's ``parameters``).
-    buildings : list of Building
+    buildings : list of Building or BuildingsOnDisk
     crs : rasterio CRS or None
     grid : Grid or None
         The grid of ``dtm`` and ``rasters``.
@@ -240,7 +277,12 @@ class ModelRun:
     def to_record(self, command: list[str] | None = None) -> dict:
         """model.json as a dict (without the write stage); ``command``: the command line
         that made the run, if any."""
-        buildings = [{**b.common_record(), **b.record} for b in self.buildings]
+        buildings = [building_record(b) for b in self.buildings]
+        return self.head_record(command, buildings, building_counts(buildings))
+
+    def head_record(self, command, buildings, counts: dict) -> dict:
+        """model.json with ``buildings`` (its list, or what stands for it) and the
+        buildings' ``counts`` (:func:`building_counts`) given."""
         return {
             "schema": SCHEMA,
             "method": self.method,
@@ -249,22 +291,33 @@ class ModelRun:
             "parameters": {**options_record(self.options), **self.parameters},
             "inputs": self.inputs,
             "buildings": buildings,
-            "counts": {
-                "buildings": len(buildings),
-                "faces": int(sum(b["faces"] for b in buildings)),
-                "watertight": int(sum(b["watertight"] for b in buildings)),
-                **self.counts,
-            },
+            "counts": {**counts, **self.counts},
             "stages": dict(self.stages),
             **self.record,
         }
+
+
+def building_record(b: Building) -> dict:
+    """``b``'s entry in model.json: the common keys, then the path's own."""
+    return {**b.common_record(), **b.record}
+
+
+def building_counts(records) -> dict:
+    """model.json's ``counts`` of buildings, faces and watertight ones, of their records."""
+    records = list(records)
+    return {
+        "buildings": len(records),
+        "faces": int(sum(r["faces"] for r in records)),
+        "watertight": int(sum(bool(r["watertight"]) for r in records)),
+    }
 
 
 def write_model_run(
     run: ModelRun, out: str | Path, *, overwrite: bool = False, command: list[str] | None = None
 ) -> dict:
     """Write ``run`` as a run folder (atomically: all of it or nothing); return model.json.
-    ``command`` is the command line that made it, for its record.
+    ``command`` is the command line that made it, for its record. The buildings are
+    written one at a time (:class:`BuildingsOnDisk` are never all in memory).
 
     Raises
     ------
@@ -275,28 +328,70 @@ def write_model_run(
     timer = StageTimer()
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
         with timer.stage("write"):
-            _write_files(run, tmp)
-        record = run.to_record(command)
+            records, counts = _write_files(run, tmp)
+        record = run.head_record(command, _RECORDS, counts)
         record["stages"].update(timer.stages)
         # the command's own peak, every path alike (a path with workers adds theirs)
         record.setdefault("peak_memory_mb", round(peak_memory_mb(), 1))
-        text = json.dumps(record, indent=1) + "\n"
-        (tmp / "model.json").write_text(text)
-    if not run.buildings:
+        _write_model_json(tmp / "model.json", record, records)
+    if not counts["buildings"]:
         log.warning("%s: the model holds no building", out)
-    return json.loads(text)  # as a reader of model.json sees it
+    with open(out / "model.json") as f:
+        return json.load(f)  # as a reader of model.json sees it
 
 
-def _write_files(run: ModelRun, tmp: Path) -> None:
+_RECORDS = "\u0000buildings\u0000"  # where the buildings' records go in model.json's text
+
+
+def _write_model_json(path: Path, record: dict, records) -> None:
+    """model.json as ``json.dumps(record, indent=1)`` would write it with the buildings'
+    records (an open text file of them, each ``indent=1`` JSON on its own lines, separated
+    by ``,\\n``) in place of ``_RECORDS``."""
+    head, tail = json.dumps(record, indent=1).split(json.dumps(_RECORDS))
+    records.seek(0)
+    with open(path, "w") as f:
+        f.write(head)
+        if records.read(1):
+            records.seek(0)
+            f.write("[\n")
+            shutil.copyfileobj(records, f)
+            f.write("\n ]")
+        else:
+            f.write("[]")
+        f.write(tail + "\n")
+    records.close()
+
+
+def _write_files(run: ModelRun, tmp: Path):
+    """Every file of the run but model.json, one building at a time; returns the buildings'
+    records for model.json (a spooled text file, :func:`_write_model_json`) and their
+    counts."""
     bdir = tmp / "buildings"
     bdir.mkdir()
-    parts: list[tuple[str, Surface, str]] = []  # material, mesh, its texture's path
-    for b in run.buildings:
-        _write_surface(bdir, b.id, b.mesh, f"building_{b.id}")
-        parts.append((f"building_{b.id}", b.mesh, f"buildings/{b.id}.png"))
+    records = tempfile.SpooledTemporaryFile(max_size=2**24, mode="w+", dir=tmp)
+    counts = {"buildings": 0, "faces": 0, "watertight": 0}
+    city = open(tmp / "model.city.json", "w")
+    with city:
+        cities = CityModelWriter(city, run.method, run.crs, city_origin(run.buildings), tmp)
+        for b in run.buildings:
+            _write_surface(bdir, b.id, b.mesh, f"building_{b.id}")
+            r = building_record(b)
+            text = json.dumps(r, indent=1).replace("\n", "\n  ")
+            records.write((",\n  " if counts["buildings"] else "  ") + text)
+            counts["buildings"] += 1
+            counts["faces"] += r["faces"]
+            counts["watertight"] += int(bool(r["watertight"]))
+            cities.add(b, rms_to_heights(b, run.dsm, run.grid))
+        cities.finish()
+
+    def parts():  # material, mesh, its texture's path
+        for b in run.buildings:
+            yield f"building_{b.id}", b.mesh, f"buildings/{b.id}.png"
+        if run.ground is not None:
+            yield "ground", run.ground, "ground.png"
+
     if run.ground is not None:
         _write_surface(tmp, "ground", run.ground, "ground")
-        parts.append(("ground", run.ground, "ground.png"))
     _write_scene(tmp, parts)
     if run.dtm is not None and run.grid is not None:
         write_raster(tmp / "dtm.tif", run.dtm.astype(np.float32), run.grid, run.crs)
@@ -304,9 +399,9 @@ def _write_files(run: ModelRun, tmp: Path) -> None:
         write_raster(tmp / f"{name}.tif", data, run.grid, run.crs, nodata=nodata)
     for name, path in run.raster_files.items():
         shutil.copyfile(path, tmp / f"{name}.tif")
-    write_city_model(tmp / "model.city.json", run, run.dsm)
     preview = run.preview if run.preview is not None else np.full((64, 64, 3), 255, np.uint8)
     write_rgb(tmp / "preview.png", preview)
+    return records, counts
 
 
 def _colours(s: Surface) -> np.ndarray:
@@ -364,26 +459,34 @@ def _write_surface(folder: Path, name: str, s: Surface | SurfacePieces, material
     )  # fmt: skip
 
 
-def _write_scene(tmp: Path, parts: list[tuple[str, Surface | SurfacePieces, str]]) -> None:
+def _write_scene(tmp: Path, parts) -> None:
     """scene.ply (vertex colours) and scene.obj|.mtl: textured when every part is. Written
-    part by part, each part piece by piece, so that the scene is never whole in memory."""
-    n_vertices = sum(_counts(s)[0] for _, s, _ in parts)
-    n_triangles = sum(_counts(s)[1] for _, s, _ in parts)
+    part by part, each part piece by piece, so that the scene is never whole in memory;
+    ``parts()`` gives the parts, (material, Surface or SurfacePieces, texture path) each,
+    and is called once for each pass over them."""
+    names, n_vertices, n_triangles, textured, colours, runs = [], 0, 0, True, {}, []
+    for name, s, png in parts():
+        v, t = _counts(s)
+        n_vertices += v
+        n_triangles += t
+        runs.append((name, t))
+        names.append((name, png))
+        textured &= s.texture is not None
+        colours[name] = _material_colour(s)
 
     def pieces(colours: bool = True):
-        for _, s, _ in parts:
+        for _, s, _ in parts():
             yield from _pieces(s, colours)
 
     write_ply_pieces(tmp / "scene.ply", pieces, n_vertices, n_triangles, colours=True)
-    runs = [(name, _counts(s)[1]) for name, s, _ in parts]
-    if parts and all(s.texture is not None for _, s, _ in parts):
-        white = {name: (255, 255, 255) for name, _, _ in parts}
-        write_mtl(tmp / "scene.mtl", white, {name: png for name, _, png in parts})
-        uvs = np.concatenate([s.texture.uvs for _, s, _ in parts])
+    if names and textured:
+        white = {name: (255, 255, 255) for name, _ in names}
+        write_mtl(tmp / "scene.mtl", white, dict(names))
+        uvs = np.concatenate([s.texture.uvs for _, s, _ in parts()])
         write_obj_pieces(tmp / "scene.obj", lambda: pieces(colours=False), n_triangles,
                          material=runs, mtllib="scene.mtl", uvs=uvs)  # fmt: skip
         return
-    write_mtl(tmp / "scene.mtl", {name: _material_colour(s) for name, s, _ in parts})
+    write_mtl(tmp / "scene.mtl", colours)
     write_obj_pieces(tmp / "scene.obj", pieces, n_triangles, material=runs, mtllib="scene.mtl")
 
 

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 
 from .camera import Camera, look_at_rotation
+from .meshes import concatenate_meshes
 from .raycast import cast, raycasting_scene
 
 _LIGHT = np.array([-0.4, -0.5, 0.77])
@@ -60,15 +63,63 @@ def render_mesh(
     -------
     (height, width, 3) uint8 RGB; the background is light grey.
     """
+    return render_meshes([(vertices, triangles, face_colors)], camera)
+
+
+def render_meshes(meshes: Iterable[tuple], camera: Camera) -> np.ndarray:
+    """:func:`render_mesh` of several meshes, one at a time (a scene too large to hold):
+    each pixel shows the nearest hit of any. ``meshes`` gives (vertices, triangles,
+    face colours or None) each."""
     img = np.tile(_BACKGROUND, (camera.height * camera.width, 1))
-    if len(triangles):
-        origin = camera.center  # cast near the origin: float32 keeps its precision there
-        centre, dirs = camera.pixel_grid_rays()
-        scene = raycasting_scene(vertices - origin, triangles)
-        hits = cast(scene, centre - origin, dirs)
-        hit = hits.tri >= 0
+    origin = camera.center  # cast near the origin: float32 keeps its precision there
+    centre, dirs = camera.pixel_grid_rays()
+    nearest = np.full(len(dirs), np.inf)
+    light = _LIGHT / np.linalg.norm(_LIGHT)
+    for vertices, triangles, face_colors in meshes:
+        if not len(triangles):
+            continue
+        hits = cast(raycasting_scene(vertices - origin, triangles), centre - origin, dirs)
+        hit = hits.t < nearest
+        nearest[hit] = hits.t[hit]
         colors = np.full((len(triangles), 3), 200, np.uint8) if face_colors is None else face_colors
-        light = _LIGHT / np.linalg.norm(_LIGHT)
         shade = 0.35 + 0.65 * np.abs(hits.normals[hit] @ light)
         img[hit] = np.clip(colors[hits.tri[hit]] * shade[:, None], 0, 255).astype(np.uint8)
     return img.reshape(camera.height, camera.width, 3)
+
+
+# triangles cast at once when drawing the buildings: a whole-grid run's are one batch
+RENDER_BATCH = 2_000_000
+
+
+def render_buildings(buildings: Iterable, bounds, low: float | None = None) -> np.ndarray | None:
+    """The buildings' meshes in grey from the south-west (:func:`viewpoints` of
+    ``bounds``), or None without any. ``buildings`` is iterated twice (the height range,
+    then the meshes a batch of at most ``RENDER_BATCH`` triangles at a time); ``low``: the
+    ground's height, metres (default: the lowest vertex)."""
+    z = [(m.vertices[:, 2].min(), m.vertices[:, 2].max()) for m in _meshes(buildings)]
+    if not z:
+        return None
+    low = float(min(a for a, _ in z)) if low is None else low
+    cam = viewpoints(bounds, (low, float(max(b for _, b in z))))["south-west"]
+
+    def batches():
+        batch, size = [], 0
+        for m in _meshes(buildings):
+            batch.append((m.vertices, m.triangles))
+            size += len(m.triangles)
+            if size >= RENDER_BATCH:
+                yield _grey(batch)
+                batch, size = [], 0
+        if batch:
+            yield _grey(batch)
+
+    return render_meshes(batches(), cam)
+
+
+def _meshes(buildings):
+    return (b.mesh for b in buildings if len(b.mesh.triangles))
+
+
+def _grey(meshes: list) -> tuple:
+    V, T, _ = concatenate_meshes(meshes)
+    return V, T, np.full((len(T), 3), 205, np.uint8)

@@ -28,6 +28,7 @@ from modeling.shared.in_blocks import (
     blocks_lines,
     blocks_record,
     each_block,
+    kept_buildings,
     plan_blocks,
 )
 from modeling.shared.opened_parts import building_segments, mid_wall_region
@@ -123,24 +124,25 @@ def run_blocks(
     t_start = time.perf_counter()
     plan = plan_blocks(fusion_dir, options.block_m, options.block_margin_m, engine)
     grid, blocks, claims, rasters = plan.grid, plan.blocks, plan.claims, plan.rasters
-    results, wide, crs = [], 0, None
+    results, wide, crs, iterations, anneal_s = [], 0, None, 0, 0.0
     for b in each_block(blocks):
         found, cut, crs = model_block(fusion_dir, b, claims, rasters, options, supports,
                                       block_engine(engine, blocks, b), timer)  # fmt: skip
+        iterations += sum(x.building.record["iterations"] for x in found if x.building)
+        anneal_s += sum(x.building.record["annealing_seconds"] for x in found if x.building)
+        plan.keep_buildings(kept_buildings(found))
         results += found
         wide += cut
     if not claims.count and supports is None:
         raise InputError(Path(fusion_dir) / "class_prob.tif", None, "no building cells of "
                          "at least --min-area: nothing to model")  # fmt: skip
-    buildings = [x.building for x in results if x.building is not None]
+    buildings = plan.buildings
     skipped = [{"building": str(x.key), "reason": x.skipped} for x in results if x.skipped]
     with timer.stage("preview"):
         layers, on = rasters.preview_layers()
         rgb = layers["rgb"]
         preview = blocks_preview(rgb, on, results, buildings)
     seconds = time.perf_counter() - t_start
-    iterations = sum(b.record["iterations"] for b in buildings)
-    anneal_s = sum(b.record["annealing_seconds"] for b in buildings)
     record = {"supports_from": "file" if supports is not None else
               "automatic (footprint priors of the height regions)"}  # fmt: skip
     if len(blocks) > 1:

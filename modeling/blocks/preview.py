@@ -3,14 +3,15 @@ the energy of every building's annealing against its iterations, and the models.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import cv2
 import numpy as np
 
-from workbench.meshes import concatenate_meshes
 from workbench.model_run import Building
 from workbench.pictures import contact_sheet
 from workbench.raster import Grid
-from workbench.render import render_mesh, viewpoints
+from workbench.render import render_buildings
 
 FORM_COLOURS = {
     "flat": (150, 150, 150), "shed": (230, 160, 60), "gable": (220, 60, 60),
@@ -53,7 +54,7 @@ def energy_plot(traces: list[list]) -> np.ndarray:
     return img
 
 
-def blocks_preview(rgb: np.ndarray, grid: Grid, results: list, buildings: list[Building]):
+def blocks_preview(rgb: np.ndarray, grid: Grid, results: list, buildings: Iterable[Building]):
     """(h, w, 3) uint8 contact sheet: the supports filled with their block's form colour
     over the ortho (skipped buildings' supports none), the annealing energies, the
     models."""
@@ -70,8 +71,7 @@ def blocks_preview(rgb: np.ndarray, grid: Grid, results: list, buildings: list[B
                           (255, 255, 255), 1, cv2.LINE_AA)  # fmt: skip
     row = [(over, "supports and block forms"),
            (energy_plot([x.trace for x in results if x.trace]), "annealing energy")]  # fmt: skip
-    if buildings:
-        V, T, _ = concatenate_meshes([(b.mesh.vertices, b.mesh.triangles) for b in buildings])
-        cam = viewpoints(grid.bounds, (float(V[:, 2].min()), float(V[:, 2].max())))["south-west"]
-        row.append((render_mesh(V, T, cam, np.full((len(T), 3), 205, np.uint8)), "models"))
+    models = render_buildings(buildings, grid.bounds)
+    if models is not None:
+        row.append((models, "models"))
     return contact_sheet([row], height=360)

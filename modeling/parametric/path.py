@@ -37,6 +37,7 @@ from modeling.shared.in_blocks import (
     blocks_lines,
     blocks_record,
     each_block,
+    kept_buildings,
     plan_blocks,
 )
 from modeling.shared.opened_parts import building_segments, opened_parts
@@ -170,8 +171,9 @@ def run_parametric(
     for b in each_block(blocks):
         on = block_engine(engine, blocks, b)
         done.append(model_block(fusion_dir, b, claims, rasters, options, footprints, on, timer))
+        plan.keep_buildings(kept_buildings(done[-1].results))
     results = [x for d in done for x in d.results]
-    buildings = [x.building for x in results if x.building is not None]
+    buildings = plan.buildings
     skipped = [{"segment": x.segment, "reason": x.skipped} for x in results if x.skipped]
     with timer.stage("preview"):
         outlines = [o for x in results for o in x.outlines]

@@ -3,16 +3,17 @@ the roof types, and the models."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import cv2
 import numpy as np
 from shapely.geometry import mapping
 from skimage.segmentation import find_boundaries
 
-from workbench.meshes import concatenate_meshes
 from workbench.model_run import Building
 from workbench.pictures import contact_sheet
 from workbench.raster import Grid
-from workbench.render import render_mesh, viewpoints
+from workbench.render import render_buildings
 
 ROOF_COLOURS = {
     "flat": (150, 150, 150), "shed": (230, 160, 60), "gable": (220, 60, 60),
@@ -45,7 +46,7 @@ def parametric_preview(
     grid: Grid,
     mask: np.ndarray,
     outlines: list,
-    buildings: list[Building],
+    buildings: Iterable[Building],
     skipped: list,
 ) -> np.ndarray:
     """(h, w, 3) uint8 contact sheet: the ortho with the level set's boundary (cyan), the
@@ -67,8 +68,7 @@ def parametric_preview(
             pts = np.round(ring).astype(np.int32)
             cv2.fillPoly(types, [pts], colour if i == 0 else (255, 255, 255))
     row = [(over, "level set, priors"), (types, "roof types")]
-    if buildings:
-        V, T, _ = concatenate_meshes([(b.mesh.vertices, b.mesh.triangles) for b in buildings])
-        cam = viewpoints(grid.bounds, (float(V[:, 2].min()), float(V[:, 2].max())))["south-west"]
-        row.append((render_mesh(V, T, cam, np.full((len(T), 3), 205, np.uint8)), "models"))
+    models = render_buildings(buildings, grid.bounds)
+    if models is not None:
+        row.append((models, "models"))
     return contact_sheet([row], height=360)

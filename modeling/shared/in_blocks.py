@@ -12,7 +12,8 @@ cells. No building is then modelled twice or lost between two blocks. A segment 
 the outer edge is left to the block whose inner cells hold its centre, which models the
 part it holds when the segment is wider than the margin (counted, and warned of).
 
-:class:`BlockRasters` puts the blocks' inner cells of the rasters a run writes together.
+:class:`BlockRasters` puts the blocks' inner cells of the rasters a run writes together;
+:class:`BlockPlan` keeps the blocks' buildings on disk as they come.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from workbench.engine import Engine
 from workbench.fusion_run import fusion_header
 from workbench.grid_blocks import Block, auto_block_size, block_layout, whole_grid_block
 from workbench.meshes import concatenate_meshes
-from workbench.model_run import Surface, SurfacePieces
+from workbench.model_run import Building, BuildingsOnDisk, Surface, SurfacePieces
 from workbench.progress import progress
 from workbench.raster import Grid, RasterWindows, WindowedRaster, read_decimated
 
@@ -51,14 +52,23 @@ def model_blocks(grid: Grid, block_m: float | None, margin_m: float) -> tuple[li
 @dataclass
 class BlockPlan:
     """A path's run over a fusion's grid in blocks: the grid, its blocks (``side_m``:
-    their side, None for the whole grid), which block models which segment, and the
-    rasters the run writes."""
+    their side, None for the whole grid), which block models which segment, the rasters
+    the run writes and the buildings modelled so far (on disk with several blocks and a
+    task store, so that the run never holds them all)."""
 
     grid: Grid
     blocks: list[Block]
     side_m: float | None
     claims: SegmentClaims
     rasters: BlockRasters
+    buildings: list[Building] | BuildingsOnDisk
+
+    def keep_buildings(self, buildings: list[Building]) -> None:
+        """A block's buildings, after those of the blocks before."""
+        if isinstance(self.buildings, BuildingsOnDisk):
+            self.buildings.add(buildings)
+        else:
+            self.buildings.extend(buildings)
 
 
 def plan_blocks(fusion_dir, block_m: float | None, margin_m: float, engine: Engine) -> BlockPlan:
@@ -67,8 +77,18 @@ def plan_blocks(fusion_dir, block_m: float | None, margin_m: float, engine: Engi
     grid, crs = fusion_header(fusion_dir)
     blocks, side_m = model_blocks(grid, block_m, margin_m)
     folder = engine.store.folder if engine.store is not None else None
+    kept = BuildingsOnDisk(Path(folder) / "buildings") if folder and len(blocks) > 1 else []
     return BlockPlan(grid, blocks, side_m, SegmentClaims(grid, blocks, folder, crs),
-                     BlockRasters(grid, blocks, fusion_dir, folder, crs))  # fmt: skip
+                     BlockRasters(grid, blocks, fusion_dir, folder, crs), kept)  # fmt: skip
+
+
+def kept_buildings(results: list) -> list[Building]:
+    """The buildings of a block's task answers (those with a ``building``), taken out of
+    them: :meth:`BlockPlan.keep_buildings` keeps them, the answers the rest."""
+    out = [x.building for x in results if x.building is not None]
+    for x in results:
+        x.building = None
+    return out
 
 
 def each_block(blocks: list[Block]):

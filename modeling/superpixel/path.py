@@ -88,7 +88,7 @@ def run_superpixel(
         first = sum(d.superpixels for d in done)  # the super-pixels' numbers on the whole grid
         done.append(model_block(fusion_dir, b, plan, options, first, truth, learned,
                                 block_engine(engine, blocks, b), timer))  # fmt: skip
-    buildings = [x for d in done for x in d.buildings]
+    buildings = plan.buildings
     with timer.stage("preview"):
         layers, on = plan.rasters.preview_layers()
         preview = superpixel_preview(layers["rgb"], layers["labels"], layers["classes"],
@@ -121,13 +121,12 @@ def run_superpixel(
 
 @dataclass
 class BlockModel:
-    """What :func:`model_block` gives beside its rasters: the buildings it models
-    (numbered on the whole grid), its super-pixels, the seconds its buildings' tasks spent
-    in each of ``ROOF_STEPS``, the class CRF's choices, the options it decided, its CRS,
-    how many buildings wider than the margin it modelled from the part it holds, its
-    lowest ground (for the preview's view) and, with a truth, the paper's Table 1."""
+    """What :func:`model_block` gives beside its rasters and its buildings: its
+    super-pixels, the seconds its buildings' tasks spent in each of ``ROOF_STEPS``, the
+    class CRF's choices, the options it decided, its CRS, how many buildings wider than
+    the margin it modelled from the part it holds, its lowest ground (for the preview's
+    view) and, with a truth, the paper's Table 1."""
 
-    buildings: list[Building]
     superpixels: int
     seconds: dict
     crf_choices: dict
@@ -153,7 +152,8 @@ def model_block(
     (numbered from ``first_label`` in ``superpixels.tif``) and their classes (with the
     class CRF's parameters ``learned`` on another block, if given), and a task for each
     building ``plan.claims`` gives it (every one when the block is the whole grid); the
-    rasters the run writes put into ``plan.rasters``."""
+    rasters the run writes put into ``plan.rasters`` and its buildings (numbered on the
+    whole grid) into ``plan.buildings``."""
     fusion, decided, labels, graph = block_superpixels(fusion_dir, block, options, timer)
     dsm, dtm, grid = fusion.band("dsm"), fusion.band("dtm"), fusion.grid
     with timer.stage("class_crf"):
@@ -175,6 +175,7 @@ def model_block(
         )
     for b in buildings:
         b.mesh.vertex_colors = vertex_colours(b.mesh.vertices, fusion.rgb, grid)
+    plan.keep_buildings(buildings)
     table = None
     if truth is not None:
         sp_argmax = np.where(unseen, 0, graph.class_sum.argmax(axis=1)[labels] + 1)
@@ -192,7 +193,7 @@ def model_block(
     plan.rasters.put(block, grid, dtm=dtm, rgb=fusion.rgb, dsm=dsm, labels=labels,
                      classes=crf_class, faces=faces)  # fmt: skip
     ground_z = float(np.nanmin(dtm)) if np.isfinite(dtm).any() else np.inf
-    return BlockModel(buildings, graph.n, seconds, crf_choices, decided, fusion.crs, cut,
+    return BlockModel(graph.n, seconds, crf_choices, decided, fusion.crs, cut,
                       ground_z, table)  # fmt: skip
 
 

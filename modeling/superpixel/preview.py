@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 from skimage.segmentation import find_boundaries
 
-from workbench.meshes import concatenate_meshes
 from workbench.model_run import Building
 from workbench.pictures import colorize_classes, contact_sheet
 from workbench.raster import Grid
-from workbench.render import render_mesh, viewpoints
+from workbench.render import render_buildings
 
 
 def superpixel_preview(
@@ -17,7 +18,7 @@ def superpixel_preview(
     labels: np.ndarray,
     classes: np.ndarray,
     faces: np.ndarray,
-    buildings: list[Building],
+    buildings: Iterable[Building],
     grid: Grid,
     ground_z: float,
 ) -> np.ndarray:
@@ -39,10 +40,8 @@ def superpixel_preview(
         (colorize_classes(classes), "CRF classes"),
         (palette[faces], "roof prototypes"),
     ]
-    if buildings:
-        V, T, _ = concatenate_meshes([(b.mesh.vertices, b.mesh.triangles) for b in buildings])
-        # a single-building cloud's DTM can be all NaN: its models' foot is the ground then
-        low = ground_z if np.isfinite(ground_z) else float(V[:, 2].min())
-        cam = viewpoints(grid.bounds, (low, float(V[:, 2].max())))["south-west"]
-        row.append((render_mesh(V, T, cam, np.full((len(T), 3), 205, np.uint8)), "models"))
+    # a single-building cloud's DTM can be all NaN: its models' foot is the ground then
+    models = render_buildings(buildings, grid.bounds, ground_z if np.isfinite(ground_z) else None)
+    if models is not None:
+        row.append((models, "models"))
     return contact_sheet([row], height=360)
