@@ -45,7 +45,8 @@ WALL_SLOPE = math.sin(math.radians(10.0))  # |n_z| below this: a wall
 MERGE_M = 0.005  # vertices closer than this are one (see mesh_faces.weld)
 MIN_AREA_M2 = 0.01  # footprint holes and parts smaller than this are slivers
 BASE_TOLERANCE_M = 0.05  # a downward face this close to the base is the ground surface
-SPOOL_BYTES = 2**26  # the writer's city objects and vertices go to disk beyond this
+# spooled texts (city objects, vertices, model.json's buildings) go to disk beyond this
+SPOOL_BYTES = 2**23
 
 
 def city_model(run, dsm: np.ndarray | None = None) -> dict:

@@ -32,7 +32,7 @@ import numpy as np
 from shapely.geometry import mapping
 
 from .atomic import atomic_output_dir
-from .cityjson import CityModelWriter, city_origin, rms_to_heights
+from .cityjson import SPOOL_BYTES, CityModelWriter, city_origin, rms_to_heights
 from .imageio import write_rgb
 from .meshes import is_watertight
 from .meshio import write_mtl, write_obj, write_obj_pieces, write_ply, write_ply_pieces
@@ -368,7 +368,7 @@ def _write_files(run: ModelRun, tmp: Path):
     counts."""
     bdir = tmp / "buildings"
     bdir.mkdir()
-    records = tempfile.SpooledTemporaryFile(max_size=2**24, mode="w+", dir=tmp)
+    records = tempfile.SpooledTemporaryFile(max_size=SPOOL_BYTES, mode="w+", dir=tmp)
     counts = {"buildings": 0, "faces": 0, "watertight": 0}
     city = open(tmp / "model.city.json", "w")
     with city:

@@ -73,8 +73,11 @@ class Proxy:
     frame : VoxelFrame
     columns : (nx, ny) bool
         Columns of the grown footprint.
-    variance : (nx, ny, nz) float
-        m_i of eq. 3 (NaN outside the columns or where unseen).
+    variance : ((nx, nz) float, (nx, ny) float)
+        m_i of eq. 3 (NaN outside the columns or where unseen) on two slices, for the
+        preview: the vertical one through the middle row of columns, and the horizontal
+        one at the roof's top (:func:`variance_slices`). The volume is not kept: with
+        the exterior's normals as volumes, it was most of a city's proxies.
     min_height : (nx, ny) float
         Height above the ground of each column's most consistent voxel (the highest
         tied with its minimum, :func:`highest_tied`), metres (NaN outside or discarded).
@@ -84,8 +87,8 @@ class Proxy:
         Roof heights above ``frame.base_z``, metres.
     roof : RoofFaces
         The roof's faces and planes (the levels' flat planes, or pitched planes).
-    exterior, normals : (nx, ny, nz) bool, (nx, ny, nz, 3) float
-        Exterior voxels and their eq. 4 normals (local axes).
+    exterior, normals : (N, 3) int, (N, 3) float
+        The exterior voxels' indices (i, j, k) and their eq. 4 normals (local axes).
     model : Building or None
         The proxy's closed mesh with its footprint, roof planes and roof type, world
         metres (None when the proxy is empty).
@@ -126,11 +129,11 @@ class Proxy:
 
     def exterior_voxels_world(self) -> tuple[np.ndarray, np.ndarray]:
         """World centres (N, 3) and world unit normals (N, 3) of the exterior voxels."""
-        i, j, k = np.nonzero(self.exterior)
+        i, j, k = self.exterior.T
         f = self.frame
         local = np.column_stack([f.x0 + (i + 0.5) * f.r, f.y0 + (j + 0.5) * f.r])
         centres = np.column_stack([f.to_world_xy(local), f.base_z + k * f.r])
-        n = self.normals[i, j, k]
+        n = self.normals
         world = np.column_stack([n[:, :2] @ f.axes, n[:, 2]])
         return centres, world
 
@@ -231,10 +234,23 @@ def building_proxy(
         "times_s": {k: round(v, 3) for k, v in times.items()},
         "peak_memory_mb": round(peak_memory_mb(), 1),
     }
+    outside = np.argwhere(exterior)
     return Proxy(
-        building_id, frame, columns, variance, min_height, levels, level_heights, roof,
-        exterior, surf_normals, model, record,
+        building_id, frame, columns, variance_slices(variance, frame, roof), min_height,
+        levels, level_heights, roof, outside, surf_normals[tuple(outside.T)], model, record,
     )  # fmt: skip
+
+
+def variance_slices(
+    variance: np.ndarray, frame: VoxelFrame, roof: RoofFaces
+) -> tuple[np.ndarray, np.ndarray]:
+    """The proxy's ``variance`` (nx, ny, nz) on its vertical slice through the middle row
+    of columns (nx, nz) and its horizontal slice at the roof's top (nx, ny)."""
+    nx, ny, nz = frame.shape
+    tops = roof.column_tops(frame.r, frame.x0, frame.y0)
+    roof_top = float(tops.max()) if np.isfinite(tops).any() else 0.0
+    k = min(nz - 1, max(0, int(round(roof_top / frame.r))))
+    return variance[:, ny // 2, :].copy(), variance[:, :, k].copy()
 
 
 def pitched_roof(

@@ -25,13 +25,11 @@ def voxel_preview(p: Proxy | None, t: Texture | None, buildings: list, gtex) -> 
     texture ``t``), the textured buildings and the ground texture."""
     if p is None:
         return np.full((64, 64, 3), 255, np.uint8)
-    nx, ny, nz = p.frame.shape
-    var = p.variance[:, ny // 2, :].T[::-1]  # vertical slice, up is up
+    vertical, horiz = p.variance
+    var = vertical.T[::-1]  # up is up
     var_img = colorize_height(np.log10(np.where(np.isfinite(var), var, np.nan) + 1e-6))
-    tops = p.roof.column_tops(p.frame.r, p.frame.x0, p.frame.y0)
-    roof_top = float(tops.max()) if np.isfinite(tops).any() else 0.0
-    horiz = p.variance[:, :, min(nz - 1, max(0, int(round(roof_top / p.frame.r))))]
     horiz_img = colorize_height(np.log10(horiz.T[::-1] + 1e-6))
+    tops = p.roof.column_tops(p.frame.r, p.frame.x0, p.frame.y0)
     top = float(np.nanmax(p.min_height)) if np.isfinite(p.min_height).any() else 1.0
     before = _height_image(p.min_height, top)
     after = _height_image(np.where(np.isfinite(tops), tops, np.nan), top)
