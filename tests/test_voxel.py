@@ -853,6 +853,23 @@ def test_perturbed_proxy_grows_and_shrinks():
         assert 8.0 <= v[:, 2].max() <= 12.0
 
 
+def test_a_proxy_keeps_its_exterior_as_a_list_and_two_slices_of_its_variance():
+    from modeling.voxel.building import variance_slices
+
+    frame = VoxelFrame(np.array([100.0, 200.0]), np.eye(2), 0.0, 0.0, 0.5, (4, 6, 8), 10.0)
+    levels = np.ones((4, 6), int)
+    variance = np.arange(4 * 6 * 8, dtype=float).reshape(4, 6, 8)
+    vertical, at_roof = variance_slices(variance, frame, _flat(levels, [1.5]))
+    np.testing.assert_array_equal(vertical, variance[:, 3, :])  # the middle row
+    np.testing.assert_array_equal(at_roof, variance[:, :, 3])  # 1.5 m: layer 3
+    ijk, normals = np.array([[1, 2, 3], [0, 5, 7]]), np.array([[0.0, 0, 1], [1.0, 0, 0]])
+    proxy = Proxy("1", frame, levels > 0, (vertical, at_roof), None, levels, np.array([1.5]),
+                  None, ijk, normals, None)  # fmt: skip
+    centres, world = proxy.exterior_voxels_world()
+    np.testing.assert_allclose(centres, [[100.75, 201.25, 11.5], [100.25, 202.75, 13.5]])
+    np.testing.assert_allclose(world, normals)
+
+
 @pytest.fixture(scope="module")
 def voxel_run(tiny_models):
     """The path as a user runs it: the scene's views and ``workbench fusion``'s rasters."""

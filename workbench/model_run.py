@@ -370,8 +370,7 @@ def _write_files(run: ModelRun, tmp: Path):
     bdir.mkdir()
     records = tempfile.SpooledTemporaryFile(max_size=SPOOL_BYTES, mode="w+", dir=tmp)
     counts = {"buildings": 0, "faces": 0, "watertight": 0}
-    city = open(tmp / "model.city.json", "w")
-    with city:
+    with open(tmp / "model.city.json", "w") as city:
         cities = CityModelWriter(city, run.method, run.crs, city_origin(run.buildings), tmp)
         for b in run.buildings:
             _write_surface(bdir, b.id, b.mesh, f"building_{b.id}")
