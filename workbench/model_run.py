@@ -274,15 +274,10 @@ class ModelRun:
     counts: dict = field(default_factory=dict)
     record: dict = field(default_factory=dict)
 
-    def to_record(self, command: list[str] | None = None) -> dict:
-        """model.json as a dict (without the write stage); ``command``: the command line
-        that made the run, if any."""
-        buildings = [building_record(b) for b in self.buildings]
-        return self.head_record(command, buildings, building_counts(buildings))
-
-    def head_record(self, command, buildings, counts: dict) -> dict:
-        """model.json with ``buildings`` (its list, or what stands for it) and the
-        buildings' ``counts`` (:func:`building_counts`) given."""
+    def to_record(self, command: list[str] | None, buildings, counts: dict) -> dict:
+        """model.json as a dict (without the write stage), with ``buildings`` (their
+        entries, or what stands for them) and their ``counts`` (:func:`building_counts`)
+        given; ``command``: the command line that made the run, if any."""
         return {
             "schema": SCHEMA,
             "method": self.method,
@@ -303,13 +298,14 @@ def building_record(b: Building) -> dict:
 
 
 def building_counts(records) -> dict:
-    """model.json's ``counts`` of buildings, faces and watertight ones, of their records."""
-    records = list(records)
-    return {
-        "buildings": len(records),
-        "faces": int(sum(r["faces"] for r in records)),
-        "watertight": int(sum(bool(r["watertight"]) for r in records)),
-    }
+    """model.json's ``counts`` of buildings, faces and watertight ones, of the buildings'
+    entries (any iterable: each is counted as it comes)."""
+    counts = {"buildings": 0, "faces": 0, "watertight": 0}
+    for r in records:
+        counts["buildings"] += 1
+        counts["faces"] += int(r["faces"])
+        counts["watertight"] += int(bool(r["watertight"]))
+    return counts
 
 
 def write_model_run(
@@ -329,7 +325,7 @@ def write_model_run(
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
         with timer.stage("write"):
             records, counts = _write_files(run, tmp)
-        record = run.head_record(command, _RECORDS, counts)
+        record = run.to_record(command, _RECORDS, counts)
         record["stages"].update(timer.stages)
         # the command's own peak, every path alike (a path with workers adds theirs)
         record.setdefault("peak_memory_mb", round(peak_memory_mb(), 1))
@@ -369,18 +365,19 @@ def _write_files(run: ModelRun, tmp: Path):
     bdir = tmp / "buildings"
     bdir.mkdir()
     records = tempfile.SpooledTemporaryFile(max_size=SPOOL_BYTES, mode="w+", dir=tmp)
-    counts = {"buildings": 0, "faces": 0, "watertight": 0}
-    with open(tmp / "model.city.json", "w") as city:
-        cities = CityModelWriter(city, run.method, run.crs, city_origin(run.buildings), tmp)
+
+    def written(cities: CityModelWriter):  # each building's files; its entry as it goes
         for b in run.buildings:
             _write_surface(bdir, b.id, b.mesh, f"building_{b.id}")
             r = building_record(b)
             text = json.dumps(r, indent=1).replace("\n", "\n  ")
-            records.write((",\n  " if counts["buildings"] else "  ") + text)
-            counts["buildings"] += 1
-            counts["faces"] += r["faces"]
-            counts["watertight"] += int(bool(r["watertight"]))
+            records.write((",\n  " if records.tell() else "  ") + text)
             cities.add(b, rms_to_heights(b, run.dsm, run.grid))
+            yield r
+
+    with open(tmp / "model.city.json", "w") as city:
+        cities = CityModelWriter(city, run.method, run.crs, city_origin(run.buildings), tmp)
+        counts = building_counts(written(cities))
         cities.finish()
 
     def parts():  # material, mesh, its texture's path
