@@ -340,6 +340,21 @@ def largest_component(mask: np.ndarray) -> np.ndarray:
     return labels == np.bincount(labels.ravel())[1:].argmax() + 1
 
 
+def planar_roof_cells(
+    classes: np.ndarray, dsm: np.ndarray, ndsm: np.ndarray, gsd: float, seed: int = 0
+) -> tuple[np.ndarray, dict]:
+    """(H, W) bool the cells classed tree that are roofs: whole objects
+    (:func:`planar_tree_objects`), then faces joined to a crown
+    (:func:`roof_faces_beside_buildings`); and how many of each were found, by the
+    names in :data:`COUNTS`. The LOD path tests its MRF labelling with it too."""
+    # the noise is measured on the ground, which neither step relabels
+    tolerance = inlier_tolerance(dsm, classes, gsd)
+    roof, objects = planar_tree_objects(classes, dsm, ndsm, gsd, seed, tolerance)
+    with_roofs = np.where(roof, BUILDING, classes).astype(classes.dtype)
+    faces, found = roof_faces_beside_buildings(with_roofs, dsm, ndsm, gsd, seed, tolerance)
+    return roof | faces, dict(zip(COUNTS, (objects, found), strict=True))
+
+
 def planar_roofs_classed_tree(
     classes: np.ndarray,
     class_prob: np.ndarray,
@@ -348,9 +363,8 @@ def planar_roofs_classed_tree(
     gsd: float,
     seed: int = 0,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
-    """The class map and probabilities with the roofs colour called tree made building:
-    whole objects (:func:`planar_tree_objects`), then faces joined to a crown
-    (:func:`roof_faces_beside_buildings`).
+    """The class map and probabilities with the roofs colour called tree made building
+    (:func:`planar_roof_cells`).
 
     Returns
     -------
@@ -359,14 +373,10 @@ def planar_roofs_classed_tree(
     counts : dict
         How many of each were made building, by the names in :data:`COUNTS`.
     """
-    # the noise is measured on the ground, which neither step relabels
-    tolerance = inlier_tolerance(dsm, classes, gsd)
-    roof, objects = planar_tree_objects(classes, dsm, ndsm, gsd, seed, tolerance)
-    with_roofs = np.where(roof, BUILDING, classes).astype(classes.dtype)
-    faces, found = roof_faces_beside_buildings(with_roofs, dsm, ndsm, gsd, seed, tolerance)
+    cells, counts = planar_roof_cells(classes, dsm, ndsm, gsd, seed)
     # one relabelling of both: each copies the probabilities (100 MB on the 1 km² city)
-    classes, class_prob = relabel_planar_objects(classes, class_prob, roof | faces)
-    return classes, class_prob, dict(zip(COUNTS, (objects, found), strict=True))
+    classes, class_prob = relabel_planar_objects(classes, class_prob, cells)
+    return classes, class_prob, counts
 
 
 def relabel_planar_objects(

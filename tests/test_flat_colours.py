@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from fusion.flat_colours import MIN_CELLS, fit_flat_colours, ground_factor, weigh_flat_classes
+from fusion.flat_colours import weigh_flat_classes
+from workbench.ground_grass_colours import MIN_CELLS, fit_flat_colours, ground_factor
 
 PAVING, LAWN = (150, 150, 145), (70, 120, 50)
 

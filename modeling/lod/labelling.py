@@ -21,7 +21,9 @@ def normalised_height(h: np.ndarray, h_ground: np.ndarray, h_trunc: float) -> np
     return np.where(np.isfinite(hn), hn, 0.5)
 
 
-def data_term(hn: np.ndarray, t: np.ndarray, paper: bool = False) -> np.ndarray:
+def data_term(
+    hn: np.ndarray, t: np.ndarray, paper: bool = False, ground_factor: np.ndarray | None = None
+) -> np.ndarray:
     """(H, W, 4) D(l) for l = ground, grass, tree, building.
 
     Eq. 4 ranks the labels by the products of h_n and t: ground low and not a tree, grass
@@ -31,10 +33,22 @@ def data_term(hn: np.ndarray, t: np.ndarray, paper: bool = False) -> np.ndarray:
     alone decides between them. Here each label costs the negative logarithm of its
     product, P(ground) = (1 - h_n)(1 - t), P(grass) = (1 - h_n) t, P(tree) = h_n t,
     P(building) = h_n (1 - t) (a distribution over the four labels), clipped at 1e-3.
+
+    With ``ground_factor`` f (H, W) in (0, 2), each cell's ortho colour under the
+    ground and grass colour models (:func:`workbench.ground_grass_colours.ground_factor`,
+    not in the paper), the low mass 1 - h_n is split between ground and grass by the
+    product of both experts, s = (1 - t) f / ((1 - t) f + t (2 - f)): P(ground) =
+    (1 - h_n) s, P(grass) = (1 - h_n)(1 - s). Tree and building keep theirs: colour
+    weighs nothing between low and high.
     """
     if paper:
         return np.stack([hn * t, hn * (1 - t), (1 - hn) * (1 - t), (1 - hn) * t], axis=-1)
     P = np.stack([(1 - hn) * (1 - t), (1 - hn) * t, hn * t, hn * (1 - t)], axis=-1)
+    if ground_factor is not None:
+        a, b = (1 - t) * ground_factor, t * (2.0 - ground_factor)
+        share = np.divide(a, a + b, out=1 - t, where=a + b > 0)
+        P[..., 0] = (1 - hn) * share
+        P[..., 1] = (1 - hn) * (1 - share)
     return -np.log(np.clip(P, 1e-3, 1.0))
 
 
@@ -106,14 +120,55 @@ def fill_from_below(h: np.ndarray, max_steps: int = 200) -> np.ndarray:
     return out
 
 
+def fill_holes(h: np.ndarray, ground: np.ndarray, h_trunc: float) -> np.ndarray:
+    """``h`` with its holes filled for the buildings' outlines: a hole whose rim stands
+    everywhere more than ``h_trunc`` above ``ground`` lies on a roof and is filled from
+    below (:func:`fill_from_below`); a hole that reaches the ground anywhere takes the
+    ground's heights.
+
+    A mesh's holes lie where no view saw the surface: beside tall walls, over the ground
+    or a lower roof behind them. Filled from below layer by layer, a hole between a
+    wall's top and the ground takes the roof's height on the wall's side, and that side
+    joined the building (``small`` seeds 0-2: footprint 2D quality 0.929, 0.902, 0.905
+    -> 0.896, 0.896, 0.908, volume 3D quality 0.937 -> 0.889 on seed 0). Where the
+    outline runs through such a hole nothing in the mesh says; the ground is the
+    smaller guess.
+
+    Parameters
+    ----------
+    h : (H, W) float
+        Heights, metres, NaN unknown.
+    ground : (H, W) float
+        The ground's heights, known everywhere
+        (:func:`~modeling.shared.raster_ground.dtm_across_holes`).
+    h_trunc : float
+        Height above the ground of the lowest roof, metres.
+    """
+    out = fill_from_below(h)
+    holes, n = ndi.label(~np.isfinite(h), np.ones((3, 3), bool))
+    if n == 0:
+        return out
+    rim = ndi.binary_dilation(holes > 0, np.ones((3, 3), bool)) & np.isfinite(h)
+    # a rim cell's hole: the largest label about it (two holes never touch: they would
+    # be one)
+    owner = ndi.grey_dilation(holes, size=3)[rim]
+    low = (h[rim] - ground[rim]) <= h_trunc
+    reaches_ground = np.zeros(n + 1, bool)
+    reaches_ground[owner[low]] = True
+    to_ground = reaches_ground[holes] & (holes > 0)
+    out[to_ground] = ground[to_ground]
+    return out
+
+
 def mrf_labelling(
     h: np.ndarray,
     t: np.ndarray,
-    h_trunc: float = 3.0,
+    h_trunc: float = 2.5,
     mu: float = 1.0,
     iterations: int = 3,
     block: int = 200,
     rgb: np.ndarray | None = None,
+    ground_factor: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[float]]:
     """Eq. 6 minimised by alpha-expansion, ``iterations`` times, h_ground re-estimated
     from each labelling's ground cells.
@@ -131,6 +186,8 @@ def mrf_labelling(
         multiplied by their :func:`colour_contrast` (not in the paper): ground and grass
         are both low and flat, so eq. 5 does not part them, and the tree probability's
         filters blur their border. Higher up eq. 5 stays: shadows would split roofs.
+    ground_factor : (H, W) float, optional
+        Each cell's colour factor of ground against grass (:func:`data_term`).
 
     Returns
     -------
@@ -145,7 +202,7 @@ def mrf_labelling(
     for _ in range(max(iterations, 1)):
         h_ground = ground_heights(h, labels, block)
         hn = normalised_height(h, h_ground, h_trunc)
-        unary = data_term(hn, t).reshape(-1, 4)
+        unary = data_term(hn, t, ground_factor=ground_factor).reshape(-1, 4)
         w = weights
         if contrast is not None:
             low = hn.ravel() < 0.5

@@ -12,9 +12,9 @@ LODS = ("0", "1", "2")
 @documented
 @dataclass
 class LodOptions:
-    """Parameters of the LOD path (the LOD paper's values where it gives them: h_trunc
-    3 m, mu 1, three ground iterations, 200 boosting rounds, a collinear threshold of
-    0.5 m, beta 10; the departures are listed in ``docs/lod.md``)."""
+    """Parameters of the LOD path (the LOD paper's values where it gives them: mu 1, three
+    ground iterations, 200 boosting rounds, a collinear threshold of 0.5 m, beta 10; the
+    departures, h_trunc among them, are listed in ``docs/lod.md``)."""
 
     lod: tuple[str, ...] = option(
         LODS, "levels of detail made: 0 the footprint, 1 each face at its plane's mean "
@@ -22,14 +22,22 @@ class LodOptions:
         "others go into model.city.json", parse=comma_choices(LODS), metavar="0,1,2",
     )  # fmt: skip
     h_trunc: float = option(
-        3.0, "midpoint of the logistic normalised height (eq. 3): a one-storey building",
-        unit="m",
+        2.5, "midpoint of the logistic normalised height (eq. 3), below a one-storey "
+        "building (the paper's 3 m put a 3-3.5 m building at h_n 0.5-0.7)", unit="m",
     )  # fmt: skip
     mu: float = option(1.0, "weight of the labelling's smoothness (eq. 6)", kind="non_negative")
     colour_contrast: bool = option(
         True, "between two cells below --h-trunc, multiply the labelling's pairwise weight "
         "(eq. 5) by the ortho's colour contrast, so that ground and grass part at their "
         "colour edge (off: the paper's eq. 5)",
+    )  # fmt: skip
+    flat_colours: bool = option(
+        True, "weigh ground against grass by each cell's ortho colour under Gaussian "
+        "mixtures of the training strokes' colours, as the fusion does (with --labels)",
+    )  # fmt: skip
+    planar_objects: bool = option(
+        True, "make building the objects labelled tree that a few roof planes explain, and "
+        "roof faces joined to a crown, as the fusion does (a green roof's colour is a tree's)",
     )  # fmt: skip
     angle_threshold: float = option(
         10.0, "angle within which a normal counts for a facade or roof direction (eq. 7-8, "

@@ -18,20 +18,23 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage as ndi
 
+from fusion.planar_objects import COUNTS as PLANAR_COUNTS
+from fusion.planar_objects import planar_roof_cells
 from modeling.shared.opened_parts import mid_wall_region
-from modeling.shared.raster_ground import ground_surface, vertex_colours
+from modeling.shared.raster_ground import dtm_across_holes, ground_surface, vertex_colours
 from modeling.shared.roof_model import closed_roof_model
 from workbench.errors import InputError, WorkbenchError
 from workbench.fusion_run import read_fusion_run
+from workbench.ground_grass_colours import fit_flat_colours, ground_factor
 from workbench.model_run import Building, ModelRun
 from workbench.pictures import colorize_classes, contact_sheet
 from workbench.progress import progress
-from workbench.raster import BUILDING, GRASS, TREE, Grid, read_raster
+from workbench.raster import BUILDING, GRASS, GROUND, TREE, Grid, read_raster
 from workbench.records import StageTimer, peak_memory_mb
 
 from .arrangement import arrangement_faces, label_faces
 from .facades import facade_directions, wall_normals
-from .labelling import fill_from_below, mrf_labelling, open_close
+from .labelling import fill_from_below, fill_holes, mrf_labelling, open_close
 from .options import LodOptions
 from .segments import (
     detect_segments,
@@ -56,7 +59,7 @@ class LodInputs:
     grid: Grid
     rgb: np.ndarray
     dsm: np.ndarray
-    filled: np.ndarray  # the DSM's holes filled from below (outlines)
+    filled: np.ndarray  # the DSM's holes filled for the outlines (labelling.fill_holes)
     dtm: np.ndarray
     normal: np.ndarray | None
 
@@ -99,16 +102,32 @@ def run_lod(
             t_source = "the fusion's grass and tree probabilities (no --labels)"
     with timer.stage("labelling"):
         block = max(1, round(options.ground_block_m / grid.gsd))
+        # the ground goes on under the mesh's holes, where filled heights stand on it
+        ground = dtm_across_holes(dtm)
         filled = fill_from_below(dsm)
+        factor, colours = None, {"used": False, "reason": "no --labels"}
+        if strokes is not None and options.flat_colours:
+            on = np.isin(strokes, (GROUND, GRASS))
+            model, colours = fit_flat_colours(rgb[on], strokes[on], options.seed)
+            factor = ground_factor(model, rgb) if model is not None else None
+        elif strokes is not None:
+            colours["reason"] = "--no-flat-colours"
         classes, _, trace = mrf_labelling(filled, t, options.h_trunc, options.mu,
                                           options.ground_iterations, block,
-                                          rgb if options.colour_contrast else None)  # fmt: skip
+                                          rgb if options.colour_contrast else None,
+                                          factor)  # fmt: skip
+        planar = dict.fromkeys(PLANAR_COUNTS, 0)
+        if options.planar_objects:
+            # green roofs the strokes' colours call tree, as in the fusion's class map
+            roofs, planar = planar_roof_cells(classes, dsm, dsm - ground, grid.gsd, options.seed)
+            classes = np.where(roofs, BUILDING, classes).astype(classes.dtype)
         radius = round(options.opening_m / grid.gsd)
         building = open_close(classes == BUILDING, radius)
         parts, n = ndi.label(building)
         sizes = np.bincount(parts.ravel(), minlength=n + 1) * grid.gsd**2
         keep = [k for k in range(1, n + 1) if sizes[k] >= options.min_area_m2]
-    inputs = LodInputs(grid, rgb, dsm, filled, dtm, normal)
+    outline_heights = fill_holes(dsm, ground, options.h_trunc)
+    inputs = LodInputs(grid, rgb, dsm, outline_heights, ground, normal)
     buildings, skipped, painted = [], [], np.zeros(grid.shape, np.int64)
     with timer.stage("buildings"):
         boxes = ndi.find_objects(parts)
@@ -133,10 +152,11 @@ def run_lod(
                 "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd},
                 "labels": str(Path(labels).absolute()) if labels else None,
                 "normal_map": "normal.tif" if normal is not None else "from the DSM"},
-        counts={"candidates": len(keep), "skipped": len(skipped)},
+        counts={"candidates": len(keep), "skipped": len(skipped), **planar},
         record={
             "skipped": skipped,
-            "labelling": {"tree_probability": t_source, "mean_ground_m": trace,
+            "labelling": {"tree_probability": t_source, "flat_colours": colours,
+                          "mean_ground_m": trace,
                           "cells": {name: int((classes == c).sum()) for c, name in
                                     ((1, "ground"), (2, "grass"), (3, "tree"),
                                      (4, "building"))}},
@@ -264,8 +284,14 @@ def summary_lines(record: dict) -> list[str]:
     cells = lab.get("cells", {})
     total = max(sum(cells.values()), 1)
     shares = ", ".join(f"{k} {v / total:.0%}" for k, v in cells.items())
+    colours = lab.get("flat_colours", {})
+    counts = record.get("counts", {})
     return [f"  labelling: {shares}; ground height by iteration {lab.get('mean_ground_m')} m",
-            f"  tree probability: {lab.get('tree_probability')}"]  # fmt: skip
+            f"  tree probability: {lab.get('tree_probability')}",
+            "  ground and grass by colour: " + ("yes" if colours.get("used") else
+                                                f"no ({colours.get('reason')})")
+            + f"; tree objects made building: {counts.get('planar_objects_made_building', 0)} "
+            f"planar, {counts.get('roof_faces_made_building', 0)} roof faces"]  # fmt: skip
 
 
 def lod_preview(rgb: np.ndarray, classes: np.ndarray, planes: np.ndarray) -> np.ndarray:

@@ -4,6 +4,7 @@ mesh, and the ortho's colour under each vertex."""
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage as ndi
 
 from workbench.meshes import raster_mesh
 from workbench.model_run import Surface
@@ -16,6 +17,21 @@ def vertex_colours(vertices: np.ndarray, rgb: np.ndarray, grid: Grid) -> np.ndar
     """(V, 3) uint8 ortho colour under each vertex."""
     r, c = grid.cell_index(vertices[:, 0], vertices[:, 1], clip=True)
     return rgb[r, c]
+
+
+def dtm_across_holes(dtm: np.ndarray) -> np.ndarray:
+    """(H, W) the DTM with each unknown cell given its nearest known cell's height.
+
+    A fusion leaves its DTM unknown where its DSM is (``dtm.tif``'s NaN nodata): a mesh's
+    holes lie over the ground and roofs beside tall walls that no view saw. Measured
+    against an unknown ground, a cell whose height was filled in stands at no height at
+    all; the terrain itself goes on under the hole. All unknown: returned as it is.
+    """
+    unknown = ~np.isfinite(dtm)
+    if not unknown.any() or unknown.all():
+        return dtm
+    idx = ndi.distance_transform_edt(unknown, return_distances=False, return_indices=True)
+    return dtm[tuple(idx)]
 
 
 def ground_surface(
