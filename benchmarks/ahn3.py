@@ -33,7 +33,7 @@ from modeling.parametric.path import run_parametric
 from modeling.superpixel.options import SuperpixelOptions
 from modeling.superpixel.path import run_superpixel
 from workbench.meshes import concatenate_meshes, read_mesh
-from workbench.model_run import write_model_run
+from workbench.model_run import model_buildings, write_model_run
 from workbench.raycast import raycasting_scene, unsigned_distance
 
 CITY3D = {"rms_m": 0.258, "triangles": 113, "seconds": 1.4}
@@ -63,9 +63,10 @@ def model_cloud(cloud: Path, work: Path, paths: list[str]) -> list[dict]:
     for path in paths:
         t0 = time.perf_counter()
         model_dir = work / f"{cloud.stem}_{path}"
-        record = write_model_run(PATHS[path](fusion_dir), model_dir, overwrite=True)
+        write_model_run(PATHS[path](fusion_dir), model_dir, overwrite=True)
         seconds = fusion_s + time.perf_counter() - t0
-        meshes = [read_mesh(model_dir / b["mesh"]) for b in record["buildings"]]
+        buildings = list(model_buildings(model_dir))  # one building's cloud: a few
+        meshes = [read_mesh(model_dir / b["mesh"]) for b in buildings]
         row = {"cloud": cloud.name, "path": path, "seconds": seconds, "buildings": len(meshes)}
         if meshes:
             V, T, _ = concatenate_meshes(meshes)
@@ -73,8 +74,8 @@ def model_cloud(cloud: Path, work: Path, paths: list[str]) -> list[dict]:
             row |= {
                 "points": len(points),
                 "triangles": int(len(T)),
-                "watertight": all(b["watertight"] for b in record["buildings"]),
-                "roof_types": [b["roof_type"] for b in record["buildings"]],
+                "watertight": all(b["watertight"] for b in buildings),
+                "roof_types": [b["roof_type"] for b in buildings],
                 "rms_m": float(np.sqrt(np.mean(d**2))),
                 "mean_m": float(np.mean(d)),
             }

@@ -315,7 +315,7 @@ finally:
 r = write_model_run(run, out, overwrite=True)
 m = evaluate(load_run(out), load_scene_truth(scene)).metrics
 print(json.dumps({"stages": r["stages"], "grid": r["inputs"]["grid"], "counts": r["counts"],
-                  "buildings": len(r["buildings"]),
+                  "buildings": r["counts"]["buildings"],
                   "seconds_per_building": r["seconds_per_building"],
                   "iterations_per_second": r.get("iterations_per_second"),
                   "metrics": {k: m[k] for k in ("classification", "footprint_2d", "volume_3d",

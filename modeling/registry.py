@@ -43,8 +43,10 @@ class PathSpec:
     run : str
         ``"module:function"`` of ``function(*positional, options, **optional) -> ModelRun``.
     summary : str, optional
-        ``"module:function"`` of ``function(record) -> list of str``: what the command
-        prints beside the counts.
+        ``"module:function"`` of ``function(record, buildings) -> list of str``: what the
+        command prints beside the counts, from model.json's record (but its buildings) and
+        its buildings' records, an iterable read one at a time
+        (:func:`workbench.model_run.model_buildings`).
     tasks : bool
         The run function takes ``engine=`` (:mod:`workbench.engine`) and runs its
         buildings as its tasks: the command gives it ``--workers``, ``--scheduler`` and
@@ -84,8 +86,8 @@ class PathSpec:
         if self.check:
             _load(self.check)(*positional, **kwargs)
 
-    def summary_lines(self, record: dict) -> list[str]:
-        return _load(self.summary)(record) if self.summary else []
+    def summary_lines(self, record: dict, buildings=()) -> list[str]:
+        return _load(self.summary)(record, buildings) if self.summary else []
 
 
 def _load(target: str) -> Callable:

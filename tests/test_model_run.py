@@ -16,6 +16,7 @@ from workbench.model_run import (
     ModelRun,
     Surface,
     Texture,
+    model_buildings,
     write_model_run,
 )
 from workbench.options import option
@@ -57,10 +58,13 @@ def test_a_run_becomes_its_folder(tmp_path):
                rasters={"class": (np.ones((30, 40), np.uint8), 0)})  # fmt: skip
     record = write_model_run(run, tmp_path / "run")
     out = tmp_path / "run"
-    assert record == json.loads((out / "model.json").read_text())
+    doc = json.loads((out / "model.json").read_text())
+    assert record == {k: v for k, v in doc.items() if k != "buildings"}  # but its buildings
     assert record["parameters"] == {"size_m": 1.0} and record["method"] == "boxes"
     assert record["counts"] == {"buildings": 2, "faces": 24, "watertight": 2}
-    a = record["buildings"][0]
+    buildings = list(model_buildings(out))  # read one at a time
+    assert buildings == doc["buildings"] and [b["id"] for b in buildings] == ["a", "b"]
+    a = buildings[0]
     assert list(a) == [*BUILDING_KEYS, "extra"]
     assert a["mesh"] == "buildings/a.ply" and a["faces"] == 12 and a["watertight"]
     assert a["planes"] == [{"normal": [0.0, 0.0, 1.0], "offset": -10.0, "area_m2": 60.0}]
@@ -130,5 +134,16 @@ def test_an_empty_run_writes_an_empty_list(tmp_path):
     write_model_run(_run([]), tmp_path / "run")
     text = (tmp_path / "run" / "model.json").read_text()
     assert '"buildings": [],' in text and text == json.dumps(json.loads(text), indent=1) + "\n"
+    assert list(model_buildings(tmp_path / "run")) == []
     city = json.loads((tmp_path / "run" / "model.city.json").read_text())
     assert city["CityObjects"] == {} and city["vertices"] == []
+
+
+def test_buildings_are_read_back_from_a_model_json_of_any_layout(tmp_path):
+    write_model_run(_run([_box_building("a", 0.0), _box_building("b", 15.0)]), tmp_path / "run")
+    path = tmp_path / "run" / "model.json"
+    doc = json.loads(path.read_text())
+    path.write_text(json.dumps(doc))  # one line, as an editor or another tool may save it
+    assert list(model_buildings(tmp_path / "run")) == doc["buildings"]
+    path.write_text(json.dumps(doc, indent=4))
+    assert list(model_buildings(tmp_path / "run")) == doc["buildings"]

@@ -514,7 +514,9 @@ def cmd_model(args) -> int:
 
 def model_summary(spec, record: dict, out: Path) -> str:
     """What every ``workbench model`` prints: counts and total time, then the path's own
-    lines."""
+    lines (from model.json's record and, one at a time, its buildings')."""
+    from .model_run import model_buildings
+
     c = record["counts"]
     total = sum(s["wall_s"] for s in record["stages"].values())
     lines = [
@@ -523,7 +525,7 @@ def model_summary(spec, record: dict, out: Path) -> str:
     ]
     if c["buildings"] == 0:
         lines.append("  no buildings: the model is empty")
-    return "\n".join(lines + spec.summary_lines(record))
+    return "\n".join(lines + spec.summary_lines(record, model_buildings(out)))
 
 
 def cmd_compare(args) -> int:

@@ -311,7 +311,9 @@ def building_counts(records) -> dict:
 def write_model_run(
     run: ModelRun, out: str | Path, *, overwrite: bool = False, command: list[str] | None = None
 ) -> dict:
-    """Write ``run`` as a run folder (atomically: all of it or nothing); return model.json.
+    """Write ``run`` as a run folder (atomically: all of it or nothing); return model.json's
+    record as a reader of it sees it, but for its buildings, which :func:`model_buildings`
+    reads back one at a time (a city's are hundreds of megabytes as Python objects).
     ``command`` is the command line that made it, for its record. The buildings are
     written one at a time (:class:`BuildingsOnDisk` are never all in memory).
 
@@ -332,8 +334,48 @@ def write_model_run(
         _write_model_json(tmp / "model.json", record, records)
     if not counts["buildings"]:
         log.warning("%s: the model holds no building", out)
-    with open(out / "model.json") as f:
-        return json.load(f)  # as a reader of model.json sees it
+    del record["buildings"]
+    return json.loads(json.dumps(record))  # as a reader of model.json sees it
+
+
+def model_buildings(folder: str | Path):
+    """Each building's record of a run folder's model.json, one at a time.
+
+    The writer puts each record on lines of its own, opened by ``"  {"`` and closed by
+    ``"  }"`` (:func:`_write_model_json`), so they are parsed one by one; a model.json
+    of another layout (edited by hand) is read whole.
+
+    Yields
+    ------
+    dict
+        The record, as ``json.load(model.json)["buildings"][i]`` is.
+    """
+    path = Path(folder) / "model.json"
+    done = 0
+    with open(path) as f:
+        lines = None
+        for line in f:
+            if line.startswith(' "buildings": ['):
+                lines = []
+                break
+        if lines is not None and line.rstrip().rstrip(",").endswith("[]"):
+            return
+        for line in f if lines is not None else ():
+            if line == "  {\n":
+                lines = [line]
+            elif line in ("  }\n", "  },\n"):
+                yield json.loads("".join(lines) + "}")
+                done, lines = done + 1, []
+            elif lines:
+                lines.append(line)
+            elif line.startswith(" ]"):
+                return
+            else:  # not the writer's layout
+                break
+        else:
+            if lines is not None:
+                return
+    yield from json.loads(path.read_text()).get("buildings", [])[done:]
 
 
 _RECORDS = "\u0000buildings\u0000"  # where the buildings' records go in model.json's text

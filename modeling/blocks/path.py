@@ -500,11 +500,12 @@ def building_roof_type(blocks: list[Block], areas: list[float]) -> str:
     return max(votes, key=votes.get)
 
 
-def summary_lines(record: dict) -> list[str]:
-    """What ``workbench model blocks`` prints beside the counts."""
+def summary_lines(record: dict, buildings=()) -> list[str]:
+    """What ``workbench model blocks`` prints beside the counts (``buildings``: model.json's
+    building records, read once)."""
     forms: dict[str, int] = {}
     warned = 0
-    for b in record["buildings"]:
+    for b in buildings:
         for s in b["supports"]:
             forms[s["block"]["form"]] = forms.get(s["block"]["form"], 0) + 1
         warned += bool(b["warnings"])

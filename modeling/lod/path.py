@@ -279,7 +279,7 @@ def lod_models(
     return main
 
 
-def summary_lines(record: dict) -> list[str]:
+def summary_lines(record: dict, buildings=()) -> list[str]:
     lab = record.get("labelling", {})
     cells = lab.get("cells", {})
     total = max(sum(cells.values()), 1)

@@ -857,14 +857,14 @@ def _rms(e: np.ndarray, mask: np.ndarray) -> float:
     return float(np.sqrt(np.mean(e**2))) if len(e) else float("nan")
 
 
-def summary_lines(record: dict) -> list[str]:
-    """What ``workbench model parametric`` prints beside the counts."""
+def summary_lines(record: dict, buildings=()) -> list[str]:
+    """What ``workbench model parametric`` prints beside the counts (``buildings``:
+    model.json's building records, read once)."""
     rounds = record["segmentation"]["rounds"]
     types: dict[str, int] = {}
-    for b in record["buildings"]:
-        types[b["roof_type"]] = types.get(b["roof_type"], 0) + 1
     families: dict[str, int] = {}
-    for b in record["buildings"]:
+    for b in buildings:
+        types[b["roof_type"]] = types.get(b["roof_type"], 0) + 1
         families[b["family"]] = families.get(b["family"], 0) + 1
     return [
         f"  {rounds[-1]['segments']} segments, {len(record['skipped'])} left to the data term "

@@ -389,7 +389,7 @@ def classification_table(truth: Path, grid: Grid, pixel, superpixel, crf) -> dic
     }
 
 
-def summary_lines(record: dict) -> list[str]:
+def summary_lines(record: dict, buildings=()) -> list[str]:
     """What ``workbench model superpixel`` prints beside the counts."""
     lines = [f"  {record['superpixels']} super-pixels", *blocks_lines(record.get("blocks"))]
     table = record.get("classification_table")

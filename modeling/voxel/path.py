@@ -336,7 +336,7 @@ def texture_summary(records: list[dict]) -> dict:
     return out
 
 
-def summary_lines(record: dict) -> list[str]:
+def summary_lines(record: dict, buildings=()) -> list[str]:
     """What ``workbench model voxel`` prints beside the counts."""
     c, t = record["counts"], record["texture"]
     lines = [
