@@ -126,7 +126,7 @@ def run_lod(
         parts, n = ndi.label(building)
         sizes = np.bincount(parts.ravel(), minlength=n + 1) * grid.gsd**2
         keep = [k for k in range(1, n + 1) if sizes[k] >= options.min_area_m2]
-    outline_heights = fill_holes(dsm, ground, options.h_trunc)
+        outline_heights = fill_holes(dsm, ground, options.h_trunc, from_below=filled)
     inputs = LodInputs(grid, rgb, dsm, outline_heights, ground, normal)
     buildings, skipped, painted = [], [], np.zeros(grid.shape, np.int64)
     with timer.stage("buildings"):
