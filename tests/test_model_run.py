@@ -16,6 +16,7 @@ from workbench.model_run import (
     ModelRun,
     Surface,
     Texture,
+    _records_one_by_one,
     model_buildings,
     write_model_run,
 )
@@ -143,7 +144,22 @@ def test_buildings_are_read_back_from_a_model_json_of_any_layout(tmp_path):
     write_model_run(_run([_box_building("a", 0.0), _box_building("b", 15.0)]), tmp_path / "run")
     path = tmp_path / "run" / "model.json"
     doc = json.loads(path.read_text())
+    # the writer's layout is read a record at a time, to the list's end
+    with open(path) as f:
+        assert _drained(_records_one_by_one(f)) == (doc["buildings"], (True, 2))
     path.write_text(json.dumps(doc))  # one line, as an editor or another tool may save it
+    with open(path) as f:
+        assert _drained(_records_one_by_one(f)) == ([], (False, 0))
     assert list(model_buildings(tmp_path / "run")) == doc["buildings"]
     path.write_text(json.dumps(doc, indent=4))
     assert list(model_buildings(tmp_path / "run")) == doc["buildings"]
+
+
+def _drained(gen) -> tuple[list, object]:
+    """A generator's items and its return value."""
+    items = []
+    while True:
+        try:
+            items.append(next(gen))
+        except StopIteration as stop:
+            return items, stop.value

@@ -351,31 +351,34 @@ def model_buildings(folder: str | Path):
         The record, as ``json.load(model.json)["buildings"][i]`` is.
     """
     path = Path(folder) / "model.json"
-    done = 0
     with open(path) as f:
-        lines = None
-        for line in f:
-            if line.startswith(' "buildings": ['):
-                lines = []
-                break
-        if lines is not None and line.rstrip().rstrip(",").endswith("[]"):
-            return
-        for line in f if lines is not None else ():
-            if line == "  {\n":
-                lines = [line]
-            elif line in ("  }\n", "  },\n"):
-                yield json.loads("".join(lines) + "}")
-                done, lines = done + 1, []
-            elif lines:
-                lines.append(line)
-            elif line.startswith(" ]"):
-                return
-            else:  # not the writer's layout
-                break
+        complete, done = yield from _records_one_by_one(f)
+    if not complete:  # not the writer's layout: read whole
+        yield from json.loads(path.read_text()).get("buildings", [])[done:]
+
+
+def _records_one_by_one(f):
+    """Yield the building records of the open model.json ``f`` as the writer lays them
+    out; return whether that layout held to the list's end, and how many were read."""
+    for line in f:
+        if line.startswith(' "buildings": ['):
+            break
+    else:
+        return False, 0
+    if line.rstrip().rstrip(",").endswith("[]"):
+        return True, 0
+    done, lines = 0, []
+    for line in f:
+        if line == "  {\n":
+            lines = [line]
+        elif line in ("  }\n", "  },\n"):
+            yield json.loads("".join(lines) + "}")
+            done, lines = done + 1, []
+        elif lines:
+            lines.append(line)
         else:
-            if lines is not None:
-                return
-    yield from json.loads(path.read_text()).get("buildings", [])[done:]
+            return line.startswith(" ]"), done
+    return False, done
 
 
 _RECORDS = "\u0000buildings\u0000"  # where the buildings' records go in model.json's text
