@@ -56,7 +56,7 @@ def fit_flat_colours(rgb: np.ndarray, labels: np.ndarray, seed: int) -> tuple:
     Returns
     -------
     :class:`FlatColours`, or None and why (fewer than ``MIN_CELLS`` of either class),
-    and a record for ``fusion.json``.
+    and a record for the run's JSON (``fusion.json``, ``model.json``).
     """
     models, cells = {}, {}
     rng = np.random.default_rng(seed)
