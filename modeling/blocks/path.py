@@ -37,11 +37,11 @@ from modeling.shared.roof_envelope import BuildingMesh, building_solid, face_pla
 from modeling.shared.roof_model import closed_roof_model
 from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
 from workbench.errors import InputError
-from workbench.fusion_run import class_map, read_fusion_run, tree_cells
+from workbench.fusion_run import building_cells, class_map, read_fusion_run, tree_cells
 from workbench.grid_blocks import Block as GridBlock
 from workbench.meshes import is_watertight
 from workbench.model_run import Building, ModelRun, Surface
-from workbench.raster import BUILDING, Grid
+from workbench.raster import Grid
 from workbench.records import StageTimer, peak_memory_mb
 
 from .block_meshes import block_faces
@@ -188,16 +188,19 @@ def model_block(
         prob = np.nan_to_num(fusion.rasters["class_prob"].astype(np.float64))
         # crowns are no roof: left out of every likelihood (the class map's where the run
         # has one: the probabilities cell by cell leave a crown over a roof ragged)
-        crowns = None
+        crowns = classes = None
         if not options.all_building:
-            crowns = tree_cells(class_map(fusion_dir, grid, block.outer), prob)
+            classes = class_map(fusion_dir, grid, block.outer)
+            crowns = tree_cells(classes, prob)
     with timer.stage("supports"):
         if supports is not None:
             inputs = _given_supports(supports, fusion, grid, dsm, dtm, crowns, claims.grid)
             segments = _group_cells(inputs.given, grid)
         else:
-            mask = np.isfinite(dsm) if options.all_building else prob[BUILDING - 1] > 0.5
-            mask &= np.isfinite(dsm)
+            # the cells the fusion calls building: its class map's, as for the crowns
+            mask = np.isfinite(dsm)
+            if not options.all_building:
+                mask &= building_cells(classes, prob)
             opening = 0.0 if options.all_building else options.opening_m
             segments = building_segments(mask, grid.gsd, opening, options.min_area_m2)
             margin = int(np.ceil(options.outline_reach_m / grid.gsd)) + 4
