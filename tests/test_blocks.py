@@ -14,7 +14,7 @@ from modeling.blocks.block_meshes import block_faces
 from modeling.blocks.energy import joinable, likelihood, pair_energy, parameter_distance
 from modeling.blocks.library import Block, Frame, block_heights, parameter_ranges
 from modeling.blocks.path import closed_solid, flat_block
-from modeling.blocks.rjmcmc import Pair, SupportData, _Chain, anneal
+from modeling.blocks.rjmcmc import Pair, SupportData, _Chain, anneal, form_sweep
 from modeling.blocks.supports import (
     Support,
     connected_rectangles,
@@ -166,6 +166,44 @@ def test_an_arm_carries_its_roof_into_the_valleys():
     assert (x.form, x.along, y.form, y.along) == ("gable", 0, "gable", 1)
     assert np.allclose(x.params, a_true.params, atol=0.05)
     assert np.allclose(y.params, b_true.params, atol=0.05)
+
+
+def test_form_sweep_leaves_a_wrong_form_for_the_right_one():
+    """The zero-temperature sweep over the forms, from the wrong ones an annealing can end
+    in: an L of two hipped-ended gables (the one above) left as two joinable mansards, and
+    a hipped roof left as a pyramid. It returns the true forms within 5 cm, the energy
+    lower, and the count of blocks it changed; it draws nothing at random."""
+    a_frame = Frame(0.0, (0.0, 0.0), (0.0, 12.0, 6.0, 12.0))
+    b_frame = Frame(0.0, (0.0, 0.0), (7.0, 12.0, 0.0, 6.0))
+    a_true, b_true = Block("gable", 0, False, (10.0, 13.0)), Block("gable", 1, False, (10.0, 13.0))
+    b_ends = (False, False, False, True)
+    a = _support_data(a_true, a_frame, FREE, noise=0.1, seed=0)
+    b = _support_data(b_true, b_frame, b_ends, noise=0.1, seed=1)
+    near = (a.v <= 9.0) & (a.u >= 7.0)
+    a.z[near] = np.maximum(a.z[near], _heights(b_true, a.u[near], a.v[near], b_ends, b_frame))
+    idx = np.flatnonzero(near)
+    b.strips[3] = (0, idx, a.u[idx], a.v[idx])
+    pairs = [Pair(0, 1, np.array([1.0, 0.0]))]
+    wrong = [Block("mansard", 0, False, (10.0, 11.5, 13.0, 1.0)),
+             Block("mansard", 1, False, (10.0, 11.5, 13.0, 1.0))]  # fmt: skip
+    chain = _Chain([a, b], pairs, wrong, 1.5, 5.0, 0.05)
+    before = chain.energy
+    swept, evaluations, changed = form_sweep(chain)
+    x, y = swept.blocks
+    assert (x.form, x.along, y.form, y.along) == ("gable", 0, "gable", 1)
+    assert np.allclose(x.params, a_true.params, atol=0.05)
+    assert np.allclose(y.params, b_true.params, atol=0.05)
+    assert swept.energy < 0.5 * before and changed == 2 and evaluations > 0
+
+    hipped = Block("hipped", 0, False, (20.0, 23.0, 3.0))
+    data = _support_data(hipped)
+    chain = _Chain([data], [], [Block("pyramid", 0, False, (20.0, 23.0))], 1.5, 5.0, 0.05)
+    swept, _, changed = form_sweep(chain)
+    assert swept.blocks[0].form == "hipped" and changed == 1
+    assert np.allclose(swept.blocks[0].params, hipped.params, atol=0.05)
+    again = form_sweep(_Chain([data], [], [Block("pyramid", 0, False, (20.0, 23.0))], 1.5,
+                              5.0, 0.05))[0]  # fmt: skip
+    assert again.blocks == swept.blocks
 
 
 def test_prior_arms_become_connected_rectangles():

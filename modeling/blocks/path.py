@@ -359,6 +359,10 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
         "iterations": result.iterations,
         "adjustment_stage_from": result.adjustment_from,
         "temperature": {"initial": round(result.t_start, 6), "final": round(result.t_end, 8)},
+        "zero_temperature": {
+            "evaluations": result.polish_evaluations,
+            "forms_switched": result.forms_switched,
+        },
         "proposed": result.proposed,
         "accepted": result.accepted,
         "acceptance_rate": {
