@@ -323,7 +323,9 @@ def test_blocks_end_to_end_from_fused_rasters(blocks_run):
     assert set(b["acceptance_rate"]) == {"uniform", "data-driven", "regularisation"}
     assert len(b["face_blocks"]) == b["faces"]
     assert all(s["block"]["form"] for s in b["supports"])
+    assert b["zero_temperature"]["evaluations"] > 0
     assert model["iterations_per_second"] > 0
+    print(metrics["buildings"], metrics["footprint_2d"]["quality"], metrics["volume_3d"]["quality"])
 
 
 def test_blocks_from_given_supports(blocks_run, tiny_fusion, tmp_path):

@@ -30,7 +30,7 @@ class BlocksOptions:
         "much better", kind="non_negative",
     )  # fmt: skip
     iterations: int = option(
-        4000, "RJMCMC iterations per support (a building of three supports runs three "
+        2000, "RJMCMC iterations per support (a building of three supports runs three "
         "times as many); the temperature falls geometrically to 1e-4 of White's initial "
         "temperature over them",
     )  # fmt: skip
