@@ -124,12 +124,14 @@ def run_blocks(
     t_start = time.perf_counter()
     plan = plan_blocks(fusion_dir, options.block_m, options.block_margin_m, engine)
     grid, blocks, claims, rasters = plan.grid, plan.blocks, plan.claims, plan.rasters
-    results, wide, crs, iterations, anneal_s = [], 0, None, 0, 0.0
+    results, wide, crs, iterations, warm_s = [], 0, None, 0, 0.0
     for b in each_block(blocks):
         found, cut, crs = model_block(fusion_dir, b, claims, rasters, options, supports,
                                       block_engine(engine, blocks, b), timer)  # fmt: skip
         iterations += sum(x.building.record["iterations"] for x in found if x.building)
-        anneal_s += sum(x.building.record["annealing_seconds"] for x in found if x.building)
+        warm_s += sum(x.building.record["annealing_seconds"]
+                      - x.building.record["zero_temperature"]["seconds"]
+                      for x in found if x.building)  # fmt: skip
         plan.keep_buildings(kept_buildings(found))
         results += found
         wide += cut
@@ -158,7 +160,8 @@ def run_blocks(
             **record,
             "skipped": skipped,
             **engine.describe(),
-            "iterations_per_second": round(iterations / max(anneal_s, 1e-9), 1),
+            # the annealing's own, not its end at zero temperature
+            "iterations_per_second": round(iterations / max(warm_s, 1e-9), 1),
             "seconds_per_building": round(seconds / max(len(buildings), 1), 3),
             "seconds_per_megapixel": round(seconds / (grid.width * grid.height / 1e6), 3),
             "peak_memory_mb": round(peak_memory_mb(), 1),
@@ -362,6 +365,7 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
         "zero_temperature": {
             "evaluations": result.polish_evaluations,
             "forms_switched": result.forms_switched,
+            "seconds": round(result.zero_temperature_seconds, 3),
         },
         "proposed": result.proposed,
         "accepted": result.accepted,

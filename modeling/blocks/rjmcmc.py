@@ -26,6 +26,7 @@ At zero temperature the best configuration met is made a local minimum over the 
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -106,8 +107,8 @@ class Annealing:
     (iteration, temperature, energy every ``_TRACE_EVERY`` iterations), the proposals
     and acceptances per kernel, when the adjustment stage began (None: never, the
     schedule did not converge in the iterations given), and at zero temperature the
-    energy's evaluations (:func:`form_sweep`, :func:`polish`) and the blocks whose form
-    the sweep changed."""
+    energy's evaluations (:func:`form_sweep`, :func:`polish`), the blocks whose form the
+    sweep changed and the seconds they took."""
 
     blocks: list[Block]
     energy: float
@@ -122,6 +123,7 @@ class Annealing:
     t_end: float = 0.0
     polish_evaluations: int = 0
     forms_switched: int = 0
+    zero_temperature_seconds: float = 0.0
 
 
 def initial_blocks(supports: list[SupportData]) -> list[Block]:
@@ -464,10 +466,12 @@ def anneal(
         if it % _TRACE_EVERY == 0:
             trace.append((it, round(temperature, 6), round(chain.energy, 4)))
         temperature *= cooling
+    t_cold = time.perf_counter()
     final = _Chain(supports, pairs, best_blocks, alpha, beta, form_cost)
     final, evaluations, switched = form_sweep(final)
     evaluations += polish(final)
+    cold_s = time.perf_counter() - t_cold
     trace.append((iterations + evaluations, 0.0, round(final.energy, 4)))
     return Annealing(final.blocks, final.energy, final.lik, float(sum(final.pair)), iterations,
                      trace, proposed, accepted, adjustment_from, t0, temperature,
-                     evaluations, switched)  # fmt: skip
+                     evaluations, switched, cold_s)  # fmt: skip
