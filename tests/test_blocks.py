@@ -18,6 +18,7 @@ from modeling.blocks.rjmcmc import Pair, SupportData, _Chain, anneal, form_sweep
 from modeling.blocks.supports import (
     Support,
     connected_rectangles,
+    height_regions,
     junction_sides,
     neighbour_pairs,
     supports_from_file,
@@ -295,6 +296,26 @@ def test_supports_from_a_file_are_checked():
         supports_from_file("s.geojson", [pentagon], grid)
     with pytest.raises(InputError, match=r"features\[0\]: outside the fusion's grid"):
         supports_from_file("s.geojson", [box(45, 45, 60, 60)], grid)
+
+
+def test_height_regions_split_tiers_and_mark_small_levels():
+    """A tower (30 m) on a podium (20 m) at 0.25 m cells: the podium's wide side and the
+    tower are regions of their own; the podium's 1 m strip along the tower's other side
+    (80 cells off the steps, under ``min_cells``) joins the nearest region, the tower,
+    for the outline, and is marked off-level with the steps, so that no tower block
+    fits it."""
+    dsm = np.full((40, 60), 20.0)
+    dsm[:, 20:56] = 30.0  # the tower: the podium is 5 m wide west of it, 1 m east
+    mask = np.ones(dsm.shape, bool)
+    regions, off = height_regions(mask, dsm, 0.25, 1.5, min_cells=100)
+    assert regions.max() == 2
+    tower, podium = regions[20, 40], regions[20, 5]
+    assert tower != podium and tower > 0 and podium > 0
+    strip = np.zeros(dsm.shape, bool)
+    strip[:, 58:] = True  # clear of the steps: the podium's strip east of the tower
+    assert (regions[strip] == tower).all() and off[strip].all()
+    assert not off[20, 5] and not off[20, 40]  # a level's own cells are scored
+    assert off[20, 19] and off[20, 20]  # the wall: steps on both of its sides
 
 
 def test_parameter_ranges_keep_hips_hips():

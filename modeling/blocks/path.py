@@ -308,7 +308,8 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
         regions, steps = np.zeros(mask.shape, np.int32), np.zeros(mask.shape, bool)
     # crowns are no roof: their cells stay out of the likelihood
     cells = [c & np.isfinite(dsm) for c in support_cells(supports, mask, regions, crop)]
-    # the walls blur the DSM next to them: those cells are left out of the likelihood
+    # the walls blur the DSM next to them: those cells, and the small levels joined to a
+    # region (``steps``), are left out of the likelihood
     clear = ndi.distance_transform_edt(mask & ~steps) * g.gsd > options.wall_blur_m
     cells = [c & clear if (c & clear).sum() >= _MIN_CELLS else c for c in cells]
     kept = [i for i, c in enumerate(cells) if c.sum() >= _MIN_CELLS]

@@ -62,12 +62,16 @@ def height_regions(
     mask: np.ndarray, dsm: np.ndarray, gsd: float, step_m: float, min_cells: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """(h, w) int regions 1..n of ``mask`` that no height step crosses, 0 elsewhere; and
-    (h, w) bool the step cells.
+    (h, w) bool the cells off their region's level: its steps and the small levels
+    joined to it.
 
     A cell is on a step where the DSM (3 x 3 median) differs by more than ``step_m``
     from a cell ``_STEP_DISTANCE_M`` away along a row or column (a wall; a roof of 70
     degrees rises 1.4 m over that distance). Regions smaller than ``min_cells`` and the
-    step cells join the region nearest to them."""
+    step cells join the region nearest to them, for the outline. A small region lies
+    beyond a step from the one it joins: a level too small for a block of its own (the
+    strip of a lower tier along a tower's wall), whose cells no block of the region it
+    joins should fit."""
     z = ndimage.median_filter(np.where(np.isfinite(dsm), dsm, np.nanmin(dsm)), size=3)
     k = max(1, int(round(_STEP_DISTANCE_M / gsd)))
     step = np.zeros(mask.shape, bool)
@@ -89,7 +93,7 @@ def height_regions(
     labels = new[labels]
     # every other cell of the mask to the nearest kept region
     _, (ri, ci) = ndimage.distance_transform_edt(labels == 0, return_indices=True)
-    return np.where(mask, labels[ri, ci], 0).astype(np.int32), step & mask
+    return np.where(mask, labels[ri, ci], 0).astype(np.int32), mask & (labels == 0)
 
 
 def _shifted(z: np.ndarray, k: int, axis: int) -> np.ndarray:
