@@ -13,7 +13,7 @@ from shapely.geometry import Polygon, box
 from modeling.blocks.block_meshes import block_faces
 from modeling.blocks.energy import joinable, likelihood, pair_energy, parameter_distance
 from modeling.blocks.library import Block, Frame, block_heights, parameter_ranges
-from modeling.blocks.path import closed_solid, flat_block
+from modeling.blocks.path import closed_solid, flat_block, summary_lines
 from modeling.blocks.rjmcmc import Pair, SupportData, _Chain, anneal, form_sweep
 from modeling.blocks.supports import (
     Support,
@@ -349,6 +349,17 @@ def test_blocks_end_to_end_from_fused_rasters(blocks_run):
     assert all(s["block"]["form"] for s in b["supports"])
     assert b["zero_temperature"]["evaluations"] > 0
     assert model["iterations_per_second"] > 0
+
+
+def test_blocks_summary_counts_the_forms_the_sweep_changed(blocks_run):
+    """The command's summary: the blocks per form, and how many the zero-temperature
+    sweep changed, from model.json's buildings."""
+    _, model, _ = blocks_run
+    lines = summary_lines(model, model["buildings"])
+    switched = sum(b["zero_temperature"]["forms_switched"] for b in model["buildings"])
+    blocks = sum(len(b["supports"]) for b in model["buildings"])
+    assert f"{blocks} blocks" in lines[0]
+    assert lines[1].endswith(f"({switched} changed form at zero temperature)")
 
 
 def test_blocks_from_given_supports(blocks_run, tiny_fusion, tmp_path):

@@ -516,16 +516,18 @@ def summary_lines(record: dict, buildings=()) -> list[str]:
     """What ``workbench model blocks`` prints beside the counts (``buildings``: model.json's
     building records, read once)."""
     forms: dict[str, int] = {}
-    warned = 0
+    warned = switched = 0
     for b in buildings:
         for s in b["supports"]:
             forms[s["block"]["form"]] = forms.get(s["block"]["form"], 0) + 1
         warned += bool(b["warnings"])
+        switched += b["zero_temperature"]["forms_switched"]
     return [
         f"  supports: {record['supports_from']}; {sum(forms.values())} blocks, "
         f"{record['iterations_per_second']:.0f} iterations/s, "
         f"{record['seconds_per_building']} s per building",
-        "  blocks: " + ", ".join(f"{k} {v}" for k, v in sorted(forms.items())),
+        "  blocks: " + ", ".join(f"{k} {v}" for k, v in sorted(forms.items()))
+        + f" ({switched} changed form at zero temperature)",
         *([f"  {warned} buildings did not converge (see warnings in model.json)"]
           if warned else []),
         *blocks_lines(record.get("blocks")),
