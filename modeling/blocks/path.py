@@ -364,7 +364,7 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
         "adjustment_stage_from": result.adjustment_from,
         "temperature": {"initial": round(result.t_start, 6), "final": round(result.t_end, 8)},
         "zero_temperature": {
-            "evaluations": result.polish_evaluations,
+            "evaluations": result.zero_temperature_evaluations,
             "forms_switched": result.forms_switched,
             "seconds": round(result.zero_temperature_seconds, 3),
         },

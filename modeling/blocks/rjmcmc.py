@@ -121,7 +121,7 @@ class Annealing:
     adjustment_from: int | None = None
     t_start: float = 0.0
     t_end: float = 0.0
-    polish_evaluations: int = 0
+    zero_temperature_evaluations: int = 0
     forms_switched: int = 0
     zero_temperature_seconds: float = 0.0
 
@@ -360,7 +360,8 @@ def form_sweep(chain: _Chain) -> tuple[_Chain, int, int]:
 
     1. for a building of several supports, each form given to all of them at once (from
        the data-driven estimates, the ridge along each support's longer side), then each
-       support's block descended in turn; kept if the building's energy falls. One
+       support's best block of that form (:func:`best_of_form`) taken in turn; kept if
+       the building's energy falls. One
        support at a time could not leave a form: it would lose its neighbours' joinable
        prior;
     2. each support's block replaced by the best of every form (both ridge axes, from
