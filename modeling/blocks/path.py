@@ -299,18 +299,18 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
             mask = mid_wall_region(seg == k, whole - dtm, (seg > 0) & (seg != k), g.gsd,
                                    options.outline_reach_m)  # fmt: skip
         mask &= np.isfinite(whole)
-        supports, regions, steps = automatic_supports(mask, whole, xs, ys, crop,
+        supports, regions, off_level = automatic_supports(mask, whole, xs, ys, crop,
                                                       options.min_part_m, min_cells,
                                                       options.step_m)  # fmt: skip
     else:
         supports = inputs.given[k - 1]
         mask = rasterize_on(unary_union([s.polygon for s in supports]), crop) & np.isfinite(dsm)
-        regions, steps = np.zeros(mask.shape, np.int32), np.zeros(mask.shape, bool)
+        regions, off_level = np.zeros(mask.shape, np.int32), np.zeros(mask.shape, bool)
     # crowns are no roof: their cells stay out of the likelihood
     cells = [c & np.isfinite(dsm) for c in support_cells(supports, mask, regions, crop)]
     # the walls blur the DSM next to them: those cells, and the small levels joined to a
-    # region (``steps``), are left out of the likelihood
-    clear = ndi.distance_transform_edt(mask & ~steps) * g.gsd > options.wall_blur_m
+    # region, are left out of the likelihood
+    clear = ndi.distance_transform_edt(mask & ~off_level) * g.gsd > options.wall_blur_m
     cells = [c & clear if (c & clear).sum() >= _MIN_CELLS else c for c in cells]
     kept = [i for i, c in enumerate(cells) if c.sum() >= _MIN_CELLS]
     if not kept:

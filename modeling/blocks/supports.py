@@ -133,9 +133,9 @@ def automatic_supports(
     rectangles of its footprint priors.
 
     mask : (h, w) bool the building's cells on ``grid``; dsm : (h, w) metres;
-    xs : (w,), ys : (h,) cell centres. Returns the supports, the regions and the step
-    cells."""
-    regions, steps = height_regions(mask, dsm, grid.gsd, step_m, min_cells)
+    xs : (w,), ys : (h,) cell centres. Returns the supports, the regions and the cells
+    off their region's level (:func:`height_regions`)."""
+    regions, off_level = height_regions(mask, dsm, grid.gsd, step_m, min_cells)
     out: list[Support] = []
     for r in range(1, int(regions.max()) + 1):
         priors, _ = decompose_outline(regions == r, xs, ys, grid, _FAMILIES, min_part_m,
@@ -148,7 +148,7 @@ def automatic_supports(
                 poly = p.frame_polygon(rect)
                 if poly.area >= min_cells * grid.gsd**2:
                     out.append(Support(poly, frame, r))
-    return out, regions, steps
+    return out, regions, off_level
 
 
 def support_cells(supports: list[Support], mask: np.ndarray, regions: np.ndarray,
