@@ -1068,11 +1068,11 @@ def test_a_ring_cut_in_a_window_paints_what_the_whole_ground_would(tiny_scene, t
     windowed = copy.deepcopy(full)
     painted = 0
     for foot in feet:
-        a = ring_cut(full, *vp.ring_inputs(full, foot), inputs.cameras, inputs.images,
-                     occ.rays(), opts.ring_m)  # fmt: skip
-        part = windowed.window(*vp.ring_window(grid, foot, opts.ring_m))
-        b = ring_cut(part, *vp.ring_inputs(part, foot), inputs.cameras, inputs.images,
-                     occ.rays(), opts.ring_m)  # fmt: skip
+        a = ring_cut(full, vp.ring_task((grid, gz, foot), inputs, opts, occ), opts.ring_m)
+        window = vp.ring_window(grid, foot, opts.ring_m)
+        part = windowed.window(*window)
+        samples = vp.ring_task((part.grid, gz[window], foot), inputs, opts, occ)
+        b = ring_cut(part, samples, opts.ring_m)
         assert a == b
         painted += a["from_building"]
     assert painted > 0

@@ -194,25 +194,85 @@ def fill_unseen(image: np.ndarray, labels: np.ndarray) -> np.ndarray:
     return image[idx[0], idx[1]]
 
 
-def ring_cut(
-    ground: GroundTexture,
+@dataclass
+class RingSamples:
+    """The building's side of a ring cut (section 5.3), which does not depend on the
+    ground's texture: sampled where the views are (a task), cut where the texture is.
+
+    Attributes
+    ----------
+    ring : (H, W) bool
+        The ring's texels in the building's window of the ground grid.
+    dist : (N,) float
+        Each ring texel's distance to the footprint, metres.
+    lab : (N, 3) float32
+        CIE Lab of each ring texel in the view of its nearest bottom-wall texel.
+    rgb : (N, 3) uint8
+        The same colour, RGB.
+    seen : (N,) bool
+        Whether that view sees the texel.
+    """
+
+    ring: np.ndarray
+    dist: np.ndarray
+    lab: np.ndarray
+    rgb: np.ndarray
+    seen: np.ndarray
+
+
+def ring_samples(
+    grid: Grid,
+    z: np.ndarray,
     footprint: np.ndarray,
     wall_view: np.ndarray,
     cameras: list[Camera],
     images: ViewImages,
     occluders,
     ring_m: float,
-) -> dict:
+) -> RingSamples:
+    """The ring around a building and its wall views' colours on it.
+
+    Parameters
+    ----------
+    grid : Grid
+        A window of the ground grid around the building.
+    z : (H, W) float
+        The ground's height on ``grid``, metres.
+    footprint : (H, W) bool
+        The building's proxy footprint on ``grid``.
+    wall_view : (H, W) int
+        For every texel, the scene view of the nearest bottom-wall texel of the building
+        (-1 none).
+    ring_m : float
+        Ring width, metres.
+    """
+    dist = ndimage.distance_transform_edt(~footprint) * grid.gsd
+    ring = (dist > 0) & (dist <= ring_m) & (wall_view >= 0)
+    n = int(ring.sum())
+    X, Y = grid.cell_centers()
+    positions = np.column_stack([X[ring], Y[ring], z[ring]])
+    up = np.broadcast_to([0.0, 0.0, 1.0], positions.shape)
+    lab = np.zeros((n, 3), np.float32)
+    rgb = np.zeros((n, 3), np.uint8)
+    seen = np.zeros(n, bool)
+    views = wall_view[ring]
+    for k in np.unique(views):
+        sel = views == k
+        s = view_samples(positions[sel], up[sel], cameras, images, occluders, [int(k)])
+        lab[sel] = s.lab[:, 0]
+        rgb[sel] = s.rgb[:, 0]
+        seen[sel] = s.visible[:, 0]
+    return RingSamples(ring, dist[ring], lab, rgb, seen)
+
+
+def ring_cut(ground: GroundTexture, samples: RingSamples, ring_m: float) -> dict:
     """The building-ground surface graph cut (section 5.3), in place on ``ground.image``.
 
     Parameters
     ----------
     ground : GroundTexture
-    footprint : (H, W) bool
-        The building's proxy footprint on the ground grid.
-    wall_view : (H, W) int
-        For every texel, the scene view of the nearest bottom-wall texel of the building
-        (-1 none).
+        The window of the ground texture ``samples`` were taken on.
+    samples : RingSamples
     ring_m : float
         Ring width, metres.
 
@@ -220,31 +280,17 @@ def ring_cut(
     -------
     dict with the ring's texel count and how many took the building's views.
     """
-    gsd = ground.grid.gsd
-    dist = ndimage.distance_transform_edt(~footprint) * gsd
-    ring = (dist > 0) & (dist <= ring_m) & (wall_view >= 0)
+    ring, seen = samples.ring, samples.seen
     if not ring.any():
         return {"ring_texels": 0, "from_building": 0}
+    gsd = ground.grid.gsd
     rows, cols = np.nonzero(ring)
-    X, Y = ground.grid.cell_centers()
-    positions = np.column_stack([X[ring], Y[ring], ground.z[ring]])
-    up = np.broadcast_to([0.0, 0.0, 1.0], positions.shape)
-    building_lab = np.zeros((len(rows), 3), np.float32)
-    building_rgb = np.zeros((len(rows), 3), np.uint8)
-    seen = np.zeros(len(rows), bool)
-    views = wall_view[ring]
-    for k in np.unique(views):
-        sel = views == k
-        s = view_samples(positions[sel], up[sel], cameras, images, occluders, [int(k)])
-        building_lab[sel] = s.lab[:, 0]
-        building_rgb[sel] = s.rgb[:, 0]
-        seen[sel] = s.visible[:, 0]
     ground_rgb = ground.image[ring].astype(np.float32)
     both = ViewSamples(
         visible=np.column_stack([seen, np.ones(len(rows), bool)]),
         facing=np.ones((len(rows), 2), np.float32),
-        lab=np.stack([building_lab, rgb_to_lab(ground_rgb)], axis=1),
-        rgb=np.stack([building_rgb, ground.image[ring]], axis=1),
+        lab=np.stack([samples.lab, rgb_to_lab(ground_rgb)], axis=1),
+        rgb=np.stack([samples.rgb, ground.image[ring]], axis=1),
     )
     index = np.full(ground.grid.shape, -1)
     index[ring] = np.arange(len(rows))
@@ -253,7 +299,7 @@ def ring_cut(
     keep = (a >= 0) & (b >= 0)
     e = np.column_stack([a[keep], b[keep]])
     weights = seam_costs(e, np.zeros(len(e), int), np.ones(len(e), int), both)
-    d = dist[ring]
+    d = samples.dist
     unary = np.zeros((len(rows), 2))
     # the first row joins the footprint (the source): a seam right at the wall costs what
     # the two colourings differ there, as any other edge of the graph
@@ -262,5 +308,5 @@ def ring_cut(
     unary[:, 0] = np.where((d > ring_m - 1.5 * gsd) | ~seen, _INF, 0.0)  # outer edge: ground
     side = binary_cut(unary, e, weights, 1.0)
     take = side == 0
-    ground.image[rows[take], cols[take]] = building_rgb[take]
+    ground.image[rows[take], cols[take]] = samples.rgb[take]
     return {"ring_texels": int(len(rows)), "from_building": int(take.sum())}

@@ -22,7 +22,6 @@ from shapely.geometry import mapping
 from workbench.engine import Engine, ThreadEngine
 from workbench.meshes import concatenate_meshes
 from workbench.model_run import Building, ModelRun, Surface, Texture
-from workbench.progress import progress
 from workbench.raster import Grid
 from workbench.raycast import raycasting_scene
 from workbench.records import StageTimer, peak_memory_mb
@@ -32,11 +31,13 @@ from .building import Proxy, building_proxy, texture_building
 from .building import Texture as BuildingTexture
 from .ground_texture import (
     GroundTexture,
+    RingSamples,
     ground_cut,
     ground_mesh,
     ground_tiles,
     join_ground_tiles,
     ring_cut,
+    ring_samples,
 )
 from .inputs import VoxelInputs, neighbour_scene, read_inputs
 from .options import VoxelOptions
@@ -94,7 +95,7 @@ def run_voxel(
     with timer.stage("ground"):
         feet = [foot for _, foot, _ in textured]
         gtex, ground_z = texture_ground(inputs, proxies, feet, options, engine, shared,
-                                        scene, occluders)  # fmt: skip
+                                        occluders)  # fmt: skip
     buildings = [b for b, _, _ in textured]
     with timer.stage("preview"):
         shown = (proxies[big], textured[big][2]) if proxies else (None, None)
@@ -207,13 +208,15 @@ def texture_task(item: tuple, inputs: VoxelInputs, options: VoxelOptions,
 
 def texture_ground(
     inputs: VoxelInputs, proxies: list[Proxy], feet: list[WallFoot], options: VoxelOptions,
-    engine: Engine, shared, scene: ProxyScene, occluders,
+    engine: Engine, shared, occluders,
 ) -> tuple[GroundTexture | None, np.ndarray | None]:  # fmt: skip
     """Sections 5.3-5.4: the ground cut with the proxies masked out, a task per tile of
     ``GROUND_TILE`` texels, then the ring cut around each building in a window around it;
     returns the ground texture and the ground heights on its grid. ``shared`` and
-    ``occluders`` are the engine's handles on the inputs and on ``scene``, the proxies'
-    meshes (whose rays the ring cuts cast here)."""
+    ``occluders`` are the engine's handles on the inputs and on the proxies' meshes.
+
+    The ring cuts' samples of the views are tasks; the cuts themselves paint the ground
+    here, building after building, since neighbouring rings overlap."""
     if not proxies:
         return None, None
     grid = ground_grid(inputs.scene, proxies, options.ground_gsd_m)
@@ -222,17 +225,30 @@ def texture_ground(
     items = [(grid.window(rows, cols), gz[rows, cols]) for rows, cols in tiles]
     cuts = engine.map(ground_tile_task, items, shared, options, occluders, stage="ground")
     gtex = join_ground_tiles(grid, gz, tiles, list(cuts))
-    cams, images, rays = inputs.cameras, inputs.images, scene.rays()
-    rings = []
-    for foot in progress(feet, "ring cuts"):
+    windows, items, keys = [], [], []
+    for p, foot in zip(proxies, feet, strict=True):
         window = ring_window(gtex.grid, foot, options.ring_m)
-        if window is None:
-            continue
-        part = gtex.window(*window)
-        rings.append(ring_cut(part, *ring_inputs(part, foot), cams, images, rays, options.ring_m))
+        if window is not None:
+            windows.append(window)
+            items.append((grid.window(*window), gz[window], foot))
+            keys.append(p.id)
+    samples = engine.map(ring_task, items, shared, options, occluders, stage="ring cuts",
+                         keys=keys)  # fmt: skip
+    rings = [
+        ring_cut(gtex.window(*w), s, options.ring_m) for w, s in zip(windows, samples, strict=True)
+    ]
     gtex.record["ring_texels"] = int(sum(r["ring_texels"] for r in rings))
     gtex.record["ring_from_building"] = int(sum(r["from_building"] for r in rings))
     return gtex, gz
+
+
+def ring_task(item: tuple, inputs: VoxelInputs, options: VoxelOptions,
+              occluders: ProxyScene) -> RingSamples:  # fmt: skip
+    """Task: the building side of one ring cut, ``item`` = (the building's window of the
+    ground grid, the ground heights on it, its :class:`WallFoot`)."""
+    grid, z, foot = item
+    return ring_samples(grid, z, *ring_inputs(grid, foot), inputs.cameras, inputs.images,
+                        occluders.rays(), options.ring_m)  # fmt: skip
 
 
 GROUND_TILE = 512  # texels per side of a ground cut's task: 256 m at 0.5 m
@@ -270,10 +286,9 @@ def ground_grid(scene: Scene, proxies: list[Proxy], gsd: float) -> Grid:
     return Grid.from_bounds(lo[0], lo[1], hi[0], hi[1], gsd)
 
 
-def ring_inputs(gtex: GroundTexture, foot: WallFoot):
-    """The building's footprint on the ground grid, and for every ground cell the view of
-    the nearest low wall texel (-1 where there is none)."""
-    grid = gtex.grid
+def ring_inputs(grid: Grid, foot: WallFoot):
+    """The building's footprint on ``grid`` (a window of the ground grid), and for every
+    cell the view of the nearest low wall texel (-1 where there is none)."""
     footprint = rasterio.features.geometry_mask(
         [mapping(foot.outline)], grid.shape, grid.transform, invert=True
     )
