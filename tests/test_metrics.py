@@ -135,6 +135,20 @@ def test_building_heights_and_percent_errors():
     assert err == pytest.approx({1: 10.0, 2: -100.0})  # building 2 missing: -100 %
 
 
+def test_building_windows_are_each_ids_bounding_box_in_order():
+    from workbench.evaluate import building_windows
+
+    ids = np.zeros((6, 7), np.int64)
+    ids[1:3, 2:5] = 7
+    ids[4, 0] = 10**12  # an id far beyond the count (a GIS key)
+    ids[5, 6] = 7  # a second piece widens 7's box
+    got = [(k, (r.start, r.stop, c.start, c.stop)) for k, (r, c) in building_windows(ids)]
+    assert got == [(7, (1, 6, 2, 7)), (10**12, (4, 5, 0, 1))]
+    assert list(building_windows(ids[:1])) == []  # no building
+    full = np.ones((2, 2), np.int64)  # no background cell
+    assert [(k, w) for k, w in building_windows(full)] == [(1, (slice(0, 2), slice(0, 2)))]
+
+
 def test_height_error_summary_is_of_absolute_errors():
     s = metrics.height_error_summary([-10.0, 2.0, 3.0])
     assert s == {"median": 3.0, "mean": 5.0, "n": 3}

@@ -12,7 +12,7 @@ import numpy as np
 from .atomic import atomic_output_dir
 from .cityjson_check import lod_meshes
 from .errors import InputError, WorkbenchError
-from .evaluate import Evaluation, EvaluationOptions, evaluate, stacked_meshes
+from .evaluate import Evaluation, EvaluationOptions, RunLayers, evaluate, stacked_meshes
 from .imageio import write_rgb
 from .meshes import concatenate_meshes, raster_mesh, read_mesh, sample_surface, triangle_areas
 from .pictures import colorize_classes, colorize_error, colorize_height
@@ -54,10 +54,13 @@ def compare_runs(
         raise WorkbenchError(f"--names: run names must differ, got {names}")
     runs = [load_run(f, n) for f, n in zip(folders, names, strict=True)]
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
-        evaluations = {}
+        evaluations, run_figures = {}, {}
+        reference = _reference_surface(truth)
         for run in runs:
             t0 = time.perf_counter()
-            evaluations[run.name] = evaluate(run, truth, options)
+            e = evaluations[run.name] = evaluate(run, truth, options)
+            run_figures[run.name] = run_pictures(e.layers, truth, reference, options)
+            e.layers = None  # a run's grids: hundreds of MB on a city, not kept for all runs
             log.info("scored %s in %.1f s", run.name, time.perf_counter() - t0)
         if mesh is not None:
             scene = raycasting_scene(*read_mesh(mesh))
@@ -74,7 +77,8 @@ def compare_runs(
             "run_folders": {r.name: str(r.folder.absolute()) for r in runs},
         }
         (tmp / "metrics.json").write_text(json.dumps(doc, indent=1))
-        truth_figures, run_figures, renders = _figures(runs, evaluations, truth, options)
+        truth_figures = truth_pictures(truth)
+        renders = _renders(runs, evaluations, truth, options)
         (tmp / "figures").mkdir()
         named = [("truth", truth_figures), ("render", renders)]
         named += [(f"run_{n}", items) for n, items in run_figures.items()]
@@ -144,34 +148,34 @@ def _slug(text: str) -> str:
 Figures = list[tuple[np.ndarray, str]]
 
 
-def _figures(
-    runs: list[Run], evaluations: dict[str, Evaluation], truth: Truth, options: EvaluationOptions
-) -> tuple[Figures, dict[str, Figures], Figures]:
-    """Pictures of the truth, of each run on the grid, and renders of the models."""
-    truth_figures = []
+def truth_pictures(truth: Truth) -> Figures:
+    """Pictures of the truth: its ortho, classes and DSM where it has them."""
+    out = []
     if truth.ortho is not None:
-        truth_figures.append((truth.ortho, "true ortho"))
+        out.append((truth.ortho, "true ortho"))
     if truth.cls is not None:
-        truth_figures.append((colorize_classes(truth.cls), "true classes"))
+        out.append((colorize_classes(truth.cls), "true classes"))
     if truth.dsm is not None:
-        truth_figures.append((colorize_height(truth.dsm), "true DSM"))
-    run_figures = {}
-    reference = _reference_surface(truth)
-    for run in runs:
-        e = evaluations[run.name]
-        items = []
-        if truth.building_ids is not None:
-            items.append(
-                (footprint_map(e.layers.building_ids > 0, truth.building_ids > 0), "footprints")
-            )
-        if reference is not None:
-            on = (e.layers.building_ids > 0) | (truth.building_ids > 0)
-            err = np.where(on, np.abs(e.layers.surface - reference), np.nan)
-            items.append((colorize_error(err, options.max_error_m), "height error"))
-        if e.layers.cls is not None:
-            items.append((colorize_classes(e.layers.cls), "classes"))
-        run_figures[run.name] = items
-    return truth_figures, run_figures, _renders(runs, evaluations, truth, options)
+        out.append((colorize_height(truth.dsm), "true DSM"))
+    return out
+
+
+def run_pictures(
+    layers: RunLayers, truth: Truth, reference: np.ndarray | None, options: EvaluationOptions
+) -> Figures:
+    """Pictures of one run on the grid: its footprints against the truth's, its height
+    error against ``reference`` (:func:`_reference_surface`), its classes."""
+    items = []
+    if truth.building_ids is not None:
+        items.append((footprint_map(layers.building_ids > 0, truth.building_ids > 0),
+                      "footprints"))  # fmt: skip
+    if reference is not None:
+        on = (layers.building_ids > 0) | (truth.building_ids > 0)
+        err = np.where(on, np.abs(layers.surface - reference), np.nan)
+        items.append((colorize_error(err, options.max_error_m), "height error"))
+    if layers.cls is not None:
+        items.append((colorize_classes(layers.cls), "classes"))
+    return items
 
 
 def _reference_surface(truth: Truth) -> np.ndarray | None:

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy import ndimage
 
 from . import metrics
 from .errors import InputError
@@ -74,13 +75,13 @@ class RunLayers:
 @dataclass
 class Evaluation:
     """metrics: the run's entry in metrics.json; buildings: one row per true building;
-    layers: the run on the grid; face_error: (T,) distance of each model face's centre to
-    the true buildings, metres, in the order of the run's buildings (models with a true
-    mesh only)."""
+    layers: the run on the grid (None once ``compare`` has drawn it); face_error: (T,)
+    distance of each model face's centre to the true buildings, metres, in the order of
+    the run's buildings (models with a true mesh only)."""
 
     metrics: dict
     buildings: list[dict]
-    layers: RunLayers
+    layers: RunLayers | None
     face_error: np.ndarray | None = None
 
 
@@ -223,9 +224,8 @@ def per_building(run: Run, truth: Truth, layers: RunLayers) -> list[dict]:
         model_h = metrics.building_heights(layers.surface, ground, t_ids)
     err_pct = metrics.height_error_pct(model_h, true_h)
     rows = []
-    for k in np.unique(t_ids[t_ids > 0]):
-        k = int(k)
-        cells = t_ids == k
+    for k, window in building_windows(t_ids):
+        cells = t_ids[window] == k
         row = {"id": k, "area_m2": float(cells.sum() * truth.grid.gsd**2)}
         rec = truth.buildings.get(k, {})
         if "roof_type" in rec:
@@ -239,10 +239,10 @@ def per_building(run: Run, truth: Truth, layers: RunLayers) -> list[dict]:
             row["height_true_m"] = true_h[k]
             row["height_model_m"] = model_h.get(k, 0.0)
             row["height_error_pct"] = err_pct[k]
-        covered = layers.building_ids[cells]
+        covered = layers.building_ids[window][cells]
         row["covered_fraction"] = float(np.mean(covered > 0))
         if truth.building_surface is not None:
-            e = layers.surface[cells] - truth.building_surface[cells]
+            e = layers.surface[window][cells] - truth.building_surface[window][cells]
             e = e[np.isfinite(e)]
             if len(e):
                 row["rmse_m"] = float(np.sqrt(np.mean(e**2)))
@@ -255,16 +255,25 @@ def per_building(run: Run, truth: Truth, layers: RunLayers) -> list[dict]:
                 if key in b.record:
                     row[key] = b.record[key]
             if layers.normals is not None and truth.roof_normals is not None:
-                both = (
-                    cells
-                    & np.isfinite(layers.normals[..., 2])
-                    & np.isfinite(truth.roof_normals[..., 2])
-                )
+                model_n, true_n = layers.normals[window], truth.roof_normals[window]
+                both = cells & np.isfinite(model_n[..., 2]) & np.isfinite(true_n[..., 2])
                 if both.any():
-                    ang = metrics.plane_angles_deg(layers.normals[both], truth.roof_normals[both])
+                    ang = metrics.plane_angles_deg(model_n[both], true_n[both])
                     row["plane_angle_median_deg"] = float(np.median(ang))
         rows.append(row)
     return rows
+
+
+def building_windows(ids: np.ndarray):
+    """Each building id > 0 of ``ids`` (H, W) in increasing order, with the rows and
+    columns (two slices) of its bounding box: a building's cells are then looked for in its
+    box, not over the whole grid (a city's grid holds thousands of buildings)."""
+    labels, index = np.unique(ids, return_inverse=True)
+    index = index.reshape(ids.shape) + int(labels[0] != 0)  # 0 stays the background
+    for i, window in enumerate(ndimage.find_objects(index)):
+        k = int(labels[i + 1 - int(labels[0] != 0)])
+        if k > 0 and window is not None:
+            yield k, window
 
 
 def building_summary(rows: list[dict], min_area_m2: float = 50.0) -> dict:
@@ -341,14 +350,17 @@ def texture_costs(run: Run, truth: Truth) -> dict:
             vals = [float(b.record[key]) for b in run.buildings if key in b.record]
             if vals:
                 reported[key] = float(np.mean(vals))
-    textured = [t for t in map(read_textured_building, _obj_files(run)) if t is not None]
-    if not textured or not truth.views:
+    files = _obj_files(run)
+    textured = (t for t in map(read_textured_building, files) if t is not None)
+    measured = {}
+    if files and truth.views:  # read one building at a time: a city's atlases are many
+        vertices, triangles, _ = stacked_meshes(run)
+        measured = recomputed_seam_costs(
+            textured, [v.camera for v in truth.views], SceneImages(truth.views),
+            raycasting_scene(vertices, triangles),
+        )  # fmt: skip
+    if not measured:
         return {**reported, "source": "run"} if reported else {}
-    vertices, triangles, _ = stacked_meshes(run)
-    measured = recomputed_seam_costs(
-        textured, [v.camera for v in truth.views], SceneImages(truth.views),
-        raycasting_scene(vertices, triangles),
-    )  # fmt: skip
     return {**measured, "source": "recomputed", "reported": reported}
 
 

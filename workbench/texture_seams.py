@@ -9,6 +9,8 @@ projective texture mapping on the same points.
 
 from __future__ import annotations
 
+from collections import OrderedDict
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,7 +19,7 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-from .camera import Camera
+from .camera import Camera, framing_cameras
 from .errors import InputError
 from .imageio import read_rgb
 from .meshio import read_obj, texture_of
@@ -229,18 +231,41 @@ def seam_cost(edges: np.ndarray, labels: np.ndarray, samples: ViewSamples) -> tu
 
 
 class SceneImages:
-    """The views' images, each read when first sampled and kept: ``rgb_samples`` for
-    :func:`view_samples`."""
+    """The views' images, read when first sampled and kept while they fit in a memory
+    budget, the least recently used going first: a city's flight has hundreds of views, of
+    which one building needs a few dozen, and its neighbours mostly the same ones.
 
-    def __init__(self, views: list):
+    Parameters
+    ----------
+    views : list of View
+    budget_mb : float
+        Memory for the images kept (at least the last one read is kept).
+    """
+
+    def __init__(self, views: list, budget_mb: float = 1024.0):
         self.views = views
-        self._rgb: dict[int, np.ndarray] = {}
+        self._rgb: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._budget = budget_mb * 2**20
+        self._bytes = 0
+
+    def rgb(self, k: int) -> np.ndarray:
+        """(H, W, 3) uint8 image of view ``k``."""
+        if k in self._rgb:
+            self._rgb.move_to_end(k)
+            return self._rgb[k]
+        img = self._rgb[k] = self.views[k].read_image()
+        self._bytes += img.nbytes
+        while self._bytes > self._budget and len(self._rgb) > 1:
+            _, old = self._rgb.popitem(last=False)
+            self._bytes -= old.nbytes
+        return img
+
+    def __getstate__(self):  # sent to a worker without the images read so far
+        return {**self.__dict__, "_rgb": OrderedDict(), "_bytes": 0}
 
     def rgb_samples(self, k: int, uv: np.ndarray) -> np.ndarray:
         """RGB of view ``k`` at ``uv`` (N, 2), bilinear -> (N, 3) float32 0-255."""
-        if k not in self._rgb:
-            self._rgb[k] = self.views[k].read_image()
-        return bilinear(self._rgb[k], uv)
+        return bilinear(self.rgb(k), uv)
 
 
 @dataclass
@@ -390,7 +415,7 @@ def read_textured_building(obj_path: Path) -> TexturedBuilding | None:
 
 
 def recomputed_seam_costs(
-    buildings: list[TexturedBuilding],
+    buildings: Iterable[TexturedBuilding],
     cameras: list[Camera],
     images,
     occluders=None,
@@ -419,10 +444,13 @@ def recomputed_seam_costs(
         tex = surface_texels(b.vertices, b.triangles, b.uvs, b.image, spacing)
         if not len(tex.edges):
             continue
-        samples = view_samples(tex.positions, tex.normals, cameras, images, occluders)
+        # the views that can see the building: the others would be columns of nothing
+        # (if none can, one that sees nothing either)
+        views = framing_cameras(cameras, b.vertices) or [0]
+        samples = view_samples(tex.positions, tex.normals, cameras, images, occluders, views)
         labels, dist = source_views(tex.rgb, samples, tex.edges)
         for name, lab in (("run", labels), ("projective", projective_views(
-                tex, centres, samples, patch_m))):  # fmt: skip
+                tex, centres[views], samples, patch_m))):  # fmt: skip
             cost, n_seams = seam_cost(tex.edges, lab, samples)
             energy[name] += cost * len(tex.edges)
             seams[name] += n_seams

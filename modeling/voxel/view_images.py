@@ -8,13 +8,11 @@ consistency colours are converted and blurred around the pixels asked for only.
 
 from __future__ import annotations
 
-from collections import OrderedDict
-
 import cv2
 import numpy as np
 
 from workbench.scene import View
-from workbench.texture_seams import bilinear, rgb_to_lab
+from workbench.texture_seams import SceneImages, bilinear, rgb_to_lab
 
 
 def footprint_sigma(half_width: int) -> float:
@@ -53,12 +51,9 @@ def lab_features(rgb: np.ndarray) -> np.ndarray:
 CONSISTENCY_FEATURES = {"hs": hs_chroma, "lab": lab_features}
 
 
-class ViewImages:
-    """Lazy, cached access to the views' pixels.
-
-    Images are read on demand and kept while they fit in a memory budget, the least
-    recently used going first: a city's flight has hundreds of views, of which one
-    building needs a few dozen, and its neighbours mostly the same ones.
+class ViewImages(SceneImages):
+    """Lazy, cached access to the views' pixels (:class:`~workbench.texture_seams.
+    SceneImages`), with the colours the voxel path compares.
 
     Parameters
     ----------
@@ -70,26 +65,8 @@ class ViewImages:
     """
 
     def __init__(self, views: list[View], budget_mb: float = 1024.0, features: str = "lab"):
-        self.views = views
+        super().__init__(views, budget_mb)
         self._features = CONSISTENCY_FEATURES[features]
-        self._rgb: OrderedDict[int, np.ndarray] = OrderedDict()
-        self._budget = budget_mb * 2**20
-        self._bytes = 0
-
-    def rgb(self, k: int) -> np.ndarray:
-        """(H, W, 3) uint8 image of view ``k``."""
-        if k in self._rgb:
-            self._rgb.move_to_end(k)
-            return self._rgb[k]
-        img = self._rgb[k] = self.views[k].read_image()
-        self._bytes += img.nbytes
-        while self._bytes > self._budget and len(self._rgb) > 1:
-            _, old = self._rgb.popitem(last=False)
-            self._bytes -= old.nbytes
-        return img
-
-    def __getstate__(self):  # sent to a worker without the images read so far
-        return {**self.__dict__, "_rgb": OrderedDict(), "_bytes": 0}
 
     def consistency_samples(self, k: int, uv: np.ndarray, half_width: np.ndarray) -> np.ndarray:
         """Gaussian-weighted colours c_ik of eq. 2 at ``uv`` (N, 2), window half-widths
@@ -122,7 +99,3 @@ class ViewImages:
     def lab_samples(self, k: int, uv: np.ndarray) -> np.ndarray:
         """CIE Lab colour of view ``k`` at ``uv`` (N, 2), bilinear -> (N, 3) float32."""
         return rgb_to_lab(bilinear(self.rgb(k), uv))
-
-    def rgb_samples(self, k: int, uv: np.ndarray) -> np.ndarray:
-        """RGB of view ``k`` at ``uv`` (N, 2), bilinear -> (N, 3) float32 0-255."""
-        return bilinear(self.rgb(k), uv)
