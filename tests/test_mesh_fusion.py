@@ -51,6 +51,34 @@ def test_cells_beyond_the_mesh_are_nan():
     assert (ortho[:, 5:] == 128).all()  # no colour: grey
 
 
+def test_tiles_cast_against_their_own_triangles_give_the_whole_meshs_hits():
+    # a bumpy surface of small triangles far from the CRS's zero (UTM-like), and a
+    # large one beneath it spanning every tile: each tile's scene holds only what is
+    # over it, and every hit is the one the scene of the whole mesh gives
+    rng = np.random.default_rng(0)
+    n = 41
+    x, y = np.meshgrid(np.linspace(0, 20, n), np.linspace(0, 20, n))
+    z = 5 + rng.uniform(0, 2, x.shape)
+    V = np.column_stack([x.ravel() + 500_000.0, y.ravel() + 5_700_000.0, z.ravel()])
+    i = np.arange(n * n).reshape(n, n)[:-1, :-1].ravel()
+    T = np.vstack([np.column_stack([i, i + 1, i + n + 1]), np.column_stack([i, i + n + 1, i + n])])
+    big = len(V) + np.array([[0, 1, 2]])
+    V = np.vstack([V, [[499_990.0, 5_699_990.0, 1.0], [500_090.0, 5_699_990.0, 1.0],
+                       [499_990.0, 5_700_090.0, 1.0]]])  # fmt: skip
+    C = rng.integers(0, 256, (len(V), 3)).astype(np.uint8)
+    mesh = SurfaceMesh(None, V, np.vstack([T, big]), C, None, [], None, None)
+    grid = Grid(499_995.0, 5_700_025.0, 0.3, 100, 100)  # the bumps and the floor around
+    whole = orthogonal_sampling(mesh, grid, tile=1000)
+    assert np.isfinite(whole[1]).all() and (whole[1] < 2).any() and (whole[1] > 5).any()
+    for tile in (7, 32):
+        ortho, dsm, normal = orthogonal_sampling(mesh, grid, tile=tile)
+        # a ray right on an edge may take either triangle: the same point, to rounding
+        np.testing.assert_allclose(dsm, whole[1], rtol=0, atol=1e-5)
+        np.testing.assert_allclose(normal, whole[2], rtol=0, atol=1e-6)
+        assert np.abs(ortho.astype(int) - whole[0]).max() <= 1
+        assert (dsm == whole[1]).mean() > 0.999 and (normal == whole[2]).all(axis=0).mean() > 0.999
+
+
 def test_a_textured_obj_gives_its_texture(tmp_path):
     texture = np.zeros((64, 64, 3), np.uint8)
     texture[:, :32] = (200, 30, 30)  # left half (u < 0.5) red

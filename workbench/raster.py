@@ -91,6 +91,13 @@ class Grid:
         return Grid(self.xmin + cols.start * self.gsd, self.ymax - rows.start * self.gsd,
                     self.gsd, cols.stop - cols.start, rows.stop - rows.start)  # fmt: skip
 
+    def tiles(self, size: int) -> list[tuple[slice, slice]]:
+        """Rows and columns of the tiles of ``size`` x ``size`` cells covering the grid,
+        row by row (the last of a row or column smaller)."""
+        return [(slice(r, min(r + size, self.height)), slice(c, min(c + size, self.width)))
+                for r in range(0, self.height, size)
+                for c in range(0, self.width, size)]  # fmt: skip
+
     def cell_centers(self) -> tuple[np.ndarray, np.ndarray]:
         """World x and y of every cell centre, each of shape (height, width)."""
         xs, _ = self.cell_center(0, np.arange(self.width))

@@ -39,7 +39,17 @@ class RayScene:
         return (np.asarray(points, np.float64) - self.origin).astype(np.float32)
 
 
-def raycasting_scene(vertices: np.ndarray, triangles: np.ndarray) -> RayScene:
+def local_origin(vertices: np.ndarray) -> np.ndarray:
+    """(3,) the centre of the bounding box of ``vertices`` (V, 3), to the kilometre (the
+    sample, built around its CRS's zero, keeps zero)."""
+    vertices = np.asarray(vertices, np.float64)
+    centre = (vertices.min(axis=0) + vertices.max(axis=0)) / 2 if len(vertices) else np.zeros(3)
+    return np.round(centre / 1000.0) * 1000.0
+
+
+def raycasting_scene(
+    vertices: np.ndarray, triangles: np.ndarray, origin: np.ndarray | None = None
+) -> RayScene:
     """An Open3D ray-casting scene of one triangle mesh, in a local origin.
 
     Parameters
@@ -47,15 +57,16 @@ def raycasting_scene(vertices: np.ndarray, triangles: np.ndarray) -> RayScene:
     vertices : (V, 3) float
         World coordinates.
     triangles : (T, 3) int
+    origin : (3,) float, optional
+        The local origin (default :func:`local_origin`); scenes of parts of one mesh given
+        the same origin hold their triangles exactly as the whole mesh's scene does.
 
     Returns
     -------
     RayScene whose hits' primitive ids index ``triangles``.
     """
     vertices = np.asarray(vertices, np.float64)
-    # a whole kilometre: the sample, built around its CRS's zero, keeps zero
-    centre = (vertices.min(axis=0) + vertices.max(axis=0)) / 2 if len(vertices) else np.zeros(3)
-    origin = np.round(centre / 1000.0) * 1000.0
+    origin = local_origin(vertices) if origin is None else np.asarray(origin, np.float64)
     scene = o3d.t.geometry.RaycastingScene()
     mesh = o3d.t.geometry.TriangleMesh()
     mesh.vertex.positions = o3d.core.Tensor((vertices - origin).astype(np.float32))

@@ -130,15 +130,6 @@ def ground_cut(
     return GroundTile(image, scene_views.reshape(grid.shape), counts)
 
 
-def ground_tiles(grid: Grid, size: int) -> list[tuple[slice, slice]]:
-    """The ground grid's tiles of ``size`` x ``size`` texels, row by row."""
-    return [
-        (slice(r, min(r + size, grid.height)), slice(c, min(c + size, grid.width)))
-        for r in range(0, grid.height, size)
-        for c in range(0, grid.width, size)
-    ]
-
-
 def join_ground_tiles(grid: Grid, z: np.ndarray, tiles: list, cuts: list[GroundTile]):
     """The ground texture of the tiles' cuts, and its record (seam costs per graph edge
     over all tiles; the tiles' borders are seams the cuts did not place)."""

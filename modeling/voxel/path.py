@@ -34,7 +34,6 @@ from .ground_texture import (
     RingSamples,
     ground_cut,
     ground_mesh,
-    ground_tiles,
     join_ground_tiles,
     ring_cut,
     ring_samples,
@@ -221,7 +220,7 @@ def texture_ground(
         return None, None
     grid = ground_grid(inputs.scene, proxies, options.ground_gsd_m)
     gz = inputs.ground(grid)
-    tiles = ground_tiles(grid, GROUND_TILE)
+    tiles = grid.tiles(GROUND_TILE)
     items = [(grid.window(rows, cols), gz[rows, cols]) for rows, cols in tiles]
     cuts = engine.map(ground_tile_task, items, shared, options, occluders, stage="ground")
     gtex = join_ground_tiles(grid, gz, tiles, list(cuts))
