@@ -11,7 +11,12 @@ from modeling.lod.facades import facade_directions
 from modeling.lod.labelling import data_term, fill_holes, mrf_labelling, normalised_height
 from modeling.lod.segments import regularise_segments
 from modeling.lod.shapes import roof_directions, roof_planes, snap_to_facades
-from modeling.lod.tree_probability import train_tree_classifier, tree_features, tree_probability
+from modeling.lod.tree_probability import (
+    feature_bands,
+    train_tree_classifier,
+    tree_features,
+    tree_probability,
+)
 from modeling.shared.raster_ground import dtm_across_holes
 from tests.conftest import run_cli
 from workbench.cityjson_check import check_city_model
@@ -202,8 +207,13 @@ def test_the_tree_classifier_learns_green_crowns_from_strokes():
     strokes[5:10, 35:55] = 3  # tree
     F = tree_features(img)
     assert F.shape == (60, 60, 26)
-    t = tree_probability(train_tree_classifier(F, strokes, rounds=20), F)
+    t = tree_probability(train_tree_classifier(img, strokes, rounds=20), img)
     assert t[40:, 35:55].mean() > 0.8 and t[40:, 5:25].mean() < 0.2
+    # band by band, each with its margin: the features of the whole image
+    bands = list(feature_bands(img, band_rows=7))
+    assert [r.start for r, _ in bands] == list(range(0, 60, 7))
+    np.testing.assert_array_equal(np.concatenate([f for _, f in bands]), F)
+    assert [r.start for r, _ in feature_bands(img, 7, rows=np.array([15, 50]))] == [14, 49]
 
 
 @pytest.fixture(scope="module")

@@ -43,7 +43,7 @@ from .segments import (
     regularise_segments,
 )
 from .shapes import roof_directions, roof_planes, z_symmetric
-from .tree_probability import train_tree_classifier, tree_features, tree_probability
+from .tree_probability import train_tree_classifier, tree_probability
 
 log = logging.getLogger(__name__)
 
@@ -92,9 +92,8 @@ def run_lod(
         strokes = _strokes(labels, grid) if labels is not None else None
     with timer.stage("tree probability"):
         if strokes is not None:
-            features = tree_features(rgb)
-            t = tree_probability(train_tree_classifier(features, strokes, options.boost_rounds,
-                                                       options.seed), features)  # fmt: skip
+            model = train_tree_classifier(rgb, strokes, options.boost_rounds, options.seed)
+            t = tree_probability(model, rgb)
             t_source = f"AdaBoost of {options.boost_rounds} stumps on {labels}'s strokes"
         else:
             prob = fusion.rasters["class_prob"]
