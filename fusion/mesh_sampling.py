@@ -94,8 +94,23 @@ def read_surface_mesh(path, crs: str | None = None) -> SurfaceMesh:
         raise InputError(path, None, "no such mesh file")
     mesh = o3d.io.read_triangle_mesh(os.fspath(path), enable_post_processing=True,
                                      print_progress=False)  # fmt: skip
-    V = np.asarray(mesh.vertices, np.float64)
-    T = np.asarray(mesh.triangles, np.int64)
+    # copies, so that Open3D's own arrays (a city mesh's: gigabytes) go with ``mesh``
+    V = np.array(mesh.vertices, np.float64)
+    T = np.array(mesh.triangles, np.int64)
+    colors = None
+    if mesh.has_vertex_colors():
+        colors = np.empty((len(V), 3), np.uint8)
+        for s in range(0, len(V), TRIANGLES_PER_CHUNK):  # no float temporaries of all
+            c = np.asarray(mesh.vertex_colors)[s : s + TRIANGLES_PER_CHUNK]
+            colors[s : s + len(c)] = np.clip(c * 255 + 0.5, 0, 255)
+    uvs, textures, material = None, [], None
+    if mesh.has_triangle_uvs() and mesh.has_textures():
+        uvs = np.array(mesh.triangle_uvs, np.float64).reshape(-1, 3, 2)
+        textures = [np.array(t)[..., :3] for t in mesh.textures]
+        material = np.zeros(len(T), np.int64)
+        if mesh.has_triangle_material_ids():
+            material = np.array(mesh.triangle_material_ids, np.int64)
+    del mesh
     if not len(T):
         raise InputError(path, "faces", "no triangles: a surface mesh is needed")
     bad = ~np.isfinite(V).all(axis=1)
@@ -105,16 +120,6 @@ def read_surface_mesh(path, crs: str | None = None) -> SurfaceMesh:
     if share > NON_MANIFOLD_SHARE:
         raise InputError(path, "faces", f"{share:.1%} of the edges are shared by more than "
                          "two triangles: not a surface")  # fmt: skip
-    colors = None
-    if mesh.has_vertex_colors():
-        colors = np.clip(np.asarray(mesh.vertex_colors) * 255 + 0.5, 0, 255).astype(np.uint8)
-    uvs, textures, material = None, [], None
-    if mesh.has_triangle_uvs() and mesh.has_textures():
-        uvs = np.asarray(mesh.triangle_uvs, np.float64).reshape(-1, 3, 2)
-        textures = [np.asarray(t)[..., :3] for t in mesh.textures]
-        material = np.zeros(len(T), np.int64)
-        if mesh.has_triangle_material_ids():
-            material = np.asarray(mesh.triangle_material_ids, np.int64)
     text = crs or ply_crs(path)
     crs_obj = parse_crs(text, path=path) if text else None
     if crs_obj is None:
@@ -126,10 +131,14 @@ def read_surface_mesh(path, crs: str | None = None) -> SurfaceMesh:
 
 def non_manifold_share(triangles: np.ndarray) -> float:
     """Share of the undirected edges used by more than two triangles."""
-    e = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]],
-                                triangles[:, [2, 0]]]), axis=1)  # fmt: skip
-    key = e[:, 0] * (int(triangles.max()) + 1) + e[:, 1]
-    _, counts = np.unique(key, return_counts=True)
+    n, t = int(triangles.max()) + 1, len(triangles)
+    key = np.empty(3 * t, np.int64)  # one int64 an edge, sorted in place (a city's: 113 M)
+    for k, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
+        lo = np.minimum(triangles[:, a], triangles[:, b])
+        key[k * t : (k + 1) * t] = lo * n + np.maximum(triangles[:, a], triangles[:, b])
+    key.sort()
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    counts = np.diff(np.r_[starts, len(key)])
     return float((counts > 2).sum() / max(len(counts), 1))
 
 

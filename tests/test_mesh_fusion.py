@@ -79,6 +79,14 @@ def test_tiles_cast_against_their_own_triangles_give_the_whole_meshs_hits():
         assert (dsm == whole[1]).mean() > 0.999 and (normal == whole[2]).all(axis=0).mean() > 0.999
 
 
+def test_non_manifold_share_by_hand():
+    from fusion.mesh_sampling import non_manifold_share
+
+    book = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])  # three pages on the edge 0-1
+    assert non_manifold_share(book) == pytest.approx(1 / 7)  # of 7 edges, one in 3 faces
+    assert non_manifold_share(book[:2]) == 0.0  # two faces on an edge: a surface
+
+
 def test_a_textured_obj_gives_its_texture(tmp_path):
     texture = np.zeros((64, 64, 3), np.uint8)
     texture[:, :32] = (200, 30, 30)  # left half (u < 0.5) red

@@ -109,9 +109,9 @@ def test_buildings_kept_on_disk_write_the_same_folder(tmp_path):
         return [_box_building(k, x) for k, x in (("a", 0.0), ("b", 15.0), ("c", 30.0))]
 
     kept = BuildingsOnDisk(tmp_path / "kept")
-    kept.add(buildings()[:2])
-    kept.add([])  # a block with none
-    kept.add(buildings()[2:])
+    kept.extend(buildings()[:2])
+    kept.extend([])  # a block with none
+    kept.extend(buildings()[2:])
     assert len(kept) == 3 and [b.id for b in kept] == ["a", "b", "c"]
     assert [b.id for b in kept] == ["a", "b", "c"]  # read again from disk
     records = {}

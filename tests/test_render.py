@@ -5,12 +5,15 @@ from shapely.geometry import box
 
 from modeling.shared.roof_mesh import extrude_faces
 from workbench import render
-from workbench.model_run import Building, Surface
+from workbench.model_run import Building, Surface, Texture
 
 
-def _block(bid: str, x0: float, height: float) -> Building:
+def _block(bid: str, x0: float, height: float, colour=None) -> Building:
     V, T = extrude_faces([box(x0, 0, x0 + 10, 6)], [np.array([0.0, 0.0, 1.0, -height])], 0.0)
-    return Building(bid, Surface(V, T), "1.3")
+    tex = None
+    if colour is not None:  # a one-colour atlas
+        tex = Texture(np.full((4, 4, 3), colour, np.uint8), np.full((len(T), 3, 2), 0.5))
+    return Building(bid, Surface(V, T, texture=tex), "1.3")
 
 
 def test_buildings_drawn_in_batches_are_drawn_as_at_once(monkeypatch):
@@ -24,3 +27,21 @@ def test_buildings_drawn_in_batches_are_drawn_as_at_once(monkeypatch):
     assert 0.05 < 1 - background.mean() < 0.9  # the buildings are in the picture
     assert np.mean(np.any(batched != at_once, axis=2)) < 1e-4  # ties at shared edges only
     assert render.render_buildings([], bounds) is None
+
+
+def test_textured_buildings_drawn_in_batches_are_drawn_as_at_once(monkeypatch):
+    from modeling.voxel.preview import render_textured
+
+    colours = {"tall": (200, 0, 0), "low": (0, 200, 0), "far": (0, 0, 200)}
+    # the far one, drawn last, stands behind the tall one from the south-west
+    buildings = [_block("tall", 0.0, 20.0, colours["tall"]),
+                 _block("low", 12.0, 5.0, colours["low"]),
+                 _block("far", 26.0, 30.0, colours["far"])]  # fmt: skip
+    at_once = render_textured(buildings, None)
+    shown = {k: (at_once == c).all(axis=2).mean() for k, c in colours.items()}
+    assert min(shown.values()) > 0.005, shown  # every building shows its atlas
+    monkeypatch.setattr(render, "RENDER_BATCH", 1)  # a batch per building
+    batched = render_textured(buildings, None)
+    np.testing.assert_array_equal(batched, at_once)
+    # depth decides, not the order: drawn the other way round, the same picture
+    np.testing.assert_array_equal(render_textured(buildings[::-1], None), at_once)

@@ -127,8 +127,8 @@ class BuildingsOnDisk:
         self.files: list[Path] = []
         self.count = 0
 
-    def add(self, buildings: list[Building]) -> None:
-        """Keep ``buildings`` as the next batch."""
+    def extend(self, buildings: list[Building]) -> None:
+        """Keep ``buildings`` as the next batch (as a list extends itself)."""
         path = self.folder / f"batch_{len(self.files)}.pickle"
         with open(path, "wb") as f:
             pickle.dump(buildings, f, protocol=pickle.HIGHEST_PROTOCOL)

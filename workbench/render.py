@@ -102,18 +102,23 @@ def render_buildings(buildings: Iterable, bounds, low: float | None = None) -> n
     low = float(min(a for a, _ in z)) if low is None else low
     cam = viewpoints(bounds, (low, float(max(b for _, b in z))))["south-west"]
 
-    def batches():
-        batch, size = [], 0
-        for m in _meshes(buildings):
-            batch.append((m.vertices, m.triangles))
-            size += len(m.triangles)
-            if size >= RENDER_BATCH:
-                yield _grey(batch)
-                batch, size = [], 0
-        if batch:
-            yield _grey(batch)
+    meshes = ((m.vertices, m.triangles) for m in _meshes(buildings))
+    return render_meshes((_grey(batch) for batch in triangle_batches(meshes)), cam)
 
-    return render_meshes(batches(), cam)
+
+def triangle_batches(parts: Iterable[tuple], limit: int | None = None):
+    """Lists of consecutive ``parts`` (tuples whose second item is a mesh's triangles),
+    each closed once it holds ``limit`` (default ``RENDER_BATCH``) triangles or more."""
+    limit = RENDER_BATCH if limit is None else limit
+    batch, size = [], 0
+    for part in parts:
+        batch.append(part)
+        size += len(part[1])
+        if size >= limit:
+            yield batch
+            batch, size = [], 0
+    if batch:
+        yield batch
 
 
 def _meshes(buildings):

@@ -65,10 +65,7 @@ class BlockPlan:
 
     def keep_buildings(self, buildings: list[Building]) -> None:
         """A block's buildings, after those of the blocks before."""
-        if isinstance(self.buildings, BuildingsOnDisk):
-            self.buildings.add(buildings)
-        else:
-            self.buildings.extend(buildings)
+        self.buildings.extend(buildings)
 
 
 def plan_blocks(fusion_dir, block_m: float | None, margin_m: float, engine: Engine) -> BlockPlan:

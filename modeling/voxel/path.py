@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -21,7 +22,7 @@ from shapely.geometry import mapping
 
 from workbench.engine import Engine, ThreadEngine
 from workbench.meshes import concatenate_meshes
-from workbench.model_run import Building, ModelRun, Surface, Texture
+from workbench.model_run import Building, BuildingsOnDisk, ModelRun, Surface, Texture
 from workbench.raster import Grid
 from workbench.raycast import raycasting_scene
 from workbench.records import StageTimer, peak_memory_mb
@@ -89,16 +90,14 @@ def run_voxel(
         occluders = engine.share(scene)
         big = largest(proxies) if proxies else -1
         items = [(p, i == big) for i, p in enumerate(proxies)]
-        textured = list(engine.map(texture_task, items, shared, options, occluders,
-                                   stage="textures", keys=[p.id for p in proxies]))  # fmt: skip
+        textured = engine.map(texture_task, items, shared, options, occluders,
+                              stage="textures", keys=[p.id for p in proxies])  # fmt: skip
+        buildings, feet, costs, shown = kept_textured(textured, engine)
     with timer.stage("ground"):
-        feet = [foot for _, foot, _ in textured]
         gtex, ground_z = texture_ground(inputs, proxies, feet, options, engine, shared,
                                         occluders)  # fmt: skip
-    buildings = [b for b, _, _ in textured]
     with timer.stage("preview"):
-        shown = (proxies[big], textured[big][2]) if proxies else (None, None)
-        preview = voxel_preview(*shown, buildings, gtex)
+        preview = voxel_preview(proxies[big] if proxies else None, shown, buildings, gtex)
     return ModelRun(
         "voxel", options, buildings, crs=inputs.scene.crs,
         grid=gtex.grid if gtex is not None else None, dtm=ground_z,
@@ -111,7 +110,7 @@ def run_voxel(
         counts={"skipped": len(inputs.skipped), "footprints": inputs.footprint_count},
         record={
             "skipped": inputs.skipped, "ground": gtex.record if gtex is not None else None,
-            "texture": texture_summary([b.record for b in buildings]),
+            "texture": texture_summary(costs),
             **engine.describe(),
             "seconds_per_building": round((time.perf_counter() - t_start) / max(len(proxies), 1),
                                           3),
@@ -190,6 +189,28 @@ class WallFoot:
     outline: object
     xy: np.ndarray
     views: np.ndarray
+
+
+BUILDINGS_PER_BATCH = 32  # textured buildings pickled together when kept on disk
+
+
+def kept_textured(textured: Iterable, engine: Engine):
+    """The texture tasks' results as they come: the buildings (on disk in the engine's
+    task store when it has one, a batch at a time: a city's atlases are gigabytes), their
+    wall feet, their seam costs, and the preview building's texture (None without one)."""
+    store = engine.store
+    buildings = BuildingsOnDisk(store.folder / "buildings") if store is not None else []
+    feet, costs, shown, batch = [], [], None, []
+    for b, foot, t in textured:
+        feet.append(foot)
+        costs.append({k: b.record[k] for k in SEAM_COSTS})
+        shown = t if t is not None else shown
+        batch.append(b)
+        if len(batch) == BUILDINGS_PER_BATCH:
+            buildings.extend(batch)
+            batch = []
+    buildings.extend(batch)
+    return buildings, feet, costs, shown
 
 
 def texture_task(item: tuple, inputs: VoxelInputs, options: VoxelOptions,
@@ -340,11 +361,14 @@ def ground_surface(gtex: GroundTexture | None) -> Surface | None:
     return Surface(gv, gt, gtex.image[r, c], Texture(gtex.image, guv))
 
 
+SEAM_COSTS = ("seam_cost", "seam_cost_projective", "seam_cost_greedy")
+
+
 def texture_summary(records: list[dict]) -> dict:
     """Mean seam costs over the buildings' records (graph cut, projective, greedy before
     the refinement)."""
     out = {}
-    for key in ("seam_cost", "seam_cost_projective", "seam_cost_greedy"):
+    for key in SEAM_COSTS:
         vals = [r[key] for r in records if np.isfinite(r[key])]
         out[key] = round(float(np.mean(vals)), 4) if vals else None
     return out

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import cv2
 import numpy as np
 
 from workbench.meshes import concatenate_meshes
 from workbench.pictures import colorize_height, contact_sheet
 from workbench.raycast import cast, raycasting_scene
-from workbench.render import viewpoints
+from workbench.render import triangle_batches, viewpoints
 
 from .building import Proxy, Texture
 from .ground_texture import ground_mesh
@@ -80,37 +82,50 @@ def _top_labels(proxy: Proxy, tex: Texture, labels: np.ndarray) -> np.ndarray:
     return _upscale(img, 240)
 
 
-def render_textured(buildings: list, gtex, width: int = 640) -> np.ndarray:
+def render_textured(buildings: Iterable, gtex, width: int = 640) -> np.ndarray:
     """Ray-cast picture of the textured buildings (and ground) from the south-west: each
-    pixel's hit is looked up in its mesh's atlas through the interpolated UVs."""
-    meshes = [b.mesh for b in buildings]
-    parts = [(m.vertices, m.triangles, m.texture.uvs, m.texture.image) for m in meshes]
+    pixel's nearest hit is looked up in its mesh's atlas through the interpolated UVs.
+    ``buildings`` is iterated twice (their extent, then their meshes a batch of at most
+    ``RENDER_BATCH`` triangles at a time: a city's atlases are not all held)."""
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for b in buildings:
+        lo = np.minimum(lo, b.mesh.vertices.min(axis=0))
+        hi = np.maximum(hi, b.mesh.vertices.max(axis=0))
     gm = ground_mesh(gtex) if gtex is not None else None
-    if gm is not None:
-        parts.append((*gm, gtex.image))
-    V, T, owner = concatenate_meshes([(v, t) for v, t, _, _ in parts])
-    uvs = np.concatenate([u for _, _, u, _ in parts])
-    xy = np.vstack([m.vertices[:, :2] for m in meshes])
-    bounds = (*xy.min(axis=0), *xy.max(axis=0))
-    cam = viewpoints(bounds, (float(V[:, 2].min()), float(V[:, 2].max())), width, width * 3 // 4)[
-        "south-west"
-    ]
+    z = (lo[2], hi[2]) if gm is None else (min(lo[2], gm[0][:, 2].min()),
+                                            max(hi[2], gm[0][:, 2].max()))  # fmt: skip
+    cam = viewpoints((lo[0], lo[1], hi[0], hi[1]), (float(z[0]), float(z[1])), width,
+                     width * 3 // 4)["south-west"]  # fmt: skip
     origin, dirs = cam.pixel_grid_rays()
-    hits = cast(raycasting_scene(V, T), origin, dirs)
     img = np.full((cam.height * cam.width, 3), 255, np.uint8)
-    for i, (_, _, _, atlas_img) in enumerate(parts):
-        sel = np.flatnonzero((hits.tri >= 0) & (owner[np.maximum(hits.tri, 0)] == i + 1))
-        if not len(sel):
-            continue
-        corners = uvs[hits.tri[sel]]
-        b = hits.bary[sel]
-        uv = (
-            (1 - b[:, :1] - b[:, 1:]) * corners[:, 0]
-            + b[:, :1] * corners[:, 1]
-            + b[:, 1:] * corners[:, 2]
-        )
-        h, w = atlas_img.shape[:2]
-        c = np.clip((uv[:, 0] * w).astype(int), 0, w - 1)
-        r = np.clip(((1 - uv[:, 1]) * h).astype(int), 0, h - 1)
-        img[sel] = atlas_img[r, c]
+    nearest = np.full(len(dirs), np.inf)
+
+    def parts():
+        for b in buildings:
+            m = b.mesh
+            yield m.vertices, m.triangles, m.texture.uvs, m.texture.image
+        if gm is not None:
+            yield (*gm, gtex.image)
+
+    for batch in triangle_batches(parts()):
+        V, T, owner = concatenate_meshes([(v, t) for v, t, _, _ in batch])
+        uvs = np.concatenate([u for _, _, u, _ in batch])
+        hits = cast(raycasting_scene(V, T), origin, dirs)
+        closer = (hits.tri >= 0) & (hits.t < nearest)
+        nearest[closer] = hits.t[closer]
+        for i, (_, _, _, atlas_img) in enumerate(batch):
+            sel = np.flatnonzero(closer & (owner[np.maximum(hits.tri, 0)] == i + 1))
+            if not len(sel):
+                continue
+            corners = uvs[hits.tri[sel]]
+            b = hits.bary[sel]
+            uv = (
+                (1 - b[:, :1] - b[:, 1:]) * corners[:, 0]
+                + b[:, :1] * corners[:, 1]
+                + b[:, 1:] * corners[:, 2]
+            )
+            h, w = atlas_img.shape[:2]
+            c = np.clip((uv[:, 0] * w).astype(int), 0, w - 1)
+            r = np.clip(((1 - uv[:, 1]) * h).astype(int), 0, h - 1)
+            img[sel] = atlas_img[r, c]
     return img.reshape(cam.height, cam.width, 3)
