@@ -70,6 +70,41 @@ def test_ground_and_grass_part_at_the_colour_edge_and_roofs_keep_their_shadows()
     assert (plain[30:, 8:40] == BUILDING).all() and (labels[30:, 8:40] == BUILDING).all()
 
 
+def test_the_labelling_in_tiles_labels_as_the_whole_grid(monkeypatch):
+    # a tree probability near 1/2 and noisy, over a ground with three roofs, smoothed
+    # hard (mu 3): the labels are decided far across the tiles' borders. In tiles of 24
+    # cells with their context they are the one graph's; without context they are not
+    import modeling.lod.labelling as labelling
+
+    rng = np.random.default_rng(0)
+    H, W = 90, 100
+    h = 20.0 + rng.normal(0, 0.05, (H, W))
+    for r, c in ((10, 10), (40, 55), (65, 20)):
+        h[r : r + 18, c : c + 25] += 9.0
+    t = np.clip(rng.normal(0.5, 0.3, (H, W)) + np.linspace(-0.2, 0.2, W)[None, :], 0, 1)
+    rgb = rng.integers(60, 160, (H, W, 3)).astype(np.uint8)
+    whole, _, trace = mrf_labelling(h, t, mu=3.0, block=30, rgb=rgb, tile=1000)
+    tiled, _, trace_tiled = mrf_labelling(h, t, mu=3.0, block=30, rgb=rgb, tile=24)
+    assert (np.bincount(whole.ravel(), minlength=5)[1:] > 400).all()  # all four labels
+    assert (tiled == whole).mean() > 0.999
+    assert trace_tiled == pytest.approx(trace, abs=0.01)
+    monkeypatch.setattr(labelling, "TILE_MARGIN", 0)
+    blind, _, _ = mrf_labelling(h, t, mu=3.0, block=30, rgb=rgb, tile=24)
+    assert (blind == whole).mean() < 0.98
+
+
+def test_the_mean_colour_difference_band_by_band_is_the_grids():
+    from modeling.lod.labelling import mean_colour_difference
+    from workbench.graph_cuts import grid_pairs, squared_differences
+    from workbench.texture_seams import rgb_to_lab
+
+    rgb = np.random.default_rng(0).integers(0, 256, (23, 17, 3)).astype(np.uint8)
+    pairs, _ = grid_pairs(rgb.shape[:2])
+    d2 = squared_differences(rgb_to_lab(rgb).reshape(-1, 3), pairs)
+    for band in (1, 5, 23, 100):
+        assert mean_colour_difference(rgb, band) == pytest.approx(d2.mean(), rel=1e-9)
+
+
 def test_colour_splits_only_the_low_mass_between_ground_and_grass():
     hn = np.array([0.2, 0.2, 0.9])
     t = np.array([0.5, 0.5, 0.5])

@@ -9,8 +9,12 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from workbench.graph_cuts import alpha_expansion, grid_pairs, squared_differences
-from workbench.raster import GROUND
+from workbench.grid_blocks import block_layout
+from workbench.raster import GROUND, Grid
 from workbench.texture_seams import rgb_to_lab
+
+TILE = 256  # cells a side of a tile of the labelling's graph cuts
+TILE_MARGIN = 32  # cells of context around a tile
 
 
 def normalised_height(h: np.ndarray, h_ground: np.ndarray, h_trunc: float) -> np.ndarray:
@@ -62,12 +66,30 @@ def grid_edges(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return pairs, 1.0 - np.clip(dh, 0.0, 1.0)
 
 
-def colour_contrast(rgb: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+def colour_contrast(rgb: np.ndarray, pairs: np.ndarray, mean_d2: float | None = None) -> np.ndarray:
     """(E,) exp(-|Lab_i - Lab_j|^2 / (2 <|Lab_i - Lab_j|^2>)) of each pair of cells of the
     ortho (H, W, 3): near 1 inside a colour region, near 0 across a strong edge (Boykov
-    and Jolly 2001, GrabCut's normalisation; as the fusion's class CRF)."""
+    and Jolly 2001, GrabCut's normalisation; as the fusion's class CRF). ``mean_d2``:
+    the mean <|Lab_i - Lab_j|^2> to normalise by (a window's pairs with the whole
+    grid's mean, :func:`mean_colour_difference`); default the pairs' own."""
     d2 = squared_differences(rgb_to_lab(rgb).reshape(-1, 3), pairs)
-    return np.exp(-d2 / (2.0 * max(float(d2.mean()), 1e-12))) if len(d2) else d2
+    if not len(d2):
+        return d2
+    mean_d2 = float(d2.mean()) if mean_d2 is None else mean_d2
+    return np.exp(-d2 / (2.0 * max(mean_d2, 1e-12)))
+
+
+def mean_colour_difference(rgb: np.ndarray, band: int = 256) -> float:
+    """<|Lab_i - Lab_j|^2> over every pair of 4-neighbours of the ortho (H, W, 3), band of
+    rows by band of rows (each band with the row below it)."""
+    H, W = rgb.shape[:2]
+    total, pairs = 0.0, H * (W - 1) + (H - 1) * W
+    for r0 in range(0, H, band):
+        lab = rgb_to_lab(rgb[r0 : min(r0 + band + 1, H)]).astype(np.float64)
+        rows = min(band, H - r0)  # the band's own rows; the one below closes its pairs
+        total += float(np.sum((lab[:rows, 1:] - lab[:rows, :-1]) ** 2))
+        total += float(np.sum((lab[1:] - lab[:-1]) ** 2))
+    return total / max(pairs, 1)
 
 
 def ground_heights(h: np.ndarray, labels: np.ndarray | None, block: int) -> np.ndarray:
@@ -173,9 +195,15 @@ def mrf_labelling(
     block: int = 200,
     rgb: np.ndarray | None = None,
     ground_factor: np.ndarray | None = None,
+    tile: int = TILE,
 ) -> tuple[np.ndarray, np.ndarray, list[float]]:
     """Eq. 6 minimised by alpha-expansion, ``iterations`` times, h_ground re-estimated
     from each labelling's ground cells.
+
+    The expansion runs tile by tile of ``tile`` cells, each over its tile and
+    ``TILE_MARGIN`` cells of context (as the fusion's class CRF): the graph and its
+    arrays are a tile's, whatever the grid (on the 1 km² city the whole grid's took 4 GB).
+    The ground heights and the colour contrast's normalisation stay the whole grid's.
 
     Parameters
     ----------
@@ -192,6 +220,8 @@ def mrf_labelling(
         filters blur their border. Higher up eq. 5 stays: shadows would split roofs.
     ground_factor : (H, W) float, optional
         Each cell's colour factor of ground against grass (:func:`data_term`).
+    tile : int
+        Side of a tile, cells.
 
     Returns
     -------
@@ -200,21 +230,39 @@ def mrf_labelling(
     mean_ground : list of float, the mean ground height after each iteration (metres):
         its convergence
     """
-    edges, weights = grid_edges(h)
-    contrast = colour_contrast(rgb, edges) if rgb is not None else None
+    mean_d2 = mean_colour_difference(rgb) if rgb is not None else None
+    tiles = block_layout(Grid(0.0, 0.0, 1.0, h.shape[1], h.shape[0]), tile, TILE_MARGIN)
     labels, trace = None, []
     for _ in range(max(iterations, 1)):
         h_ground = ground_heights(h, labels, block)
         hn = normalised_height(h, h_ground, h_trunc)
-        unary = data_term(hn, t, ground_factor=ground_factor).reshape(-1, 4)
-        w = weights
-        if contrast is not None:
-            low = hn.ravel() < 0.5
-            w = np.where(low[edges[:, 0]] & low[edges[:, 1]], weights * contrast, weights)
-        init = labels.ravel() - 1 if labels is not None else None
-        labels = (alpha_expansion(unary, edges, w, mu, init=init) + 1).reshape(h.shape)
+        new = np.empty(h.shape, np.uint8)
+        for b in tiles:  # each with its context; memory follows the tile, not the grid
+            o = b.outer
+            window = _label_window(
+                h[o], t[o], hn[o], mu,
+                rgb[o] if rgb is not None else None, mean_d2,
+                ground_factor[o] if ground_factor is not None else None,
+                labels[o] if labels is not None else None,
+            )  # fmt: skip
+            new[b.inner] = window[b.inside]
+        labels = new
         trace.append(round(float(h_ground.mean()), 3))
-    return labels.astype(np.uint8), h_ground, trace
+    return labels, h_ground, trace
+
+
+def _label_window(h, t, hn, mu, rgb, mean_d2, ground_factor, init) -> np.ndarray:
+    """(h, w) uint8 codes 1-4 of eq. 6 on one window of the grid, by alpha-expansion from
+    ``init`` (codes, or None: each cell's cheapest label)."""
+    edges, weights = grid_edges(h)
+    unary = data_term(hn, t, ground_factor=ground_factor).reshape(-1, 4)
+    if rgb is not None:
+        low = hn.ravel() < 0.5
+        both_low = low[edges[:, 0]] & low[edges[:, 1]]
+        weights = np.where(both_low, weights * colour_contrast(rgb, edges, mean_d2), weights)
+    start = init.ravel().astype(np.int64) - 1 if init is not None else None
+    labels = alpha_expansion(unary, edges, weights, mu, init=start)
+    return (labels + 1).astype(np.uint8).reshape(h.shape)
 
 
 def open_close(mask: np.ndarray, radius: int) -> np.ndarray:
