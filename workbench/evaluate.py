@@ -269,9 +269,9 @@ def building_windows(ids: np.ndarray):
     columns (two slices) of its bounding box: a building's cells are then looked for in its
     box, not over the whole grid (a city's grid holds thousands of buildings)."""
     labels, index = np.unique(ids, return_inverse=True)
-    index = index.reshape(ids.shape) + int(labels[0] != 0)  # 0 stays the background
-    for i, window in enumerate(ndimage.find_objects(index)):
-        k = int(labels[i + 1 - int(labels[0] != 0)])
+    shift = int(labels[0] != 0)  # index 0 is find_objects' background: the id 0 only
+    for i, window in enumerate(ndimage.find_objects(index.reshape(ids.shape) + shift)):
+        k = int(labels[i + 1 - shift])
         if k > 0 and window is not None:
             yield k, window
 
