@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -79,7 +81,10 @@ def integrate_views(
     block of the tile, every view integrates into them what it integrates there in one
     grid of the whole area, and the tile keeps the triangles whose centroid lies in it.
     A voxel's signed distance depends only on the views' depths along its rays, so the
-    tiles' triangles are the whole grid's, and the mesh the same (tested).
+    tiles' triangles are the whole grid's, and the mesh the same surface (tested); it
+    comes tile after tile (:func:`tile_pieces`), where one grid's is in
+    :func:`canonical_order`. :func:`write_views_mesh` writes the tiles to a PLY as they
+    come, in memory that does not grow with the area.
 
     Parameters
     ----------
@@ -98,16 +103,99 @@ def integrate_views(
         is meshed in tiles (with bounds only).
     tile_m : float, optional
         Tile side, metres (rounded up to whole blocks); default: one grid when it fits,
-        else the largest tile whose grid takes at most half that memory (the tiles'
-        triangles wait in memory to be joined) and about ``TILE_BLOCKS`` blocks.
+        else the largest tile whose grid takes at most half that memory and about
+        ``TILE_BLOCKS`` blocks.
 
     Raises
     ------
     InputError
         A view has no depth map.
     WorkbenchError
-        A tile of one block would not fit in memory at this voxel size.
+        A tile of one block would not fit in memory at this voxel size, or the depth
+        maps give no surface.
     """
+    plan = _plan(scene, voxel_m, trunc_voxels, bounds, min_weight, max_memory_fraction, tile_m)
+    if plan.tiles is None:
+        grid = _integrate(scene.views, None, plan.voxel_m, trunc_voxels, plan.bounds,
+                          plan.origin, plan.blocks, "mesh: integrating views")  # fmt: skip
+        mesh = grid.extract_triangle_mesh(weight_threshold=min_weight).to_legacy()
+        n_blocks = int(grid.hashmap().size())
+        del grid
+        order, triangles = canonical_order(mesh.vertices, mesh.triangles)
+        vertices = np.asarray(mesh.vertices, np.float64)[order] + plan.origin
+        colors = _uint8_colours(np.asarray(mesh.vertex_colors)[order])
+    else:
+        pieces = list(tile_pieces(scene.views, plan))
+        vertices = np.concatenate([p.vertices for p in pieces])
+        triangles = np.concatenate([p.triangles for p in pieces])
+        colors = np.concatenate([p.colours for p in pieces])
+        n_blocks = sum(p.blocks for p in pieces)
+    record = plan.record(len(scene.views), n_blocks, len(vertices), len(triangles))
+    if not len(triangles):
+        raise WorkbenchError("mesh: the views' depth maps gave no surface inside the bounds")
+    return SceneMesh(vertices, triangles, colors, record)
+
+
+def write_views_mesh(
+    path,
+    scene: Scene,
+    voxel_m: float | None = None,
+    trunc_voxels: float = 4.0,
+    bounds: tuple[float, float, float, float] | None = None,
+    min_weight: float = 1.0,
+    max_memory_fraction: float = 0.6,
+    tile_m: float | None = None,
+) -> dict:
+    """:func:`integrate_views` written to ``path`` (:func:`write_scene_mesh`'s PLY, the
+    scene's CRS in its header), whole or not at all. A tiled mesh is written tile after
+    tile, one tile's triangles in memory at a time. Returns the mesh's record."""
+    plan = _plan(scene, voxel_m, trunc_voxels, bounds, min_weight, max_memory_fraction, tile_m)
+    if plan.tiles is None:
+        mesh = integrate_views(scene, voxel_m, trunc_voxels, bounds, min_weight,
+                               max_memory_fraction, tile_m)  # fmt: skip
+        write_scene_mesh(path, mesh, scene.crs)
+        return mesh.record
+    from workbench.meshio import PlyWriter
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    n_blocks = 0
+    with PlyWriter(path, colours=True, comments=_crs_comments(scene.crs)) as ply:
+        for piece in tile_pieces(scene.views, plan):
+            ply.add_vertices(piece.vertices, piece.colours)
+            ply.add_triangles(piece.triangles)
+            n_blocks += piece.blocks
+        if not ply.n_triangles:
+            raise WorkbenchError("mesh: the views' depth maps gave no surface inside the bounds")
+    return plan.record(len(scene.views), n_blocks, ply.n_vertices, ply.n_triangles)
+
+
+@dataclass
+class MeshPlan:
+    """How an area is meshed: voxel edge (m), truncation (voxels), bounds, the local
+    origin (world metres), the tiles (None: one grid), the blocks one grid is made for,
+    the weight threshold and the memory limit (bytes)."""
+
+    voxel_m: float
+    trunc_voxels: float
+    bounds: tuple | None
+    origin: np.ndarray
+    tiles: list | None
+    blocks: int
+    min_weight: float
+    limit: float
+
+    def record(self, views: int, blocks: int, vertices: int, triangles: int) -> dict:
+        return {
+            "voxel_m": self.voxel_m, "trunc_m": round(self.trunc_voxels * self.voxel_m, 4),
+            "bounds": list(self.bounds) if self.bounds is not None else None,
+            "views": views, "blocks": blocks, "tiles": len(self.tiles) if self.tiles else 1,
+            "vertices": vertices, "triangles": triangles,
+        }  # fmt: skip
+
+
+def _plan(scene, voxel_m, trunc_voxels, bounds, min_weight, max_memory_fraction,
+          tile_m) -> MeshPlan:  # fmt: skip
     voxel_m = float(voxel_m or scene.gsd or 0.25)
     bounds = bounds or scene.bounds
     for v in scene.views:
@@ -123,7 +211,7 @@ def integrate_views(
         if tile_m is None and need <= limit:
             tiles = None
         else:
-            # half the limit a tile: the tiles' triangles wait in memory to be joined
+            # half the limit a tile: Open3D's extraction and the tile's triangles on top
             side = tile_m or min(fitting_tile_m(voxel_m, limit / 2), largest_tile_m(voxel_m))
             tiles = mesh_tiles(bounds, voxel_m, side)
             need = grid_bytes(tiles[0][1], voxel_m)
@@ -136,30 +224,17 @@ def integrate_views(
             )
         blocks = int(grid_columns(bounds, voxel_m) * BLOCKS_PER_COLUMN) + 1000
     origin = np.round(centre / 1000.0) * 1000.0
-    if tiles is None:
-        grid = _integrate(scene.views, None, voxel_m, trunc_voxels, bounds, origin, blocks,
-                          "mesh: integrating views")  # fmt: skip
-        mesh = grid.extract_triangle_mesh(weight_threshold=min_weight).to_legacy()
-        vertices = np.asarray(mesh.vertices, np.float64)
-        triangles, colors = np.asarray(mesh.triangles), np.asarray(mesh.vertex_colors)
-        n_blocks = int(grid.hashmap().size())
-    else:
-        vertices, triangles, colors, n_blocks = _tiled(
-            scene.views, tiles, voxel_m, trunc_voxels, bounds, origin, min_weight, limit
-        )
-    order, triangles = canonical_order(vertices, triangles)
-    vertices = vertices[order] + origin
-    colors = np.clip(colors[order] * 255.0 + 0.5, 0, 255).astype(np.uint8)
-    record = {
-        "voxel_m": voxel_m, "trunc_m": round(trunc_voxels * voxel_m, 4),
-        "bounds": list(bounds) if bounds is not None else None,
-        "views": len(scene.views), "blocks": n_blocks,
-        "tiles": len(tiles) if tiles else 1,
-        "vertices": len(vertices), "triangles": len(triangles),
-    }  # fmt: skip
-    if not len(triangles):
-        raise WorkbenchError("mesh: the views' depth maps gave no surface inside the bounds")
-    return SceneMesh(vertices, triangles, colors, record)
+    return MeshPlan(voxel_m, trunc_voxels, bounds, origin, tiles, blocks, min_weight, limit)
+
+
+def _uint8_colours(colors: np.ndarray) -> np.ndarray:
+    return np.clip(colors * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
+def _crs_comments(crs) -> list[str] | None:
+    from workbench.model_run import crs_text
+
+    return [f"crs {crs_text(crs)}"] if crs is not None else None
 
 
 def grid_columns(bounds, voxel_m: float) -> float:
@@ -300,21 +375,41 @@ def view_blocks(views, bounds, voxel_m, trunc_voxels, origin) -> tuple[list, np.
     return boxes, keys
 
 
-def _tiled(views, tiles, voxel_m, trunc_voxels, bounds, origin, min_weight, limit):
-    """The tiles' meshes joined: (V, 3) float64 local vertices, (T, 3) triangles, (V, 3)
-    float colours, and the blocks integrated over all tiles. A vertex on a tile's edge
-    is the same float in both tiles and is joined by its position (vertices a tile
-    itself repeats at one position stay apart).
+class TilePiece(NamedTuple):
+    """What a tile adds to the mesh: the vertices it is the first to use ((N, 3) float64
+    world metres, sorted by x, then y, then z; (N, 3) uint8 colours), its triangles
+    ((T, 3) int64 on the indices of the whole mesh's vertices, each started at its
+    lowest index and sorted) and the voxel blocks it integrated."""
+
+    vertices: np.ndarray
+    colours: np.ndarray
+    triangles: np.ndarray
+    blocks: int
+
+
+def tile_pieces(views, plan: MeshPlan) -> Iterator[TilePiece]:
+    """The tiles' meshes, one after another, joined into one mesh.
 
     A first pass finds every view's blocks: each tile's grid is made for the blocks it
     will hold (Open3D's block grid does not grow past its ``block_count``), a view is read
     for a tile only when its blocks reach it, and the outer tiles reach as far past the
-    bounds as any view's blocks do."""
+    bounds as any view's blocks do.
+
+    A vertex two tiles share is the same float in both; it lies within a voxel's
+    diagonal of the edge between their cores, since the triangles of marching cubes do
+    not leave their cube. So each tile looks up its vertices near its core's edges
+    among the earlier tiles' (by position and, for vertices a tile itself repeats at one
+    position, which of them), and keeps its own for the tiles still to come: those of
+    the row of tiles before it and of its own row, all a tile can touch, so the table
+    does not grow with the area."""
+    tiles, voxel_m, origin = plan.tiles, plan.voxel_m, plan.origin
     block_m = BLOCK_VOXELS * voxel_m
-    boxes, keys = view_blocks(views, bounds, voxel_m, trunc_voxels, origin)
+    boxes, keys = view_blocks(views, plan.bounds, voxel_m, plan.trunc_voxels, origin)
     footed = [(v, b) for v, b in zip(views, boxes, strict=True) if b is not None]
     xy = key_xy(keys)
-    parts, total_blocks = [], 0
+    near = 2.0 * voxel_m  # more than a cube's diagonal in x and y
+    border = _BorderVertices()
+    n_vertices = 0
     for k, (core, grown) in enumerate(tiles):
         lo = np.floor((np.array(grown[:2]) - origin[:2]) / block_m).astype(np.int64)
         hi = np.floor((np.array(grown[2:]) - origin[:2]) / block_m).astype(np.int64)
@@ -323,38 +418,86 @@ def _tiled(views, tiles, voxel_m, trunc_voxels, bounds, origin, min_weight, limi
             hi = np.where(np.isinf(core[2:]), np.maximum(hi, xy.max(axis=0)), hi)
         box = (*lo, *hi)
         count = int(np.all((xy >= lo) & (xy <= hi), axis=1).sum())
-        if count * BLOCK_BYTES * PEAK_FACTOR > limit:
+        if count * BLOCK_BYTES * PEAK_FACTOR > plan.limit:
             raise WorkbenchError(
                 f"mesh: tile {k + 1} holds {count:,} voxel blocks, about "
                 f"{count * BLOCK_BYTES * PEAK_FACTOR / 2**30:.1f} GiB, more than this "
-                f"machine allows ({limit / 2**30:.1f} GiB); use a smaller --tile"
+                f"machine allows ({plan.limit / 2**30:.1f} GiB); use a smaller --tile"
             )
         desc = f"mesh: tile {k + 1} of {len(tiles)}"
-        grid = _integrate(footed, box, voxel_m, trunc_voxels, bounds, origin, count + 1000,
-                          desc)  # fmt: skip
-        total_blocks += int(grid.hashmap().size())
-        mesh = grid.extract_triangle_mesh(weight_threshold=min_weight).to_legacy()
+        grid = _integrate(footed, box, voxel_m, plan.trunc_voxels, plan.bounds, origin,
+                          count + 1000, desc)  # fmt: skip
+        blocks = int(grid.hashmap().size())
+        mesh = grid.extract_triangle_mesh(weight_threshold=plan.min_weight).to_legacy()
         del grid
         V = np.asarray(mesh.vertices, np.float64)
         T = np.asarray(mesh.triangles, np.int64)
+        border.start_row(grown[1])
         if not len(T):
+            yield TilePiece(np.zeros((0, 3)), np.zeros((0, 3), np.uint8),
+                            np.zeros((0, 3), np.int64), blocks)  # fmt: skip
             continue
-        centre = V[T].mean(axis=1) + origin
-        keep = ((centre[:, 0] >= core[0]) & (centre[:, 0] < core[2])
-                & (centre[:, 1] >= core[1]) & (centre[:, 1] < core[3]))  # fmt: skip
+        c = (V[T].mean(axis=1) + origin)[:, :2]
+        keep = ((c[:, 0] >= core[0]) & (c[:, 0] < core[2])
+                & (c[:, 1] >= core[1]) & (c[:, 1] < core[3]))  # fmt: skip
         used, T = np.unique(T[keep], return_inverse=True)
-        parts.append((V[used], T.reshape(-1, 3), np.asarray(mesh.vertex_colors)[used]))
-    if not parts:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3)), total_blocks
-    V = np.concatenate([p[0] for p in parts])
-    colors = np.concatenate([p[2] for p in parts])
-    offsets = np.cumsum([0] + [len(p[0]) for p in parts])
-    T = np.concatenate([p[1] + off for p, off in zip(parts, offsets, strict=False)])
-    # a position's n-th vertex in a tile is the n-th in the others too
-    repeat = np.concatenate([_occurrence(p[0]) for p in parts])
-    key = np.column_stack([V, repeat])
-    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    return V[first], inverse.reshape(-1)[T], colors[first], total_blocks
+        T = T.reshape(-1, 3)
+        V, colours = V[used], np.asarray(mesh.vertex_colors)[used]
+        del mesh
+        key = _position_keys(V, _occurrence(V))
+        w = V[:, :2] + origin[:2]
+        edge = np.min(np.abs(np.column_stack([w - core[:2], w - core[2:]])), axis=1) < near
+        ids = np.full(len(V), -1, np.int64)
+        ids[edge] = border.find(key[edge])
+        new = np.flatnonzero(ids < 0)
+        new = new[np.lexsort((V[new, 2], V[new, 1], V[new, 0]))]
+        ids[new] = n_vertices + np.arange(len(new))
+        n_vertices += len(new)
+        border.add(key[edge], ids[edge])
+        yield TilePiece(V[new] + origin, _uint8_colours(colours[new]),
+                        canonical_triangles(ids[T]), blocks)  # fmt: skip
+
+
+class _BorderVertices:
+    """The vertices near the edges of the tiles written so far, by exact key, kept for
+    the tiles of the current row and the row before it."""
+
+    def __init__(self):
+        self.keys, self.ids, self.rows = [], [], []
+        self.row = None
+
+    def start_row(self, row: float) -> None:
+        """Enter the tile whose row starts at ``row`` (increasing): drop the rows before
+        the previous one."""
+        if row != self.row:
+            last = self.row
+            kept = [i for i, r in enumerate(self.rows) if r == last]
+            self.keys = [self.keys[i] for i in kept]
+            self.ids = [self.ids[i] for i in kept]
+            self.rows = [self.rows[i] for i in kept]
+            self.row = row
+
+    def add(self, keys: np.ndarray, ids: np.ndarray) -> None:
+        self.keys.append(keys)
+        self.ids.append(ids)
+        self.rows.append(self.row)
+
+    def find(self, keys: np.ndarray) -> np.ndarray:
+        """(N,) index of each key's vertex, -1 for a key not kept."""
+        if not self.keys or not len(keys):
+            return np.full(len(keys), -1, np.int64)
+        known = np.concatenate(self.keys)
+        _, inverse = np.unique(np.concatenate([known, keys]), return_inverse=True)
+        inverse = inverse.reshape(-1)
+        owner = np.full(inverse.max() + 1, -1, np.int64)
+        owner[inverse[: len(known)]] = np.concatenate(self.ids)
+        return owner[inverse[len(known) :]]
+
+
+def _position_keys(V: np.ndarray, repeat: np.ndarray) -> np.ndarray:
+    """(N,) keys equal exactly when position and repeat are (32-byte rows)."""
+    rows = np.ascontiguousarray(np.column_stack([V, repeat]), np.float64)
+    return rows.view(np.dtype((np.void, rows.itemsize * 4))).reshape(-1)
 
 
 def _occurrence(V: np.ndarray) -> np.ndarray:
@@ -398,10 +541,15 @@ def canonical_order(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.nda
     order = np.lexsort((v[:, 2], v[:, 1], v[:, 0]))
     rank = np.empty(len(order), np.int64)
     rank[order] = np.arange(len(order))
-    t = rank[np.asarray(triangles, np.int64)]
+    return order, canonical_triangles(rank[np.asarray(triangles, np.int64)])
+
+
+def canonical_triangles(t: np.ndarray) -> np.ndarray:
+    """(T, 3) triangles each turned, keeping its winding, to start at its lowest vertex,
+    and sorted."""
     first = np.argmin(t, axis=1)
     t = t[np.arange(len(t))[:, None], (first[:, None] + np.arange(3)) % 3]
-    return order, t[np.lexsort((t[:, 2], t[:, 1], t[:, 0]))]
+    return t[np.lexsort((t[:, 2], t[:, 1], t[:, 0]))]
 
 
 def write_scene_mesh(path, mesh: SceneMesh, crs) -> None:
@@ -409,13 +557,12 @@ def write_scene_mesh(path, mesh: SceneMesh, crs) -> None:
     ``comment crs`` header line, which ``workbench fusion --mesh`` reads), whole or not
     at all: it is written beside ``path`` and moved into place."""
     from workbench.meshio import write_ply
-    from workbench.model_run import crs_text
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(f".{path.name}.partial")
     write_ply(partial, mesh.vertices, mesh.triangles, vertex_colors=mesh.colors,
-              comments=[f"crs {crs_text(crs)}"] if crs is not None else None)  # fmt: skip
+              comments=_crs_comments(crs))  # fmt: skip
     partial.replace(path)
 
 

@@ -7,7 +7,15 @@ import rasterio
 from rasterio.crs import CRS
 
 from workbench.errors import InputError
-from workbench.meshio import read_obj, read_ply, texture_of, write_mtl, write_obj, write_ply
+from workbench.meshio import (
+    PlyWriter,
+    read_obj,
+    read_ply,
+    texture_of,
+    write_mtl,
+    write_obj,
+    write_ply,
+)
 from workbench.raster import Grid, class_codes, read_raster, write_raster
 
 
@@ -52,6 +60,25 @@ def test_ply_roundtrip_and_open3d_reads_it(tmp_path):
     m = o3d.io.read_triangle_mesh(str(tmp_path / "m.ply"))
     assert len(m.triangles) == 4
     np.testing.assert_allclose(np.asarray(m.vertices), v)
+
+
+def test_a_ply_written_in_pieces_is_the_ply_written_at_once(tmp_path):
+    """Two pieces, the second's triangles using a vertex of the first: the file
+    write_ply writes of the whole, byte for byte; an error inside leaves nothing."""
+    V = np.array([[500000.0, 5e6, 1], [500001, 5e6, 1], [500000, 5e6 + 1, 1], [500001, 5e6 + 1, 2]])
+    C = np.arange(12, dtype=np.uint8).reshape(4, 3)
+    T = np.array([[0, 1, 2], [1, 3, 2]])
+    write_ply(tmp_path / "whole.ply", V, T, vertex_colors=C, comments=["crs EPSG:32631"])
+    with PlyWriter(tmp_path / "pieces.ply", colours=True, comments=["crs EPSG:32631"]) as ply:
+        assert ply.add_vertices(V[:3], C[:3]) == 0
+        ply.add_triangles(T[:1])
+        assert ply.add_vertices(V[3:], C[3:]) == 3
+        ply.add_triangles(T[1:])
+    assert (tmp_path / "pieces.ply").read_bytes() == (tmp_path / "whole.ply").read_bytes()
+    with pytest.raises(RuntimeError), PlyWriter(tmp_path / "broken.ply", colours=False) as ply:
+        ply.add_vertices(V)
+        raise RuntimeError("interrupted")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pieces.ply", "whole.ply"]
 
 
 def test_obj_roundtrip_keeps_utm_millimetres_and_texture(tmp_path):

@@ -437,7 +437,7 @@ def cmd_fusion(args) -> int:
 
 
 def cmd_mesh(args) -> int:
-    from fusion.scene_mesh import integrate_views, write_scene_mesh
+    from fusion.scene_mesh import write_views_mesh
     from workbench.scene import load_scene
 
     out = args.out
@@ -447,9 +447,7 @@ def cmd_mesh(args) -> int:
         raise WorkbenchError(f"{out}: exists (give --overwrite to replace it)")
     t0 = time.perf_counter()
     scene = load_scene(args.scene)
-    mesh = integrate_views(scene, args.voxel, args.trunc, tile_m=args.tile)
-    write_scene_mesh(out, mesh, scene.crs)
-    r = mesh.record
+    r = write_views_mesh(out, scene, args.voxel, args.trunc, tile_m=args.tile)
     print(
         f"wrote {out}: {r['triangles']:,} triangles, {r['vertices']:,} vertices from "
         f"{r['views']} views at {r['voxel_m']:g} m voxels"

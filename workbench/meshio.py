@@ -8,6 +8,7 @@ properties. Open3D and other tools read the geometry and ignore the extras.
 from __future__ import annotations
 
 import os
+import shutil
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
@@ -76,6 +77,78 @@ def write_ply_pieces(
 
 
 MeshPiece = tuple  # (vertices (V, 3), triangles (T, 3), vertex colours (V, 3) uint8 or None)
+
+
+class PlyWriter:
+    """A binary PLY (what :func:`write_ply` writes) written a piece at a time, for a mesh
+    larger than memory: the vertices and faces go to two scratch files beside ``path``
+    as they come, and :meth:`close` writes the header with their counts and copies them
+    after it. The file appears whole or not at all: it is written beside ``path`` and
+    moved into place; leaving the ``with`` block on an error removes the scratch files.
+
+    Parameters
+    ----------
+    path : path-like
+        The PLY to write.
+    colours : bool
+        Whether the vertices carry colours.
+    comments : list of str, optional
+        Header comment lines.
+    """
+
+    def __init__(self, path: str | os.PathLike, *, colours: bool,
+                 comments: list[str] | None = None):  # fmt: skip
+        self.path = Path(path)
+        self.colours, self.comments = colours, comments
+        self.n_vertices = self.n_triangles = 0
+        self._scratch = [self.path.with_name(f".{self.path.name}.{part}.partial")
+                         for part in ("vertices", "faces", "whole")]  # fmt: skip
+        self._vertices = open(self._scratch[0], "wb")
+        self._faces = open(self._scratch[1], "wb")
+
+    def add_vertices(self, vertices: np.ndarray, colours: np.ndarray | None = None) -> int:
+        """Append (V, 3) float positions (and (V, 3) uint8 colours); returns the index
+        the first of them takes."""
+        first = self.n_vertices
+        self._vertices.write(_vertex_records(vertices, colours if self.colours else None)
+                             .tobytes())  # fmt: skip
+        self.n_vertices += len(vertices)
+        return first
+
+    def add_triangles(self, triangles: np.ndarray) -> None:
+        """Append (T, 3) triangles on the indices of every vertex added so far."""
+        self._faces.write(_face_records(np.asarray(triangles, np.int64), {}).tobytes())
+        self.n_triangles += len(triangles)
+
+    def close(self) -> None:
+        """Write the PLY and remove the scratch files."""
+        self._vertices.close()
+        self._faces.close()
+        whole = self._scratch[2]
+        with open(whole, "wb") as out:
+            out.write(_ply_header(self.n_vertices, self.n_triangles, self.colours, {},
+                                  self.comments))  # fmt: skip
+            for part in self._scratch[:2]:
+                with open(part, "rb") as f:
+                    shutil.copyfileobj(f, out, 16 << 20)
+                part.unlink()
+        whole.replace(self.path)
+
+    def discard(self) -> None:
+        """Close and remove the scratch files; ``path`` is left as it was."""
+        self._vertices.close()
+        self._faces.close()
+        for part in self._scratch:
+            part.unlink(missing_ok=True)
+
+    def __enter__(self) -> PlyWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.discard()
 
 
 def _ply_header(n_vertices: int, n_triangles: int, colours: bool, face_properties: dict,
