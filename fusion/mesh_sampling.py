@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,13 +21,16 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
+from workbench.engine import full_disk_named
 from workbench.errors import InputError
+from workbench.progress import progress
 from workbench.raster import Grid, class_codes, parse_crs
 from workbench.raycast import cast, local_origin, raycasting_scene
 from workbench.records import StageTimer
 
 from .ground import dtm_from_dsm
 from .interpolate import fill_small_holes, small_holes
+from .mesh_source import PlySurface, open_ply_surface
 from .options import FusionOptions
 from .planar_objects import COUNTS as PLANAR_COUNTS
 from .planar_objects import planar_roofs_classed_tree
@@ -35,8 +40,9 @@ from .scene_fusion import FILLED, HOLE_CELLS, FusionResult, check_memory
 log = logging.getLogger(__name__)
 
 NON_MANIFOLD_SHARE = 0.001  # more non-manifold edges than this: not a surface
-TRIANGLES_PER_CHUNK = 1 << 20  # triangles boxed at once (flat memory on a city's mesh)
-SAMPLING_TILE_CELLS = 1024  # cells a side of a tile cast against its own scene
+TRIANGLES_PER_CHUNK = 1 << 20  # triangles read at once (flat memory on a city's mesh)
+BUCKET_BUFFER_BYTES = 64 << 20  # the tiles' lists of triangles past this go to disk
+SAMPLING_TILE_CELLS = 256  # cells a side of a tile cast against its own scene
 CRS_COMMENT = "crs "  # a PLY header line "comment crs <EPSG:... or WKT>"
 
 
@@ -56,8 +62,6 @@ class SurfaceMesh:
     material : (T,) int or None
         Which texture each triangle takes.
     crs : rasterio CRS or None
-    normals : (V, 3) float or None
-        Unit vertex normals (computed when first needed).
     """
 
     path: Path
@@ -68,7 +72,63 @@ class SurfaceMesh:
     textures: list
     material: np.ndarray | None
     crs: object
-    normals: np.ndarray | None = None
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.vertices)
+
+    @property
+    def has_colours(self) -> bool:
+        return self.colors is not None
+
+    @property
+    def n_triangles(self) -> int:
+        return len(self.triangles)
+
+    @property
+    def lo(self) -> np.ndarray:
+        """(3,) the vertices' least x, y and z."""
+        return self.vertices.min(axis=0)
+
+    @property
+    def hi(self) -> np.ndarray:
+        """(3,) the vertices' greatest x, y and z."""
+        return self.vertices.max(axis=0)
+
+    def positions(self, sel) -> np.ndarray:
+        """(N, 3) float64 positions of the vertices ``sel`` (as :class:`PlySurface`)."""
+        return np.asarray(self.vertices[sel], np.float64)
+
+    def faces(self, sel) -> np.ndarray:
+        """(N, 3) int64 vertex indices of the triangles ``sel``."""
+        return np.asarray(self.triangles[sel], np.int64)
+
+    def vertex_colours(self, sel) -> np.ndarray | None:
+        """(N, 3) uint8 colours of the vertices ``sel``, None without colours."""
+        return None if self.colors is None else self.colors[sel]
+
+
+def open_surface_mesh(path, crs: str | None = None) -> SurfaceMesh | PlySurface:
+    """A surface mesh to sample: a binary PLY of triangles read a part at a time
+    (:class:`~fusion.mesh_source.PlySurface`), anything else read whole
+    (:func:`read_surface_mesh`); its vertices checked, its CRS found and checked.
+
+    Raises
+    ------
+    InputError
+        As :func:`read_surface_mesh`; faces are checked as they are sampled.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, None, "no such mesh file")
+    mesh = open_ply_surface(path)
+    if mesh is None:
+        return read_surface_mesh(path, crs)
+    if not mesh.n_triangles:
+        raise InputError(path, "faces", "no triangles: a surface mesh is needed")
+    mesh.check_vertices()
+    mesh.crs = _checked_crs(path, crs, mesh.lo, mesh.hi)
+    return mesh
 
 
 def read_surface_mesh(path, crs: str | None = None) -> SurfaceMesh:
@@ -116,30 +176,19 @@ def read_surface_mesh(path, crs: str | None = None) -> SurfaceMesh:
     bad = ~np.isfinite(V).all(axis=1)
     if bad.any():
         raise InputError(path, "vertices", f"{int(bad.sum())} vertices are not finite (NaN)")
-    share = non_manifold_share(T)
-    if share > NON_MANIFOLD_SHARE:
-        raise InputError(path, "faces", f"{share:.1%} of the edges are shared by more than "
-                         "two triangles: not a surface")  # fmt: skip
+    crs_obj = _checked_crs(path, crs, V.min(axis=0), V.max(axis=0))
+    return SurfaceMesh(path, V, T, colors, uvs, textures, material, crs_obj)
+
+
+def _checked_crs(path: Path, crs: str | None, lo: np.ndarray, hi: np.ndarray):
+    """The mesh's CRS (given, else its PLY header's), checked against its box."""
     text = crs or ply_crs(path)
     crs_obj = parse_crs(text, path=path) if text else None
     if crs_obj is None:
         log.warning("%s: no CRS (give --crs): the rasters are written without one", path)
     else:
-        check_in_area_of_use(path, V, crs_obj)
-    return SurfaceMesh(path, V, T, colors, uvs, textures, material, crs_obj)
-
-
-def non_manifold_share(triangles: np.ndarray) -> float:
-    """Share of the undirected edges used by more than two triangles."""
-    n, t = int(triangles.max()) + 1, len(triangles)
-    key = np.empty(3 * t, np.int64)  # one int64 an edge, sorted in place (a city's: 113 M)
-    for k, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
-        lo = np.minimum(triangles[:, a], triangles[:, b])
-        key[k * t : (k + 1) * t] = lo * n + np.maximum(triangles[:, a], triangles[:, b])
-    key.sort()
-    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
-    counts = np.diff(np.r_[starts, len(key)])
-    return float((counts > 2).sum() / max(len(counts), 1))
+        check_in_area_of_use(path, lo, hi, crs_obj)
+    return crs_obj
 
 
 def ply_crs(path: Path) -> str | None:
@@ -156,9 +205,10 @@ def ply_crs(path: Path) -> str | None:
     return None
 
 
-def check_in_area_of_use(path: Path, vertices: np.ndarray, crs) -> None:
-    """Refuse a mesh whose bounding box lies wholly outside its CRS's area of use (a mesh
-    in a local frame, or given the wrong CRS)."""
+def check_in_area_of_use(path: Path, lo: np.ndarray, hi: np.ndarray, crs) -> None:
+    """Refuse a mesh whose bounding box (``lo``, ``hi``: its least and greatest x and y)
+    lies wholly outside its CRS's area of use (a mesh in a local frame, or given the
+    wrong CRS)."""
     from pyproj import CRS as ProjCRS
     from pyproj import Transformer
 
@@ -169,7 +219,6 @@ def check_in_area_of_use(path: Path, vertices: np.ndarray, crs) -> None:
         return
     to_crs = Transformer.from_crs("EPSG:4326", proj, always_xy=True)
     x0, y0, x1, y1 = to_crs.transform_bounds(area.west, area.south, area.east, area.north)
-    lo, hi = vertices[:, :2].min(axis=0), vertices[:, :2].max(axis=0)
     if hi[0] < x0 or lo[0] > x1 or hi[1] < y0 or lo[1] > y1:
         raise InputError(path, "vertices", f"x {lo[0]:.0f}..{hi[0]:.0f}, y {lo[1]:.0f}.."
                          f"{hi[1]:.0f} lie outside {crs.to_string()}'s area of use "
@@ -177,27 +226,53 @@ def check_in_area_of_use(path: Path, vertices: np.ndarray, crs) -> None:
                          "another CRS?")  # fmt: skip
 
 
-def default_gsd(mesh: SurfaceMesh) -> float:
-    """The median edge length of the mesh's triangles, to two significant digits: a cell
-    per vertex, about."""
-    V, T = mesh.vertices, mesh.triangles
-    sample = T[:: max(1, len(T) // 200_000)]
-    edges = np.linalg.norm(V[sample[:, 1]] - V[sample[:, 0]], axis=1)
+def default_gsd(mesh: SurfaceMesh | PlySurface) -> float:
+    """The median edge length of the mesh's triangles (a sample of some 200,000, read a
+    chunk at a time), to two significant digits: a cell per vertex, about."""
+    step = max(1, mesh.n_triangles // 200_000)
+    chunk = TRIANGLES_PER_CHUNK // step * step or step
+    sample = np.concatenate([mesh.faces(slice(s, s + chunk, step))
+                             for s in range(0, mesh.n_triangles, chunk)])  # fmt: skip
+    used, inverse = np.unique(sample[:, :2], return_inverse=True)
+    ends = mesh.positions(used)[inverse.reshape(-1, 2)]
+    edges = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1)
     gsd = float(np.median(edges[edges > 0])) if (edges > 0).any() else 1.0
     return float(f"{gsd:.2g}")
 
 
 def orthogonal_sampling(
-    mesh: SurfaceMesh, grid: Grid, tile: int = SAMPLING_TILE_CELLS
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    mesh: SurfaceMesh | PlySurface, grid: Grid, tile: int = SAMPLING_TILE_CELLS,
+    scratch: str | os.PathLike | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """Cast a vertical ray down through every cell centre; keep the first hit.
 
     The grid is cast in tiles of ``tile`` cells a side, each against a ray-casting scene
     of the triangles over it alone: the scene of a city's whole mesh (38 M triangles)
-    took some 10 GB. A vertical ray can only hit a triangle whose bounding box holds it,
-    and every scene shares one local origin, so the hits are the whole mesh's (a ray
-    right on an edge may take the other of its two triangles: the same point, to
-    rounding; on `small`'s meshes every product was the same byte for byte).
+    took some 10 GB. A first pass puts every triangle in the tiles its box reaches
+    (:func:`tile_buckets`), so that a tile reads only its own triangles, and a mesh read
+    a part at a time (:class:`PlySurface`) is never whole in memory. A vertical ray can
+    only hit a triangle whose bounding box holds it, and every scene shares one local
+    origin, so the hits are the whole mesh's (a ray right on an edge may take the other
+    of its two triangles: the same point, to rounding).
+
+    A hit's normal is interpolated from the vertex normals, each the sum of its
+    triangles' (:func:`vertex_normals`): a tile's triangles reach as far past it as the
+    longest triangle, so that every triangle of a vertex it hits is among them; the
+    vertices of triangles longer than a quarter of a tile take the sums of a pass over
+    the whole mesh. The sums run over the triangles in the file's order whatever the
+    tiles, so the normals do not depend on them. Each tile also counts its edges (those
+    whose midpoint it holds) shared by more than two triangles: a mesh with more than
+    :data:`NON_MANIFOLD_SHARE` of such edges over the grid is not a surface.
+
+    Parameters
+    ----------
+    mesh : SurfaceMesh or PlySurface
+    grid : Grid
+    tile : int
+        Cells a side of a tile.
+    scratch : path, optional
+        Folder for the tiles' lists of triangles when they outgrow memory (default: the
+        system's temporary folder).
 
     Returns
     -------
@@ -209,77 +284,266 @@ def orthogonal_sampling(
     normal : (3, H, W) float32
         The unit normal at the hit (vertex normals interpolated), turned up (n_z >= 0),
         NaN where missed.
+
+    Raises
+    ------
+    InputError
+        A face's vertex index out of range; too many non-manifold edges.
     """
-    origin = local_origin(mesh.vertices)
-    lo, hi = triangle_boxes(mesh, origin)
-    top = float(mesh.vertices[:, 2].max()) + 10.0
+    origin = local_origin(np.stack([mesh.lo, mesh.hi]))
+    tiles = grid.tiles(tile)
+    top = float(mesh.hi[2]) + 10.0
     ortho = np.zeros((*grid.shape, 3), np.uint8)
     dsm = np.full(grid.shape, np.nan, np.float32)
     normal = np.full((3, *grid.shape), np.nan, np.float32)
-    for rows, cols in grid.tiles(tile):
-        part = grid.window(rows, cols)
-        x0, y0, x1, y1 = part.bounds
-        x0, x1, y0, y1 = x0 - origin[0], x1 - origin[0], y0 - origin[1], y1 - origin[1]
-        over = np.flatnonzero((hi[:, 0] >= x0) & (lo[:, 0] <= x1)
-                              & (hi[:, 1] >= y0) & (lo[:, 1] <= y1))  # fmt: skip
-        if not len(over):
-            continue
-        used, corners = np.unique(mesh.triangles[over], return_inverse=True)
-        scene = raycasting_scene(mesh.vertices[used], corners.reshape(-1, 3), origin)
-        X, Y = part.cell_centers()
-        origins = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, top)])
-        hits = cast(scene, origins, np.tile([0.0, 0.0, -1.0], (X.size, 1)))
-        del scene
-        hit = (hits.tri >= 0).reshape(part.shape)
-        tri, bary = over[hits.tri[hit.ravel()]], hits.bary[hit.ravel()]
-        dsm[rows, cols][hit] = hits.points[hit.ravel(), 2]
-        normal[:, rows, cols][:, hit] = hit_normals(mesh, tri, bary).T
-        ortho[rows, cols][hit] = hit_colours(mesh, tri, bary)
+    bad_edges = edges = 0
+    with tile_buckets(mesh, grid, tile, origin, scratch) as buckets:
+        for k, (rows, cols) in enumerate(progress(tiles, "fusion: sampling the mesh's tiles")):
+            idx = buckets.take(k)
+            if not len(idx):
+                continue
+            part = grid.window(rows, cols)
+            T = mesh.faces(idx)
+            used, corners = np.unique(T, return_inverse=True)
+            corners = corners.reshape(-1, 3)
+            P = mesh.positions(used)
+            b, e = non_manifold_edges(T, P[corners], part.bounds)
+            bad_edges, edges = bad_edges + b, edges + e
+            lo, hi = _boxes(P[corners] - origin)
+            x0, y0, x1, y1 = np.subtract(part.bounds, np.tile(origin[:2], 2))
+            reach = np.flatnonzero((hi[:, 0] >= x0) & (lo[:, 0] <= x1)
+                                   & (hi[:, 1] >= y0) & (lo[:, 1] <= y1))  # fmt: skip
+            if not len(reach):
+                continue
+            scene = raycasting_scene(P, corners[reach], origin)
+            X, Y = part.cell_centers()
+            origins = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, top)])
+            hits = cast(scene, origins, np.tile([0.0, 0.0, -1.0], (X.size, 1)))
+            del scene
+            hit = (hits.tri >= 0).reshape(part.shape)
+            tri, bary = reach[hits.tri[hit.ravel()]], hits.bary[hit.ravel()]
+            dsm[rows, cols][hit] = hits.points[hit.ravel(), 2]
+            n = vertex_normals(P - origin, corners)
+            long = np.isin(used, buckets.long_vertices)
+            n[long] = buckets.long_normals[np.searchsorted(buckets.long_vertices, used[long])]
+            normal[:, rows, cols][:, hit] = hit_normals(n[corners[tri]], bary).T
+            ortho[rows, cols][hit] = hit_colours(mesh, idx[tri], corners[tri], used, bary)
+    share = bad_edges / max(edges, 1)
+    if share > NON_MANIFOLD_SHARE:
+        raise InputError(mesh.path, "faces", f"{share:.1%} of the edges are shared by more "
+                         "than two triangles: not a surface")  # fmt: skip
     return ortho, dsm, normal
 
 
-def triangle_boxes(mesh: SurfaceMesh, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each triangle's xy bounding box relative to ``origin``: lo, hi (T, 2) float32,
-    rounded outwards (a box holds its triangle whatever float32 does to it)."""
-    n = len(mesh.triangles)
-    lo, hi = np.empty((n, 2), np.float32), np.empty((n, 2), np.float32)
-    for s in range(0, n, TRIANGLES_PER_CHUNK):  # the corners of a chunk at a time
-        xy = mesh.vertices[mesh.triangles[s : s + TRIANGLES_PER_CHUNK], :2] - origin[:2]
-        lo[s : s + len(xy)] = np.nextafter(xy.min(axis=1).astype(np.float32), -np.inf)
-        hi[s : s + len(xy)] = np.nextafter(xy.max(axis=1).astype(np.float32), np.inf)
-    return lo, hi
+class TileBuckets:
+    """Which triangles (indices, ascending) reach each tile, kept in memory up to
+    ``buffer_bytes`` and past that appended to a file a tile in a temporary folder.
+
+    Attributes
+    ----------
+    long_vertices : (L,) int64
+        Sorted vertices of the triangles longer than the tiles' margin.
+    long_normals : (L, 3) float64
+        Their unit normals over the whole mesh.
+    """
+
+    def __init__(self, n_tiles: int, scratch=None, buffer_bytes: int | None = None):
+        self.parts: list[list[np.ndarray]] = [[] for _ in range(n_tiles)]
+        self.scratch, self.held = scratch, 0
+        self.buffer_bytes = BUCKET_BUFFER_BYTES if buffer_bytes is None else buffer_bytes
+        self.folder: Path | None = None
+        self.long_vertices = np.zeros(0, np.int64)
+        self.long_normals = np.zeros((0, 3))
+
+    def add(self, tile_ids: np.ndarray, triangles: np.ndarray) -> None:
+        """Put ``triangles`` (N,) in the tiles ``tile_ids`` (N,); within a call and from
+        one call to the next the triangles come in ascending order."""
+        order = np.argsort(tile_ids, kind="stable")
+        tile_ids, triangles = tile_ids[order], triangles[order]
+        starts = np.flatnonzero(np.r_[True, tile_ids[1:] != tile_ids[:-1]])
+        for a, b in zip(starts, np.r_[starts[1:], len(tile_ids)], strict=True):
+            self.parts[tile_ids[a]].append(triangles[a:b])
+        self.held += triangles.nbytes
+        if self.held > self.buffer_bytes:
+            self._spill()
+
+    def _spill(self) -> None:
+        if self.folder is None:
+            self.folder = Path(tempfile.mkdtemp(prefix="mesh-tiles-", dir=self.scratch))
+        for k, parts in enumerate(self.parts):
+            if parts:
+                path = self.folder / f"{k}.i8"
+                with full_disk_named(path), open(path, "ab") as f:
+                    for p in parts:
+                        f.write(p.astype("<i8").tobytes())
+                self.parts[k] = []
+        self.held = 0
+
+    def take(self, k: int) -> np.ndarray:
+        """(N,) int64 the triangles of tile ``k``, ascending (given once)."""
+        parts = self.parts[k]
+        self.parts[k] = []
+        if self.folder is not None and (self.folder / f"{k}.i8").exists():
+            parts = [np.fromfile(self.folder / f"{k}.i8", "<i8"), *parts]
+            (self.folder / f"{k}.i8").unlink()
+        return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
+
+    def __enter__(self) -> TileBuckets:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.folder is not None:
+            shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def tile_buckets(mesh, grid: Grid, tile: int, origin: np.ndarray, scratch=None) -> TileBuckets:
+    """The triangles of each of ``grid.tiles(tile)``, in two passes over the faces.
+
+    The first finds the longest triangle (in x or y) up to a quarter of a tile, the
+    tiles' margin; the triangles longer than that are few (a mesh of a city's roofs has
+    none) and their vertices' normals are summed over the whole mesh in the second
+    pass. The second puts each triangle in every tile its box, widened by the margin,
+    reaches: a tile then holds every triangle around each vertex of a triangle over it.
+
+    Raises
+    ------
+    InputError
+        A face names a vertex the mesh does not have.
+    """
+    side = tile * grid.gsd
+    cap = side / 4
+    margin, long = 0.0, []
+    for s, _, P in _face_chunks(mesh):
+        lo, hi = _xy_box(P)
+        extent = np.maximum(hi[:, 0] - lo[:, 0], hi[:, 1] - lo[:, 1])
+        over = extent > cap
+        long.append(s + np.flatnonzero(over))
+        if (~over).any():
+            margin = max(margin, float(extent[~over].max()))
+    long = np.concatenate(long)
+    margin += 1e-3  # float32 boxes are rounded outwards for the rays
+    rows_n, cols_n = -(-grid.height // tile), -(-grid.width // tile)
+    buckets = TileBuckets(rows_n * cols_n, scratch)
+    long_vertices = np.unique(mesh.faces(long)) if len(long) else np.zeros(0, np.int64)
+    long_sums = np.zeros((len(long_vertices), 3))
+    x0, y1 = grid.xmin, grid.ymax
+    for s, T, P in _face_chunks(mesh):
+        lo, hi = _xy_box(P)
+        lo, hi = lo - margin, hi + margin
+        c0 = np.floor((lo[:, 0] - x0) / side).astype(np.int64)
+        c1 = np.floor((hi[:, 0] - x0) / side).astype(np.int64)
+        r0 = np.floor((y1 - hi[:, 1]) / side).astype(np.int64)
+        r1 = np.floor((y1 - lo[:, 1]) / side).astype(np.int64)
+        c0, r0 = np.maximum(c0, 0), np.maximum(r0, 0)
+        c1, r1 = np.minimum(c1, cols_n - 1), np.minimum(r1, rows_n - 1)
+        nc, nr = np.maximum(c1 - c0 + 1, 0), np.maximum(r1 - r0 + 1, 0)
+        tri = np.repeat(np.arange(len(T)), nc * nr)
+        step = np.arange(len(tri)) - np.repeat(np.cumsum(nc * nr) - nc * nr, nc * nr)
+        rr, cc = r0[tri] + step // nc[tri], c0[tri] + step % nc[tri]
+        buckets.add(rr * cols_n + cc, s + tri)
+        if len(long_vertices):
+            _add_face_normals(long_sums, long_vertices, T, P - origin)
+    buckets.long_vertices = long_vertices
+    buckets.long_normals = _unit(long_sums)
+    return buckets
+
+
+def _face_chunks(mesh):
+    """(first index, (N, 3) faces, (N, 3, 3) corner positions) a chunk of triangles at a
+    time; the faces' indices checked."""
+    n_v = mesh.n_vertices
+    for s in range(0, mesh.n_triangles, TRIANGLES_PER_CHUNK):
+        T = mesh.faces(slice(s, s + TRIANGLES_PER_CHUNK))
+        if len(T) and (T.min() < 0 or T.max() >= n_v):
+            raise InputError(mesh.path, "faces", f"a face names vertex {int(T.max())}; "
+                             f"the mesh has {n_v} vertices")  # fmt: skip
+        yield s, T, mesh.positions(T.reshape(-1)).reshape(-1, 3, 3)
+
+
+def non_manifold_edges(T: np.ndarray, corners: np.ndarray, bounds) -> tuple[int, int]:
+    """Edges of triangles ``T`` (N, 3 vertex indices) whose midpoint lies in ``bounds``
+    (xmin, ymin, xmax, ymax; half-open), counted once each: how many are shared by more
+    than two of the triangles, and how many there are. ``corners`` (N, 3, 3) are the
+    triangles' positions. Every triangle on such an edge holds its midpoint in its box,
+    so a tile's triangles count its edges whole."""
+    a, b = T.T.reshape(-1), T[:, [1, 2, 0]].T.reshape(-1)
+    xy = corners[..., :2]
+    mid = (np.concatenate([xy[:, 0], xy[:, 1], xy[:, 2]])
+           + np.concatenate([xy[:, 1], xy[:, 2], xy[:, 0]])) / 2  # fmt: skip
+    inside = ((mid[:, 0] >= bounds[0]) & (mid[:, 0] < bounds[2])
+              & (mid[:, 1] >= bounds[1]) & (mid[:, 1] < bounds[3]))  # fmt: skip
+    a, b = a[inside], b[inside]
+    if not len(a):
+        return 0, 0
+    key = np.minimum(a, b) * (int(T.max()) + 1) + np.maximum(a, b)  # one int64 an edge
+    key.sort()
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    counts = np.diff(np.r_[starts, len(key)])
+    return int((counts > 2).sum()), len(counts)
+
+
+def _boxes(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles' xy boxes (N, 2) float32 from their (N, 3, 3) local corners, rounded
+    outwards (a box holds its triangle whatever float32 does to it)."""
+    lo, hi = _xy_box(corners)
+    return (np.nextafter(lo.astype(np.float32), -np.inf),
+            np.nextafter(hi.astype(np.float32), np.inf))  # fmt: skip
+
+
+def _xy_box(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2) least and greatest x and y of triangles' (N, 3, 3) corners."""
+    xy = corners[..., :2]
+    lo = np.minimum(np.minimum(xy[:, 0], xy[:, 1]), xy[:, 2])
+    return lo, np.maximum(np.maximum(xy[:, 0], xy[:, 1]), xy[:, 2])
 
 
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(V, 3) unit normals at the vertices: the area-weighted mean of their triangles'.
 
-    The faces' normals are made a chunk of triangles at a time (a city mesh's at once
-    took gigabytes), and summed in the same order as at once."""
-    V, T = vertices - vertices.mean(axis=0), triangles
-    n = np.zeros_like(V)
-    for k in range(3):
-        for s in range(0, len(T), TRIANGLES_PER_CHUNK):
-            t = T[s : s + TRIANGLES_PER_CHUNK]
-            face = np.cross(V[t[:, 1]] - V[t[:, 0]], V[t[:, 2]] - V[t[:, 0]])  # twice the area
-            np.add.at(n, t[:, k], face)
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    return n
+    Each vertex sums its triangles' normals in the triangles' order (a triangle's three
+    corners, then the next triangle's), so that the sums over any set of triangles
+    holding all of a vertex's are the same floats. ``vertices`` are relative to a
+    local origin; a chunk of triangles at a time (a city mesh's at once took
+    gigabytes)."""
+    n = np.zeros((len(vertices), 3))
+    for s in range(0, len(triangles), TRIANGLES_PER_CHUNK):
+        t = triangles[s : s + TRIANGLES_PER_CHUNK]
+        _add_face_normals(n, None, t, vertices[t])
+    return _unit(n)
 
 
-def hit_normals(mesh: SurfaceMesh, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
-    """(N, 3) unit normals at hits, interpolated from the vertex normals (the smooth
-    shading of the mesh: a marching-cubes surface's own facets tilt by tens of degrees
-    on flat ground), turned up."""
-    if mesh.normals is None:
-        mesh.normals = vertex_normals(mesh.vertices, mesh.triangles)
+def _add_face_normals(sums: np.ndarray, rows: np.ndarray | None, T: np.ndarray,
+                      corners: np.ndarray) -> None:  # fmt: skip
+    """Add each triangle's normal (twice its area) to ``sums`` at its corners, triangle
+    after triangle; with ``rows`` (sorted vertex indices), only to those vertices, at
+    their position in it."""
+    face = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    at, value = T.reshape(-1), np.repeat(face, 3, axis=0)
+    if rows is not None:
+        pos = np.minimum(np.searchsorted(rows, at), len(rows) - 1)
+        keep = rows[pos] == at
+        at, value = pos[keep], value[keep]
+    np.add.at(sums, at, value)
+
+
+def _unit(n: np.ndarray) -> np.ndarray:
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
+def hit_normals(corner_normals: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """(N, 3) unit normals at hits, interpolated from the (N, 3, 3) vertex normals of
+    their triangles' corners (the smooth shading of the mesh: a marching-cubes
+    surface's own facets tilt by tens of degrees on flat ground), turned up."""
     w = np.column_stack([1.0 - bary[:, 0] - bary[:, 1], bary[:, 0], bary[:, 1]])
-    n = np.einsum("nk,nkj->nj", w, mesh.normals[mesh.triangles[tri]])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    n = _unit(np.einsum("nk,nkj->nj", w, corner_normals))
     return np.where(n[:, 2:] < 0, -n, n)
 
 
-def hit_colours(mesh: SurfaceMesh, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
-    """(N, 3) uint8 colour at hits on triangles ``tri`` (N,) with barycentric (u, v)."""
+def hit_colours(mesh, tri: np.ndarray, corners: np.ndarray, used: np.ndarray,
+                bary: np.ndarray) -> np.ndarray:  # fmt: skip
+    """(N, 3) uint8 colour at hits on triangles ``tri`` (N,) of ``mesh`` with barycentric
+    (u, v); ``corners`` (N, 3) are their vertices as positions in ``used``, the mesh's
+    vertices the tile reads."""
     w = np.column_stack([1.0 - bary[:, 0] - bary[:, 1], bary[:, 0], bary[:, 1]])
     if mesh.uvs is not None and mesh.textures:
         uv = np.einsum("nk,nkj->nj", w, mesh.uvs[tri])
@@ -292,8 +556,9 @@ def hit_colours(mesh: SurfaceMesh, tri: np.ndarray, bary: np.ndarray) -> np.ndar
             r = np.clip((1.0 - uv[sel, 1] % 1.0) * h, 0, h - 1).astype(np.int64)
             out[sel] = image[r, c]
         return out
-    if mesh.colors is not None:
-        c = np.einsum("nk,nkj->nj", w, mesh.colors[mesh.triangles[tri]].astype(np.float64))
+    colours = mesh.vertex_colours(used)
+    if colours is not None:
+        c = np.einsum("nk,nkj->nj", w, colours[corners].astype(np.float64))
         return np.clip(c + 0.5, 0, 255).astype(np.uint8)
     return np.full((len(tri), 3), 128, np.uint8)
 
@@ -311,9 +576,9 @@ def fuse_mesh(path, opts: FusionOptions | None = None, *, crs: str | None = None
     timer = StageTimer()
     t0 = time.perf_counter()
     with timer.stage("read"):
-        mesh = read_surface_mesh(path, crs)
-    gsd = opts.gsd or default_gsd(mesh)
-    grid = Grid.covering(mesh.vertices[:, :2], gsd, opts.bounds)
+        mesh = open_surface_mesh(path, crs)
+        gsd = opts.gsd or default_gsd(mesh)
+    grid = Grid.covering(np.stack([mesh.lo, mesh.hi])[:, :2], gsd, opts.bounds)
     if min(grid.width, grid.height) < 3:
         raise InputError(mesh.path, None, f"a {grid.width} x {grid.height} grid at --gsd "
                          f"{gsd:g}: give a finer --gsd for a mesh this small")  # fmt: skip
@@ -340,10 +605,11 @@ def fuse_mesh(path, opts: FusionOptions | None = None, *, crs: str | None = None
     count[holes] = FILLED
     inputs = {
         "mesh": str(mesh.path.absolute()),
-        "vertices": len(mesh.vertices), "triangles": len(mesh.triangles),
+        "vertices": mesh.n_vertices, "triangles": mesh.n_triangles,
+        "read": "a part at a time" if isinstance(mesh, PlySurface) else "whole (Open3D)",
         "crs": mesh.crs.to_string() if mesh.crs is not None else None,
         "colour": "texture" if mesh.uvs is not None else
-                  "vertex colours" if mesh.colors is not None else "none (grey)",
+                  "vertex colours" if mesh.has_colours else "none (grey)",
     }  # fmt: skip
     record = {
         "mode": "mesh",
@@ -356,7 +622,7 @@ def fuse_mesh(path, opts: FusionOptions | None = None, *, crs: str | None = None
         **planar,
         "missed_cells": int((~hit).sum()), "filled_cells": int(holes.sum()),
         "seconds_per_million_triangles": round(
-            (time.perf_counter() - t0) / max(len(mesh.triangles) / 1e6, 1e-6), 2),
+            (time.perf_counter() - t0) / max(mesh.n_triangles / 1e6, 1e-6), 2),
         "stages": timer.stages,
     }  # fmt: skip
     result = FusionResult(grid, ortho, dsm, dtm, ndsm, prob, count, {}, record, None, normal,

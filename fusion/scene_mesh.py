@@ -155,12 +155,16 @@ def write_views_mesh(
                                max_memory_fraction, tile_m)  # fmt: skip
         write_scene_mesh(path, mesh, scene.crs)
         return mesh.record
+    from workbench.engine import full_disk_named
     from workbench.meshio import PlyWriter
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     n_blocks = 0
-    with PlyWriter(path, colours=True, comments=_crs_comments(scene.crs)) as ply:
+    with (
+        full_disk_named(path),
+        PlyWriter(path, colours=True, comments=_crs_comments(scene.crs)) as ply,
+    ):
         for piece in tile_pieces(scene.views, plan):
             ply.add_vertices(piece.vertices, piece.colours)
             ply.add_triangles(piece.triangles)

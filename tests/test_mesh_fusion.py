@@ -53,10 +53,9 @@ def test_cells_beyond_the_mesh_are_nan():
     assert (ortho[:, 5:] == 128).all()  # no colour: grey
 
 
-def test_tiles_cast_against_their_own_triangles_give_the_whole_meshs_hits():
-    # a bumpy surface of small triangles far from the CRS's zero (UTM-like), and a
-    # large one beneath it spanning every tile: each tile's scene holds only what is
-    # over it, and every hit is the one the scene of the whole mesh gives
+def bumps_over_a_floor() -> SurfaceMesh:
+    """A bumpy surface of small triangles (0.5 m) far from the CRS's zero (UTM-like),
+    coloured at random, over a large triangle."""
     rng = np.random.default_rng(0)
     n = 41
     x, y = np.meshgrid(np.linspace(0, 20, n), np.linspace(0, 20, n))
@@ -68,12 +67,21 @@ def test_tiles_cast_against_their_own_triangles_give_the_whole_meshs_hits():
     V = np.vstack([V, [[499_990.0, 5_699_990.0, 1.0], [500_090.0, 5_699_990.0, 1.0],
                        [499_990.0, 5_700_090.0, 1.0]]])  # fmt: skip
     C = rng.integers(0, 256, (len(V), 3)).astype(np.uint8)
-    mesh = SurfaceMesh(None, V, np.vstack([T, big]), C, None, [], None, None)
-    grid = Grid(499_995.0, 5_700_025.0, 0.3, 100, 100)  # the bumps and the floor around
-    whole = orthogonal_sampling(mesh, grid, tile=1000)
+    return SurfaceMesh(None, V, np.vstack([T, big]), C, None, [], None, None)
+
+
+BUMPS_GRID = Grid(499_995.0, 5_700_025.0, 0.3, 100, 100)  # the bumps and the floor around
+
+
+def test_tiles_cast_against_their_own_triangles_give_the_whole_meshs_hits():
+    # each tile's scene holds only what is over it, and every hit is the one the scene
+    # of the whole mesh gives; tiles of 3 cells (0.9 m) have every bump's triangle
+    # longer than their margin, tiles of 7 and 32 only the floor
+    mesh = bumps_over_a_floor()
+    whole = orthogonal_sampling(mesh, BUMPS_GRID, tile=1000)
     assert np.isfinite(whole[1]).all() and (whole[1] < 2).any() and (whole[1] > 5).any()
-    for tile in (7, 32):
-        ortho, dsm, normal = orthogonal_sampling(mesh, grid, tile=tile)
+    for tile in (3, 7, 32):
+        ortho, dsm, normal = orthogonal_sampling(mesh, BUMPS_GRID, tile=tile)
         # a ray right on an edge may take either triangle: the same point, to rounding
         np.testing.assert_allclose(dsm, whole[1], rtol=0, atol=1e-5)
         np.testing.assert_allclose(normal, whole[2], rtol=0, atol=1e-6)
@@ -81,12 +89,42 @@ def test_tiles_cast_against_their_own_triangles_give_the_whole_meshs_hits():
         assert (dsm == whole[1]).mean() > 0.999 and (normal == whole[2]).all(axis=0).mean() > 0.999
 
 
-def test_non_manifold_share_by_hand():
-    from fusion.mesh_sampling import non_manifold_share
+def test_a_ply_read_a_part_at_a_time_samples_as_the_mesh_in_memory(tmp_path, monkeypatch):
+    """The bumps written as PLY and read a part at a time, the tiles' triangles kept in
+    memory or spilt to disk at every chunk: the products of the mesh in memory, to the
+    bit; the spilt lists are gone afterwards."""
+    from fusion.mesh_sampling import open_surface_mesh
+    from fusion.mesh_source import PlySurface
 
+    mesh = bumps_over_a_floor()
+    write_ply(tmp_path / "bumps.ply", mesh.vertices, mesh.triangles, vertex_colors=mesh.colors,
+              comments=["crs EPSG:32631"])  # fmt: skip
+    ply = open_surface_mesh(tmp_path / "bumps.ply")
+    assert isinstance(ply, PlySurface) and ply.crs.to_epsg() == 32631
+    assert ply.lo == pytest.approx(mesh.vertices.min(axis=0))
+    memory = orthogonal_sampling(mesh, BUMPS_GRID, tile=7)
+    for buffer in (None, 0):
+        if buffer is not None:
+            monkeypatch.setattr("fusion.mesh_sampling.BUCKET_BUFFER_BYTES", buffer)
+        scratch = tmp_path / f"scratch{buffer}"
+        scratch.mkdir()
+        for a, b in zip(orthogonal_sampling(ply, BUMPS_GRID, tile=7, scratch=scratch), memory,
+                        strict=True):  # fmt: skip
+            np.testing.assert_array_equal(a, b)
+        assert not list(scratch.iterdir())
+
+
+def test_non_manifold_edges_by_hand():
+    from fusion.mesh_sampling import non_manifold_edges
+
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1.0]])
     book = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])  # three pages on the edge 0-1
-    assert non_manifold_share(book) == pytest.approx(1 / 7)  # of 7 edges, one in 3 faces
-    assert non_manifold_share(book[:2]) == 0.0  # two faces on an edge: a surface
+    everywhere = (-9, -9, 9, 9)
+    assert non_manifold_edges(book, V[book], everywhere) == (1, 7)  # of 7 edges, one in 3
+    assert non_manifold_edges(book[:2], V[book[:2]], everywhere) == (0, 5)  # a surface
+    # a tile counts the edges whose midpoint it holds: 0-1's is (0.5, 0), x >= 0.5 here
+    assert non_manifold_edges(book, V[book], (0.5, -9, 9, 9)) == (1, 4)  # 0-1, 1-2, 1-3, 1-4
+    assert non_manifold_edges(book, V[book], (-9, -9, 0.5, 9)) == (0, 3)
 
 
 def test_a_textured_obj_gives_its_texture(tmp_path):
@@ -166,8 +204,9 @@ def _write(tmp_path, V, T):
     ],
 )  # fmt: skip
 def test_a_mesh_that_is_not_a_surface_is_one_line(tmp_path, V, T, field):
-    path = _write(tmp_path, V, T)
-    proc = run_cli("fusion", "--mesh", path, "-o", tmp_path / "out", "--crs", "EPSG:32631")
+    path = _write(tmp_path, np.asarray(V, float) + [500_000, 5_700_000, 0], T)
+    proc = run_cli("fusion", "--mesh", path, "-o", tmp_path / "out", "--crs", "EPSG:32631",
+                   "--gsd", "0.1")  # fmt: skip
     assert proc.returncode == 2 and str(path) in proc.stderr and field in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
 
