@@ -202,3 +202,32 @@ def test_a_superpixel_run_in_blocks_learns_its_crf_once(tiny_scene, tiny_fusion,
     proc = run_cli(*args, "-o", tmp_path / "o", "--truth", tiny_scene)
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert "--truth: not with --block" in proc.stderr and not (tmp_path / "o").exists()
+
+
+def test_the_lod_path_in_blocks_learns_once_and_models_each_building_once(
+    tiny_scene, tiny_fusion, tmp_path
+):
+    """The LOD path on the tiny city with its training strokes, whole and in 4 blocks of
+    32 m with 12 m of margin: the classifier and the ground and grass colours learned
+    once from the whole grid's strokes give the same tree probability, cell for cell (the
+    features of a block's outer cells are one grid's: 48 cells of margin against their
+    16); each building modelled once, as many as the whole grid models; the labelling
+    (each block's ground heights its own) nearly the same."""
+    labels = tiny_scene / "training" / "labels.tif"
+    runs = {}
+    for name, extra in (("whole", ()), ("blocks", ("--block", 32, "--block-margin", 12))):
+        runs[name] = model_and_score(tmp_path / name, tiny_scene, "lod", tiny_fusion,
+                                     "--labels", labels, *extra)  # fmt: skip
+    (whole_dir, whole, wm), (out, record, m) = runs["whole"], runs["blocks"]
+    assert "blocks" not in whole and record["blocks"]["count"] == 4
+    assert record["labelling"]["flat_colours"] == whole["labelling"]["flat_colours"]
+    mine, theirs = (read_raster(d / "tree_probability.tif")[0][0] for d in (out, whole_dir))
+    assert np.array_equal(mine, theirs)
+    mine, theirs = (read_raster(d / "class.tif")[0][0] for d in (out, whole_dir))
+    assert (mine == theirs).mean() > 0.99  # measured: all of them
+    ids = [b["id"] for b in record["buildings"]]
+    assert len(set(ids)) == len(ids) == len(whole["buildings"])
+    objects = m["footprint_2d"]["objects"]
+    assert objects["found"] == wm["footprint_2d"]["objects"]["found"]  # 6 of 6
+    assert m["footprint_2d"]["quality"] == pytest.approx(wm["footprint_2d"]["quality"], abs=0.01)
+    assert m["complexity"]["watertight_fraction"] == 1.0

@@ -196,6 +196,7 @@ def mrf_labelling(
     rgb: np.ndarray | None = None,
     ground_factor: np.ndarray | None = None,
     tile: int = TILE,
+    mean_d2: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[float]]:
     """Eq. 6 minimised by alpha-expansion, ``iterations`` times, h_ground re-estimated
     from each labelling's ground cells.
@@ -222,6 +223,9 @@ def mrf_labelling(
         Each cell's colour factor of ground against grass (:func:`data_term`).
     tile : int
         Side of a tile, cells.
+    mean_d2 : float, optional
+        The colour contrast's normalisation (default: :func:`mean_colour_difference` of
+        ``rgb``; a block of a larger grid gives the whole grid's).
 
     Returns
     -------
@@ -230,7 +234,8 @@ def mrf_labelling(
     mean_ground : list of float, the mean ground height after each iteration (metres):
         its convergence
     """
-    mean_d2 = mean_colour_difference(rgb) if rgb is not None else None
+    if rgb is not None and mean_d2 is None:
+        mean_d2 = mean_colour_difference(rgb)
     tiles = block_layout(Grid(0.0, 0.0, 1.0, h.shape[1], h.shape[0]), tile, TILE_MARGIN)
     labels, trace = None, []
     for _ in range(max(iterations, 1)):

@@ -4,7 +4,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from workbench.options import comma_choices, documented, option
+from workbench.options import (
+    block_margin_option,
+    block_side_option,
+    comma_choices,
+    documented,
+    option,
+)
 
 LODS = ("0", "1", "2")
 
@@ -70,4 +76,6 @@ class LodOptions:
         1.0, "radius of the opening (then closing) of the building class", unit="m",
         kind="non_negative",
     )  # fmt: skip
+    block_m: float | None = block_side_option()
+    block_margin_m: float = block_margin_option()
     seed: int = option(0, "seed of the RANSACs and the classifier", kind="non_negative")

@@ -16,21 +16,33 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import rasterio
+from rasterio.errors import RasterioIOError
 from scipy import ndimage as ndi
 
 from fusion.planar_objects import COUNTS as PLANAR_COUNTS
 from fusion.planar_objects import planar_roof_cells
+from modeling.shared.in_blocks import (
+    BlockPlan,
+    blocks_lines,
+    blocks_record,
+    each_block,
+    plan_blocks,
+)
 from modeling.shared.opened_parts import mid_wall_region
-from modeling.shared.raster_ground import dtm_across_holes, ground_surface, vertex_colours
+from modeling.shared.raster_ground import dtm_across_holes, vertex_colours
 from modeling.shared.roof_model import closed_roof_model
+from workbench.engine import ThreadEngine
 from workbench.errors import InputError, WorkbenchError
 from workbench.fusion_run import read_fusion_run
+from workbench.grid_blocks import Block
 from workbench.ground_grass_colours import fit_flat_colours, ground_factor
 from workbench.model_run import Building, ModelRun
 from workbench.pictures import colorize_classes, contact_sheet
 from workbench.progress import progress
 from workbench.raster import BUILDING, GRASS, GROUND, TREE, Grid, read_raster
 from workbench.records import StageTimer, peak_memory_mb
+from workbench.texture_seams import rgb_to_lab
 
 from .arrangement import arrangement_faces, label_faces
 from .facades import facade_directions, wall_normals
@@ -43,7 +55,13 @@ from .segments import (
     regularise_segments,
 )
 from .shapes import roof_directions, roof_planes, z_symmetric
-from .tree_probability import train_tree_classifier, tree_probability
+from .tree_probability import (
+    N_FEATURES,
+    feature_bands,
+    fit_tree_classifier,
+    stroke_sample,
+    tree_probability,
+)
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +88,14 @@ def run_lod(
     """The LOD paper on a fusion run: MRF labelling, regular roof planes, segment
     arrangements, LOD0/1/2.
 
+    A grid larger than ``options.block_m`` (by default 4096 cells a side) is modelled
+    block by block (:func:`lod_block`), each labelled over its outer cells and each
+    building modelled by one block (:mod:`modeling.shared.in_blocks`). What is learned
+    from the strokes is learned once, over the whole grid (:func:`learn_from_strokes`),
+    and the colour contrast is normalised by the whole grid's mean: a block's tree
+    probability and colour weights are those of one grid. Its ground heights and its
+    labelling are its own, which differ from one grid's near the blocks' edges.
+
     Parameters
     ----------
     fusion_dir : path
@@ -84,37 +110,162 @@ def run_lod(
                              "(LOD0 is its footprint)")  # fmt: skip
     timer = StageTimer()
     t_start = time.perf_counter()
+    plan = plan_blocks(fusion_dir, options.block_m, options.block_margin_m, ThreadEngine(1))
+    grid, blocks = plan.grid, plan.blocks
+    with timer.stage("tree probability"):
+        learned = learn_from_strokes(fusion_dir, labels, grid, blocks, options)
+    mean_d2 = None
+    if len(blocks) > 1 and options.colour_contrast:
+        with timer.stage("labelling"):
+            mean_d2 = whole_grid_colour_difference(fusion_dir, grid, blocks)
+    done = []
+    for b in each_block(blocks):
+        done.append(lod_block(fusion_dir, b, plan, options, learned, mean_d2, timer))
+    buildings = plan.buildings
+    with timer.stage("preview"):
+        layers, _ = plan.rasters.preview_layers()
+        preview = lod_preview(layers["rgb"], layers["classes"], layers["planes"])
+    seconds = time.perf_counter() - t_start
+    cells = {name: sum(d["cells"][name] for d in done) for name in done[0]["cells"]}
+    trace = done[0]["trace"] if len(done) == 1 else [d["trace"] for d in done]
+    counts = {key: sum(d["counts"][key] for d in done) for key in done[0]["counts"]}
+    record = {
+        "skipped": [s for d in done for s in d["skipped"]],
+        "labelling": {"tree_probability": learned.source, "flat_colours": learned.colours,
+                      "mean_ground_m": trace, "cells": cells},
+        "seconds_per_building": round(seconds / max(len(buildings), 1), 3),
+        "seconds_per_megapixel": round(seconds / (grid.width * grid.height / 1e6), 3),
+        "peak_memory_mb": round(peak_memory_mb(), 1),
+    }  # fmt: skip
+    if len(blocks) > 1:
+        record["blocks"] = blocks_record(blocks, plan.side_m, options.block_margin_m,
+                                         sum(d["cut"] for d in done))  # fmt: skip
+    return ModelRun(
+        "lod", options, buildings, crs=done[0]["crs"], grid=grid,
+        **plan.rasters.model_rasters(), ground=plan.rasters.ground(),
+        preview=preview, stages=timer.stages,
+        inputs={"fusion": str(Path(fusion_dir).absolute()),
+                "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd},
+                "labels": str(Path(labels).absolute()) if labels else None,
+                "normal_map": "normal.tif" if done[0]["normal_map"] else "from the DSM"},
+        counts=counts, record=record,
+    )  # fmt: skip
+
+
+@dataclass
+class Learned:
+    """What the strokes teach, once for the whole grid: the tree classifier (None: the
+    fusion's grass and tree probabilities), the ground and grass colours (None: not
+    used), and their records."""
+
+    tree: object
+    source: str
+    flat: object
+    colours: dict
+
+
+def learn_from_strokes(fusion_dir, labels, grid: Grid, blocks: list[Block],
+                       options: LodOptions) -> Learned:  # fmt: skip
+    """The tree classifier (eq. 1) and the ground and grass colours, trained on the
+    strokes of the whole grid, read block by block: the strokes' cells in the grid's
+    order, drawn as over one grid (:func:`~.tree_probability.stroke_sample`), and their
+    features, each computed in the block whose inner cells hold it, over the block's
+    outer cells (a margin wider than the features' reach: the values are one grid's)."""
+    if labels is None:
+        return Learned(None, "the fusion's grass and tree probabilities (no --labels)", None,
+                       {"used": False, "reason": "no --labels"})  # fmt: skip
+    cells, codes = [], []  # the stroke cells, whole-grid flat index, block after block
+    for b in blocks:
+        inner = _strokes(labels, grid, b.inner)
+        r, c = np.nonzero(inner)
+        cells.append((r + b.inner[0].start) * grid.width + c + b.inner[1].start)
+        codes.append(inner[r, c])
+    cells, codes = np.concatenate(cells), np.concatenate(codes)
+    order = np.argsort(cells, kind="stable")  # the whole grid's row-major order
+    cells, codes = cells[order], codes[order]
+    sample = stroke_sample(cells, options.seed)
+    flat_cells = (np.flatnonzero(np.isin(codes, (GROUND, GRASS))) if options.flat_colours
+                  else np.zeros(0, np.int64))  # fmt: skip
+    X = np.zeros((len(sample), N_FEATURES), np.float32)
+    rgb = np.zeros((len(flat_cells), 3), np.uint8)
+    for b in blocks:
+        in_x, in_rgb = _in_inner(sample, b, grid), _in_inner(cells[flat_cells], b, grid)
+        if not (in_x.any() or in_rgb.any()):
+            continue
+        ortho = read_fusion_run(fusion_dir, ("ortho",), b.outer).rgb
+        r, c = _outer_cells(cells[flat_cells][in_rgb], b, grid)
+        rgb[in_rgb] = ortho[r, c]
+        r, c = _outer_cells(sample[in_x], b, grid)
+        rows_x = np.flatnonzero(in_x)
+        for rows, F in feature_bands(ortho, rows=r):
+            sel = (r >= rows.start) & (r < rows.stop)
+            X[rows_x[sel]] = F[r[sel] - rows.start, c[sel]]
+    picked = np.searchsorted(cells, sample)
+    tree = fit_tree_classifier(X, codes[picked], options.boost_rounds, options.seed)
+    source = f"AdaBoost of {options.boost_rounds} stumps on {labels}'s strokes"
+    flat_model, colours = None, {"used": False, "reason": "--no-flat-colours"}
+    if options.flat_colours:
+        flat_model, colours = fit_flat_colours(rgb, codes[flat_cells], options.seed)
+    return Learned(tree, source, flat_model, colours)
+
+
+def _in_inner(flat: np.ndarray, block: Block, grid: Grid) -> np.ndarray:
+    """(N,) whether each cell (whole-grid flat index) lies in ``block``'s inner cells."""
+    r, c = np.divmod(flat, grid.width)
+    (rows, cols) = block.inner
+    return (r >= rows.start) & (r < rows.stop) & (c >= cols.start) & (c < cols.stop)
+
+
+def _outer_cells(flat: np.ndarray, block: Block, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns of cells (whole-grid flat index) in ``block``'s outer cells."""
+    r, c = np.divmod(flat, grid.width)
+    return r - block.outer[0].start, c - block.outer[1].start
+
+
+def whole_grid_colour_difference(fusion_dir, grid: Grid, blocks: list[Block]) -> float:
+    """The labelling's colour normalisation, <|Lab_i - Lab_j|^2> over every pair of
+    4-neighbours of the whole grid (:func:`~.labelling.mean_colour_difference`), read
+    block by block: each pair counted in the block whose inner cells hold its first
+    cell (each window one row and column longer, where the grid goes on)."""
+    total, pairs = 0.0, grid.height * (grid.width - 1) + (grid.height - 1) * grid.width
+    for b in blocks:
+        (r0, r1), (c0, c1) = ((s.start, s.stop) for s in b.inner)
+        window = (slice(r0, min(r1 + 1, grid.height)), slice(c0, min(c1 + 1, grid.width)))
+        lab = rgb_to_lab(read_fusion_run(fusion_dir, ("ortho",), window).rgb).astype(np.float64)
+        h, w = r1 - r0, c1 - c0
+        total += float(np.sum((lab[:h, 1:] - lab[:h, :-1]) ** 2))
+        total += float(np.sum((lab[1:, :w] - lab[:-1, :w]) ** 2))
+    return total / max(pairs, 1)
+
+
+def lod_block(fusion_dir, block: Block, plan: BlockPlan, options: LodOptions,
+              learned: Learned, mean_d2: float | None, timer: StageTimer) -> dict:  # fmt: skip
+    """Sections 4-5 over the outer cells of ``block``: the tree probability, the MRF
+    labelling, and the LOD models of the buildings ``plan.claims`` gives it (every one
+    when the block is the whole grid), put into ``plan``; returns the block's record
+    (cells of each class in its inner cells, the labelling's trace, skipped regions,
+    counts)."""
     with timer.stage("read"):
-        fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
+        fusion = read_fusion_run(fusion_dir, FUSION_RASTERS, block.outer)
         grid = fusion.grid
         dsm, dtm, rgb = fusion.band("dsm"), fusion.band("dtm"), fusion.rgb
-        normal = _normal_map(Path(fusion_dir), grid)
-        strokes = _strokes(labels, grid) if labels is not None else None
+        normal = _normal_map(Path(fusion_dir), plan.grid, block.outer)
     with timer.stage("tree probability"):
-        if strokes is not None:
-            model = train_tree_classifier(rgb, strokes, options.boost_rounds, options.seed)
-            t = tree_probability(model, rgb)
-            t_source = f"AdaBoost of {options.boost_rounds} stumps on {labels}'s strokes"
+        if learned.tree is not None:
+            t = tree_probability(learned.tree, rgb)
         else:
             prob = fusion.rasters["class_prob"]
             t = np.nan_to_num(prob[GRASS - 1] + prob[TREE - 1], nan=0.5)
-            t_source = "the fusion's grass and tree probabilities (no --labels)"
     with timer.stage("labelling"):
-        block = max(1, round(options.ground_block_m / grid.gsd))
+        cells = max(1, round(options.ground_block_m / grid.gsd))
         # the ground goes on under the mesh's holes, where filled heights stand on it
         ground = dtm_across_holes(dtm)
         filled = fill_from_below(dsm)
-        factor, colours = None, {"used": False, "reason": "no --labels"}
-        if strokes is not None and options.flat_colours:
-            on = np.isin(strokes, (GROUND, GRASS))
-            model, colours = fit_flat_colours(rgb[on], strokes[on], options.seed)
-            factor = ground_factor(model, rgb) if model is not None else None
-        elif strokes is not None:
-            colours["reason"] = "--no-flat-colours"
+        factor = ground_factor(learned.flat, rgb) if learned.flat is not None else None
         classes, _, trace = mrf_labelling(filled, t, options.h_trunc, options.mu,
-                                          options.ground_iterations, block,
+                                          options.ground_iterations, cells,
                                           rgb if options.colour_contrast else None,
-                                          factor)  # fmt: skip
+                                          factor, mean_d2=mean_d2)  # fmt: skip
         planar = dict.fromkeys(PLANAR_COUNTS, 0)
         if options.planar_objects:
             # green roofs the strokes' colours call tree, as in the fusion's class map
@@ -124,46 +275,37 @@ def run_lod(
         building = open_close(classes == BUILDING, radius)
         parts, n = ndi.label(building)
         sizes = np.bincount(parts.ravel(), minlength=n + 1) * grid.gsd**2
-        keep = [k for k in range(1, n + 1) if sizes[k] >= options.min_area_m2]
+        todo, cut = plan.claims.segments_to_model(block, parts, n, None, last=True)
+        todo = [k for k in todo if sizes[k] >= options.min_area_m2]
+        number = plan.claims.claim(block, parts, n, todo)
         outline_heights = fill_holes(dsm, ground, options.h_trunc, from_below=filled)
     inputs = LodInputs(grid, rgb, dsm, outline_heights, ground, normal)
     buildings, skipped, painted = [], [], np.zeros(grid.shape, np.int64)
+    first = len(plan.buildings)  # the buildings of the blocks before
     with timer.stage("buildings"):
         boxes = ndi.find_objects(parts)
-        for k in progress(keep, "lod: buildings"):
+        for k in progress(todo, "lod: buildings"):
             b, plane_raster, (rows, cols) = building_lod(k, parts, boxes[k - 1], inputs, options)
             if isinstance(b, str):
-                skipped.append({"region": int(k), "reason": b})
+                skipped.append({"region": int(number[k]), "reason": b})
             else:
-                b.id = str(len(buildings) + 1)
+                b.id = str(first + len(buildings) + 1)
                 b.mesh.vertex_colors = vertex_colours(b.mesh.vertices, rgb, grid)
                 buildings.append(b)
                 inside = plane_raster > 0
-                painted[rows, cols][inside] = plane_raster[inside] + 1000 * len(buildings)
-    with timer.stage("preview"):
-        preview = lod_preview(rgb, classes, painted)
-    seconds = time.perf_counter() - t_start
-    return ModelRun(
-        "lod", options, buildings, crs=fusion.crs, grid=grid, dtm=dtm, dsm=dsm,
-        ground=ground_surface(dtm, rgb, grid), preview=preview, stages=timer.stages,
-        rasters={"class": (classes, 0), "tree_probability": (t.astype(np.float32), None)},
-        inputs={"fusion": str(Path(fusion_dir).absolute()),
-                "grid": {"width": grid.width, "height": grid.height, "gsd": grid.gsd},
-                "labels": str(Path(labels).absolute()) if labels else None,
-                "normal_map": "normal.tif" if normal is not None else "from the DSM"},
-        counts={"candidates": len(keep), "skipped": len(skipped), **planar},
-        record={
-            "skipped": skipped,
-            "labelling": {"tree_probability": t_source, "flat_colours": colours,
-                          "mean_ground_m": trace,
-                          "cells": {name: int((classes == c).sum()) for c, name in
-                                    ((1, "ground"), (2, "grass"), (3, "tree"),
-                                     (4, "building"))}},
-            "seconds_per_building": round(seconds / max(len(buildings), 1), 3),
-            "seconds_per_megapixel": round(seconds / (grid.width * grid.height / 1e6), 3),
-            "peak_memory_mb": round(peak_memory_mb(), 1),
-        },
-    )  # fmt: skip
+                painted[rows, cols][inside] = plane_raster[inside] + 1000 * int(b.id)
+    plan.keep_buildings(buildings)
+    plan.rasters.keep("class", block, classes, 0)
+    plan.rasters.keep("tree_probability", block, t.astype(np.float32))
+    plan.rasters.put(block, grid, dtm=dtm, rgb=rgb, dsm=dsm, classes=classes, planes=painted)
+    inner = classes[block.inside]
+    return {
+        "cells": {name: int((inner == c).sum()) for c, name in
+                  ((1, "ground"), (2, "grass"), (3, "tree"), (4, "building"))},
+        "trace": trace, "skipped": skipped, "cut": cut, "crs": fusion.crs,
+        "normal_map": normal is not None,
+        "counts": {"candidates": len(todo), "skipped": len(skipped), **planar},
+    }  # fmt: skip
 
 
 def building_lod(
@@ -285,7 +427,8 @@ def summary_lines(record: dict, buildings=()) -> list[str]:
     shares = ", ".join(f"{k} {v / total:.0%}" for k, v in cells.items())
     colours = lab.get("flat_colours", {})
     counts = record.get("counts", {})
-    return [f"  labelling: {shares}; ground height by iteration {lab.get('mean_ground_m')} m",
+    return [*blocks_lines(record.get("blocks")),
+            f"  labelling: {shares}; ground height by iteration {lab.get('mean_ground_m')} m",
             f"  tree probability: {lab.get('tree_probability')}",
             "  ground and grass by colour: " + ("yes" if colours.get("used") else
                                                 f"no ({colours.get('reason')})")
@@ -303,14 +446,25 @@ def lod_preview(rgb: np.ndarray, classes: np.ndarray, planes: np.ndarray) -> np.
                          height=360)  # fmt: skip
 
 
-def _normal_map(folder: Path, grid: Grid) -> np.ndarray | None:
+def _normal_map(folder: Path, grid: Grid, window: tuple[slice, slice]) -> np.ndarray | None:
+    """(3, h, w) the fusion's normal map (a mesh's) on the cells ``window`` of its
+    ``grid``, or None when it has none."""
     path = folder / "normal.tif"
     if not path.exists():
         return None
-    data, g, _ = read_raster(path)
-    if g != grid or data.shape[0] != 3:
+    g, bands = _header(path)
+    if g != grid or bands != 3:
         raise InputError(path, "transform", "not 3 bands on the fusion's grid")
-    return data.astype(np.float64)
+    return read_raster(path, window=window)[0].astype(np.float64)
+
+
+def _header(path: Path) -> tuple[Grid, int]:
+    """A raster's grid and band count."""
+    try:
+        with rasterio.open(path) as src:
+            return Grid.from_transform(src.transform, src.width, src.height), src.count
+    except (RasterioIOError, ValueError) as exc:
+        raise InputError(path, None, f"not a readable north-up raster ({exc})") from None
 
 
 def _normals(normal: np.ndarray | None, dsm: np.ndarray, gsd: float, win) -> np.ndarray:
@@ -322,17 +476,21 @@ def _normals(normal: np.ndarray | None, dsm: np.ndarray, gsd: float, win) -> np.
     return n / np.linalg.norm(n, axis=0)
 
 
-def _strokes(path, grid: Grid) -> np.ndarray:
-    """The training strokes on ``grid`` (nearest cell), codes 0-4."""
-    data, g, _ = read_raster(path)
-    codes = data[0]
-    if np.nanmax(codes) > 4 or np.nanmin(codes) < 0:
-        raise InputError(path, "band 1", "class codes must be 0 (unlabelled) to 4")
+def _strokes(path, grid: Grid, window: tuple[slice, slice]) -> np.ndarray:
+    """(h, w) int64 the training strokes, codes 0-4, on the cells ``window`` of ``grid``:
+    read in the window when they are on that grid, else sampled at the nearest cell."""
+    path = Path(path)
+    g, _ = _header(path)
     if g == grid:
-        return codes.astype(np.int64)
-    X, Y = grid.cell_centers()
-    r, c = g.cell_index(X.ravel(), Y.ravel(), clip=True)
-    return codes[r, c].reshape(grid.shape).astype(np.int64)
+        codes = read_raster(path, window=window)[0][0]
+    else:
+        data, g, _ = read_raster(path)
+        X, Y = grid.window(*window).cell_centers()
+        r, c = g.cell_index(X.ravel(), Y.ravel(), clip=True)
+        codes = data[0][r, c].reshape(X.shape)
+    if codes.size and (np.nanmax(codes) > 4 or np.nanmin(codes) < 0):
+        raise InputError(path, "band 1", "class codes must be 0 (unlabelled) to 4")
+    return codes.astype(np.int64)
 
 
 def _ring(mask: np.ndarray) -> np.ndarray:

@@ -89,20 +89,31 @@ def train_tree_classifier(
     labels : (H, W) int
         Class codes 1-4 of the strokes, 0 unlabelled.
     """
-    cells = np.flatnonzero(labels.ravel() > 0)
-    rng = np.random.default_rng(seed)
-    if len(cells) > MAX_SAMPLES:
-        cells = rng.choice(cells, MAX_SAMPLES, replace=False)
+    cells = stroke_sample(np.flatnonzero(labels.ravel() > 0), seed)
     W = rgb.shape[1]
     row = cells // W
     X = np.empty((len(cells), N_FEATURES), np.float32)
     for rows, F in feature_bands(rgb, rows=row):
         sel = (row >= rows.start) & (row < rows.stop)
         X[sel] = F.reshape(-1, N_FEATURES)[cells[sel] - rows.start * W]
-    y = np.isin(labels.ravel()[cells], VEGETATION)
+    return fit_tree_classifier(X, labels.ravel()[cells], rounds, seed)
+
+
+def stroke_sample(cells: np.ndarray, seed: int) -> np.ndarray:
+    """The stroke cells (flat indices, in the grid's order) the classifier learns from:
+    at most :data:`MAX_SAMPLES` drawn at random with ``seed``, in the draw's order."""
+    if len(cells) > MAX_SAMPLES:
+        return np.random.default_rng(seed).choice(cells, MAX_SAMPLES, replace=False)
+    return cells
+
+
+def fit_tree_classifier(X: np.ndarray, codes: np.ndarray, rounds: int = 200,
+                        seed: int = 0) -> AdaBoostClassifier:  # fmt: skip
+    """The stumps fitted to (N, N_FEATURES) features of stroke cells of class ``codes``
+    (N,): vegetation (grass, tree) against the rest."""
     model = AdaBoostClassifier(DecisionTreeClassifier(max_depth=1), n_estimators=rounds,
                                random_state=seed)  # fmt: skip
-    return model.fit(X, y)
+    return model.fit(X, np.isin(codes, VEGETATION))
 
 
 def tree_probability(model: AdaBoostClassifier, rgb: np.ndarray) -> np.ndarray:
