@@ -13,6 +13,7 @@ bounds' centre, to the kilometre) and the mesh moved back in float64.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -136,23 +137,21 @@ def integrate_views(
     return SceneMesh(vertices, triangles, colors, record)
 
 
-def write_views_mesh(
-    path,
-    scene: Scene,
-    voxel_m: float | None = None,
-    trunc_voxels: float = 4.0,
-    bounds: tuple[float, float, float, float] | None = None,
-    min_weight: float = 1.0,
-    max_memory_fraction: float = 0.6,
-    tile_m: float | None = None,
-) -> dict:
-    """:func:`integrate_views` written to ``path`` (:func:`write_scene_mesh`'s PLY, the
-    scene's CRS in its header), whole or not at all. A tiled mesh is written tile after
-    tile, one tile's triangles in memory at a time. Returns the mesh's record."""
-    plan = _plan(scene, voxel_m, trunc_voxels, bounds, min_weight, max_memory_fraction, tile_m)
+def _defaults(function) -> dict:
+    return {k: p.default for k, p in inspect.signature(function).parameters.items()
+            if p.default is not inspect.Parameter.empty}  # fmt: skip
+
+
+def write_views_mesh(path, scene: Scene, **mesh_options) -> dict:
+    """:func:`integrate_views` (``mesh_options``: its keyword arguments) written to
+    ``path`` (:func:`write_scene_mesh`'s PLY, the scene's CRS in its header), whole or
+    not at all. A tiled mesh is written tile after tile, one tile's triangles in memory
+    at a time. Returns the mesh's record."""
+    o = {**_defaults(integrate_views), **mesh_options}
+    plan = _plan(scene, o["voxel_m"], o["trunc_voxels"], o["bounds"], o["min_weight"],
+                 o["max_memory_fraction"], o["tile_m"])  # fmt: skip
     if plan.tiles is None:
-        mesh = integrate_views(scene, voxel_m, trunc_voxels, bounds, min_weight,
-                               max_memory_fraction, tile_m)  # fmt: skip
+        mesh = integrate_views(scene, **mesh_options)
         write_scene_mesh(path, mesh, scene.crs)
         return mesh.record
     from workbench.engine import full_disk_named

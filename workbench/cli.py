@@ -447,7 +447,8 @@ def cmd_mesh(args) -> int:
         raise WorkbenchError(f"{out}: exists (give --overwrite to replace it)")
     t0 = time.perf_counter()
     scene = load_scene(args.scene)
-    r = write_views_mesh(out, scene, args.voxel, args.trunc, tile_m=args.tile)
+    r = write_views_mesh(out, scene, voxel_m=args.voxel, trunc_voxels=args.trunc,
+                         tile_m=args.tile)  # fmt: skip
     print(
         f"wrote {out}: {r['triangles']:,} triangles, {r['vertices']:,} vertices from "
         f"{r['views']} views at {r['voxel_m']:g} m voxels"
