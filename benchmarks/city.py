@@ -132,7 +132,7 @@ def city_run(
             wall, peak = run("model", *paths[name], "--block", block_m, "-o", folder,
                              "--overwrite", log=out / f"{name}_blocks.log", kept=kept)  # fmt: skip
             res[f"{name}_blocks"] = model_figures(folder, wall, peak)
-    res.update(mesh_chain(scene, out, reuse_runs))
+    res.update(mesh_chain(scene, out, reuse_runs, block_m))
     runs = [fusion, *(out / name for name in paths), out / "lod"]
     kept = 0.0 if reuse_runs and (report / "metrics.json").exists() else None
     wall, peak = run("compare", *runs, "--truth", scene, "-o", report, "--overwrite",
@@ -147,9 +147,11 @@ def city_run(
 BLOCK_PATHS = ("superpixel", "parametric", "blocks")
 
 
-def mesh_chain(scene: Path, out: Path, reuse_runs: bool = False) -> dict:
+def mesh_chain(scene: Path, out: Path, reuse_runs: bool = False,
+               block_m: float | None = None) -> dict:  # fmt: skip
     """``workbench mesh`` (tiled as it decides), ``fusion --mesh`` on the scene's grid and
-    the LOD path on that fusion with the scene's training strokes: their figures."""
+    the LOD path on that fusion with the scene's training strokes (with ``block_m``, again
+    in blocks of that side): their figures."""
     mesh, fusion = out / "mesh" / "mesh.ply", out / "fusion_mesh"
     doc = json.loads((scene / "scene.json").read_text())
     res = {}
@@ -163,9 +165,15 @@ def mesh_chain(scene: Path, out: Path, reuse_runs: bool = False) -> dict:
     res["fusion_mesh"] = {"wall_s": wall, "peak_mb": peak}
     folder = out / "lod"
     kept = _recorded_s(folder / "model.json") if reuse_runs else None
-    wall, peak = run("model", "lod", fusion, "--labels", scene / "training" / "labels.tif",
-                     "-o", folder, "--overwrite", log=out / "lod.log", kept=kept)  # fmt: skip
+    lod = ("model", "lod", fusion, "--labels", scene / "training" / "labels.tif")
+    wall, peak = run(*lod, "-o", folder, "--overwrite", log=out / "lod.log", kept=kept)
     res["lod"] = model_figures(folder, wall, peak)
+    if block_m is not None:
+        folder = out / "lod_blocks"
+        kept = _recorded_s(folder / "model.json") if reuse_runs else None
+        wall, peak = run(*lod, "--block", block_m, "-o", folder, "--overwrite",
+                         log=out / "lod_blocks.log", kept=kept)  # fmt: skip
+        res["lod_blocks"] = model_figures(folder, wall, peak)
     return res
 
 
@@ -217,7 +225,7 @@ def print_city(r: dict) -> None:
     print(f"  superpixel  {m['wall_s']:8.1f} s  {peaks(m)}; {m['buildings']} buildings, "
           f"{m['wall_s'] / (f['cells'] / 1e6):.1f} s per ortho megapixel")  # fmt: skip
     names = ("voxel", "parametric", "blocks", *(f"{n}_blocks" for n in BLOCK_PATHS), "mesh",
-             "fusion_mesh", "lod")  # fmt: skip
+             "fusion_mesh", "lod", "lod_blocks")  # fmt: skip
     for name in names:
         if name not in r:  # a record from before the path was benched
             continue

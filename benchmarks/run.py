@@ -727,7 +727,8 @@ def run_city(args) -> dict:
         print_city(results[preset])
     small, city = results["small"], results["city"]
     for stage in ("fusion", "fusion_blocks", "superpixel", "voxel", "parametric", "blocks",
-                  *(f"{n}_blocks" for n in BLOCK_PATHS), "mesh", "fusion_mesh", "lod"):  # fmt: skip
+                  *(f"{n}_blocks" for n in BLOCK_PATHS), "mesh", "fusion_mesh", "lod",
+                  "lod_blocks"):  # fmt: skip
         # a run in blocks against small's run of one grid, about a block's size
         a, b = small.get(stage.removesuffix("_blocks")), city.get(stage)
         if a is None or b is None:  # a record from before it was benched

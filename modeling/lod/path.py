@@ -427,8 +427,14 @@ def summary_lines(record: dict, buildings=()) -> list[str]:
     shares = ", ".join(f"{k} {v / total:.0%}" for k, v in cells.items())
     colours = lab.get("flat_colours", {})
     counts = record.get("counts", {})
+    trace = lab.get("mean_ground_m")
+    if record.get("blocks") and trace:  # one trace a block: their mean by iteration
+        trace = [round(float(z), 3) for z in np.mean(trace, axis=0)]
+        trace = f"{trace} m (the blocks' mean)"
+    else:
+        trace = f"{trace} m"
     return [*blocks_lines(record.get("blocks")),
-            f"  labelling: {shares}; ground height by iteration {lab.get('mean_ground_m')} m",
+            f"  labelling: {shares}; ground height by iteration {trace}",
             f"  tree probability: {lab.get('tree_probability')}",
             "  ground and grass by colour: " + ("yes" if colours.get("used") else
                                                 f"no ({colours.get('reason')})")
