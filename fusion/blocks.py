@@ -26,14 +26,12 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import rasterio
-from rasterio.errors import RasterioIOError
 
 from workbench.engine import Engine, TaskStore, ThreadEngine, full_disk_named
-from workbench.errors import InputError, WorkbenchError
+from workbench.errors import WorkbenchError
 from workbench.grid_blocks import Block, auto_block_size, block_layout
 from workbench.progress import progress
-from workbench.raster import Grid
+from workbench.raster import Grid, raster_header
 from workbench.records import StageTimer
 from workbench.scene import Scene
 
@@ -74,11 +72,7 @@ def planned_grid(scene: Scene, opts: FusionOptions) -> Grid:
     starts (for a scene without depth maps, the grid of its DSM by default)."""
     if (not any(v.depth_path is not None for v in scene.views) and scene.dsm is not None
             and opts.gsd is None and opts.bounds is None):  # fmt: skip
-        try:
-            with rasterio.open(scene.dsm) as src:
-                g = Grid.from_transform(src.transform, src.width, src.height)
-        except (RasterioIOError, ValueError) as e:
-            raise InputError(scene.dsm, "dsm", f"not a readable north-up raster ({e})") from None
+        g, _, _ = raster_header(scene.dsm, "dsm")
         opts = replace(opts, gsd=g.gsd, bounds=g.bounds)
     return default_grid(scene, opts)
 

@@ -8,12 +8,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import rasterio
 from rasterio.crs import CRS
-from rasterio.errors import RasterioIOError
 
 from .errors import InputError
-from .raster import BUILDING, TREE, Grid, class_codes, read_raster
+from .raster import BUILDING, TREE, Grid, class_codes, raster_header, read_raster
 
 BANDS = {"ortho": 3, "class_prob": 4}  # rasters with more than one band
 
@@ -111,11 +109,8 @@ def fusion_header(folder: str | Path) -> tuple[Grid, CRS | None]:
     path = Path(folder) / "dsm.tif"
     if not path.exists():
         raise InputError(path, None, "missing: not the output folder of `workbench fusion`")
-    try:
-        with rasterio.open(path) as src:
-            return Grid.from_transform(src.transform, src.width, src.height), src.crs
-    except (RasterioIOError, ValueError) as exc:
-        raise InputError(path, None, f"not a readable north-up raster ({exc})") from None
+    grid, _, crs = raster_header(path)
+    return grid, crs
 
 
 def class_map(

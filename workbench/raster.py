@@ -356,6 +356,25 @@ def read_decimated(path, longest: int) -> np.ndarray:
         return src.read(out_shape=shape, masked=False)
 
 
+def raster_header(
+    path: str | os.PathLike, field: str | None = None
+) -> tuple[Grid, int, CRS | None]:
+    """A raster's grid, band count and CRS, its cells not read.
+
+    Raises
+    ------
+    InputError
+        When the file is missing, unreadable or not north-up (naming ``field``).
+    """
+    if not os.path.exists(path):
+        raise InputError(path, field, "file not found")
+    try:
+        with rasterio.open(path) as src:
+            return Grid.from_transform(src.transform, src.width, src.height), src.count, src.crs
+    except (RasterioIOError, ValueError) as exc:
+        raise InputError(path, field, f"not a readable north-up raster ({exc})") from None
+
+
 def read_raster(
     path: str | os.PathLike,
     *,

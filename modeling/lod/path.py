@@ -16,8 +16,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import rasterio
-from rasterio.errors import RasterioIOError
 from scipy import ndimage as ndi
 
 from fusion.planar_objects import COUNTS as PLANAR_COUNTS
@@ -40,7 +38,7 @@ from workbench.ground_grass_colours import fit_flat_colours, ground_factor
 from workbench.model_run import Building, ModelRun
 from workbench.pictures import colorize_classes, contact_sheet
 from workbench.progress import progress
-from workbench.raster import BUILDING, GRASS, GROUND, TREE, Grid, read_raster
+from workbench.raster import BUILDING, GRASS, GROUND, TREE, Grid, raster_header, read_raster
 from workbench.records import StageTimer, peak_memory_mb
 from workbench.texture_seams import rgb_to_lab
 
@@ -56,6 +54,7 @@ from .segments import (
 )
 from .shapes import roof_directions, roof_planes, z_symmetric
 from .tree_probability import (
+    FEATURE_MARGIN,
     N_FEATURES,
     feature_bands,
     fit_tree_classifier,
@@ -169,8 +168,8 @@ def learn_from_strokes(fusion_dir, labels, grid: Grid, blocks: list[Block],
     """The tree classifier (eq. 1) and the ground and grass colours, trained on the
     strokes of the whole grid, read block by block: the strokes' cells in the grid's
     order, drawn as over one grid (:func:`~.tree_probability.stroke_sample`), and their
-    features, each computed in the block whose inner cells hold it, over the block's
-    outer cells (a margin wider than the features' reach: the values are one grid's)."""
+    features, each computed over the inner cells of the block that holds it and the
+    features' reach around them (``FEATURE_MARGIN``): the values are one grid's."""
     if labels is None:
         return Learned(None, "the fusion's grass and tree probabilities (no --labels)", None,
                        {"used": False, "reason": "no --labels"})  # fmt: skip
@@ -192,10 +191,13 @@ def learn_from_strokes(fusion_dir, labels, grid: Grid, blocks: list[Block],
         in_x, in_rgb = _in_inner(sample, b, grid), _in_inner(cells[flat_cells], b, grid)
         if not (in_x.any() or in_rgb.any()):
             continue
-        ortho = read_fusion_run(fusion_dir, ("ortho",), b.outer).rgb
-        r, c = _outer_cells(cells[flat_cells][in_rgb], b, grid)
+        # the inner cells and the features' reach around them: one grid's values
+        window = tuple(slice(max(i.start - FEATURE_MARGIN, 0), min(i.stop + FEATURE_MARGIN, n))
+                       for i, n in zip(b.inner, grid.shape, strict=True))  # fmt: skip
+        ortho = read_fusion_run(fusion_dir, ("ortho",), window).rgb
+        r, c = _window_cells(cells[flat_cells][in_rgb], window, grid)
         rgb[in_rgb] = ortho[r, c]
-        r, c = _outer_cells(sample[in_x], b, grid)
+        r, c = _window_cells(sample[in_x], window, grid)
         rows_x = np.flatnonzero(in_x)
         for rows, F in feature_bands(ortho, rows=r):
             sel = (r >= rows.start) & (r < rows.stop)
@@ -216,10 +218,11 @@ def _in_inner(flat: np.ndarray, block: Block, grid: Grid) -> np.ndarray:
     return (r >= rows.start) & (r < rows.stop) & (c >= cols.start) & (c < cols.stop)
 
 
-def _outer_cells(flat: np.ndarray, block: Block, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
-    """Rows and columns of cells (whole-grid flat index) in ``block``'s outer cells."""
+def _window_cells(flat: np.ndarray, window: tuple[slice, slice],
+                  grid: Grid) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Rows and columns in ``window`` of cells given by their whole-grid flat index."""
     r, c = np.divmod(flat, grid.width)
-    return r - block.outer[0].start, c - block.outer[1].start
+    return r - window[0].start, c - window[1].start
 
 
 def whole_grid_colour_difference(fusion_dir, grid: Grid, blocks: list[Block]) -> float:
@@ -458,19 +461,10 @@ def _normal_map(folder: Path, grid: Grid, window: tuple[slice, slice]) -> np.nda
     path = folder / "normal.tif"
     if not path.exists():
         return None
-    g, bands = _header(path)
+    g, bands, _ = raster_header(path)
     if g != grid or bands != 3:
         raise InputError(path, "transform", "not 3 bands on the fusion's grid")
     return read_raster(path, window=window)[0].astype(np.float64)
-
-
-def _header(path: Path) -> tuple[Grid, int]:
-    """A raster's grid and band count."""
-    try:
-        with rasterio.open(path) as src:
-            return Grid.from_transform(src.transform, src.width, src.height), src.count
-    except (RasterioIOError, ValueError) as exc:
-        raise InputError(path, None, f"not a readable north-up raster ({exc})") from None
 
 
 def _normals(normal: np.ndarray | None, dsm: np.ndarray, gsd: float, win) -> np.ndarray:
@@ -486,7 +480,7 @@ def _strokes(path, grid: Grid, window: tuple[slice, slice]) -> np.ndarray:
     """(h, w) int64 the training strokes, codes 0-4, on the cells ``window`` of ``grid``:
     read in the window when they are on that grid, else sampled at the nearest cell."""
     path = Path(path)
-    g, _ = _header(path)
+    g, _, _ = raster_header(path, "labels")
     if g == grid:
         codes = read_raster(path, window=window)[0][0]
     else:
