@@ -427,22 +427,26 @@ def tile_buckets(mesh, grid: Grid, tile: int, origin: np.ndarray, scratch=None) 
     long_vertices = np.unique(mesh.faces(long)) if len(long) else np.zeros(0, np.int64)
     long_sums = np.zeros((len(long_vertices), 3))
     x0, y1 = grid.xmin, grid.ymax
-    for s, T, P in _face_chunks(mesh):
-        lo, hi = _xy_box(P)
-        lo, hi = lo - margin, hi + margin
-        c0 = np.floor((lo[:, 0] - x0) / side).astype(np.int64)
-        c1 = np.floor((hi[:, 0] - x0) / side).astype(np.int64)
-        r0 = np.floor((y1 - hi[:, 1]) / side).astype(np.int64)
-        r1 = np.floor((y1 - lo[:, 1]) / side).astype(np.int64)
-        c0, r0 = np.maximum(c0, 0), np.maximum(r0, 0)
-        c1, r1 = np.minimum(c1, cols_n - 1), np.minimum(r1, rows_n - 1)
-        nc, nr = np.maximum(c1 - c0 + 1, 0), np.maximum(r1 - r0 + 1, 0)
-        tri = np.repeat(np.arange(len(T)), nc * nr)
-        step = np.arange(len(tri)) - np.repeat(np.cumsum(nc * nr) - nc * nr, nc * nr)
-        rr, cc = r0[tri] + step // nc[tri], c0[tri] + step % nc[tri]
-        buckets.add(rr * cols_n + cc, s + tri)
-        if len(long_vertices):
-            _add_face_normals(long_sums, long_vertices, T, P - origin)
+    try:
+        for s, T, P in _face_chunks(mesh):
+            lo, hi = _xy_box(P)
+            lo, hi = lo - margin, hi + margin
+            c0 = np.floor((lo[:, 0] - x0) / side).astype(np.int64)
+            c1 = np.floor((hi[:, 0] - x0) / side).astype(np.int64)
+            r0 = np.floor((y1 - hi[:, 1]) / side).astype(np.int64)
+            r1 = np.floor((y1 - lo[:, 1]) / side).astype(np.int64)
+            c0, r0 = np.maximum(c0, 0), np.maximum(r0, 0)
+            c1, r1 = np.minimum(c1, cols_n - 1), np.minimum(r1, rows_n - 1)
+            nc, nr = np.maximum(c1 - c0 + 1, 0), np.maximum(r1 - r0 + 1, 0)
+            tri = np.repeat(np.arange(len(T)), nc * nr)
+            step = np.arange(len(tri)) - np.repeat(np.cumsum(nc * nr) - nc * nr, nc * nr)
+            rr, cc = r0[tri] + step // nc[tri], c0[tri] + step % nc[tri]
+            buckets.add(rr * cols_n + cc, s + tri)
+            if len(long_vertices):
+                _add_face_normals(long_sums, long_vertices, T, P - origin)
+    except BaseException:  # an interrupted pass leaves no lists on disk
+        buckets.__exit__(None, None, None)
+        raise
     buckets.long_vertices = long_vertices
     buckets.long_normals = _unit(long_sums)
     return buckets
