@@ -298,3 +298,27 @@ def test_canonical_order_ignores_the_order_a_mesher_gave():
                 for t in triangles for a, b in zip(t, np.roll(t, -1), strict=True)}  # fmt: skip
 
     assert directed(V, T) == directed(V[o1], t1)
+
+
+def test_an_open3d_ply_is_read_a_part_at_a_time_as_open3d_reads_it(tmp_path):
+    """A PLY as an MVS tool writes it (Open3D's: double positions and vertex normals,
+    uchar colours, `vertex_indices` a list of uchar and uint): read a part at a time, it
+    samples as Open3D's own reading of it does."""
+    import open3d as o3d
+
+    from fusion.mesh_sampling import open_surface_mesh, read_surface_mesh
+    from fusion.mesh_source import PlySurface
+
+    bumps = bumps_over_a_floor()
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(bumps.vertices),
+                                     o3d.utility.Vector3iVector(bumps.triangles))  # fmt: skip
+    mesh.vertex_colors = o3d.utility.Vector3dVector(bumps.colors / 255.0)
+    mesh.compute_vertex_normals()
+    path = tmp_path / "mvs.ply"
+    assert o3d.io.write_triangle_mesh(str(path), mesh, write_ascii=False)
+    ply = open_surface_mesh(path, crs="EPSG:32631")
+    assert isinstance(ply, PlySurface) and {"nx", "red"} <= set(ply.vertex_dtype.names)
+    whole = read_surface_mesh(path, crs="EPSG:32631")
+    for a, b in zip(orthogonal_sampling(ply, BUMPS_GRID, tile=32),
+                    orthogonal_sampling(whole, BUMPS_GRID, tile=32), strict=True):  # fmt: skip
+        np.testing.assert_array_equal(a, b)
