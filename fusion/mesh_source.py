@@ -165,7 +165,11 @@ def open_ply_surface(path: Path) -> PlySurface | None:
     vdt, fdt = np.dtype(vfields), np.dtype(ffields)
     if not {"x", "y", "z"} <= set(vdt.names):
         raise InputError(path, "vertex", "no x, y and z properties")
-    if os.path.getsize(path) != start + nv * vdt.itemsize + nt * fdt.itemsize:
+    size, need = os.path.getsize(path), start + nv * vdt.itemsize + nt * fdt.itemsize
+    if size < need:  # every face has three vertices or more: the file was cut short
+        raise InputError(path, None, f"truncated: its header's {nv} vertices and {nt} "
+                         f"faces need {need:,} bytes or more, the file has {size:,}")  # fmt: skip
+    if size != need:
         return None  # polygons (faces of other sizes), or more than vertices and faces
     return PlySurface(path, nv, nt, vdt, fdt, start, start + nv * vdt.itemsize, index_field)
 

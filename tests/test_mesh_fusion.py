@@ -322,3 +322,11 @@ def test_an_open3d_ply_is_read_a_part_at_a_time_as_open3d_reads_it(tmp_path):
     for a, b in zip(orthogonal_sampling(ply, BUMPS_GRID, tile=32),
                     orthogonal_sampling(whole, BUMPS_GRID, tile=32), strict=True):  # fmt: skip
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_ply_cut_short_is_one_line(tmp_path):
+    path = _write(tmp_path, slope_mesh().vertices + [500_000, 5_700_000, 0], slope_mesh().triangles)
+    path.write_bytes(path.read_bytes()[:-20])  # the last face and a half gone
+    proc = run_cli("fusion", "--mesh", path, "-o", tmp_path / "out", "--crs", "EPSG:32631")
+    assert proc.returncode == 2 and str(path) in proc.stderr and "truncated" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
