@@ -34,6 +34,14 @@ def peak_memory_mb() -> float:
     return rss / (1024 * 1024) if sys.platform == "darwin" else rss / 1024
 
 
+def run_speed(seconds: float, buildings: int, cells: int) -> dict:
+    """A modeling run's speed and memory for its record: seconds per building and per
+    megapixel of its grid (``cells``), and the process's peak memory so far (MiB)."""
+    return {"seconds_per_building": round(seconds / max(buildings, 1), 3),
+            "seconds_per_megapixel": round(seconds / (cells / 1e6), 3),
+            "peak_memory_mb": round(peak_memory_mb(), 1)}  # fmt: skip
+
+
 class StageTimer:
     """Collects ``{stage: {"wall_s", "peak_memory_mb"}}``; peak memory is the process's
     peak so far when the stage ends (it never decreases). A stage run more than once (in

@@ -42,7 +42,7 @@ from workbench.grid_blocks import Block as GridBlock
 from workbench.meshes import is_watertight
 from workbench.model_run import Building, ModelRun, Surface
 from workbench.raster import Grid
-from workbench.records import StageTimer, peak_memory_mb
+from workbench.records import StageTimer, run_speed
 
 from .block_meshes import block_faces
 from .energy import STEP_M
@@ -162,9 +162,7 @@ def run_blocks(
             **engine.describe(),
             # the annealing's own, not its end at zero temperature
             "iterations_per_second": round(iterations / max(warm_s, 1e-9), 1),
-            "seconds_per_building": round(seconds / max(len(buildings), 1), 3),
-            "seconds_per_megapixel": round(seconds / (grid.width * grid.height / 1e6), 3),
-            "peak_memory_mb": round(peak_memory_mb(), 1),
+            **run_speed(seconds, len(buildings), grid.width * grid.height),
         },
     )  # fmt: skip
 

@@ -39,7 +39,7 @@ from workbench.model_run import Building, ModelRun
 from workbench.pictures import colorize_classes, contact_sheet
 from workbench.progress import progress
 from workbench.raster import BUILDING, GRASS, GROUND, TREE, Grid, raster_header, read_raster
-from workbench.records import StageTimer, peak_memory_mb
+from workbench.records import StageTimer, run_speed
 from workbench.texture_seams import rgb_to_lab
 
 from .arrangement import arrangement_faces, label_faces
@@ -132,9 +132,7 @@ def run_lod(
         "skipped": [s for d in done for s in d["skipped"]],
         "labelling": {"tree_probability": learned.source, "flat_colours": learned.colours,
                       "mean_ground_m": trace, "cells": cells},
-        "seconds_per_building": round(seconds / max(len(buildings), 1), 3),
-        "seconds_per_megapixel": round(seconds / (grid.width * grid.height / 1e6), 3),
-        "peak_memory_mb": round(peak_memory_mb(), 1),
+        **run_speed(seconds, len(buildings), grid.width * grid.height),
     }  # fmt: skip
     if len(blocks) > 1:
         record["blocks"] = blocks_record(blocks, plan.side_m, options.block_margin_m,

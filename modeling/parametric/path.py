@@ -55,7 +55,7 @@ from workbench.grid_blocks import Block
 from workbench.meshes import is_watertight
 from workbench.model_run import Building, ModelRun, Surface
 from workbench.raster import BUILDING, Grid
-from workbench.records import StageTimer, peak_memory_mb
+from workbench.records import StageTimer, run_speed
 
 from .options import ParametricOptions
 from .part_meshes import wing_faces
@@ -199,9 +199,7 @@ def run_parametric(
             "segmentation": segmentation,
             "skipped": skipped,
             **engine.describe(),
-            "seconds_per_building": round(seconds / max(len(buildings), 1), 3),
-            "seconds_per_megapixel": round(seconds / (grid.width * grid.height / 1e6), 3),
-            "peak_memory_mb": round(peak_memory_mb(), 1),
+            **run_speed(seconds, len(buildings), grid.width * grid.height),
         },
     )  # fmt: skip
 

@@ -33,7 +33,7 @@ from workbench.grid_blocks import Block
 from workbench.model_run import Building, ModelRun
 from workbench.parallel import default_workers
 from workbench.raster import BUILDING, Grid, class_codes, read_raster
-from workbench.records import StageTimer, peak_memory_mb
+from workbench.records import StageTimer, run_speed
 
 from .aggregation import SuperpixelGraph, superpixel_graph
 from .building_tasks import ROOF_STEPS, building_shares, model_building_roofs
@@ -101,9 +101,7 @@ def run_superpixel(
         # the tasks' own time in each step, summed over the buildings and the workers
         "roof_steps_s": {step: round(sec, 3) for step, sec in seconds.items()},
         **engine.describe(),
-        "seconds_per_building": round(elapsed / max(len(buildings), 1), 3),
-        "seconds_per_megapixel": round(elapsed / (grid.width * grid.height / 1e6), 3),
-        "peak_memory_mb": round(peak_memory_mb(), 1),
+        **run_speed(elapsed, len(buildings), grid.width * grid.height),
     }  # fmt: skip
     if len(blocks) > 1:
         record["blocks"] = blocks_record(blocks, plan.side_m, options.block_margin_m,
