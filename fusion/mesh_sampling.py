@@ -103,9 +103,10 @@ class SurfaceMesh:
         """(N, 3) int64 vertex indices of the triangles ``sel``."""
         return np.asarray(self.triangles[sel], np.int64)
 
-    def vertex_colours(self, sel) -> np.ndarray | None:
-        """(N, 3) uint8 colours of the vertices ``sel``, None without colours."""
-        return None if self.colors is None else self.colors[sel]
+    def vertex_data(self, sel) -> tuple[np.ndarray, np.ndarray | None]:
+        """(N, 3) float64 positions and (N, 3) uint8 colours (None without colours) of
+        the vertices ``sel``."""
+        return self.positions(sel), None if self.colors is None else self.colors[sel]
 
 
 def open_surface_mesh(path, crs: str | None = None) -> SurfaceMesh | PlySurface:
@@ -306,7 +307,7 @@ def orthogonal_sampling(
             T = mesh.faces(idx)
             used, corners = np.unique(T, return_inverse=True)
             corners = corners.reshape(-1, 3)
-            P = mesh.positions(used)
+            P, colours = mesh.vertex_data(used)
             b, e = non_manifold_edges(T, P[corners], part.bounds)
             bad_edges, edges = bad_edges + b, edges + e
             lo, hi = _boxes(P[corners] - origin)
@@ -327,7 +328,7 @@ def orthogonal_sampling(
             long = np.isin(used, buckets.long_vertices)
             n[long] = buckets.long_normals[np.searchsorted(buckets.long_vertices, used[long])]
             normal[:, rows, cols][:, hit] = hit_normals(n[corners[tri]], bary).T
-            ortho[rows, cols][hit] = hit_colours(mesh, idx[tri], corners[tri], used, bary)
+            ortho[rows, cols][hit] = hit_colours(mesh, idx[tri], corners[tri], colours, bary)
     share = bad_edges / max(edges, 1)
     if share > NON_MANIFOLD_SHARE:
         raise InputError(mesh.path, "faces", f"{share:.1%} of the edges are shared by more "
@@ -543,11 +544,11 @@ def hit_normals(corner_normals: np.ndarray, bary: np.ndarray) -> np.ndarray:
     return np.where(n[:, 2:] < 0, -n, n)
 
 
-def hit_colours(mesh, tri: np.ndarray, corners: np.ndarray, used: np.ndarray,
+def hit_colours(mesh, tri: np.ndarray, corners: np.ndarray, colours: np.ndarray | None,
                 bary: np.ndarray) -> np.ndarray:  # fmt: skip
     """(N, 3) uint8 colour at hits on triangles ``tri`` (N,) of ``mesh`` with barycentric
-    (u, v); ``corners`` (N, 3) are their vertices as positions in ``used``, the mesh's
-    vertices the tile reads."""
+    (u, v): its texture's, else its vertex ``colours`` ((U, 3) uint8 of the vertices the
+    tile reads, which ``corners`` (N, 3) index; None: grey)."""
     w = np.column_stack([1.0 - bary[:, 0] - bary[:, 1], bary[:, 0], bary[:, 1]])
     if mesh.uvs is not None and mesh.textures:
         uv = np.einsum("nk,nkj->nj", w, mesh.uvs[tri])
@@ -560,7 +561,6 @@ def hit_colours(mesh, tri: np.ndarray, corners: np.ndarray, used: np.ndarray,
             r = np.clip((1.0 - uv[sel, 1] % 1.0) * h, 0, h - 1).astype(np.int64)
             out[sel] = image[r, c]
         return out
-    colours = mesh.vertex_colours(used)
     if colours is not None:
         c = np.einsum("nk,nkj->nj", w, colours[corners].astype(np.float64))
         return np.clip(c + 0.5, 0, 255).astype(np.uint8)

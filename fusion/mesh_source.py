@@ -75,17 +75,15 @@ class PlySurface:
 
     def positions(self, sel) -> np.ndarray:
         """(N, 3) float64 world positions of the vertices ``sel`` (a slice or indices)."""
-        r = self._records(self.vertex_offset, self.vertex_dtype, self.n_vertices, sel)
-        out = np.empty((len(r), 3))
-        out[:, 0], out[:, 1], out[:, 2] = r["x"], r["y"], r["z"]
-        return out
+        return _xyz(self._records(self.vertex_offset, self.vertex_dtype, self.n_vertices, sel))
 
-    def vertex_colours(self, sel) -> np.ndarray | None:
-        """(N, 3) uint8 colours of the vertices ``sel``, None without colours."""
-        if not self.has_colours:
-            return None
+    def vertex_data(self, sel) -> tuple[np.ndarray, np.ndarray | None]:
+        """(N, 3) float64 positions and (N, 3) uint8 colours (None without colours) of the
+        vertices ``sel``, their records read once."""
         r = self._records(self.vertex_offset, self.vertex_dtype, self.n_vertices, sel)
-        return _uint8(np.column_stack([r["red"], r["green"], r["blue"]]))
+        colours = (_uint8(np.column_stack([r["red"], r["green"], r["blue"]]))
+                   if self.has_colours else None)  # fmt: skip
+        return _xyz(r), colours
 
     def faces(self, sel) -> np.ndarray:
         """(N, 3) int64 vertex indices of the triangles ``sel`` (a slice or indices)."""
@@ -172,6 +170,13 @@ def open_ply_surface(path: Path) -> PlySurface | None:
     if size != need:
         return None  # polygons (faces of other sizes), or more than vertices and faces
     return PlySurface(path, nv, nt, vdt, fdt, start, start + nv * vdt.itemsize, index_field)
+
+
+def _xyz(records: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 x, y, z of vertex records."""
+    out = np.empty((len(records), 3))
+    out[:, 0], out[:, 1], out[:, 2] = records["x"], records["y"], records["z"]
+    return out
 
 
 def _uint8(c: np.ndarray) -> np.ndarray:
