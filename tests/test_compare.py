@@ -82,6 +82,38 @@ def test_missing_building_costs_its_area(report, tiny_scene):
     assert report[1]["runs"]["same"]["buildings"]["missed_over_50m2"] == 0
 
 
+def _numbers(doc, path=""):
+    """{path: value} of every leaf of a JSON document."""
+    if isinstance(doc, dict):
+        return {k: v for key, x in doc.items() for k, v in _numbers(x, f"{path}/{key}").items()}
+    if isinstance(doc, list):
+        return {k: v for i, x in enumerate(doc) for k, v in _numbers(x, f"{path}[{i}]").items()}
+    return {path: doc}
+
+
+def test_figures_do_not_depend_on_the_window(report, tiny_scene):
+    """compare reads the grid a window at a time (a city's does not fit in memory);
+    windows of 37 cells, which cut the buildings, their boxes and the height jumps,
+    give the figures of one window over the whole grid (the CLI's on the tiny city)."""
+    from workbench.evaluate import EvaluationOptions, evaluate
+    from workbench.runs import load_run
+    from workbench.truth import open_scene_truth
+
+    _, doc, _ = report
+    truth = open_scene_truth(tiny_scene)
+    assert max(truth.grid.shape) <= EvaluationOptions().window_cells
+    for name, folder in doc["run_folders"].items():
+        e = evaluate(load_run(folder, name), truth, EvaluationOptions(window_cells=37))
+        got = _numbers(json.loads(json.dumps({"m": e.metrics, "b": e.buildings})))
+        want = _numbers({"m": doc["runs"][name], "b": doc["per_building"][name]})
+        assert got.keys() == want.keys()
+        for key, value in want.items():
+            if isinstance(value, float):
+                assert got[key] == pytest.approx(value, rel=1e-9, abs=1e-12), (name, key)
+            else:
+                assert got[key] == value, (name, key)
+
+
 def test_classes_are_scored_off_the_training_strokes(report, tiny_scene):
     strokes = read_raster(tiny_scene / "training" / "labels.tif")[0][0] > 0
     cls = read_raster(tiny_scene / "truth" / "class.tif")[0][0]
@@ -238,3 +270,20 @@ def test_a_truth_dsm_with_nodata_is_scored_where_it_is_known(tiny_scene, tmp_pat
     assert holes.sum() > 50
     assert scores["minus9999"]["height"] == scores["nan"]["height"]
     assert scores["minus9999"]["height"]["rmse_m"] < 1.0  # with -9999 read as a height: 1,000s
+
+
+def test_a_window_of_a_raster_on_another_grid_is_the_whole_ones_window(tmp_path):
+    """The truth and the runs are read a window at a time onto the evaluation grid,
+    from rasters on grids of their own (another cell size, another origin)."""
+    from workbench.raster import Grid
+    from workbench.truth import read_on_grid, sample_to_grid
+
+    src = Grid(1000.3, 5000.9, 0.7, 53, 41)
+    data = np.random.default_rng(0).random((1, 41, 53)).astype(np.float32)
+    write_raster(tmp_path / "r.tif", data, src, crs="EPSG:32631")
+    dst = Grid(995.0, 5003.0, 0.25, 170, 140)  # wider than the raster on every side
+    whole = sample_to_grid(data, src, dst)
+    for rows, cols in dst.tiles(33):
+        got = read_on_grid(tmp_path / "r.tif", dst.window(rows, cols))
+        np.testing.assert_array_equal(got, whole[:, rows, cols])
+    assert np.isnan(whole).any() and np.isfinite(whole).any()

@@ -297,3 +297,43 @@ def test_symmetric_plane_pairs_need_the_same_slope_facing_away():
     hipped = [n(30, 0), n(30, 90), n(30, 180), n(30, 270)]  # 2 facing pairs, 4 side by side
     r = symmetric_plane_pairs([gable, skewed, hipped])
     assert r["pairs"] == 1 + 1 + 2 and r["pairs_within_2deg"] == pytest.approx(3 / 4)
+
+
+def test_rounded_median_counts_to_its_step():
+    m = metrics.RoundedMedian(0.1, 1.0)
+    assert m.median() is None
+    m.add(np.array([0.04, 0.31, 0.26]))  # rounded 0.0, 0.3, 0.3
+    assert m.median() == 0.3 and m.n == 3
+    m.add(np.array([0.72]))  # even count: the mean of the two middles
+    assert m.median() == pytest.approx(0.3)
+    m.add(np.array([5.0, 7.5, 6.0]))  # above the top: kept as they are
+    assert m.n == 7 and m.median() == 0.7
+    m.add(np.array([9.0, 8.0]))
+    assert m.median() == 5.0  # 0, 0.3, 0.3, 0.7, 5, 6, 7.5, 8, 9
+
+
+def test_tiled_regions_are_the_whole_grids_regions():
+    from scipy import ndimage
+
+    from workbench.evaluate import building_regions
+    from workbench.raster import Grid
+    from workbench.tiled_regions import TiledRegions
+
+    rng = np.random.default_rng(3)
+    mask = ndimage.binary_opening(rng.random((61, 47)) < 0.6)
+    mask[9, 9] = mask[10, 10] = True  # two cells that touch only by a tile's corner
+    mask[8, 8:12] = mask[11, 8:12] = mask[9:11, 8] = mask[9:11, 11] = False
+    mask[9, 10] = mask[10, 9] = False
+    grid = Grid(0.0, 61.0, 1.0, 47, 61)
+    for size in (10, 16, 61):
+        tiles = grid.tiles(size)
+        regions = TiledRegions(tiles, lambda r, c: mask[r, c], min_cells=2)
+        ids = np.zeros(mask.shape, np.int64)
+        for rows, cols in tiles:
+            ids[rows, cols] = regions(rows, cols)
+        whole = building_regions(mask, 2)
+        # the same regions, whatever their numbers
+        pairs = set(zip(ids.ravel().tolist(), whole.ravel().tolist(), strict=True))
+        assert len(pairs) == len(np.unique(ids)) == len(np.unique(whole))
+        assert np.array_equal(ids > 0, whole > 0) and regions.count == whole.max()
+        assert ids[9, 9] > 0 and ids[9, 9] == ids[10, 10]  # joined across the corner

@@ -531,19 +531,19 @@ def cmd_compare(args) -> int:
     from .compare import check_truth_args, compare_runs, summary
     from .evaluate import EvaluationOptions
     from .runs import load_run
-    from .truth import load_file_truth, load_scene_truth
+    from .truth import open_file_truth, open_scene_truth
 
     check_truth_args(args)
     if args.truth is not None:
-        truth = load_scene_truth(args.truth)
+        truth = open_scene_truth(args.truth)
     else:
         first = load_run(args.runs[0])
         grid = crs = None
         if first.raster("dsm") or first.raster("class"):
-            from .raster import read_raster
+            from .raster import raster_header
 
-            _, grid, crs = read_raster(first.raster("dsm") or first.raster("class"))
-        truth = load_file_truth(
+            grid, _, crs = raster_header(first.raster("dsm") or first.raster("class"))
+        truth = open_file_truth(
             dsm=args.truth_dsm,
             dtm=args.truth_dtm,
             footprints=args.truth_footprints,
@@ -587,7 +587,7 @@ def cmd_demo(args) -> int:
     from .compare import compare_runs, summary
     from .model_run import write_model_run
     from .scene import load_scene
-    from .truth import load_scene_truth
+    from .truth import open_scene_truth
 
     t0 = time.perf_counter()
     scene_dir, fusion_dir, report_dir = args.out / "scene", args.out / "fusion", args.out / "report"
@@ -648,7 +648,7 @@ def cmd_demo(args) -> int:
     print("8/8 scoring the runs against the truth ...", flush=True)
     doc = compare_runs(
         [fusion_dir, superpixel_dir, voxel_dir, parametric_dir, blocks_dir, lod_dir],
-        load_scene_truth(scene_dir), report_dir,
+        open_scene_truth(scene_dir), report_dir,
         names=["fusion", "superpixel", "voxel", "parametric", "blocks", "lod"], overwrite=True,
     )  # fmt: skip
     print()

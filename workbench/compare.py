@@ -12,7 +12,15 @@ import numpy as np
 from .atomic import atomic_output_dir
 from .cityjson_check import lod_meshes
 from .errors import InputError, WorkbenchError
-from .evaluate import Evaluation, EvaluationOptions, RunLayers, evaluate, stacked_meshes
+from .evaluate import (
+    Evaluation,
+    EvaluationOptions,
+    RunLayers,
+    evaluate,
+    picture_stride,
+    stacked_meshes,
+    truth_overview,
+)
 from .imageio import write_rgb
 from .meshes import concatenate_meshes, raster_mesh, read_mesh, sample_surface, triangle_areas
 from .pictures import colorize_classes, colorize_error, colorize_height
@@ -55,12 +63,14 @@ def compare_runs(
     runs = [load_run(f, n) for f, n in zip(folders, names, strict=True)]
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
         evaluations, run_figures = {}, {}
-        reference = _reference_surface(truth)
+        # the maps of the report: every few cells of a city's grid (a few MB each)
+        overview = truth_overview(truth, picture_stride(truth.grid), options.window_cells)
+        reference = _reference_surface(overview)
         for run in runs:
             t0 = time.perf_counter()
             e = evaluations[run.name] = evaluate(run, truth, options)
-            run_figures[run.name] = run_pictures(e.layers, truth, reference, options)
-            e.layers = None  # a run's grids: hundreds of MB on a city, not kept for all runs
+            run_figures[run.name] = run_pictures(e.overview, overview, reference, options)
+            e.overview = None
             log.info("scored %s in %.1f s", run.name, time.perf_counter() - t0)
         if mesh is not None:
             scene = raycasting_scene(*read_mesh(mesh))
@@ -77,8 +87,8 @@ def compare_runs(
             "run_folders": {r.name: str(r.folder.absolute()) for r in runs},
         }
         (tmp / "metrics.json").write_text(json.dumps(doc, indent=1))
-        truth_figures = truth_pictures(truth)
-        renders = _renders(runs, evaluations, truth, options)
+        truth_figures = truth_pictures(overview)
+        renders = _renders(runs, evaluations, truth, overview, options)
         (tmp / "figures").mkdir()
         named = [("truth", truth_figures), ("render", renders)]
         named += [(f"run_{n}", items) for n, items in run_figures.items()]
@@ -149,7 +159,8 @@ Figures = list[tuple[np.ndarray, str]]
 
 
 def truth_pictures(truth: Truth) -> Figures:
-    """Pictures of the truth: its ortho, classes and DSM where it has them."""
+    """Pictures of the truth (its :func:`~workbench.evaluate.truth_overview`): its ortho,
+    classes and DSM where it has them."""
     out = []
     if truth.ortho is not None:
         out.append((truth.ortho, "true ortho"))
@@ -163,8 +174,9 @@ def truth_pictures(truth: Truth) -> Figures:
 def run_pictures(
     layers: RunLayers, truth: Truth, reference: np.ndarray | None, options: EvaluationOptions
 ) -> Figures:
-    """Pictures of one run on the grid: its footprints against the truth's, its height
-    error against ``reference`` (:func:`_reference_surface`), its classes."""
+    """Pictures of one run on the grid (its and the truth's overviews): its footprints
+    against the truth's, its height error against ``reference``
+    (:func:`_reference_surface`), its classes."""
     items = []
     if truth.building_ids is not None:
         items.append((footprint_map(layers.building_ids > 0, truth.building_ids > 0),
@@ -196,7 +208,8 @@ def footprint_map(pred: np.ndarray, true: np.ndarray) -> np.ndarray:
 
 
 def _renders(
-    runs: list[Run], evaluations: dict[str, Evaluation], truth: Truth, options: EvaluationOptions
+    runs: list[Run], evaluations: dict[str, Evaluation], truth, overview: Truth,
+    options: EvaluationOptions,
 ) -> list[tuple[np.ndarray, str]]:
     models = [r for r in runs if r.kind == "model" and r.buildings]
     if not models:
@@ -206,7 +219,8 @@ def _renders(
     else:
         z = np.concatenate([b.vertices[:, 2] for r in models for b in r.buildings])
     cams = viewpoints(truth.grid.bounds, (float(z.min()), float(z.max())))
-    ground = raster_mesh(truth.dtm, truth.grid, step=8) if truth.dtm is not None else None
+    step = max(1, round(8 * truth.grid.gsd / overview.grid.gsd))  # a ground vertex every 8 cells
+    ground = raster_mesh(overview.dtm, overview.grid, step) if overview.dtm is not None else None
 
     def picture(vertices, triangles, cam, colors=None):
         if ground is not None:  # the same pale ground under every model

@@ -7,7 +7,7 @@ metrics are then the same plain functions of :mod:`workbench.metrics` for every 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -16,11 +16,12 @@ from scipy import ndimage
 from . import metrics
 from .errors import InputError
 from .meshes import concatenate_meshes, is_watertight, sample_surface, triangle_areas
-from .raster import check_class_codes, read_raster
+from .raster import Grid, check_class_codes, raster_header
 from .raycast import raycasting_scene, unsigned_distance
 from .runs import Run
 from .texture_seams import SceneImages, read_textured_building, recomputed_seam_costs
-from .truth import Truth, sample_to_grid, top_down
+from .tiled_regions import TiledRegions
+from .truth import GRID_LAYERS, TopDown, Truth, TruthSource, read_on_grid
 
 DSM_KEYS = ("rmse_m", "rmse_off_jumps_m", "median_abs_m", "valid_fraction")
 
@@ -39,6 +40,8 @@ class EvaluationOptions:
         (at most ``max_samples`` per surface).
     max_error_m : the red end of the error colour maps, metres.
     seed : seed of the surface samples.
+    window_cells : the grid is scored in windows of this many cells a side, so that
+        memory follows the window, not the grid (the figures do not depend on it).
     """
 
     tolerance_m: float = 1.0
@@ -47,6 +50,7 @@ class EvaluationOptions:
     max_samples: int = 400_000
     max_error_m: float = 2.0
     seed: int = 0
+    window_cells: int = 512
 
 
 @dataclass
@@ -75,46 +79,102 @@ class RunLayers:
 @dataclass
 class Evaluation:
     """metrics: the run's entry in metrics.json; buildings: one row per true building;
-    layers: the run on the grid (None once ``compare`` has drawn it); face_error: (T,)
+    overview: the run's surface, building ids and classes at every
+    :func:`picture_stride`-th cell of the grid, for the report's maps; face_error: (T,)
     distance of each model face's centre to the true buildings, metres, in the order of
     the run's buildings (models with a true mesh only)."""
 
     metrics: dict
     buildings: list[dict]
-    layers: RunLayers | None
+    overview: RunLayers
     face_error: np.ndarray | None = None
 
 
-def _on_grid(path, truth: Truth, band: int | None = 0) -> np.ndarray:
-    data, src, crs = read_raster(path)
-    if crs is not None and truth.crs is not None and crs != truth.crs:
-        raise InputError(path, "crs", f"{crs} differs from the truth's CRS")
-    data = sample_to_grid(data, src, truth.grid)
-    return data if band is None else data[band]
+class RunOnGrid:
+    """A run seen on the cells of the evaluation grid, a window at a time (see
+    :class:`RunLayers`): its rasters are read and its meshes cast only where asked.
+
+    Parameters
+    ----------
+    run : Run
+    grid, crs
+        The evaluation grid and the truth's CRS (a raster of the run in another is
+        refused).
+    options : EvaluationOptions
+        ``min_object_area_m2`` and ``window_cells``: a fusion run's buildings are the
+        regions of its building class (:class:`~workbench.tiled_regions.TiledRegions`
+        over the tiles of ``window_cells``), found by a first pass over those tiles.
+    """
+
+    def __init__(self, run: Run, grid: Grid, crs, options: EvaluationOptions):
+        self.run, self.grid = run, grid
+        self.cls_path = run.raster("class")
+        self.headers = {}
+        for name in ("class", "dsm", "ortho", "dtm"):
+            path = run.raster(name)
+            if path is not None:
+                src, _, own = raster_header(path, name)
+                if own is not None and crs is not None and own != crs:
+                    raise InputError(path, "crs", f"{own} differs from the truth's CRS")
+                self.headers[path] = src
+        self.regions = self.top_down = None
+        if run.kind == "fusion":
+            min_cells = options.min_object_area_m2 / grid.gsd**2
+            self.regions = TiledRegions(grid.tiles(options.window_cells), self._building_mask,
+                                        min_cells)  # fmt: skip
+        else:
+            vertices, triangles, owner = stacked_meshes(run)
+            self.top_down = TopDown(vertices, triangles, owner, grid)
+
+    def _read(self, path, rows: slice, cols: slice, band: int | None = 0) -> np.ndarray:
+        data = read_on_grid(path, self.grid.window(rows, cols), header=self.headers[path])
+        return data if band is None else data[band]
+
+    def _classes(self, rows: slice, cols: slice) -> np.ndarray | None:
+        if self.cls_path is None:
+            return None
+        return check_class_codes(self._read(self.cls_path, rows, cols), self.cls_path, "class")
+
+    def _building_mask(self, rows: slice, cols: slice) -> np.ndarray:
+        cls = self._classes(rows, cols)
+        return cls == 4 if cls is not None else np.zeros((rows.stop - rows.start,
+                                                           cols.stop - cols.start), bool)
+
+    def layers(self, rows: slice, cols: slice, ground: np.ndarray | None,
+               with_ids: bool = True) -> RunLayers:  # fmt: skip
+        """The run on the cells ``rows`` x ``cols``; ``ground`` is the truth's DTM there
+        (a model's ground where it has none of its own). A fusion run's building ids
+        (``with_ids``) are known on the tiles of ``window_cells`` only; elsewhere pass
+        ``with_ids=False`` and they are None."""
+        cls = self._classes(rows, cols)
+        shape = (rows.stop - rows.start, cols.stop - cols.start)
+        if self.run.kind == "fusion":
+            dsm = self._read(self.run.raster("dsm"), rows, cols).astype(np.float64)
+            ortho = None
+            if self.run.raster("ortho"):
+                ortho = np.moveaxis(self._read(self.run.raster("ortho"), rows, cols, None), 0, -1)
+            ids = None
+            if with_ids:
+                mask = cls == 4 if cls is not None else np.zeros(shape, bool)
+                ids = self.regions(rows, cols, mask)
+            bs = np.where(ids > 0, dsm, np.nan) if ids is not None else None
+            return RunLayers(dsm, ids, bs, cls=cls, ortho=ortho, dsm=dsm)
+        ids, building_surface, normals = self.top_down.window(rows, cols)
+        ground = np.full(shape, np.nan) if ground is None else ground
+        if self.run.raster("dtm"):
+            # the run's own ground; where it has none, the truth's, so that a building cell
+            # the model misses is always scored (a hole in its ground must not hide it)
+            own = self._read(self.run.raster("dtm"), rows, cols).astype(np.float64)
+            ground = np.where(np.isfinite(own), own, ground)
+        surface = np.where(ids > 0, building_surface, ground)
+        return RunLayers(surface, ids, building_surface, normals=normals, cls=cls)
 
 
 def run_layers(run: Run, truth: Truth, options: EvaluationOptions) -> RunLayers:
-    """The run on the truth's grid (see :class:`RunLayers`)."""
-    path = run.raster("class")
-    cls = check_class_codes(_on_grid(path, truth), path, "class") if path else None
-    if run.kind == "fusion":
-        dsm = _on_grid(run.raster("dsm"), truth).astype(np.float64)
-        ortho = None
-        if run.raster("ortho"):
-            ortho = np.moveaxis(_on_grid(run.raster("ortho"), truth, band=None), 0, -1)
-        mask = cls == 4 if cls is not None else np.zeros(truth.grid.shape, bool)
-        ids = building_regions(mask, options.min_object_area_m2 / truth.grid.gsd**2)
-        return RunLayers(dsm, ids, np.where(ids > 0, dsm, np.nan), cls=cls, ortho=ortho, dsm=dsm)
-    vertices, triangles, owner = stacked_meshes(run)
-    ids, building_surface, normals = top_down(vertices, triangles, owner, truth.grid)
-    ground = truth.dtm if truth.dtm is not None else np.full(truth.grid.shape, np.nan)
-    if run.raster("dtm"):
-        # the run's own ground; where it has none, the truth's, so that a building cell
-        # the model misses is always scored (a hole in its ground must not hide it)
-        own = _on_grid(run.raster("dtm"), truth).astype(np.float64)
-        ground = np.where(np.isfinite(own), own, ground)
-    surface = np.where(ids > 0, building_surface, ground)
-    return RunLayers(surface, ids, building_surface, normals=normals, cls=cls)
+    """The run on the truth's whole grid (see :class:`RunLayers`)."""
+    on_grid = RunOnGrid(run, truth.grid, truth.crs,
+                        replace(options, window_cells=max(truth.grid.shape)))  # fmt: skip
+    return on_grid.layers(slice(0, truth.grid.height), slice(0, truth.grid.width), truth.dtm)
 
 
 def stacked_meshes(run: Run) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -133,43 +193,21 @@ def building_regions(mask: np.ndarray, min_cells: float) -> np.ndarray:
     return keep[labels]
 
 
-def evaluate(run: Run, truth: Truth, options: EvaluationOptions | None = None) -> Evaluation:
-    """Every metric the truth and the run allow; groups without data are left out."""
+def evaluate(run: Run, truth: Truth | TruthSource,
+             options: EvaluationOptions | None = None) -> Evaluation:  # fmt: skip
+    """Every metric the truth and the run allow; groups without data are left out.
+
+    The grid is scored a window of ``options.window_cells`` at a time (the truth and the
+    run read there only), the buildings a group at a time, so that memory follows the
+    window, not the grid: the figures are the same whatever the window.
+    """
     options = options or EvaluationOptions()
-    layers = run_layers(run, truth, options)
-    m: dict = {"method": run.method, "kind": run.kind}
-    if layers.cls is not None and truth.cls is not None:
-        c = metrics.classification(layers.cls, truth.cls, exclude=truth.training)
-        if "overall_accuracy" in c:
-            m["classification"] = c
-    t_ids = truth.building_ids
-    if t_ids is not None:
-        f = metrics.footprint_2d(layers.building_ids > 0, t_ids > 0)
-        f["objects"] = metrics.building_objects(t_ids, layers.building_ids)
-        m["footprint_2d"] = f
-    t_surface = truth.building_surface
-    if t_surface is not None and truth.dtm is not None:
-        pred_h, true_h = layers.building_surface - truth.dtm, t_surface - truth.dtm
-        m["volume_3d"] = metrics.volume_3d(pred_h, true_h)
-        m["volume_3d_tolerant"] = metrics.volume_3d(pred_h, true_h, options.tolerance_m)
-    if t_surface is not None:
-        jumps = metrics.height_jumps(t_surface)
-        h = metrics.height_errors(layers.surface, t_surface, mask=t_ids > 0, jumps=jumps)
-        if "rmse_m" in h:
-            m["height"] = h
-            # the roofs' own error: where both the run and the truth have a building
-            # (the DEM-blocks paper's altimetric RMSE), the outlines' misses apart
-            roofs = metrics.height_errors(layers.surface, t_surface,
-                                          mask=(t_ids > 0) & (layers.building_ids > 0),
-                                          jumps=jumps)  # fmt: skip
-            if "rmse_m" in roofs:
-                h["rmse_on_both_m"] = roofs["rmse_m"]
-                h["rmse_on_both_off_jumps_m"] = roofs["rmse_off_jumps_m"]
-            share = metrics.error_share_off_jumps(layers.surface, t_surface, t_ids > 0,
-                                                  layers.building_ids == 0, jumps)  # fmt: skip
-            if share is not None:
-                h["missed_share_off_jumps"] = share
-    rows = per_building(run, truth, layers)
+    on_grid = RunOnGrid(run, truth.grid, truth.crs, options)
+    scores = GridScores(run, truth.grid, picture_stride(truth.grid), options.tolerance_m)
+    for rows, cols in truth.grid.tiles(options.window_cells):
+        scores.add(truth, rows, cols, on_grid)
+    m: dict = {"method": run.method, "kind": run.kind, **scores.metrics()}
+    rows = per_building(run, truth, on_grid, scores, options)
     m["buildings"] = building_summary(rows)
     face_error = None
     if run.kind == "model":
@@ -179,14 +217,6 @@ def evaluate(run: Run, truth: Truth, options: EvaluationOptions | None = None) -
             [len(b.triangles) for b in run.buildings],
             [is_watertight(b.vertices, b.triangles) for b in run.buildings],
         )
-        if layers.normals is not None and truth.roof_normals is not None:
-            both = np.isfinite(layers.normals[..., 2]) & np.isfinite(truth.roof_normals[..., 2])
-            if both.any():
-                ang = metrics.plane_angles_deg(layers.normals[both], truth.roof_normals[both])
-                m["roofs"] = {
-                    "plane_angle_median_deg": float(np.median(ang)),
-                    "cells": int(both.sum()),
-                }
         m["regularity"] = {
             **metrics.outline_regularity([_footprint(b) for b in run.buildings]),
             **metrics.symmetric_plane_pairs(
@@ -196,72 +226,321 @@ def evaluate(run: Run, truth: Truth, options: EvaluationOptions | None = None) -
         texture = texture_costs(run, truth)
         if texture:
             m["texture"] = texture
-    if run.kind == "fusion":
-        if truth.dsm is not None:
-            d = metrics.height_errors(layers.dsm, truth.dsm)
-            m["dsm"] = {k: d[k] for k in DSM_KEYS if k in d}
-        if layers.ortho is not None and truth.ortho is not None:
-            both = (layers.ortho.sum(-1) > 0) & np.isfinite(layers.dsm)
-            o = metrics.colour_mae(layers.ortho, truth.ortho, both)
-            if o:
-                m["ortho"] = {"mae": o["mean"], "per_channel": [o["r"], o["g"], o["b"]]}
     c = metrics.cost(run.record.get("stages", {}))
     if c:
         m["cost"] = c
-    return Evaluation(_drop_empty(m), rows, layers, face_error)
+    m = _drop_empty({k: m[k] for k in METRIC_ORDER if k in m})
+    return Evaluation(m, rows, scores.overview, face_error)
 
 
-def per_building(run: Run, truth: Truth, layers: RunLayers) -> list[dict]:
+METRIC_ORDER = ("method", "kind", "classification", "footprint_2d", "volume_3d",
+                "volume_3d_tolerant", "height", "buildings", "surface", "complexity", "roofs",
+                "regularity", "texture", "dsm", "ortho", "cost")  # fmt: skip
+
+PICTURE_CELLS = 2048  # the longest side of the report's maps
+
+
+def picture_stride(grid: Grid, longest: int = PICTURE_CELLS) -> int:
+    """Every how many cells the report's maps take one, so that they are at most
+    ``longest`` cells a side."""
+    return max(1, -(-max(grid.shape) // longest))
+
+
+def overview_grid(grid: Grid, stride: int) -> Grid:
+    """The grid of every ``stride``-th cell of ``grid`` (cells ``stride`` times larger)."""
+    return Grid(grid.xmin, grid.ymax, grid.gsd * stride, -(-grid.width // stride),
+                -(-grid.height // stride))  # fmt: skip
+
+
+def strided_into(out: np.ndarray | None, a: np.ndarray, rows: slice, cols: slice, stride: int,
+                 shape: tuple[int, int]) -> np.ndarray:  # fmt: skip
+    """Put the window ``rows`` x ``cols`` of a grid, ``a`` ((h, w, ...)), at its place
+    in ``out``, the grid's every ``stride``-th cell (of ``shape``; made, NaN or 0, when
+    None); returns ``out``."""
+    if out is None:
+        fill = np.nan if np.issubdtype(a.dtype, np.floating) else 0
+        out = np.full(shape + a.shape[2:], fill, a.dtype)
+    r0, c0 = -rows.start % stride, -cols.start % stride  # the window's first cell kept
+    i, j = (rows.start + r0) // stride, (cols.start + c0) // stride
+    sub = a[r0::stride, c0::stride]
+    out[i : i + sub.shape[0], j : j + sub.shape[1]] = sub
+    return out
+
+
+def truth_overview(truth, stride: int, window_cells: int = 512) -> Truth:
+    """The truth's rasters at every ``stride``-th cell (a :class:`Truth` on
+    :func:`overview_grid`), read a window at a time: the report's maps of a city."""
+    grid = overview_grid(truth.grid, stride)
+    out = Truth(grid, truth.crs, buildings=truth.buildings, mesh=truth.mesh,
+                views=truth.views, sources=truth.sources)  # fmt: skip
+    for rows, cols in truth.grid.tiles(window_cells):
+        t = truth.window(rows, cols)
+        for name in GRID_LAYERS:
+            if getattr(t, name) is not None:
+                setattr(out, name, strided_into(getattr(out, name), getattr(t, name), rows, cols,
+                                                stride, grid.shape))  # fmt: skip
+    return out
+
+
+class GridScores:
+    """The sums the grid's metrics are made of, added up window by window, and the
+    run's maps for the report (every ``stride``-th cell).
+
+    Parameters
+    ----------
+    run : Run
+    grid : Grid
+        The evaluation grid.
+    stride : int
+        Of the maps in :attr:`overview`.
+    tolerance_m : float
+        Of ``volume_3d_tolerant``.
+    """
+
+    def __init__(self, run: Run, grid: Grid, stride: int, tolerance_m: float):
+        self.kind, self.stride, self.tolerance = run.kind, stride, tolerance_m
+        self.confusion, self.excluded, self.classes = np.zeros((4, 4), np.int64), 0, False
+        self.footprint = None  # [tp, fp, fn]
+        self.objects = None  # id_counts of the true ids and of the run's
+        self.volume = {0: np.zeros(3), 1: np.zeros(3)}
+        self.height, self.roofs = metrics.HeightErrorSums(), metrics.HeightErrorSums()
+        self.dsm, self.dsm_known = metrics.HeightErrorSums(), False
+        self.colour = [0, np.zeros(3)]
+        self.angles = metrics.angle_median()
+        self.per_true = None  # id_counts of the true ids: covered, squared error, errors
+        self.covering = None  # id_counts of (true id, model id) pairs
+        self.boxes: dict[int, list[int]] = {}  # true id: [row0, row1, col0, col1]
+        self.has_surface = self.has_volume = False
+        self.shape = overview_grid(grid, stride).shape
+        self.overview = RunLayers(None, None, None)
+        self.n_models = len(run.buildings) if run.kind == "model" else 0
+
+    def add(self, truth, rows: slice, cols: slice, on_grid: RunOnGrid) -> None:
+        """Score the window ``rows`` x ``cols`` of the grid."""
+        H, W = truth.grid.shape
+        # the truth one cell wider: its height jumps look at the cells around
+        halo = (slice(max(rows.start - 1, 0), min(rows.stop + 1, H)),
+                slice(max(cols.start - 1, 0), min(cols.stop + 1, W)))  # fmt: skip
+        wide = truth.window(*halo)
+        inner = (slice(rows.start - halo[0].start, rows.stop - halo[0].start),
+                 slice(cols.start - halo[1].start, cols.stop - halo[1].start))  # fmt: skip
+        t = wide.window(*inner)
+        run = on_grid.layers(rows, cols, t.dtm)
+        if run.cls is not None and t.cls is not None:
+            conf, excluded = metrics.class_confusion(run.cls, t.cls, exclude=t.training)
+            self.confusion += conf
+            self.excluded += excluded
+            self.classes = True
+        t_ids, ids = t.building_ids, run.building_ids
+        if t_ids is not None:
+            self._buildings(t, run, rows, cols)
+        if t.building_surface is not None and t.dtm is not None:
+            pred_h, true_h = run.building_surface - t.dtm, t.building_surface - t.dtm
+            self.has_volume = True
+            for k, tol in ((0, 0.0), (1, self.tolerance)):
+                v = metrics.volume_3d(pred_h, true_h, tol)
+                self.volume[k] += [v["vtp"], v["vfp"], v["vfn"]]
+        if t.building_surface is not None:
+            self.has_surface = True
+            jumps = metrics.height_jumps(wide.building_surface)[inner]
+            self.height.add(run.surface, t.building_surface, t_ids > 0, jumps, ids == 0)
+            self.roofs.add(run.surface, t.building_surface, (t_ids > 0) & (ids > 0), jumps)
+        if run.normals is not None and t.roof_normals is not None:
+            both = np.isfinite(run.normals[..., 2]) & np.isfinite(t.roof_normals[..., 2])
+            self.angles.add(metrics.plane_angles_deg(run.normals[both], t.roof_normals[both]))
+        if self.kind == "fusion" and t.dsm is not None:
+            self.dsm_known = True
+            self.dsm.add(run.dsm, t.dsm, None, metrics.height_jumps(wide.dsm)[inner])
+            if run.ortho is not None and t.ortho is not None:
+                n, sums = metrics.colour_sums(run.ortho, t.ortho,
+                                              (run.ortho.sum(-1) > 0) & np.isfinite(run.dsm))
+                self.colour[0] += n
+                self.colour[1] += sums
+        self._picture(run, rows, cols)
+
+    def _buildings(self, t: Truth, run: RunLayers, rows: slice, cols: slice) -> None:
+        t_ids, ids = t.building_ids, run.building_ids
+        tp = np.count_nonzero((ids > 0) & (t_ids > 0))
+        counts = np.array([tp, np.count_nonzero(ids > 0) - tp, np.count_nonzero(t_ids > 0) - tp])
+        self.footprint = counts if self.footprint is None else self.footprint + counts
+        objects = (metrics.id_counts(t_ids, ids > 0), metrics.id_counts(ids, t_ids > 0))
+        self.objects = objects if self.objects is None else tuple(
+            metrics.add_id_counts(a, b) for a, b in zip(self.objects, objects, strict=True))
+        if t.building_surface is not None:
+            e = run.surface - t.building_surface
+            known = np.isfinite(e)
+            per = metrics.id_counts(t_ids, ids > 0, np.where(known, e, 0.0) ** 2, known)
+        else:
+            per = metrics.id_counts(t_ids, ids > 0)
+        self.per_true = per if self.per_true is None else metrics.add_id_counts(self.per_true, per)
+        if self.kind == "model":
+            both = (t_ids > 0) & (ids > 0)
+            pairs = metrics.id_counts(t_ids[both] * (self.n_models + 1) + ids[both])
+            self.covering = pairs if self.covering is None else metrics.add_id_counts(
+                self.covering, pairs)
+        for k, (r, c) in building_windows(t_ids):
+            box = [r.start + rows.start, r.stop + rows.start, c.start + cols.start,
+                   c.stop + cols.start]  # fmt: skip
+            old = self.boxes.setdefault(k, box)
+            old[:] = [min(old[0], box[0]), max(old[1], box[1]), min(old[2], box[2]),
+                      max(old[3], box[3])]  # fmt: skip
+
+    def _picture(self, run: RunLayers, rows: slice, cols: slice) -> None:
+        for name in ("surface", "building_ids", "cls"):
+            a = getattr(run, name)
+            if a is not None:
+                setattr(self.overview, name, strided_into(getattr(self.overview, name), a, rows,
+                                                          cols, self.stride, self.shape))
+
+    def metrics(self) -> dict:
+        """The grid's groups of metrics.json (those the data allow)."""
+        m = {}
+        if self.classes:
+            c = metrics.classification_scores(self.confusion, self.excluded)
+            if "overall_accuracy" in c:
+                m["classification"] = c
+        if self.footprint is not None:
+            tp, fp, fn = (int(x) for x in self.footprint)
+            f = {"tp": tp, "fp": fp, "fn": fn, **metrics.detection_ratios(tp, fp, fn)}
+            f["objects"] = metrics.objects_from_counts(*self.objects)
+            m["footprint_2d"] = f
+        if self.has_volume:
+            for key, k, tol in (("volume_3d", 0, 0.0), ("volume_3d_tolerant", 1, self.tolerance)):
+                vtp, vfp, vfn = (float(x) for x in self.volume[k])
+                m[key] = {"vtp": vtp, "vfp": vfp, "vfn": vfn, "tolerance_m": tol,
+                          **metrics.detection_ratios(vtp, vfp, vfn)}  # fmt: skip
+        if self.has_surface:
+            h = self.height.result()
+            if "rmse_m" in h:
+                m["height"] = h
+                # the roofs' own error: where both the run and the truth have a building
+                # (the DEM-blocks paper's altimetric RMSE), the outlines' misses apart
+                roofs = self.roofs.result()
+                if "rmse_m" in roofs:
+                    h["rmse_on_both_m"] = roofs["rmse_m"]
+                    h["rmse_on_both_off_jumps_m"] = roofs["rmse_off_jumps_m"]
+                share = self.height.part_share()
+                if share is not None:
+                    h["missed_share_off_jumps"] = share
+        if self.angles.n:
+            m["roofs"] = {"plane_angle_median_deg": self.angles.median(), "cells": self.angles.n}
+        if self.dsm_known:
+            d = self.dsm.result()
+            m["dsm"] = {k: d[k] for k in DSM_KEYS if k in d}
+            o = metrics.colour_scores(*self.colour)
+            if o:
+                m["ortho"] = {"mae": o["mean"], "per_channel": [o["r"], o["g"], o["b"]]}
+        return m
+
+
+def per_building(run: Run, truth, on_grid: RunOnGrid, scores: GridScores,
+                 options: EvaluationOptions) -> list[dict]:  # fmt: skip
     """One row per true building: its truth, the model building covering most of it,
-    and the errors over its cells."""
-    t_ids = truth.building_ids
-    if t_ids is None:
+    and the errors over its cells.
+
+    What adds up (its cells, how many the run covers, its squared errors) comes from
+    ``scores``; its height and roof angles, which are quantiles of its cells, are read
+    a group of buildings at a time, each group the box of the buildings whose box's
+    centre falls in one tile of ``window_cells``.
+    """
+    if scores.per_true is None:
         return []
-    ground = truth.dtm
-    true_h = model_h = {}
-    if ground is not None and truth.building_surface is not None:
-        true_h = metrics.building_heights(truth.building_surface, ground, t_ids)
-        model_h = metrics.building_heights(layers.surface, ground, t_ids)
-    err_pct = metrics.height_error_pct(model_h, true_h)
+    t_ids, sums = scores.per_true
+    gsd = truth.grid.gsd
+    cover = _covering_model(scores) if run.kind == "model" else {}
+    quantiles = {}
+    for window, group in _building_groups(scores.boxes, options.window_cells):
+        t = truth.window(*window)
+        layers = on_grid.layers(*window, t.dtm, with_ids=False)
+        quantiles.update(_building_quantiles(t, layers, group))
     rows = []
-    for k, window in building_windows(t_ids):
-        cells = t_ids[window] == k
-        row = {"id": k, "area_m2": float(cells.sum() * truth.grid.gsd**2)}
+    for k, s in zip(t_ids.tolist(), sums, strict=True):
+        row = {"id": k, "area_m2": float(s[0] * gsd**2)}
         rec = truth.buildings.get(k, {})
         if "roof_type" in rec:
             row["roof_type_true"] = rec["roof_type"]
-            also = metrics.indistinguishable_roof_types(
-                rec["roof_type"], rec.get("wings", []), truth.grid.gsd
-            ) - {rec["roof_type"]}
+            also = metrics.indistinguishable_roof_types(rec["roof_type"], rec.get("wings", []),
+                                                        gsd) - {rec["roof_type"]}  # fmt: skip
             if also:
                 row["roof_type_true_also"] = sorted(also)
-        if k in true_h:
-            row["height_true_m"] = true_h[k]
-            row["height_model_m"] = model_h.get(k, 0.0)
-            row["height_error_pct"] = err_pct[k]
-        covered = layers.building_ids[window][cells]
-        row["covered_fraction"] = float(np.mean(covered > 0))
-        if truth.building_surface is not None:
-            e = layers.surface[window][cells] - truth.building_surface[window][cells]
-            e = e[np.isfinite(e)]
-            if len(e):
-                row["rmse_m"] = float(np.sqrt(np.mean(e**2)))
-        if run.kind == "model" and (covered > 0).any():
-            j = int(np.bincount(covered[covered > 0]).argmax())
-            b = run.buildings[j - 1]
+        q = quantiles.get(k, {})
+        if "height_true_m" in q:
+            row["height_true_m"] = q["height_true_m"]
+            row["height_model_m"] = q.get("height_model_m", 0.0)
+            err = metrics.height_error_pct({k: row["height_model_m"]}, {k: row["height_true_m"]})
+            if k in err:
+                row["height_error_pct"] = err[k]
+        row["covered_fraction"] = float(s[1] / s[0])
+        if len(s) > 2 and s[3] > 0:
+            row["rmse_m"] = float(np.sqrt(s[2] / s[3]))
+        if k in cover:
+            b = run.buildings[cover[k] - 1]
             row["model_id"] = b.id
             row["faces"] = len(b.triangles)
             for key in ("roof_type", "seam_cost", "seam_cost_projective"):
                 if key in b.record:
                     row[key] = b.record[key]
-            if layers.normals is not None and truth.roof_normals is not None:
-                model_n, true_n = layers.normals[window], truth.roof_normals[window]
-                both = cells & np.isfinite(model_n[..., 2]) & np.isfinite(true_n[..., 2])
-                if both.any():
-                    ang = metrics.plane_angles_deg(model_n[both], true_n[both])
-                    row["plane_angle_median_deg"] = float(np.median(ang))
+            if "plane_angle_median_deg" in q:
+                row["plane_angle_median_deg"] = q["plane_angle_median_deg"]
         rows.append(row)
     return rows
+
+
+def _covering_model(scores: GridScores) -> dict[int, int]:
+    """{true id: the model building (1-based) covering most of its cells, the first of
+    equals}."""
+    if scores.covering is None:
+        return {}
+    keys, sums = scores.covering
+    n = scores.n_models + 1
+    t, mdl, count = keys // n, keys % n, sums[:, 0]
+    order = np.lexsort((mdl, -count, t))  # per true id: most cells first, then lowest id
+    t, mdl = t[order], mdl[order]
+    first = np.r_[True, t[1:] != t[:-1]]
+    return dict(zip(t[first].tolist(), mdl[first].tolist(), strict=True))
+
+
+def _building_groups(boxes: dict[int, list[int]], size: int):
+    """((rows, cols), ids): the buildings whose box's centre is in one tile of ``size``
+    cells, and the box of all their boxes."""
+    groups: dict[tuple[int, int], list[int]] = {}
+    for k, (r0, r1, c0, c1) in boxes.items():
+        groups.setdefault((((r0 + r1) // 2) // size, ((c0 + c1) // 2) // size), []).append(k)
+    for _, ids in sorted(groups.items()):
+        b = np.array([boxes[k] for k in ids])
+        window = (slice(int(b[:, 0].min()), int(b[:, 1].max())),
+                  slice(int(b[:, 2].min()), int(b[:, 3].max())))  # fmt: skip
+        yield window, ids
+
+
+def _building_quantiles(t: Truth, layers: RunLayers, ids: list[int]) -> dict[int, dict]:
+    """{id: {height_true_m, height_model_m, plane_angle_median_deg}} of the true
+    buildings ``ids`` over their cells in the window of ``t`` (which holds them whole)."""
+    group = np.where(np.isin(t.building_ids, ids), t.building_ids, 0)
+    out: dict[int, dict] = {k: {} for k in ids}
+    if t.dtm is not None and t.building_surface is not None:
+        true_h = metrics.building_heights(t.building_surface, t.dtm, group)
+        model_h = metrics.building_heights(layers.surface, t.dtm, group)
+        for k, h in true_h.items():
+            out[k]["height_true_m"] = h
+            if k in model_h:
+                out[k]["height_model_m"] = model_h[k]
+    if layers.normals is not None and t.roof_normals is not None:
+        both = (group > 0) & np.isfinite(layers.normals[..., 2]) & np.isfinite(
+            t.roof_normals[..., 2])
+        ang = metrics.plane_angles_deg(layers.normals[both], t.roof_normals[both])
+        for k, a in _split_by(group[both], ang):
+            out[k]["plane_angle_median_deg"] = float(np.median(a))
+    return out
+
+
+def _split_by(keys: np.ndarray, values: np.ndarray):
+    """(key, values of that key) for each key of ``keys``, in increasing order."""
+    if not len(keys):
+        return iter(())
+    order = np.argsort(keys, kind="stable")
+    labels, start = np.unique(keys[order], return_index=True)
+    return zip(labels.tolist(), np.split(values[order], start[1:]), strict=True)
 
 
 def building_windows(ids: np.ndarray):

@@ -30,24 +30,102 @@ def classification(pred: np.ndarray, truth: np.ndarray, exclude: np.ndarray | No
     everything else, the paper's two-class figure), ``confusion`` (rows truth 1-4,
     columns prediction 1-4), ``scored_cells`` and ``excluded_cells``.
     """
+    return classification_scores(*class_confusion(pred, truth, exclude))
+
+
+def class_confusion(
+    pred: np.ndarray, truth: np.ndarray, exclude: np.ndarray | None = None
+) -> tuple[np.ndarray, int]:
+    """The counts :func:`classification` is made of, which add up over the windows of a
+    grid: (4, 4) int64 confusion (rows truth 1-4, columns prediction 1-4) and the number
+    of excluded cells."""
     m = (pred > 0) & (truth > 0)
     excluded = 0
     if exclude is not None:
         excluded = int(np.count_nonzero(m & exclude))
         m &= ~exclude
-    p, t = pred[m].astype(int), truth[m].astype(int)
-    conf = np.zeros((4, 4), np.int64)
-    np.add.at(conf, (t - 1, np.clip(p, 1, 4) - 1), 1)
-    out = {"scored_cells": int(m.sum()), "excluded_cells": excluded}
-    if not m.any():
+    p, t = pred[m].astype(np.int64), truth[m].astype(np.int64)
+    conf = np.bincount((t - 1) * 4 + np.clip(p, 1, 4) - 1, minlength=16).reshape(4, 4)
+    return conf, excluded
+
+
+def classification_scores(conf: np.ndarray, excluded: int) -> dict:
+    """:func:`classification`'s figures from its counts (:func:`class_confusion`)."""
+    conf = np.asarray(conf, np.int64)
+    total = int(conf.sum())
+    out = {"scored_cells": total, "excluded_cells": int(excluded)}
+    if not total:
         return out
-    out["overall_accuracy"] = float(np.trace(conf) / conf.sum())
+    out["overall_accuracy"] = float(np.trace(conf) / total)
     per = {CLASS_NAMES[k + 1]: float(conf[k, k] / conf[k].sum()) for k in range(4) if conf[k].sum()}
     out["per_class_accuracy"] = per
     out["mean_class_accuracy"] = float(np.mean(list(per.values())))
-    out["building_accuracy"] = float(np.mean((p == 4) == (t == 4)))
+    # building against everything else: the building/building and other/other blocks
+    out["building_accuracy"] = float((conf[3, 3] + conf[:3, :3].sum()) / total)
     out["confusion"] = conf.tolist()
     return out
+
+
+class RoundedMedian:
+    """The median of non-negative values rounded to ``step``, kept as counts: a city's
+    grid has hundreds of millions of cells, whose values need not be held to find it.
+
+    Values above ``top`` are kept as they are (they are few: errors of more than 100 m).
+
+    Parameters
+    ----------
+    step, top : float
+        Rounding and the largest value counted, in the values' unit.
+    """
+
+    def __init__(self, step: float, top: float):
+        self.step = step
+        self.counts = np.zeros(int(round(top / step)) + 1, np.int64)
+        self.above: list[np.ndarray] = []
+
+    def add(self, values: np.ndarray) -> None:
+        v = np.asarray(values, np.float64).ravel()
+        k = np.rint(v / self.step)
+        high = k >= len(self.counts)
+        if high.any():
+            self.above.append(v[high])
+        self.counts += np.bincount(k[~high].astype(np.int64), minlength=len(self.counts))
+
+    @property
+    def n(self) -> int:
+        return int(self.counts.sum()) + sum(len(a) for a in self.above)
+
+    def median(self) -> float | None:
+        """The median (the mean of the two middle values for an even count), None
+        without values."""
+        n = self.n
+        if not n:
+            return None
+        cum = np.cumsum(self.counts)
+        above = np.sort(np.concatenate(self.above)) if self.above else np.zeros(0)
+
+        def kth(i: int) -> float:
+            if i < cum[-1]:
+                return float(np.searchsorted(cum, i, side="right") * self.step)
+            return float(above[i - cum[-1]])
+
+        # to the rounding's digits and one more (the mean of two middles), not k * step's
+        digits = int(np.ceil(-np.log10(self.step))) + 1
+        return round((kth((n - 1) // 2) + kth(n // 2)) / 2, digits)
+
+
+HEIGHT_ROUNDING_M = 1e-4  # medians of height errors: to a tenth of a millimetre
+ANGLE_ROUNDING_DEG = 1e-3
+
+
+def height_median() -> RoundedMedian:
+    """A :class:`RoundedMedian` for absolute height errors in metres."""
+    return RoundedMedian(HEIGHT_ROUNDING_M, 100.0)
+
+
+def angle_median() -> RoundedMedian:
+    """A :class:`RoundedMedian` for angles in degrees."""
+    return RoundedMedian(ANGLE_ROUNDING_DEG, 180.0)
 
 
 def height_jumps(truth: np.ndarray, step: float = JUMP_M) -> np.ndarray:
@@ -100,28 +178,63 @@ def height_errors(
 
     Returns
     -------
-    dict with ``rmse_m``, ``mae_m``, ``median_abs_m`` over cells where both are known,
-    ``valid_fraction``: share of the scored cells where the model is known, and
-    ``rmse_off_jumps_m`` and ``jump_fraction``: the RMSE over the scored cells off
-    :func:`height_jumps` of the truth, and the share of scored cells on them.
+    dict with ``rmse_m``, ``mae_m``, ``median_abs_m`` (to :data:`HEIGHT_ROUNDING_M`) over
+    cells where both are known, ``valid_fraction``: share of the scored cells where the
+    model is known, and ``rmse_off_jumps_m`` and ``jump_fraction``: the RMSE over the
+    scored cells off :func:`height_jumps` of the truth, and the share of scored cells on
+    them.
     """
-    m = np.isfinite(truth) if mask is None else (mask & np.isfinite(truth))
-    ok = m & np.isfinite(model)
-    out = {"valid_fraction": float(ok.sum() / max(m.sum(), 1))}
-    if ok.any():
+    sums = HeightErrorSums()
+    sums.add(model, truth, mask, height_jumps(truth) if jumps is None else jumps)
+    return sums.result()
+
+
+class HeightErrorSums:
+    """:func:`height_errors` over the windows of a grid: :meth:`add` each window, then
+    :meth:`result`. With ``part`` cells given to :meth:`add`, :meth:`part_share` is the
+    share of the squared error off the jumps that falls on them."""
+
+    def __init__(self):
+        self.scored = self.known = self.on_jumps = self.off_jumps = 0
+        self.sq = self.abs = self.sq_off = self.sq_off_part = 0.0
+        self.median = height_median()
+
+    def add(self, model: np.ndarray, truth: np.ndarray, mask: np.ndarray | None,
+            jumps: np.ndarray, part: np.ndarray | None = None) -> None:  # fmt: skip
+        """One window: arrays as for :func:`height_errors`, ``jumps`` required."""
+        m = np.isfinite(truth) if mask is None else (mask & np.isfinite(truth))
+        ok = m & np.isfinite(model)
+        self.scored += int(np.count_nonzero(m))
+        self.known += int(np.count_nonzero(ok))
         e = (model[ok] - truth[ok]).astype(np.float64)
-        out.update(
-            rmse_m=float(np.sqrt(np.mean(e**2))),
-            mae_m=float(np.mean(np.abs(e))),
-            median_abs_m=float(np.median(np.abs(e))),
-        )
-        jumps = height_jumps(truth) if jumps is None else jumps
+        self.sq += float(np.sum(e**2))
+        self.abs += float(np.sum(np.abs(e)))
+        self.median.add(np.abs(e))
+        self.on_jumps += int(np.count_nonzero(ok & jumps))
         off = ok & ~jumps
-        out["jump_fraction"] = float((ok & jumps).sum() / ok.sum())
-        if off.any():
-            e = (model[off] - truth[off]).astype(np.float64)
-            out["rmse_off_jumps_m"] = float(np.sqrt(np.mean(e**2)))
-    return out
+        self.off_jumps += int(np.count_nonzero(off))
+        e2 = np.where(off, (np.asarray(model, np.float64) - truth) ** 2, 0.0)
+        self.sq_off += float(e2.sum())
+        if part is not None:
+            self.sq_off_part += float(e2[part].sum())
+
+    def result(self) -> dict:
+        out = {"valid_fraction": float(self.known / max(self.scored, 1))}
+        if self.known:
+            out.update(
+                rmse_m=float(np.sqrt(self.sq / self.known)),
+                mae_m=float(self.abs / self.known),
+                median_abs_m=self.median.median(),
+                jump_fraction=float(self.on_jumps / self.known),
+            )
+            if self.off_jumps:
+                out["rmse_off_jumps_m"] = float(np.sqrt(self.sq_off / self.off_jumps))
+        return out
+
+    def part_share(self) -> float | None:
+        """Share of the squared error off the jumps on the ``part`` cells (see
+        :func:`error_share_off_jumps`), None without error."""
+        return float(self.sq_off_part / self.sq_off) if self.sq_off > 0 else None
 
 
 def error_share_off_jumps(
@@ -139,11 +252,9 @@ def error_share_off_jumps(
     model, truth : (H, W) float, metres, NaN unknown; mask, part : (H, W) bool; jumps :
     (H, W) bool, :func:`height_jumps` of ``truth`` if the caller has them.
     """
-    jumps = height_jumps(truth) if jumps is None else jumps
-    ok = mask & np.isfinite(model) & np.isfinite(truth) & ~jumps
-    e2 = np.where(ok, (np.asarray(model, np.float64) - truth) ** 2, 0.0)
-    total = float(e2.sum())
-    return float(e2[part].sum() / total) if total > 0 else None
+    sums = HeightErrorSums()
+    sums.add(model, truth, mask, height_jumps(truth) if jumps is None else jumps, part)
+    return sums.part_share()
 
 
 def colour_mae(model: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict:
@@ -154,10 +265,23 @@ def colour_mae(model: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict:
     model, truth : (H, W, 3) arrays
     mask : (H, W) bool
     """
-    if not mask.any():
-        return {}
+    n, sums = colour_sums(model, truth, mask)
+    return colour_scores(n, sums)
+
+
+def colour_sums(model: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> tuple[int, np.ndarray]:
+    """The cells of ``mask`` and the (3,) sums of their absolute colour errors, which
+    add up over the windows of a grid (:func:`colour_scores` makes them
+    :func:`colour_mae`)."""
     d = np.abs(model[mask].astype(np.float64) - truth[mask].astype(np.float64))
-    per = d.mean(axis=0)
+    return int(len(d)), d.sum(axis=0)
+
+
+def colour_scores(n: int, sums: np.ndarray) -> dict:
+    """:func:`colour_mae` from :func:`colour_sums`."""
+    if not n:
+        return {}
+    per = np.asarray(sums) / n
     return {"r": float(per[0]), "g": float(per[1]), "b": float(per[2]), "mean": float(per.mean())}
 
 
@@ -178,13 +302,17 @@ def footprint_2d(pred: np.ndarray, truth: np.ndarray) -> dict:
     tp = int(np.count_nonzero(pred & truth))
     fp = int(np.count_nonzero(pred & ~truth))
     fn = int(np.count_nonzero(~pred & truth))
-    out = {"tp": tp, "fp": fp, "fn": fn}
-    for key, den in (
-        ("completeness", tp + fn),
-        ("correctness", tp + fp),
-        ("quality", tp + fp + fn),
-    ):
-        if den:
+    return {"tp": tp, "fp": fp, "fn": fn, **detection_ratios(tp, fp, fn)}
+
+
+def detection_ratios(tp: float, fp: float, fn: float) -> dict:
+    """``completeness`` TP/(TP+FN), ``correctness`` TP/(TP+FP) and ``quality``
+    TP/(TP+FP+FN) of counts or volumes; a ratio whose denominator is 0 is absent (the
+    counts add up over the windows of a grid, these ratios do not)."""
+    out = {}
+    for key, den in (("completeness", tp + fn), ("correctness", tp + fp),
+                     ("quality", tp + fp + fn)):  # fmt: skip
+        if den > 0:
             out[key] = tp / den
     return out
 
@@ -206,21 +334,41 @@ def building_objects(truth_ids: np.ndarray, pred_ids: np.ndarray, min_cover: flo
     dict with ``truth_buildings``, ``found``, ``model_buildings``, ``correct``.
     """
 
-    def covered(ids: np.ndarray, other: np.ndarray) -> tuple[int, int]:
-        labels, inv = np.unique(ids[ids > 0], return_inverse=True)
-        if not len(labels):
-            return 0, 0
-        size = np.bincount(inv)
-        hit = np.bincount(inv, weights=other[ids > 0] > 0)
-        return len(labels), int(np.count_nonzero(hit >= min_cover * size))
+    sizes = [id_counts(ids, other > 0) for ids, other in ((truth_ids, pred_ids),
+                                                          (pred_ids, truth_ids))]  # fmt: skip
+    return objects_from_counts(*sizes, min_cover)
 
-    n_truth, found = covered(truth_ids, pred_ids)
-    n_pred, correct = covered(pred_ids, truth_ids)
+
+def id_counts(ids: np.ndarray, *weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The ids > 0 of ``ids`` (sorted) and, for each, its cells and the sum of each of
+    ``weights`` (arrays of ``ids``' shape) over them: (K,) ids and (K, 1 + len(weights))
+    float64 sums, which :func:`add_id_counts` adds up over the windows of a grid."""
+    m = ids > 0
+    labels, inv = np.unique(ids[m], return_inverse=True)
+    sums = np.zeros((len(labels), 1 + len(weights)))
+    sums[:, 0] = np.bincount(inv, minlength=len(labels))
+    for j, w in enumerate(weights, start=1):
+        sums[:, j] = np.bincount(inv, weights=np.asarray(w)[m], minlength=len(labels))
+    return labels, sums
+
+
+def add_id_counts(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]):
+    """Two :func:`id_counts` results as one."""
+    labels, inv = np.unique(np.concatenate([a[0], b[0]]), return_inverse=True)
+    sums = np.zeros((len(labels), a[1].shape[1]))
+    np.add.at(sums, inv, np.concatenate([a[1], b[1]]))
+    return labels, sums
+
+
+def objects_from_counts(truth: tuple, pred: tuple, min_cover: float = 0.5) -> dict:
+    """:func:`building_objects` from the :func:`id_counts` of the true ids weighted by
+    the model's building cells and of the model's ids weighted by the true ones."""
+    (t_ids, t), (p_ids, p) = truth, pred
     return {
-        "truth_buildings": n_truth,
-        "found": found,
-        "model_buildings": n_pred,
-        "correct": correct,
+        "truth_buildings": len(t_ids),
+        "found": int(np.count_nonzero(t[:, 1] >= min_cover * t[:, 0])),
+        "model_buildings": len(p_ids),
+        "correct": int(np.count_nonzero(p[:, 1] >= min_cover * p[:, 0])),
     }
 
 
@@ -255,15 +403,8 @@ def volume_3d(pred_height: np.ndarray, truth_height: np.ndarray, tolerance: floa
     vtp = float(np.sum(np.where(both, np.maximum(hp, ht) - excess, 0.0)))
     vfp = float(np.sum(np.where(both, np.where(hp > ht, excess, 0.0), hp)))
     vfn = float(np.sum(np.where(both, np.where(ht > hp, excess, 0.0), ht)))
-    out = {"vtp": vtp, "vfp": vfp, "vfn": vfn, "tolerance_m": tolerance}
-    for key, den in (
-        ("completeness", vtp + vfn),
-        ("correctness", vtp + vfp),
-        ("quality", vtp + vfp + vfn),
-    ):
-        if den > 0:
-            out[key] = vtp / den
-    return out
+    return {"vtp": vtp, "vfp": vfp, "vfn": vfn, "tolerance_m": tolerance,
+            **detection_ratios(vtp, vfp, vfn)}  # fmt: skip
 
 
 def building_heights(

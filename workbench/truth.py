@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -12,8 +12,8 @@ from rasterio.features import rasterize
 from .errors import InputError
 from .footprints import read_footprints
 from .meshio import read_ply
-from .raster import Grid, check_class_codes, read_raster
-from .raycast import raycasting_scene, vertical_hits
+from .raster import Grid, check_class_codes, raster_header, read_raster
+from .raycast import cast, local_origin, raycasting_scene
 from .scene import load_scene
 
 
@@ -28,6 +28,27 @@ def sample_to_grid(data: np.ndarray, src: Grid, dst: Grid) -> np.ndarray:
     out = np.full(data.shape[:-2] + dst.shape, fill, dtype=data.dtype)
     out[..., inside] = data[..., r[inside], c[inside]]
     return out
+
+
+def read_on_grid(path, grid: Grid, *, field: str | None = None, as_float: bool = False,
+                 header: Grid | None = None) -> np.ndarray:
+    """(B, H, W) a raster sampled at the cells of ``grid`` (nearest cell; NaN, or 0 for
+    integers, off the raster), reading only the part of it they fall on: ``grid`` may be
+    a window of a grid far larger than memory. ``header`` is the raster's own grid when
+    the caller knows it."""
+    src = header if header is not None else raster_header(path, field)[0]
+    corners = grid.cell_center(np.array([0, grid.height - 1]), np.array([0, grid.width - 1]))
+    r, c = src.cell_index(*corners)
+    r0, r1 = max(int(r.min()), 0), min(int(r.max()) + 1, src.height)
+    c0, c1 = max(int(c.min()), 0), min(int(c.max()) + 1, src.width)
+    if r0 >= r1 or c0 >= c1:  # the window is off the raster: read one cell for its type
+        data, sub, _ = read_raster(path, field=field, as_float=as_float,
+                                   window=(slice(0, 1), slice(0, 1)))  # fmt: skip
+        fill = np.nan if np.issubdtype(data.dtype, np.floating) else 0
+        return np.full((len(data),) + grid.shape, fill, data.dtype)
+    data, sub, _ = read_raster(path, field=field, as_float=as_float,
+                               window=(slice(r0, r1), slice(c0, c1)))  # fmt: skip
+    return sample_to_grid(data, sub, grid)
 
 
 def truth_folder(scene_or_truth: str | Path) -> Path:
@@ -136,20 +157,34 @@ class Truth:
     views: list = field(default_factory=list)
     sources: dict[str, str] = field(default_factory=dict)
 
+    def window(self, rows: slice, cols: slice) -> Truth:
+        """The truth on the cells ``rows`` x ``cols`` of its grid (views of its arrays)."""
+        out = replace(self, grid=self.grid.window(rows, cols))
+        for name in GRID_LAYERS:
+            a = getattr(self, name)
+            if a is not None:
+                setattr(out, name, a[rows, cols])
+        return out
 
-def load_scene_truth(scene_or_truth: str | Path) -> Truth:
-    """The full truth of a synthetic scene, on the grid of its ``truth/dsm.tif``."""
+
+GRID_LAYERS = ("dsm", "dtm", "cls", "training", "ortho", "building_ids", "building_surface",
+               "roof_normals")  # fmt: skip
+
+
+def open_scene_truth(scene_or_truth: str | Path) -> TruthSource:
+    """The full truth of a synthetic scene, on the grid of its ``truth/dsm.tif``, read a
+    window at a time (:meth:`TruthSource.window`)."""
     folder = truth_folder(scene_or_truth)
-    _, grid, crs = read_raster(folder / "dsm.tif", field="truth dsm")
-    r = truth_rasters(folder, grid)
-    truth = Truth(grid, crs, dsm=r["dsm"], dtm=r.get("dtm"), cls=r.get("class"))
-    truth.ortho = r.get("ortho")
-    truth.sources = {k: str(folder / f"{k}.tif") for k in r}
+    grid, _, crs = raster_header(folder / "dsm.tif", field="truth dsm")
+    rasters = {name: folder / f"{name}.tif" for name in TRUTH_RASTERS
+               if (folder / f"{name}.tif").exists()}  # fmt: skip
+    truth = TruthSource(grid, crs, rasters)
+    truth.sources = {k: str(p) for k, p in rasters.items()}
     scene = truth_scene(scene_or_truth, folder)
     if scene is not None:
         truth.views = scene.views
-        truth.training = training_mask(scene, grid)
-        if truth.training is not None:
+        if scene.training_labels is not None and Path(scene.training_labels).exists():
+            truth.training = Path(scene.training_labels)
             truth.sources["training"] = str(scene.training_labels)
     mesh_path = folder / "mesh.ply"
     if mesh_path.exists():
@@ -158,13 +193,7 @@ def load_scene_truth(scene_or_truth: str | Path) -> Truth:
             raise InputError(mesh_path, "building_id", "the truth mesh has no per-face building id")
         keep = props["building_id"] > 0
         truth.mesh = TruthMesh(vertices, triangles[keep], props["building_id"][keep])
-        truth.building_ids, truth.building_surface, truth.roof_normals = top_down(
-            truth.mesh.vertices, truth.mesh.triangles, truth.mesh.building, grid
-        )
         truth.sources["mesh"] = str(mesh_path)
-    elif "building_id" in r:
-        truth.building_ids = r["building_id"].astype(np.int64)
-        truth.building_surface = np.where(truth.building_ids > 0, truth.dsm, np.nan)
     path = folder / "buildings.json"
     if path.exists():
         try:
@@ -176,7 +205,13 @@ def load_scene_truth(scene_or_truth: str | Path) -> Truth:
     return truth
 
 
-def load_file_truth(
+def load_scene_truth(scene_or_truth: str | Path) -> Truth:
+    """The full truth of a synthetic scene on the grid of its ``truth/dsm.tif``, whole
+    in memory (:func:`open_scene_truth` reads it a window at a time)."""
+    return open_scene_truth(scene_or_truth).whole()
+
+
+def open_file_truth(
     *,
     dsm: Path | None = None,
     dtm: Path | None = None,
@@ -184,47 +219,118 @@ def load_file_truth(
     cls: Path | None = None,
     grid: Grid | None = None,
     crs=None,
-) -> Truth:
-    """Truth from loose files, for real data. The grid is the DSM's, else the class
-    raster's, else ``grid``; footprints are burnt into it with their feature ids."""
-    rasters = {}
+) -> TruthSource:
+    """Truth from loose files, for real data, read a window at a time. The grid is the
+    DSM's, else the class raster's, else ``grid``; footprints are burnt into it with
+    their feature ids."""
+    rasters, headers = {}, {}
     for name, path in (("dsm", dsm), ("class", cls), ("dtm", dtm)):
         if path is not None:
-            heights = name in ("dsm", "dtm")
-            data, src, src_crs = read_raster(path, field=f"truth {name}", as_float=heights)
-            if name == "class":
-                check_class_codes(data, path, "truth class")
-            rasters[name] = (data, src, src_crs, path)
+            rasters[name] = Path(path)
+            headers[name] = raster_header(path, f"truth {name}")
     for name in ("dsm", "class"):
-        if name in rasters:
-            _, grid, crs, _ = rasters[name]
+        if name in headers:
+            grid, _, crs = headers[name]
             break
     if grid is None:
         raise InputError(footprints or Path("."), None, "a truth raster or a run grid is needed")
-    truth = Truth(grid, crs)
-    for name, (data, src, _, path) in rasters.items():
-        band = sample_to_grid(data, src, grid)[0]
-        if name == "class":
-            truth.cls = band.astype(np.uint8)
-        else:
-            setattr(truth, name, band.astype(np.float64))
-        truth.sources[name] = str(path)
+    truth = TruthSource(grid, crs, rasters)
+    truth.sources = {k: str(p) for k, p in rasters.items()}
     if footprints is not None:
         items = read_footprints(footprints, crs=crs, extent=grid.bounds)
-        shapes = [(f.polygon, i) for i, f in enumerate(items, start=1)]
-        truth.building_ids = rasterize(
-            shapes, out_shape=grid.shape, transform=grid.transform, fill=0, dtype="int32"
-        ).astype(np.int64)
+        truth.footprints = [(f.polygon, i) for i, f in enumerate(items, start=1)]
         truth.sources["footprints"] = str(footprints)
-        if truth.dsm is not None:
-            truth.building_surface = np.where(truth.building_ids > 0, truth.dsm, np.nan)
     return truth
 
 
-def top_down(
-    vertices: np.ndarray, triangles: np.ndarray, building: np.ndarray, grid: Grid
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Buildings seen straight down at every cell centre of ``grid``.
+def load_file_truth(**kwargs) -> Truth:
+    """:func:`open_file_truth`'s truth whole in memory."""
+    return open_file_truth(**kwargs).whole()
+
+
+TRUTH_RASTERS = ("dsm", "dtm", "ortho", "class", "building_id")
+
+
+@dataclass
+class TruthSource:
+    """Whatever truth exists, on the evaluation grid, read a window at a time: a city's
+    truth on its grid is gigabytes, a window of it megabytes.
+
+    Attributes
+    ----------
+    grid, crs
+        The evaluation grid.
+    rasters : {name: path}
+        The truth rasters there are, of :data:`TRUTH_RASTERS`, on any grid.
+    training : path of the scene's training strokes, or None.
+    mesh : TruthMesh or None
+        The true buildings (their ids, top surface and roof normals on the grid are cast
+        from it).
+    footprints : list of (polygon, id) or None
+        True footprints burnt into the grid (without a mesh).
+    buildings, views, sources
+        As in :class:`Truth`.
+    """
+
+    grid: Grid
+    crs: object
+    rasters: dict[str, Path] = field(default_factory=dict)
+    training: Path | None = None
+    mesh: TruthMesh | None = None
+    footprints: list | None = None
+    buildings: dict[int, dict] = field(default_factory=dict)
+    views: list = field(default_factory=list)
+    sources: dict[str, str] = field(default_factory=dict)
+
+    def __post_init__(self):
+        self._headers: dict[str, Grid] = {}
+        self._top_down: TopDown | None = None
+
+    def window(self, rows: slice, cols: slice) -> Truth:
+        """The truth on the cells ``rows`` x ``cols`` of :attr:`grid` (a
+        :class:`Truth` on that window's grid)."""
+        g = self.grid.window(rows, cols)
+        r = {name: self._read(name, path, g) for name, path in self.rasters.items()}
+        t = Truth(g, self.crs, dsm=r.get("dsm"), dtm=r.get("dtm"), cls=r.get("class"),
+                  ortho=r.get("ortho"), buildings=self.buildings, mesh=self.mesh,
+                  views=self.views, sources=self.sources)  # fmt: skip
+        if self.training is not None:
+            t.training = read_on_grid(self.training, g, field="training labels")[0] > 0
+        if self.mesh is not None:
+            if self._top_down is None:
+                m = self.mesh
+                self._top_down = TopDown(m.vertices, m.triangles, m.building, self.grid)
+            t.building_ids, t.building_surface, t.roof_normals = self._top_down.window(rows, cols)
+        elif self.footprints is not None:
+            t.building_ids = rasterize(
+                self.footprints, out_shape=g.shape, transform=g.transform, fill=0, dtype="int32"
+            ).astype(np.int64) if self.footprints else np.zeros(g.shape, np.int64)
+        elif "building_id" in r:
+            t.building_ids = r["building_id"].astype(np.int64)
+        if t.building_ids is not None and t.building_surface is None and t.dsm is not None:
+            t.building_surface = np.where(t.building_ids > 0, t.dsm, np.nan)
+        return t
+
+    def whole(self) -> Truth:
+        """The truth on the whole grid, in memory."""
+        return self.window(slice(0, self.grid.height), slice(0, self.grid.width))
+
+    def _read(self, name: str, path: Path, grid: Grid) -> np.ndarray:
+        if name not in self._headers:
+            self._headers[name] = raster_header(path, f"truth {name}")[0]
+        heights = name in ("dsm", "dtm")
+        data = read_on_grid(path, grid, field=f"truth {name}", as_float=heights,
+                            header=self._headers[name])  # fmt: skip
+        if name == "class":
+            return check_class_codes(data, path, "truth class")[0].astype(np.uint8)
+        if name == "ortho":
+            return np.moveaxis(data, 0, -1)
+        return data[0].astype(np.float64) if heights else data[0]
+
+
+class TopDown:
+    """Buildings of a triangle mesh seen straight down at the cell centres of a grid, a
+    window of it at a time: the same cell is the same ray whichever window holds it.
 
     Parameters
     ----------
@@ -232,27 +338,49 @@ def top_down(
     triangles : (T, 3) int
     building : (T,) int
         Building id of each triangle (> 0).
-
-    Returns
-    -------
-    ids : (H, W) int64, 0 where no building
-    surface : (H, W) float64 height of the top surface, NaN where no building
-    normals : (H, W, 3) float64 unit normal of that surface (facing up), NaN where none
+    grid : Grid
     """
-    H, W = grid.shape
-    if not len(triangles):
-        return np.zeros((H, W), np.int64), np.full((H, W), np.nan), np.full((H, W, 3), np.nan)
-    # Open3D casts in float32: work relative to the grid centre, as projected
-    # coordinates of real data are too large for centimetres in float32
-    xmin, ymin, xmax, ymax = grid.bounds
-    origin = np.array([(xmin + xmax) / 2, (ymin + ymax) / 2, 0.0])
-    local = vertices - origin
-    shifted = Grid(grid.xmin - origin[0], grid.ymax - origin[1], grid.gsd, W, H)
-    hits = vertical_hits(
-        raycasting_scene(local, triangles), shifted, float(local[:, 2].max()) + 10.0
-    )
-    hit = hits.tri >= 0
-    ids = np.where(hit, building[np.where(hit, hits.tri, 0)], 0).reshape(H, W).astype(np.int64)
-    surface = hits.points[:, 2].reshape(H, W)
-    normals = np.where(hit[:, None], hits.normals, np.nan).reshape(H, W, 3)
-    return ids, surface, normals
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray, building: np.ndarray,
+                 grid: Grid):  # fmt: skip
+        self.grid, self.building = grid, np.asarray(building)
+        self.scene = None
+        if len(triangles):
+            # Open3D casts in float32: the scene's origin near the grid's centre, as
+            # projected coordinates of real data are too large for centimetres in float32
+            xmin, ymin, xmax, ymax = grid.bounds
+            centre = np.array([(xmin + xmax) / 2, (ymin + ymax) / 2, 0.0])
+            origin = centre + local_origin(np.asarray(vertices, np.float64) - centre)
+            self.scene = raycasting_scene(vertices, triangles, origin)
+            self.z_top = float(np.max(vertices[:, 2])) + 10.0
+
+    def window(self, rows: slice, cols: slice) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The buildings at the cells ``rows`` x ``cols`` of the grid.
+
+        Returns
+        -------
+        ids : (h, w) int64, 0 where no building
+        surface : (h, w) float64 height of the top surface, NaN where no building
+        normals : (h, w, 3) float64 unit normal of that surface (facing up), NaN where none
+        """
+        h, w = rows.stop - rows.start, cols.stop - cols.start
+        if self.scene is None:
+            return np.zeros((h, w), np.int64), np.full((h, w), np.nan), np.full((h, w, 3), np.nan)
+        x, _ = self.grid.cell_center(0, np.arange(cols.start, cols.stop))
+        _, y = self.grid.cell_center(np.arange(rows.start, rows.stop), 0)
+        X, Y = np.meshgrid(x, y)
+        origins = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, self.z_top)])
+        hits = cast(self.scene, origins, np.tile([0.0, 0.0, -1.0], (X.size, 1)))
+        hit = hits.tri >= 0
+        ids = np.where(hit, self.building[np.where(hit, hits.tri, 0)], 0)
+        normals = np.where(hit[:, None], hits.normals, np.nan).reshape(h, w, 3)
+        return ids.reshape(h, w).astype(np.int64), hits.points[:, 2].reshape(h, w), normals
+
+
+def top_down(
+    vertices: np.ndarray, triangles: np.ndarray, building: np.ndarray, grid: Grid
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Buildings seen straight down at every cell centre of ``grid``: :class:`TopDown`
+    on the whole grid."""
+    return TopDown(vertices, triangles, building, grid).window(
+        slice(0, grid.height), slice(0, grid.width))
