@@ -315,7 +315,6 @@ def test_rounded_median_counts_to_its_step():
 def test_tiled_regions_are_the_whole_grids_regions():
     from scipy import ndimage
 
-    from workbench.evaluate import building_regions
     from workbench.raster import Grid
     from workbench.tiled_regions import TiledRegions
 
@@ -325,13 +324,15 @@ def test_tiled_regions_are_the_whole_grids_regions():
     mask[8, 8:12] = mask[11, 8:12] = mask[9:11, 8] = mask[9:11, 11] = False
     mask[9, 10] = mask[10, 9] = False
     grid = Grid(0.0, 61.0, 1.0, 47, 61)
-    for size in (10, 16, 61):
+    whole = TiledRegions(grid.tiles(61), lambda r, c: mask[r, c], min_cells=2)(
+        slice(0, 61), slice(0, 47)
+    )  # one tile: OpenCV's labels of the whole grid
+    for size in (10, 16):
         tiles = grid.tiles(size)
         regions = TiledRegions(tiles, lambda r, c: mask[r, c], min_cells=2)
         ids = np.zeros(mask.shape, np.int64)
         for rows, cols in tiles:
             ids[rows, cols] = regions(rows, cols)
-        whole = building_regions(mask, 2)
         # the same regions, whatever their numbers
         pairs = set(zip(ids.ravel().tolist(), whole.ravel().tolist(), strict=True))
         assert len(pairs) == len(np.unique(ids)) == len(np.unique(whole))

@@ -208,7 +208,10 @@ def footprint_map(pred: np.ndarray, true: np.ndarray) -> np.ndarray:
 
 
 def _renders(
-    runs: list[Run], evaluations: dict[str, Evaluation], truth, overview: Truth,
+    runs: list[Run],
+    evaluations: dict[str, Evaluation],
+    truth,
+    overview: Truth,
     options: EvaluationOptions,
 ) -> list[tuple[np.ndarray, str]]:
     models = [r for r in runs if r.kind == "model" and r.buildings]

@@ -7,9 +7,8 @@ metrics are then the same plain functions of :mod:`workbench.metrics` for every 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from scipy import ndimage
 
@@ -135,10 +134,11 @@ class RunOnGrid:
             return None
         return check_class_codes(self._read(self.cls_path, rows, cols), self.cls_path, "class")
 
-    def _building_mask(self, rows: slice, cols: slice) -> np.ndarray:
-        cls = self._classes(rows, cols)
-        return cls == 4 if cls is not None else np.zeros((rows.stop - rows.start,
-                                                           cols.stop - cols.start), bool)
+    def _building_mask(self, rows: slice, cols: slice, cls: np.ndarray | None = None):
+        cls = self._classes(rows, cols) if cls is None else cls
+        if cls is None:
+            return np.zeros((rows.stop - rows.start, cols.stop - cols.start), bool)
+        return cls == 4
 
     def layers(self, rows: slice, cols: slice, ground: np.ndarray | None,
                with_ids: bool = True) -> RunLayers:  # fmt: skip
@@ -155,8 +155,7 @@ class RunOnGrid:
                 ortho = np.moveaxis(self._read(self.run.raster("ortho"), rows, cols, None), 0, -1)
             ids = None
             if with_ids:
-                mask = cls == 4 if cls is not None else np.zeros(shape, bool)
-                ids = self.regions(rows, cols, mask)
+                ids = self.regions(rows, cols, self._building_mask(rows, cols, cls))
             bs = np.where(ids > 0, dsm, np.nan) if ids is not None else None
             return RunLayers(dsm, ids, bs, cls=cls, ortho=ortho, dsm=dsm)
         ids, building_surface, normals = self.top_down.window(rows, cols)
@@ -170,27 +169,9 @@ class RunOnGrid:
         return RunLayers(surface, ids, building_surface, normals=normals, cls=cls)
 
 
-def run_layers(run: Run, truth: Truth, options: EvaluationOptions) -> RunLayers:
-    """The run on the truth's whole grid (see :class:`RunLayers`)."""
-    on_grid = RunOnGrid(run, truth.grid, truth.crs,
-                        replace(options, window_cells=max(truth.grid.shape)))  # fmt: skip
-    return on_grid.layers(slice(0, truth.grid.height), slice(0, truth.grid.width), truth.dtm)
-
-
 def stacked_meshes(run: Run) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """All building meshes of a model run as one, with each triangle's 1-based owner."""
     return concatenate_meshes([(b.vertices, b.triangles) for b in run.buildings])
-
-
-def building_regions(mask: np.ndarray, min_cells: float) -> np.ndarray:
-    """(H, W) int64 ids of the 8-connected regions of ``mask`` with at least ``min_cells``
-    cells, 0 elsewhere."""
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    keep = np.zeros(n, np.int64)
-    big = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] >= min_cells)
-    big = big[big > 0]
-    keep[big] = np.arange(1, len(big) + 1)
-    return keep[labels]
 
 
 def evaluate(run: Run, truth: Truth | TruthSource,
@@ -352,8 +333,9 @@ class GridScores:
             self.dsm_known = True
             self.dsm.add(run.dsm, t.dsm, None, metrics.height_jumps(wide.dsm)[inner])
             if run.ortho is not None and t.ortho is not None:
-                n, sums = metrics.colour_sums(run.ortho, t.ortho,
-                                              (run.ortho.sum(-1) > 0) & np.isfinite(run.dsm))
+                n, sums = metrics.colour_sums(
+                    run.ortho, t.ortho, (run.ortho.sum(-1) > 0) & np.isfinite(run.dsm)
+                )
                 self.colour[0] += n
                 self.colour[1] += sums
         self._picture(run, rows, cols)
@@ -363,9 +345,14 @@ class GridScores:
         tp = np.count_nonzero((ids > 0) & (t_ids > 0))
         counts = np.array([tp, np.count_nonzero(ids > 0) - tp, np.count_nonzero(t_ids > 0) - tp])
         self.footprint = counts if self.footprint is None else self.footprint + counts
-        objects = (metrics.id_counts(t_ids, ids > 0), metrics.id_counts(ids, t_ids > 0))
-        self.objects = objects if self.objects is None else tuple(
-            metrics.add_id_counts(a, b) for a, b in zip(self.objects, objects, strict=True))
+        true_objects, run_objects = (
+            metrics.id_counts(t_ids, ids > 0),
+            metrics.id_counts(ids, t_ids > 0),
+        )
+        if self.objects is not None:
+            true_objects = metrics.add_id_counts(self.objects[0], true_objects)
+            run_objects = metrics.add_id_counts(self.objects[1], run_objects)
+        self.objects = (true_objects, run_objects)
         if t.building_surface is not None:
             e = run.surface - t.building_surface
             known = np.isfinite(e)
@@ -376,8 +363,9 @@ class GridScores:
         if self.kind == "model":
             both = (t_ids > 0) & (ids > 0)
             pairs = metrics.id_counts(t_ids[both] * (self.n_models + 1) + ids[both])
-            self.covering = pairs if self.covering is None else metrics.add_id_counts(
-                self.covering, pairs)
+            if self.covering is not None:
+                pairs = metrics.add_id_counts(self.covering, pairs)
+            self.covering = pairs
         for k, (r, c) in building_windows(t_ids):
             box = [r.start + rows.start, r.stop + rows.start, c.start + cols.start,
                    c.stop + cols.start]  # fmt: skip
@@ -387,10 +375,10 @@ class GridScores:
 
     def _picture(self, run: RunLayers, rows: slice, cols: slice) -> None:
         for name in ("surface", "building_ids", "cls"):
-            a = getattr(run, name)
+            a, into = getattr(run, name), getattr(self.overview, name)
             if a is not None:
-                setattr(self.overview, name, strided_into(getattr(self.overview, name), a, rows,
-                                                          cols, self.stride, self.shape))
+                into = strided_into(into, a, rows, cols, self.stride, self.shape)
+                setattr(self.overview, name, into)
 
     def metrics(self) -> dict:
         """The grid's groups of metrics.json (those the data allow)."""
@@ -526,8 +514,8 @@ def _building_quantiles(t: Truth, layers: RunLayers, ids: list[int]) -> dict[int
             if k in model_h:
                 out[k]["height_model_m"] = model_h[k]
     if layers.normals is not None and t.roof_normals is not None:
-        both = (group > 0) & np.isfinite(layers.normals[..., 2]) & np.isfinite(
-            t.roof_normals[..., 2])
+        known = np.isfinite(layers.normals[..., 2]) & np.isfinite(t.roof_normals[..., 2])
+        both = (group > 0) & known
         ang = metrics.plane_angles_deg(layers.normals[both], t.roof_normals[both])
         for k, a in _split_by(group[both], ang):
             out[k]["plane_angle_median_deg"] = float(np.median(a))

@@ -104,8 +104,8 @@ def _touching(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     length) that are 8-neighbours, both > 0."""
     out = []
     for d in (-1, 0, 1):
-        x = a[max(0, -d): len(a) - max(0, d)]
-        y = b[max(0, d): len(b) - max(0, -d)]
+        x = a[max(0, -d) : len(a) - max(0, d)]
+        y = b[max(0, d) : len(b) - max(0, -d)]
         both = (x > 0) & (y > 0)
         out.append(np.column_stack([x[both], y[both]]))
     return np.unique(np.concatenate(out), axis=0)

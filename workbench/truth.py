@@ -30,8 +30,14 @@ def sample_to_grid(data: np.ndarray, src: Grid, dst: Grid) -> np.ndarray:
     return out
 
 
-def read_on_grid(path, grid: Grid, *, field: str | None = None, as_float: bool = False,
-                 header: Grid | None = None) -> np.ndarray:
+def read_on_grid(
+    path,
+    grid: Grid,
+    *,
+    field: str | None = None,
+    as_float: bool = False,
+    header: Grid | None = None,
+) -> np.ndarray:
     """(B, H, W) a raster sampled at the cells of ``grid`` (nearest cell; NaN, or 0 for
     integers, off the raster), reading only the part of it they fall on: ``grid`` may be
     a window of a grid far larger than memory. ``header`` is the raster's own grid when
@@ -301,10 +307,11 @@ class TruthSource:
                 m = self.mesh
                 self._top_down = TopDown(m.vertices, m.triangles, m.building, self.grid)
             t.building_ids, t.building_surface, t.roof_normals = self._top_down.window(rows, cols)
-        elif self.footprints is not None:
-            t.building_ids = rasterize(
-                self.footprints, out_shape=g.shape, transform=g.transform, fill=0, dtype="int32"
-            ).astype(np.int64) if self.footprints else np.zeros(g.shape, np.int64)
+        elif self.footprints:
+            t.building_ids = rasterize(self.footprints, out_shape=g.shape, transform=g.transform,
+                                       fill=0, dtype="int32").astype(np.int64)  # fmt: skip
+        elif self.footprints is not None:  # a footprint file without footprints here
+            t.building_ids = np.zeros(g.shape, np.int64)
         elif "building_id" in r:
             t.building_ids = r["building_id"].astype(np.int64)
         if t.building_ids is not None and t.building_surface is None and t.dsm is not None:
@@ -383,4 +390,5 @@ def top_down(
     """Buildings seen straight down at every cell centre of ``grid``: :class:`TopDown`
     on the whole grid."""
     return TopDown(vertices, triangles, building, grid).window(
-        slice(0, grid.height), slice(0, grid.width))
+        slice(0, grid.height), slice(0, grid.width)
+    )
