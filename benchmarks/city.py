@@ -165,14 +165,21 @@ def mesh_chain(scene: Path, out: Path, reuse_runs: bool = False,
     res["fusion_mesh"] = {"wall_s": wall, "peak_mb": peak}
     folder = out / "lod"
     kept = _recorded_s(folder / "model.json") if reuse_runs else None
-    lod = ("model", "lod", fusion, "--labels", scene / "training" / "labels.tif")
-    wall, peak = run(*lod, "-o", folder, "--overwrite", log=out / "lod.log", kept=kept)
+    labels = ("--labels", scene / "training" / "labels.tif")
+    wall, peak = run("model", "lod", fusion, *labels, "-o", folder, "--overwrite",
+                     log=out / "lod.log", kept=kept)  # fmt: skip
     res["lod"] = model_figures(folder, wall, peak)
-    if block_m is not None:
+    if block_m is not None:  # the chain in blocks: the mesh's fusion, then the LOD path
+        blocks = out / "fusion_mesh_blocks"
+        kept = _recorded_s(blocks / "fusion.json", "stages_total_s") if reuse_runs else None
+        wall, peak = run("fusion", "--mesh", mesh, "-o", blocks, "--gsd", doc["gsd"],
+                         "--bounds", *doc["bounds"], "--block", block_m, "--overwrite",
+                         log=out / "fusion_mesh_blocks.log", kept=kept)  # fmt: skip
+        res["fusion_mesh_blocks"] = {"wall_s": wall, "peak_mb": peak}
         folder = out / "lod_blocks"
         kept = _recorded_s(folder / "model.json") if reuse_runs else None
-        wall, peak = run(*lod, "--block", block_m, "-o", folder, "--overwrite",
-                         log=out / "lod_blocks.log", kept=kept)  # fmt: skip
+        wall, peak = run("model", "lod", blocks, *labels, "--block", block_m, "-o", folder,
+                         "--overwrite", log=out / "lod_blocks.log", kept=kept)  # fmt: skip
         res["lod_blocks"] = model_figures(folder, wall, peak)
     return res
 
@@ -225,15 +232,15 @@ def print_city(r: dict) -> None:
     print(f"  superpixel  {m['wall_s']:8.1f} s  {peaks(m)}; {m['buildings']} buildings, "
           f"{m['wall_s'] / (f['cells'] / 1e6):.1f} s per ortho megapixel")  # fmt: skip
     names = ("voxel", "parametric", "blocks", *(f"{n}_blocks" for n in BLOCK_PATHS), "mesh",
-             "fusion_mesh", "lod", "lod_blocks")  # fmt: skip
+             "fusion_mesh", "lod", "fusion_mesh_blocks", "lod_blocks")  # fmt: skip
     for name in names:
         if name not in r:  # a record from before the path was benched
             continue
         m = r[name]
-        if "buildings" not in m:  # the mesh and its fusion
-            print(f"  {name:<11} {m['wall_s']:8.1f} s  {peaks(m)}")
-            continue
         label = f"{name.removesuffix('_blocks')} --block" if name.endswith("_blocks") else name
+        if "buildings" not in m:  # the mesh and its fusion
+            print(f"  {label:<11} {m['wall_s']:8.1f} s  {peaks(m)}")
+            continue
         print(f"  {label:<11} {m['wall_s']:8.1f} s  {peaks(m)}; {m['buildings']} buildings, "
               f"{m['seconds_per_building']:.2f} s per building")  # fmt: skip
         print("              " + ", ".join(f"{k} {v:.1f}" for k, v in m["stages"].items()))

@@ -80,7 +80,7 @@ def small_holes(missing: np.ndarray, max_cells: int) -> np.ndarray:
 
 
 def fill_small_holes(values: np.ndarray, valid: np.ndarray, holes: np.ndarray,
-                     max_cells: int) -> np.ndarray:  # fmt: skip
+                     max_cells: int, origin: tuple[int, int] = (0, 0)) -> np.ndarray:  # fmt: skip
     """``values`` with each small hole filled by push-pull interpolation
     (:func:`push_pull_fill`) in a window about it, not over the whole raster.
 
@@ -98,6 +98,9 @@ def fill_small_holes(values: np.ndarray, valid: np.ndarray, holes: np.ndarray,
     valid : (H, W) bool, the cells to interpolate from
     holes : (H, W) bool, the cells to fill (:func:`small_holes`)
     max_cells : int, the largest hole's cells
+    origin : (row, col) of the raster's first cell in a larger grid it is a window of:
+        the blocks are the larger grid's, so that a hole is filled as the whole grid
+        fills it (a fusion in blocks)
 
     Returns
     -------
@@ -110,13 +113,13 @@ def fill_small_holes(values: np.ndarray, valid: np.ndarray, holes: np.ndarray,
     H, W = holes.shape
     planes = out.reshape(H, W, -1)
 
-    def aligned(start, stop, size):  # the margin added, out to the blocks' edges
-        return slice(max((start - margin) // block * block, 0),
-                     min(-(-(stop + margin) // block) * block, size))  # fmt: skip
+    def aligned(start, stop, size, o):  # the margin added, out to the blocks' edges
+        return slice(max((start + o - margin) // block * block - o, 0),
+                     min(-(-(stop + o + margin) // block) * block - o, size))  # fmt: skip
 
     for k in range(1, n):
         x, y, w, h = stats[k, :4]
-        rows, cols = aligned(y, y + h, H), aligned(x, x + w, W)
+        rows, cols = aligned(y, y + h, H, origin[0]), aligned(x, x + w, W, origin[1])
         inside = labels[rows, cols] == k
         for c in range(planes.shape[2]):
             filled = push_pull_fill(planes[rows, cols, c], valid[rows, cols])

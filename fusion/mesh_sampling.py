@@ -23,12 +23,13 @@ import open3d as o3d
 
 from workbench.engine import full_disk_named
 from workbench.errors import InputError
+from workbench.grid_blocks import block_layout
 from workbench.progress import progress
-from workbench.raster import Grid, class_codes, parse_crs
+from workbench.raster import Grid, WindowedRaster, class_codes, parse_crs
 from workbench.raycast import cast, local_origin, raycasting_scene
 from workbench.records import StageTimer
 
-from .ground import dtm_from_dsm
+from .ground import LARGEST_WINDOW_M, dtm_from_dsm
 from .interpolate import fill_small_holes, small_holes
 from .mesh_source import PlySurface, open_ply_surface
 from .options import FusionOptions
@@ -245,7 +246,34 @@ def orthogonal_sampling(
     mesh: SurfaceMesh | PlySurface, grid: Grid, tile: int = SAMPLING_TILE_CELLS,
     scratch: str | os.PathLike | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
-    """Cast a vertical ray down through every cell centre; keep the first hit.
+    """Cast a vertical ray down through every cell centre; keep the first hit
+    (:func:`sampled_tiles` put together).
+
+    Returns
+    -------
+    ortho : (H, W, 3) uint8
+        The hit's colour (texture, else vertex colours interpolated, else grey); 0 where
+        no hit.
+    dsm : (H, W) float32
+        The hit's height, metres, NaN where the ray missed.
+    normal : (3, H, W) float32
+        The unit normal at the hit (vertex normals interpolated), turned up (n_z >= 0),
+        NaN where missed.
+    """
+    ortho = np.zeros((*grid.shape, 3), np.uint8)
+    dsm = np.full(grid.shape, np.nan, np.float32)
+    normal = np.full((3, *grid.shape), np.nan, np.float32)
+    for rows, cols, o, d, n in sampled_tiles(mesh, grid, tile, scratch):
+        ortho[rows, cols], dsm[rows, cols], normal[:, rows, cols] = o, d, n
+    return ortho, dsm, normal
+
+
+def sampled_tiles(
+    mesh: SurfaceMesh | PlySurface, grid: Grid, tile: int = SAMPLING_TILE_CELLS,
+    scratch: str | os.PathLike | None = None,
+):  # fmt: skip
+    """Cast a vertical ray down through every cell centre, a tile at a time; keep the
+    first hit.
 
     The grid is cast in tiles of ``tile`` cells a side, each against a ray-casting scene
     of the triangles over it alone: the scene of a city's whole mesh (38 M triangles)
@@ -275,65 +303,59 @@ def orthogonal_sampling(
         Folder for the tiles' lists of triangles when they outgrow memory (default: the
         system's temporary folder).
 
-    Returns
-    -------
-    ortho : (H, W, 3) uint8
-        The hit's colour (texture, else vertex colours interpolated, else grey); 0 where
-        no hit.
-    dsm : (H, W) float32
-        The hit's height, metres, NaN where the ray missed.
-    normal : (3, H, W) float32
-        The unit normal at the hit (vertex normals interpolated), turned up (n_z >= 0),
-        NaN where missed.
+    Yields
+    ------
+    rows, cols : slices of the tile in the grid
+    ortho : (h, w, 3) uint8, dsm : (h, w) float32, normal : (3, h, w) float32
+        As :func:`orthogonal_sampling`'s, on the tile.
 
     Raises
     ------
     InputError
-        A face's vertex index out of range; too many non-manifold edges.
+        A face's vertex index out of range; too many non-manifold edges (after the last
+        tile).
     """
     origin = local_origin(np.stack([mesh.lo, mesh.hi]))
     tiles = grid.tiles(tile)
     top = float(mesh.hi[2]) + 10.0
-    ortho = np.zeros((*grid.shape, 3), np.uint8)
-    dsm = np.full(grid.shape, np.nan, np.float32)
-    normal = np.full((3, *grid.shape), np.nan, np.float32)
     bad_edges = edges = 0
     with tile_buckets(mesh, grid, tile, origin, scratch) as buckets:
         for k, (rows, cols) in enumerate(progress(tiles, "fusion: sampling the mesh's tiles")):
-            idx = buckets.take(k)
-            if not len(idx):
-                continue
             part = grid.window(rows, cols)
-            T = mesh.faces(idx)
-            used, corners = np.unique(T, return_inverse=True)
-            corners = corners.reshape(-1, 3)
-            P, colours = mesh.vertex_data(used)
-            b, e = non_manifold_edges(T, P[corners], part.bounds)
-            bad_edges, edges = bad_edges + b, edges + e
-            lo, hi = _boxes(P[corners] - origin)
-            x0, y0, x1, y1 = np.subtract(part.bounds, np.tile(origin[:2], 2))
-            reach = np.flatnonzero((hi[:, 0] >= x0) & (lo[:, 0] <= x1)
-                                   & (hi[:, 1] >= y0) & (lo[:, 1] <= y1))  # fmt: skip
-            if not len(reach):
-                continue
-            scene = raycasting_scene(P, corners[reach], origin)
-            X, Y = part.cell_centers()
-            origins = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, top)])
-            hits = cast(scene, origins, np.tile([0.0, 0.0, -1.0], (X.size, 1)))
-            del scene
-            hit = (hits.tri >= 0).reshape(part.shape)
-            tri, bary = reach[hits.tri[hit.ravel()]], hits.bary[hit.ravel()]
-            dsm[rows, cols][hit] = hits.points[hit.ravel(), 2]
-            n = vertex_normals(P - origin, corners)
-            long = np.isin(used, buckets.long_vertices)
-            n[long] = buckets.long_normals[np.searchsorted(buckets.long_vertices, used[long])]
-            normal[:, rows, cols][:, hit] = hit_normals(n[corners[tri]], bary).T
-            ortho[rows, cols][hit] = hit_colours(mesh, idx[tri], corners[tri], colours, bary)
+            ortho = np.zeros((*part.shape, 3), np.uint8)
+            dsm = np.full(part.shape, np.nan, np.float32)
+            normal = np.full((3, *part.shape), np.nan, np.float32)
+            idx = buckets.take(k)
+            if len(idx):
+                T = mesh.faces(idx)
+                used, corners = np.unique(T, return_inverse=True)
+                corners = corners.reshape(-1, 3)
+                P, colours = mesh.vertex_data(used)
+                b, e = non_manifold_edges(T, P[corners], part.bounds)
+                bad_edges, edges = bad_edges + b, edges + e
+                lo, hi = _boxes(P[corners] - origin)
+                x0, y0, x1, y1 = np.subtract(part.bounds, np.tile(origin[:2], 2))
+                reach = np.flatnonzero((hi[:, 0] >= x0) & (lo[:, 0] <= x1)
+                                       & (hi[:, 1] >= y0) & (lo[:, 1] <= y1))  # fmt: skip
+            if len(idx) and len(reach):
+                scene = raycasting_scene(P, corners[reach], origin)
+                X, Y = part.cell_centers()
+                origins = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, top)])
+                hits = cast(scene, origins, np.tile([0.0, 0.0, -1.0], (X.size, 1)))
+                del scene
+                hit = (hits.tri >= 0).reshape(part.shape)
+                tri, bary = reach[hits.tri[hit.ravel()]], hits.bary[hit.ravel()]
+                dsm[hit] = hits.points[hit.ravel(), 2]
+                n = vertex_normals(P - origin, corners)
+                long = np.isin(used, buckets.long_vertices)
+                n[long] = buckets.long_normals[np.searchsorted(buckets.long_vertices, used[long])]
+                normal[:, hit] = hit_normals(n[corners[tri]], bary).T
+                ortho[hit] = hit_colours(mesh, idx[tri], corners[tri], colours, bary)
+            yield rows, cols, ortho, dsm, normal
     share = bad_edges / max(edges, 1)
     if share > NON_MANIFOLD_SHARE:
         raise InputError(mesh.path, "faces", f"{share:.1%} of the edges are shared by more "
                          "than two triangles: not a surface")  # fmt: skip
-    return ortho, dsm, normal
 
 
 class TileBuckets:
@@ -579,6 +601,27 @@ def fuse_mesh(path, opts: FusionOptions | None = None, *, crs: str | None = None
     opts = opts or FusionOptions()
     timer = StageTimer()
     t0 = time.perf_counter()
+    mesh, grid = opened_mesh(path, opts, crs, timer)
+    return fuse_opened_mesh(mesh, grid, opts, timer, t0)
+
+
+def fuse_opened_mesh(mesh, grid: Grid, opts: FusionOptions, timer: StageTimer, t0: float):
+    """:func:`fuse_mesh` of a mesh :func:`opened_mesh` opened, on its grid."""
+    check_memory(grid, opts, 1)
+    with timer.stage("sampling"):
+        ortho, dsm, normal = orthogonal_sampling(mesh, grid)
+    products, figures = surface_products(ortho, dsm, grid.gsd, opts, timer)
+    record = mesh_record(mesh, opts, figures, timer, t0)
+    p = products
+    result = FusionResult(grid, ortho, p["dsm"], p["dtm"], p["ndsm"], p["class_prob"],
+                          p["count"], {}, record, None, normal,
+                          class_map=figures.pop("class_map"))  # fmt: skip
+    return result, mesh.crs, mesh_inputs(mesh)
+
+
+def opened_mesh(path, opts: FusionOptions, crs: str | None, timer: StageTimer):
+    """The mesh (:func:`open_surface_mesh`) and the grid it is sampled on (``opts.gsd``
+    and ``opts.bounds``, else the mesh's)."""
     with timer.stage("read"):
         mesh = open_surface_mesh(path, crs)
         gsd = opts.gsd or default_gsd(mesh)
@@ -586,28 +629,54 @@ def fuse_mesh(path, opts: FusionOptions | None = None, *, crs: str | None = None
     if min(grid.width, grid.height) < 3:
         raise InputError(mesh.path, None, f"a {grid.width} x {grid.height} grid at --gsd "
                          f"{gsd:g}: give a finer --gsd for a mesh this small")  # fmt: skip
-    check_memory(grid, opts, 1)
+    return mesh, grid
+
+
+def surface_products(
+    ortho: np.ndarray, dsm: np.ndarray, gsd: float, opts: FusionOptions, timer: StageTimer,
+    origin: tuple[int, int] = (0, 0),
+) -> tuple[dict, dict]:  # fmt: skip
+    """The fusion's rasters from a sampled ortho ((h, w, 3) uint8) and DSM ((h, w)
+    float32, NaN where no ray hit) of a grid or a block: small holes filled, the DTM
+    (progressive morphological filter), the classes (the forest for label-free rasters),
+    the planar objects. ``origin``: the (row, col) of the block's first cell in the grid.
+
+    Returns
+    -------
+    products : {dsm, dtm, ndsm, class_prob, classes, count} (the names of
+        :func:`~fusion.blocks.fuse_in_blocks`'s products)
+    figures : the record's missed and filled cells, the planar objects' counts, and
+        ``class_map`` (the planar objects' classes, None without them)
+    """
     with timer.stage("sampling"):
-        ortho, dsm, normal = orthogonal_sampling(mesh, grid)
         hit = np.isfinite(dsm)
         holes = small_holes(~hit, HOLE_CELLS)
-        dsm = fill_small_holes(dsm, hit, holes, HOLE_CELLS)
+        dsm = fill_small_holes(dsm, hit, holes, HOLE_CELLS, origin)
     with timer.stage("ground"):
-        dtm, _ = dtm_from_dsm(dsm, grid.gsd)
+        dtm, _ = dtm_from_dsm(dsm, gsd)
         dtm = np.where(np.isfinite(dsm), np.minimum(dtm, dsm), np.nan).astype(np.float32)
         ndsm = (dsm - dtm).astype(np.float32)
     with timer.stage("classes"):
-        prob = classify_rasters(synthetic_raster_forest(), dsm, dtm, ortho, grid.gsd)
+        prob = classify_rasters(synthetic_raster_forest(), dsm, dtm, ortho, gsd)
     class_map = None
     planar = dict.fromkeys(PLANAR_COUNTS, 0)
     if opts.planar_objects:
         with timer.stage("planar_objects"):
             class_map, prob, planar = planar_roofs_classed_tree(
-                class_codes(prob), prob, dsm, ndsm, grid.gsd, opts.seed
+                class_codes(prob), prob, dsm, ndsm, gsd, opts.seed
             )
     count = hit.astype(np.int16)
     count[holes] = FILLED
-    inputs = {
+    products = {"dsm": dsm, "dtm": dtm, "ndsm": ndsm, "class_prob": prob, "count": count,
+                "classes": class_map if class_map is not None else class_codes(prob)}  # fmt: skip
+    figures = {**planar, "missed_cells": int((~hit).sum()), "filled_cells": int(holes.sum()),
+               "class_map": class_map}  # fmt: skip
+    return products, figures
+
+
+def mesh_inputs(mesh) -> dict:
+    """The record's summary of the mesh."""
+    return {
         "mesh": str(mesh.path.absolute()),
         "vertices": mesh.n_vertices, "triangles": mesh.n_triangles,
         "read": "a part at a time" if isinstance(mesh, PlySurface) else "whole (Open3D)",
@@ -615,7 +684,12 @@ def fuse_mesh(path, opts: FusionOptions | None = None, *, crs: str | None = None
         "colour": "texture" if mesh.uvs is not None else
                   "vertex colours" if mesh.has_colours else "none (grey)",
     }  # fmt: skip
-    record = {
+
+
+def mesh_record(mesh, opts: FusionOptions, figures: dict, timer: StageTimer, t0: float) -> dict:
+    """The fusion record of a mesh's sampling (``figures`` from
+    :func:`surface_products`, summed over the blocks when in blocks)."""
+    return {
         "mode": "mesh",
         "dtm_source": "progressive morphological filter",
         "class_source": "a forest trained on the synthetic city's rasters (nDSM, slope, "
@@ -623,12 +697,55 @@ def fuse_mesh(path, opts: FusionOptions | None = None, *, crs: str | None = None
         + ("; objects classed tree made building where planes explain most of their cells "
            "and roof faces joined to crowns where they continue a building "
            "(fusion.planar_objects)" if opts.planar_objects else ""),
-        **planar,
-        "missed_cells": int((~hit).sum()), "filled_cells": int(holes.sum()),
+        **{k: v for k, v in figures.items() if k != "class_map"},
         "seconds_per_million_triangles": round(
             (time.perf_counter() - t0) / max(mesh.n_triangles / 1e6, 1e-6), 2),
         "stages": timer.stages,
     }  # fmt: skip
-    result = FusionResult(grid, ortho, dsm, dtm, ndsm, prob, count, {}, record, None, normal,
-                          class_map=class_map)  # fmt: skip
-    return result, mesh.crs, inputs
+
+
+def fuse_mesh_in_blocks(mesh, grid: Grid, opts: FusionOptions, timer: StageTimer, write,
+                        normal: WindowedRaster, block_m: float, scratch: Path) -> dict:  # fmt: skip
+    """Sample a surface mesh block by block: its memory follows the block, not the area.
+
+    1. The mesh is sampled tile by tile (:func:`sampled_tiles`) into the grid's ortho and
+       DSM, kept in ``scratch``, and its normals, written to ``normal``.
+    2. Each block, with its margin (the largest building's width: the ground filter's
+       largest window and a building the block's edge cuts), makes its products
+       (:func:`surface_products`); ``write(block, products)`` takes their inside.
+
+    Returns
+    -------
+    The record's figures, summed over the blocks: the missed and filled cells of their
+    insides, the planar objects of their windows (an object in a margin is counted by
+    every block that holds it).
+    """
+    ortho_all = WindowedRaster(scratch / "ortho.tif", grid, None, np.uint8, 3)
+    dsm_all = WindowedRaster(scratch / "dsm.tif", grid, None, np.float32, 1, nodata=np.nan)
+    with timer.stage("sampling"):
+        for rows, cols, o, d, n in sampled_tiles(mesh, grid, scratch=scratch):
+            ortho_all.write(np.moveaxis(o, -1, 0), rows, cols)
+            dsm_all.write(d, rows, cols)
+            normal.write(n, rows, cols)
+    figures: dict = {}
+    blocks = block_layout(grid, block_m)
+    for b in blocks:
+        check_memory(grid.window(*b.outer), opts, 1)
+    for b in progress(blocks, "fusion: the mesh's blocks"):
+        ortho = np.moveaxis(ortho_all.read(*b.outer), 0, -1)
+        corner = (b.outer[0].start, b.outer[1].start)
+        products, f = surface_products(ortho, dsm_all.read(*b.outer)[0], grid.gsd, opts, timer,
+                                       corner)  # fmt: skip
+        products["ortho"] = ortho
+        # the inside of each: class_prob is (4, h, w), the others (h, w) or (h, w, 3)
+        cut = {k: v[(slice(None), *b.inside)] if k == "class_prob" else v[b.inside]
+               for k, v in products.items()}  # fmt: skip
+        write(b, {k: np.ascontiguousarray(v) for k, v in cut.items()})
+        f["missed_cells"] = int(np.count_nonzero(cut["count"] != 1))  # not the margin's
+        f["filled_cells"] = int(np.count_nonzero(cut["count"] == FILLED))
+        for k, v in f.items():
+            if k != "class_map":
+                figures[k] = figures.get(k, 0) + v
+    figures["blocks"] = {"count": len(blocks), "side_m": round(float(block_m), 3),
+                         "margin_m": LARGEST_WINDOW_M}  # fmt: skip
+    return figures

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import tempfile
 import time
 from pathlib import Path
 
@@ -13,8 +14,8 @@ from workbench.engine import engine_for, run_signature
 from workbench.errors import WorkbenchError
 from workbench.metrics import classification, colour_mae, height_errors
 from workbench.options import options_record
-from workbench.raster import class_codes
-from workbench.records import provenance
+from workbench.raster import WindowedRaster, class_codes
+from workbench.records import StageTimer, provenance
 from workbench.scene import load_scene
 from workbench.truth import truth_rasters
 
@@ -77,11 +78,10 @@ def run_fusion(
     options = options or FusionOptions()
     t0 = time.perf_counter()
     if mesh is not None:
-        from .mesh_sampling import fuse_mesh
-
-        result, crs, inputs = fuse_mesh(mesh, options, crs=crs)
-        return _write(out, result, crs, inputs, options, truth, save_classifier_to, overwrite,
-                      command, t0)  # fmt: skip
+        if scheduler is not None or resume:
+            log.warning("--scheduler and --resume apply to the fusion of views; a mesh is "
+                        "sampled in this process")  # fmt: skip
+        return _fuse_mesh(out, mesh, crs, options, truth, overwrite, command, t0)
     if points is not None:
         from .points import fuse_points
 
@@ -161,6 +161,48 @@ def _fuse_blocks(out, scene, grid, block_m, engine, inputs, options, truth, save
             record["quality"] = fusion_quality(read_fusion(tmp), truth)
             write_record(tmp, record)
         _save_forest(save_classifier_to, forest, record, options)
+    return record
+
+
+def _fuse_mesh(out, path, crs, options, truth, overwrite, command, t0) -> dict:
+    """A mesh's fusion: whole up to 4096 cells a side (or ``--block``), else block by
+    block (:func:`~fusion.mesh_sampling.fuse_mesh_in_blocks`), its rasters written window
+    by window into the run folder, which appears atomically; returns the record."""
+    from .mesh_sampling import (
+        fuse_mesh_in_blocks,
+        fuse_opened_mesh,
+        mesh_inputs,
+        mesh_record,
+        opened_mesh,
+    )
+
+    timer = StageTimer()
+    mesh, grid = opened_mesh(path, options, crs, timer)
+    block_m = block_size(grid, options)
+    if block_m is None:
+        result, crs, inputs = fuse_opened_mesh(mesh, grid, options, timer, t0)
+        return _write(out, result, crs, inputs, options, truth, None, overwrite, command, t0)
+    parent = Path(out).absolute().parent
+    check_disk(grid, parent)
+    with atomic_output_dir(out, overwrite=overwrite) as tmp, tempfile.TemporaryDirectory(
+            prefix=".mesh-scratch-", dir=parent) as scratch:  # fmt: skip
+        windows = FusionWindows(tmp, grid, mesh.crs)
+        normal = WindowedRaster(tmp / "normal.tif", grid, mesh.crs, np.float32, 3,
+                                descriptions=["nx", "ny", "nz"])  # fmt: skip
+        try:
+            figures = fuse_mesh_in_blocks(mesh, grid, options, timer, windows, normal, block_m,
+                                          Path(scratch))  # fmt: skip
+        except BaseException:
+            windows.discard()
+            normal.discard()
+            raise
+        normal.close()
+        record = _record(grid, mesh.crs, mesh_inputs(mesh), options,
+                         mesh_record(mesh, options, figures, timer, t0), command, t0)  # fmt: skip
+        windows.close(record)
+        if truth is not None:
+            record["quality"] = fusion_quality(read_fusion(tmp), truth)
+            write_record(tmp, record)
     return record
 
 

@@ -337,6 +337,26 @@ def test_small_holes_filled_in_windows_as_over_the_whole_raster(shape):
         assert error < 0.4 and whole > 0.7
 
 
+def test_a_window_fills_its_holes_as_the_whole_grid_given_its_origin():
+    """A fusion in blocks fills each block's holes: given the block's first cell in the
+    grid, a hole away from the block's edges is filled as over the whole grid (the
+    windows about the holes fall on the grid's blocks, not the block's)."""
+    rng = np.random.default_rng(5)
+    y, x = np.mgrid[0:256, 0:192]
+    field = 40 + 30 * np.sin(x / 9.0) * np.cos(y / 13.0) + rng.normal(0, 5, y.shape)
+    missing = rng.random(field.shape) < 0.03
+    holes = small_holes(missing, 9)
+    dsm = np.where(missing, np.nan, field).astype(np.float32)
+    whole = fill_small_holes(dsm, ~missing, holes, 9)
+    rows, cols = slice(37, 211), slice(45, 170)  # a block not on the 32-cell blocks
+    part = fill_small_holes(dsm[rows, cols], ~missing[rows, cols], holes[rows, cols], 9,
+                            origin=(37, 45))  # fmt: skip
+    inner = (slice(50, -50), slice(50, -50))  # beyond a hole window (18 + 31 cells)
+    np.testing.assert_array_equal(part[inner], whole[rows, cols][inner])
+    shifted = fill_small_holes(dsm[rows, cols], ~missing[rows, cols], holes[rows, cols], 9)
+    assert not np.array_equal(shifted[inner], whole[rows, cols][inner])  # without it
+
+
 def test_small_holes_only_inner_and_small():
     m = np.zeros((20, 20), bool)
     m[5, 5] = True  # one cell

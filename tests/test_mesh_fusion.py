@@ -176,6 +176,26 @@ def test_the_tiny_city_mesh_sampled_matches_the_truth(mesh_fusion, tiny_scene):
     assert np.nanmedian(normal[2][ground]) > 0.99
 
 
+def test_a_mesh_fused_in_blocks_is_written_window_by_window(mesh_fusion, tiny_scene):
+    """--block 20 on the tiny city's 64 m: 16 blocks, each with its 80 m margin the whole
+    grid, so each block's products are the whole grid's, written block by block."""
+    root, whole, record = mesh_fusion
+    out = root / "blocks"
+    proc = run_cli("fusion", "--mesh", root / "city.ply", "-o", out, "--gsd", "0.25",
+                   "--bounds", "-32", "-32", "32", "32", "--block", "20")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    blocks = json.loads((out / "fusion.json").read_text())
+    assert blocks["blocks"]["count"] == 16
+    for key in ("missed_cells", "filled_cells"):  # the blocks' insides, not their margins
+        assert blocks[key] == record[key]
+    for name in ("ortho", "dsm", "normal", "dtm", "ndsm", "class", "class_prob", "count"):
+        a, grid, crs = read_raster(whole / f"{name}.tif")
+        b, bgrid, bcrs = read_raster(out / f"{name}.tif")
+        assert bgrid == grid and bcrs == crs
+        np.testing.assert_array_equal(a, b, err_msg=name)
+    assert not list(root.glob(".mesh-scratch-*"))  # the samples' scratch removed
+
+
 def test_a_path_runs_from_the_mesh_fusion(mesh_fusion, tiny_scene):
     root, out, _ = mesh_fusion
     proc = run_cli("model", "superpixel", out, "-o", root / "sp", "--workers", "1")
