@@ -126,7 +126,8 @@ def integrate_views(
         vertices = np.asarray(mesh.vertices, np.float64)[order] + plan.origin
         colors = _uint8_colours(np.asarray(mesh.vertex_colors)[order])
     else:
-        pieces = list(tile_pieces(scene.views, plan))
+        plan, blocks = planned_tiles(scene.views, plan)
+        pieces = list(tile_pieces(scene.views, plan, blocks))
         vertices = np.concatenate([p.vertices for p in pieces])
         triangles = np.concatenate([p.triangles for p in pieces])
         colors = np.concatenate([p.colours for p in pieces])
@@ -164,7 +165,8 @@ def write_views_mesh(path, scene: Scene, **mesh_options) -> dict:
         full_disk_named(path),
         PlyWriter(path, colours=True, comments=_crs_comments(scene.crs)) as ply,
     ):
-        for piece in tile_pieces(scene.views, plan):
+        plan, blocks = planned_tiles(scene.views, plan)
+        for piece in tile_pieces(scene.views, plan, blocks):
             ply.add_vertices(piece.vertices, piece.colours)
             ply.add_triangles(piece.triangles)
             n_blocks += piece.blocks
@@ -187,6 +189,7 @@ class MeshPlan:
     blocks: int
     min_weight: float
     limit: float
+    fit_tiles: bool = False  # the tiles sized by default: made to hold TILE_BLOCKS at most
 
     def record(self, views: int, blocks: int, vertices: int, triangles: int) -> dict:
         return {
@@ -227,7 +230,8 @@ def _plan(scene, voxel_m, trunc_voxels, bounds, min_weight, max_memory_fraction,
             )
         blocks = int(grid_columns(bounds, voxel_m) * BLOCKS_PER_COLUMN) + 1000
     origin = np.round(centre / 1000.0) * 1000.0
-    return MeshPlan(voxel_m, trunc_voxels, bounds, origin, tiles, blocks, min_weight, limit)
+    return MeshPlan(voxel_m, trunc_voxels, bounds, origin, tiles, blocks, min_weight, limit,
+                    fit_tiles=tiles is not None and tile_m is None)  # fmt: skip
 
 
 def _uint8_colours(colors: np.ndarray) -> np.ndarray:
@@ -345,6 +349,7 @@ def _overlap(a, b) -> bool:
 
 
 KEY_BITS = 21  # bits of each block index in a block's key: +-1 million blocks
+KEY_BATCH = 32  # views whose blocks' keys are joined to the others' at once
 
 
 def block_keys(coords: np.ndarray) -> np.ndarray:
@@ -361,12 +366,20 @@ def key_xy(keys: np.ndarray) -> np.ndarray:
     return np.column_stack([x, y])
 
 
-def view_blocks(views, bounds, voxel_m, trunc_voxels, origin) -> tuple[list, np.ndarray]:
+class ViewBlocks(NamedTuple):
+    """What :func:`view_blocks` found: per view the box of its blocks (or None) and the
+    sorted keys of every view's blocks."""
+
+    boxes: list
+    keys: np.ndarray
+
+
+def view_blocks(views, bounds, voxel_m, trunc_voxels, origin) -> ViewBlocks:
     """The blocks the views allocate (a first pass over their depth maps, no grid): per
     view the box of its blocks' x and y indices (x0, y0, x1, y1; None for a view that
     sees nothing inside ``bounds``), and the sorted keys of every view's blocks."""
     scratch = _new_grid(voxel_m, 1)  # for its lattice only
-    boxes, keys = [], np.zeros(0, np.int64)
+    boxes, keys, batch = [], np.zeros(0, np.int64), []
     for view in progress(views, "mesh: the views' blocks"):
         seen = _view_depth_blocks(scratch, view, bounds, origin, trunc_voxels)
         if seen is None:
@@ -374,8 +387,10 @@ def view_blocks(views, bounds, voxel_m, trunc_voxels, origin) -> tuple[list, np.
             continue
         coords = seen[-1].numpy()
         boxes.append((*coords[:, :2].min(axis=0), *coords[:, :2].max(axis=0)))
-        keys = np.union1d(keys, block_keys(coords))
-    return boxes, keys
+        batch.append(block_keys(coords))
+        if len(batch) == KEY_BATCH:  # one sort per batch, not per view (116 of 128 s)
+            keys, batch = np.unique(np.concatenate([keys, *batch])), []
+    return ViewBlocks(boxes, np.unique(np.concatenate([keys, *batch])))
 
 
 class TilePiece(NamedTuple):
@@ -390,13 +405,58 @@ class TilePiece(NamedTuple):
     blocks: int
 
 
-def tile_pieces(views, plan: MeshPlan) -> Iterator[TilePiece]:
+def tile_box(core, grown, origin: np.ndarray, voxel_m: float, xy: np.ndarray) -> tuple:
+    """The block indices (x0, y0, x1, y1, inclusive) of a tile of :func:`mesh_tiles`: its
+    grown window's, and on its outer sides every block a view allocates past the bounds
+    (``xy``: (N, 2) the blocks' x and y indices)."""
+    block_m = BLOCK_VOXELS * voxel_m
+    lo = np.floor((np.array(grown[:2]) - origin[:2]) / block_m).astype(np.int64)
+    hi = np.floor((np.array(grown[2:]) - origin[:2]) / block_m).astype(np.int64)
+    if len(xy):
+        lo = np.where(np.isinf(core[:2]), np.minimum(lo, xy.min(axis=0)), lo)
+        hi = np.where(np.isinf(core[2:]), np.maximum(hi, xy.max(axis=0)), hi)
+    return (*lo, *hi)
+
+
+def tile_block_count(box: tuple, xy: np.ndarray) -> int:
+    """How many of the blocks ``xy`` ((N, 2) x and y indices) lie in ``box``."""
+    return int(np.all((xy >= box[:2]) & (xy <= box[2:]), axis=1).sum())
+
+
+def fitted_tiles(plan: MeshPlan, keys: np.ndarray, max_blocks: int = TILE_BLOCKS) -> list:
+    """The plan's tiles made smaller until none holds more than ``max_blocks`` of the
+    views' blocks (``keys``): their side was set from blocks per column measured on
+    `small` (8), and a city's tiles held up to 113,000 blocks (11 a column, more in its
+    dense parts), twice the memory meant."""
+    xy = key_xy(keys)
+    block_m = BLOCK_VOXELS * plan.voxel_m
+    tiles = plan.tiles
+    side = tiles[0][1][2] - tiles[0][1][0] - 2 * block_m  # the first tile's core
+    while True:
+        most = max(tile_block_count(tile_box(*t, plan.origin, plan.voxel_m, xy), xy)
+                   for t in tiles)  # fmt: skip
+        if most <= max_blocks or side <= 4 * block_m:
+            return tiles
+        side = max(4 * block_m, np.floor(side * np.sqrt(max_blocks / most) / block_m) * block_m)
+        tiles = mesh_tiles(plan.bounds, plan.voxel_m, side)
+
+
+def planned_tiles(views, plan: MeshPlan) -> tuple[MeshPlan, ViewBlocks]:
+    """The views' blocks (:func:`view_blocks`) and the plan with its tiles made to hold
+    at most ``TILE_BLOCKS`` of them when it sized them itself (:func:`fitted_tiles`)."""
+    blocks = view_blocks(views, plan.bounds, plan.voxel_m, plan.trunc_voxels, plan.origin)
+    if plan.fit_tiles:
+        plan = dataclasses.replace(plan, tiles=fitted_tiles(plan, blocks.keys))
+    return plan, blocks
+
+
+def tile_pieces(views, plan: MeshPlan, blocks: ViewBlocks) -> Iterator[TilePiece]:
     """The tiles' meshes, one after another, joined into one mesh.
 
-    A first pass finds every view's blocks: each tile's grid is made for the blocks it
-    will hold (Open3D's block grid does not grow past its ``block_count``), a view is read
-    for a tile only when its blocks reach it, and the outer tiles reach as far past the
-    bounds as any view's blocks do.
+    A first pass has found every view's blocks (``blocks``, :func:`view_blocks`): each
+    tile's grid is made for the blocks it will hold (Open3D's block grid does not grow
+    past its ``block_count``), a view is read for a tile only when its blocks reach it,
+    and the outer tiles reach as far past the bounds as any view's blocks do.
 
     A vertex two tiles share is the same float in both; it lies within a voxel's
     diagonal of the edge between their cores, since the triangles of marching cubes do
@@ -406,21 +466,14 @@ def tile_pieces(views, plan: MeshPlan) -> Iterator[TilePiece]:
     the row of tiles before it and of its own row, all a tile can touch, so the table
     does not grow with the area."""
     tiles, voxel_m, origin = plan.tiles, plan.voxel_m, plan.origin
-    block_m = BLOCK_VOXELS * voxel_m
-    boxes, keys = view_blocks(views, plan.bounds, voxel_m, plan.trunc_voxels, origin)
+    boxes, xy = blocks.boxes, key_xy(blocks.keys)
     footed = [(v, b) for v, b in zip(views, boxes, strict=True) if b is not None]
-    xy = key_xy(keys)
     near = 2.0 * voxel_m  # more than a cube's diagonal in x and y
     border = _BorderVertices()
     n_vertices = 0
     for k, (core, grown) in enumerate(tiles):
-        lo = np.floor((np.array(grown[:2]) - origin[:2]) / block_m).astype(np.int64)
-        hi = np.floor((np.array(grown[2:]) - origin[:2]) / block_m).astype(np.int64)
-        if len(xy):  # the outer sides: every block a view allocates past the bounds there
-            lo = np.where(np.isinf(core[:2]), np.minimum(lo, xy.min(axis=0)), lo)
-            hi = np.where(np.isinf(core[2:]), np.maximum(hi, xy.max(axis=0)), hi)
-        box = (*lo, *hi)
-        count = int(np.all((xy >= lo) & (xy <= hi), axis=1).sum())
+        box = tile_box(core, grown, origin, voxel_m, xy)
+        count = tile_block_count(box, xy)
         if count * BLOCK_BYTES * PEAK_FACTOR > plan.limit:
             raise WorkbenchError(
                 f"mesh: tile {k + 1} holds {count:,} voxel blocks, about "
@@ -430,7 +483,7 @@ def tile_pieces(views, plan: MeshPlan) -> Iterator[TilePiece]:
         desc = f"mesh: tile {k + 1} of {len(tiles)}"
         grid = _integrate(footed, box, voxel_m, plan.trunc_voxels, plan.bounds, origin,
                           count + 1000, desc)  # fmt: skip
-        blocks = int(grid.hashmap().size())
+        held = int(grid.hashmap().size())
         mesh = grid.extract_triangle_mesh(weight_threshold=plan.min_weight).to_legacy()
         del grid
         V = np.asarray(mesh.vertices, np.float64)
@@ -438,7 +491,7 @@ def tile_pieces(views, plan: MeshPlan) -> Iterator[TilePiece]:
         border.start_row(grown[1])
         if not len(T):
             yield TilePiece(np.zeros((0, 3)), np.zeros((0, 3), np.uint8),
-                            np.zeros((0, 3), np.int64), blocks)  # fmt: skip
+                            np.zeros((0, 3), np.int64), held)  # fmt: skip
             continue
         c = (V[T].mean(axis=1) + origin)[:, :2]
         keep = ((c[:, 0] >= core[0]) & (c[:, 0] < core[2])
@@ -458,7 +511,7 @@ def tile_pieces(views, plan: MeshPlan) -> Iterator[TilePiece]:
         n_vertices += len(new)
         border.add(key[edge], ids[edge])
         yield TilePiece(V[new] + origin, _uint8_colours(colours[new]),
-                        canonical_triangles(ids[T]), blocks)  # fmt: skip
+                        canonical_triangles(ids[T]), held)  # fmt: skip
 
 
 class _BorderVertices:

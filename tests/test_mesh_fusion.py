@@ -294,6 +294,36 @@ def test_mesh_tiles_by_hand():
     assert len(city) == 16 and city[0][0][2] == pytest.approx(-500 + 278.4)
 
 
+def test_tiles_are_made_to_hold_their_blocks():
+    """Tiles sized by the estimate of blocks per column are made smaller where the views'
+    blocks are denser: none holds more than the limit after (a city's held 113,000 of
+    the 60,000 meant)."""
+    from fusion.scene_mesh import (
+        MeshPlan,
+        block_keys,
+        fitted_tiles,
+        key_xy,
+        tile_block_count,
+        tile_box,
+    )
+
+    bounds = (0.0, 0.0, 64.0, 64.0)  # 0.25 m voxels: blocks of 2 m, 32 a side
+    plan = MeshPlan(0.25, 4.0, bounds, np.zeros(3), mesh_tiles(bounds, 0.25, 32.0), 0, 1.0,
+                    2**40, fit_tiles=True)  # fmt: skip
+    x, y, z = np.meshgrid(np.arange(16), np.arange(16), np.arange(10), indexing="ij")
+    dense = np.column_stack([x.ravel(), y.ravel(), z.ravel()])  # 2560 in one corner
+    keys = np.sort(block_keys(np.concatenate([dense, [[20, 20, 0], [31, 31, 0]]])))
+    xy = key_xy(keys)
+
+    def most(tiles):
+        return max(tile_block_count(tile_box(*t, plan.origin, 0.25, xy), xy) for t in tiles)
+
+    assert len(plan.tiles) == 4 and most(plan.tiles) == 2560  # the corner, whole in one
+    tiles = fitted_tiles(plan, keys, max_blocks=1000)
+    assert most(tiles) <= 1000 and len(tiles) > 4
+    assert fitted_tiles(plan, keys, max_blocks=10**6) == plan.tiles  # dense enough already
+
+
 def test_canonical_order_ignores_the_order_a_mesher_gave():
     """A closed box shuffled (vertices and triangles, each triangle turned): the same
     arrays after canonical_order, and every triangle keeps its winding."""
