@@ -79,18 +79,24 @@ def truth_scene(scene_or_truth: str | Path, folder: Path):
 
 
 def truth_rasters(scene_or_truth: str | Path, grid: Grid) -> dict[str, np.ndarray]:
-    """The truth rasters that exist (dsm, dtm, ortho (H, W, 3), class), on ``grid``."""
+    """The truth rasters that exist (dsm, dtm, ortho (H, W, 3), class, building_id), on
+    ``grid`` (:func:`truth_layer`)."""
     folder = truth_folder(scene_or_truth)
-    out = {}
-    for name in ("dsm", "dtm", "ortho", "class", "building_id"):
-        path = folder / f"{name}.tif"
-        if path.exists():
-            data, src, _ = read_raster(path, as_float=name in ("dsm", "dtm"))
-            if name == "class":
-                check_class_codes(data, path, "truth class")
-            data = sample_to_grid(data, src, grid)
-            out[name] = np.moveaxis(data, 0, -1) if name == "ortho" else data[0]
-    return out
+    return {name: truth_layer(name, folder / f"{name}.tif", grid) for name in TRUTH_RASTERS
+            if (folder / f"{name}.tif").exists()}  # fmt: skip
+
+
+def truth_layer(name: str, path: Path, grid: Grid, header: Grid | None = None) -> np.ndarray:
+    """Truth raster ``name`` (of :data:`TRUTH_RASTERS`) on ``grid`` (:func:`read_on_grid`):
+    heights float64 (H, W), classes checked uint8 (H, W), the ortho (H, W, 3), ids as
+    they are."""
+    heights = name in ("dsm", "dtm")
+    data = read_on_grid(path, grid, field=f"truth {name}", as_float=heights, header=header)
+    if name == "class":
+        return check_class_codes(data, path, "truth class")[0].astype(np.uint8)
+    if name == "ortho":
+        return np.moveaxis(data, 0, -1)
+    return data[0].astype(np.float64) if heights else data[0]
 
 
 def training_mask(scene, grid: Grid) -> np.ndarray | None:
@@ -100,8 +106,7 @@ def training_mask(scene, grid: Grid) -> np.ndarray | None:
     strokes = scene.training_labels if scene is not None else None
     if strokes is None or not Path(strokes).exists():
         return None
-    data, src, _ = read_raster(strokes, field="training labels")
-    return sample_to_grid(data, src, grid)[0] > 0
+    return read_on_grid(strokes, grid, field="training labels")[0] > 0
 
 
 def training_cells(scene_or_truth: str | Path, grid: Grid) -> np.ndarray | None:
@@ -325,14 +330,7 @@ class TruthSource:
     def _read(self, name: str, path: Path, grid: Grid) -> np.ndarray:
         if name not in self._headers:
             self._headers[name] = raster_header(path, f"truth {name}")[0]
-        heights = name in ("dsm", "dtm")
-        data = read_on_grid(path, grid, field=f"truth {name}", as_float=heights,
-                            header=self._headers[name])  # fmt: skip
-        if name == "class":
-            return check_class_codes(data, path, "truth class")[0].astype(np.uint8)
-        if name == "ortho":
-            return np.moveaxis(data, 0, -1)
-        return data[0].astype(np.float64) if heights else data[0]
+        return truth_layer(name, path, grid, self._headers[name])
 
 
 class TopDown:
