@@ -720,6 +720,9 @@ def fuse_mesh_in_blocks(mesh, grid: Grid, opts: FusionOptions, timer: StageTimer
     insides, the planar objects of their windows (an object in a margin is counted by
     every block that holds it).
     """
+    blocks = block_layout(grid, block_m)
+    for b in blocks:  # before the sampling: a block too large stops at once
+        check_memory(grid.window(*b.outer), opts, 1)
     ortho_all = WindowedRaster(scratch / "ortho.tif", grid, None, np.uint8, 3)
     dsm_all = WindowedRaster(scratch / "dsm.tif", grid, None, np.float32, 1, nodata=np.nan)
     with timer.stage("sampling"):
@@ -728,9 +731,6 @@ def fuse_mesh_in_blocks(mesh, grid: Grid, opts: FusionOptions, timer: StageTimer
             dsm_all.write(d, rows, cols)
             normal.write(n, rows, cols)
     figures: dict = {}
-    blocks = block_layout(grid, block_m)
-    for b in blocks:
-        check_memory(grid.window(*b.outer), opts, 1)
     for b in progress(blocks, "fusion: the mesh's blocks"):
         ortho = np.moveaxis(ortho_all.read(*b.outer), 0, -1)
         corner = (b.outer[0].start, b.outer[1].start)

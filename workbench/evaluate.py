@@ -20,7 +20,7 @@ from .raycast import raycasting_scene, unsigned_distance
 from .runs import Run
 from .texture_seams import SceneImages, read_textured_building, recomputed_seam_costs
 from .tiled_regions import TiledRegions
-from .truth import GRID_LAYERS, TopDown, Truth, TruthSource, read_on_grid
+from .truth import TopDown, Truth, TruthSource, read_on_grid
 
 DSM_KEYS = ("rmse_m", "rmse_off_jumps_m", "median_abs_m", "valid_fraction")
 
@@ -248,6 +248,10 @@ def strided_into(out: np.ndarray | None, a: np.ndarray, rows: slice, cols: slice
     return out
 
 
+# the truth's layers the report draws (the ground under the renders included)
+PICTURED = ("ortho", "cls", "dsm", "dtm", "building_ids", "building_surface")
+
+
 def truth_overview(truth, stride: int, window_cells: int = 512) -> Truth:
     """The truth's rasters at every ``stride``-th cell (a :class:`Truth` on
     :func:`overview_grid`), read a window at a time: the report's maps of a city."""
@@ -256,7 +260,7 @@ def truth_overview(truth, stride: int, window_cells: int = 512) -> Truth:
                 views=truth.views, sources=truth.sources)  # fmt: skip
     for rows, cols in truth.grid.tiles(window_cells):
         t = truth.window(rows, cols)
-        for name in GRID_LAYERS:
+        for name in PICTURED:
             if getattr(t, name) is not None:
                 setattr(out, name, strided_into(getattr(out, name), getattr(t, name), rows, cols,
                                                 stride, grid.shape))  # fmt: skip
