@@ -231,6 +231,19 @@ def test_a_mesh_that_is_not_a_surface_is_one_line(tmp_path, V, T, field):
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
 
 
+def test_a_mesh_that_is_not_a_surface_in_blocks_is_one_line(tmp_path):
+    """In blocks the sampling finds the non-manifold edges after its last tile, when the
+    rasters' windows and the samples' scratch exist: they go, the error is one line."""
+    V = [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]]
+    path = _write(tmp_path, np.asarray(V, float) + [500_000, 5_700_000, 0],
+                  [[0, 1, 2], [1, 0, 3], [0, 1, 4]])  # fmt: skip
+    proc = run_cli("fusion", "--mesh", path, "-o", tmp_path / "out", "--crs", "EPSG:32631",
+                   "--gsd", "0.1", "--block", "0.5")  # fmt: skip
+    assert proc.returncode == 2 and str(path) in proc.stderr and "faces" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.ply"]  # nothing else left
+
+
 def test_a_mesh_outside_its_crs_area_is_one_line(tmp_path):
     path = _write(tmp_path, slope_mesh().vertices, slope_mesh().triangles)  # x 0-10 m
     proc = run_cli("fusion", "--mesh", path, "-o", tmp_path / "out", "--crs", "EPSG:32631")
