@@ -1,6 +1,6 @@
 """Score one run against the truth: every metric of metrics.json, per building, with maps.
 
-A run is first seen on the truth's grid (:func:`run_layers`): its surface, its buildings
+A run is first seen on the truth's grid (:class:`RunOnGrid`): its surface, its buildings
 and, for models, the roof normals, all by casting vertical rays through its meshes. The
 metrics are then the same plain functions of :mod:`workbench.metrics` for every method.
 """
@@ -346,8 +346,8 @@ class GridScores:
 
     def _buildings(self, t: Truth, run: RunLayers, rows: slice, cols: slice) -> None:
         t_ids, ids = t.building_ids, run.building_ids
-        tp = np.count_nonzero((ids > 0) & (t_ids > 0))
-        counts = np.array([tp, np.count_nonzero(ids > 0) - tp, np.count_nonzero(t_ids > 0) - tp])
+        f = metrics.footprint_2d(ids > 0, t_ids > 0)
+        counts = np.array([f["tp"], f["fp"], f["fn"]])
         self.footprint = counts if self.footprint is None else self.footprint + counts
         true_objects, run_objects = (
             metrics.id_counts(t_ids, ids > 0),
@@ -521,18 +521,9 @@ def _building_quantiles(t: Truth, layers: RunLayers, ids: list[int]) -> dict[int
         known = np.isfinite(layers.normals[..., 2]) & np.isfinite(t.roof_normals[..., 2])
         both = (group > 0) & known
         ang = metrics.plane_angles_deg(layers.normals[both], t.roof_normals[both])
-        for k, a in _split_by(group[both], ang):
+        for k, a in metrics.values_by_id(group[both], ang):
             out[k]["plane_angle_median_deg"] = float(np.median(a))
     return out
-
-
-def _split_by(keys: np.ndarray, values: np.ndarray):
-    """(key, values of that key) for each key of ``keys``, in increasing order."""
-    if not len(keys):
-        return iter(())
-    order = np.argsort(keys, kind="stable")
-    labels, start = np.unique(keys[order], return_index=True)
-    return zip(labels.tolist(), np.split(values[order], start[1:]), strict=True)
 
 
 def building_windows(ids: np.ndarray):

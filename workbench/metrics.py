@@ -428,15 +428,17 @@ def building_heights(
     """
     h = surface - ground
     m = (ids > 0) & np.isfinite(h)
-    if not m.any():
-        return {}
-    order = np.argsort(ids[m], kind="stable")
-    sid, sh = ids[m][order], h[m][order]
-    labels, start = np.unique(sid, return_index=True)
-    return {
-        int(k): float(np.percentile(part, percentile))
-        for k, part in zip(labels, np.split(sh, start[1:]), strict=True)
-    }
+    return {k: float(np.percentile(part, percentile)) for k, part in values_by_id(ids[m], h[m])}
+
+
+def values_by_id(ids: np.ndarray, values: np.ndarray):
+    """(id, its values) for each id of ``ids`` (N,), in increasing order, ``values`` (N,)
+    split by them (each id's in their order)."""
+    if not len(ids):
+        return iter(())
+    order = np.argsort(ids, kind="stable")
+    labels, start = np.unique(ids[order], return_index=True)
+    return zip(labels.tolist(), np.split(values[order], start[1:]), strict=True)
 
 
 def height_error_summary(errors_pct: list[float]) -> dict:

@@ -152,14 +152,20 @@ def occluded(
     return out
 
 
-def vertical_hits(scene: RayScene, grid: Grid, z_top: float) -> Hits:
-    """Cast rays straight down from height ``z_top`` through every cell centre of ``grid``.
+def vertical_hits(scene: RayScene, grid: Grid, z_top: float,
+                  window: tuple[slice, slice] | None = None) -> Hits:  # fmt: skip
+    """Cast rays straight down from height ``z_top`` through every cell centre of ``grid``,
+    or of its cells ``window`` (rows, cols): a cell's ray is the same whichever window
+    holds it (its centre from its index in ``grid``).
 
     Returns
     -------
-    Hits of ``grid.height * grid.width`` rays in row-major cell order: the top surface.
+    Hits of the cells' rays in row-major cell order: the top surface.
     """
-    X, Y = grid.cell_centers()
+    rows, cols = window or (slice(0, grid.height), slice(0, grid.width))
+    x, _ = grid.cell_center(0, np.arange(cols.start, cols.stop))
+    _, y = grid.cell_center(np.arange(rows.start, rows.stop), 0)
+    X, Y = np.meshgrid(x, y)
     origins = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, z_top)])
     return cast(scene, origins, np.tile([0.0, 0.0, -1.0], (X.size, 1)))
 

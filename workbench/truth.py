@@ -13,7 +13,7 @@ from .errors import InputError
 from .footprints import read_footprints
 from .meshio import read_ply
 from .raster import Grid, check_class_codes, raster_header, read_raster
-from .raycast import cast, local_origin, raycasting_scene
+from .raycast import local_origin, raycasting_scene, vertical_hits
 from .scene import load_scene
 
 
@@ -371,22 +371,8 @@ class TopDown:
         h, w = rows.stop - rows.start, cols.stop - cols.start
         if self.scene is None:
             return np.zeros((h, w), np.int64), np.full((h, w), np.nan), np.full((h, w, 3), np.nan)
-        x, _ = self.grid.cell_center(0, np.arange(cols.start, cols.stop))
-        _, y = self.grid.cell_center(np.arange(rows.start, rows.stop), 0)
-        X, Y = np.meshgrid(x, y)
-        origins = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, self.z_top)])
-        hits = cast(self.scene, origins, np.tile([0.0, 0.0, -1.0], (X.size, 1)))
+        hits = vertical_hits(self.scene, self.grid, self.z_top, (rows, cols))
         hit = hits.tri >= 0
         ids = np.where(hit, self.building[np.where(hit, hits.tri, 0)], 0)
         normals = np.where(hit[:, None], hits.normals, np.nan).reshape(h, w, 3)
         return ids.reshape(h, w).astype(np.int64), hits.points[:, 2].reshape(h, w), normals
-
-
-def top_down(
-    vertices: np.ndarray, triangles: np.ndarray, building: np.ndarray, grid: Grid
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Buildings seen straight down at every cell centre of ``grid``: :class:`TopDown`
-    on the whole grid."""
-    return TopDown(vertices, triangles, building, grid).window(
-        slice(0, grid.height), slice(0, grid.width)
-    )
