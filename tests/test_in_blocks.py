@@ -231,3 +231,50 @@ def test_the_lod_path_in_blocks_learns_once_and_models_each_building_once(
     assert objects["found"] == wm["footprint_2d"]["objects"]["found"]  # 6 of 6
     assert m["footprint_2d"]["quality"] == pytest.approx(wm["footprint_2d"]["quality"], abs=0.01)
     assert m["complexity"]["watertight_fraction"] == 1.0
+
+
+def test_an_interrupted_lod_run_in_blocks_redoes_only_its_unfinished_buildings(
+    tiny_scene, tiny_fusion, tmp_path, monkeypatch
+):  # fmt: skip
+    """The LOD path in 4 blocks, its buildings the tasks of an engine with a task store:
+    interrupted (Ctrl-C) at the fourth building and resumed, it models only the buildings
+    not finished, and gives the run through's buildings and classes; its own rasters
+    were written block by block into the store's folder, not held whole."""
+    import modeling.lod.path as lp
+    from modeling.lod.options import LodOptions
+    from workbench.engine import TaskStore, engine_for, partial_folder, run_signature
+    from workbench.model_run import BuildingsOnDisk
+
+    opts = LodOptions(block_m=32.0, block_margin_m=12.0, workers=1)
+    through = lp.run_lod(tiny_fusion, opts)  # no store: in memory
+    out = tmp_path / "lod"
+    sig = run_signature(opts, {"fusion_dir": tiny_fusion, "labels": None})
+    real, calls = lp.building_lod, []
+
+    def dies_at_the_fourth(*args):
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        calls.append(1)
+        return real(*args)
+
+    monkeypatch.setattr(lp, "building_lod", dies_at_the_fourth)
+    with pytest.raises(KeyboardInterrupt), engine_for(out, sig, workers=1) as engine:
+        lp.run_lod(tiny_fusion, opts, engine=engine)
+    partial = partial_folder(out)
+    kept = [TaskStore(d).finished("buildings") for d in sorted(partial.glob("block_*"))]
+    assert sum(kept) == 3
+
+    calls.clear()
+    monkeypatch.setattr(lp, "building_lod", lambda *a: calls.append(1) or real(*a))
+    with engine_for(out, sig, workers=1, resume=True) as engine:
+        resumed = lp.run_lod(tiny_fusion, opts, engine=engine)
+        assert isinstance(resumed.buildings, BuildingsOnDisk)
+        buildings = list(resumed.buildings)
+        files = resumed.raster_files
+        assert {"class", "tree_probability"} <= set(files) and not resumed.rasters
+        classes = read_raster(files["class"])[0][0]
+    assert len(calls) == through.counts["candidates"] - 3
+    assert [b.id for b in buildings] == [b.id for b in through.buildings]
+    for a, b in zip(buildings, through.buildings, strict=True):
+        np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
+    np.testing.assert_array_equal(classes, through.rasters["class"][0])

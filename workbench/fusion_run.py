@@ -91,6 +91,21 @@ def read_fusion_run(
     return FusionRun(folder, out, grid, crs, _record(folder / "fusion.json"))
 
 
+ONE_CELL = (slice(0, 1), slice(0, 1))
+
+
+def checked_fusion_run(folder: str | Path, names: tuple[str, ...], classes: bool) -> FusionRun:
+    """What :func:`read_fusion_run` refuses of the rasters ``names``, and with
+    ``classes`` of the class map when there is one (:func:`class_map`), checked on the
+    grid's first cell: a command's check of its inputs reads no whole-grid raster.
+    Returns the run with its whole grid and CRS, and no raster."""
+    cell = read_fusion_run(folder, names, ONE_CELL)
+    if classes:
+        class_map(folder, cell.grid, ONE_CELL)
+    grid = raster_header(Path(folder) / f"{names[0]}.tif")[0]
+    return FusionRun(cell.folder, {}, grid, cell.crs, cell.record)
+
+
 def _record(path: Path) -> dict:
     try:
         doc = json.loads(path.read_text())

@@ -109,6 +109,15 @@ def block_margin_option() -> Any:
     )  # fmt: skip
 
 
+def workers_option(also: str = "") -> Any:
+    """A modeling path's ``--workers``: its buildings are tasks of :mod:`workbench.engine`
+    (``also``: what else the workers run, a clause)."""
+    return option(
+        None, "buildings modelled at once: worker processes of a local Dask cluster (1: in "
+        f"this process){also}; the models do not depend on it", auto="every core",
+    )  # fmt: skip
+
+
 def _meta(f: dataclasses.Field) -> dict:
     return f.metadata.get("option", {})
 

@@ -37,7 +37,13 @@ from modeling.shared.roof_envelope import BuildingMesh, building_solid, face_pla
 from modeling.shared.roof_model import closed_roof_model
 from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
 from workbench.errors import InputError
-from workbench.fusion_run import building_cells, class_map, read_fusion_run, tree_cells
+from workbench.fusion_run import (
+    building_cells,
+    checked_fusion_run,
+    class_map,
+    read_fusion_run,
+    tree_cells,
+)
 from workbench.grid_blocks import Block as GridBlock
 from workbench.meshes import is_watertight
 from workbench.model_run import Building, ModelRun, Surface
@@ -227,9 +233,7 @@ def check_inputs(fusion_dir: Path, options: BlocksOptions, supports: Path | None
     """Read what :func:`run_blocks` refuses, before a command starts its workers: the
     fusion run's rasters and the supports' file (one line, with no worker's shutdown
     noise after it)."""
-    fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
-    if not options.all_building:
-        class_map(fusion_dir, fusion.grid)  # a class map on another grid
+    fusion = checked_fusion_run(fusion_dir, FUSION_RASTERS, not options.all_building)
     if supports is not None:
         _given_supports(supports, fusion, fusion.grid, None, None, None)
 

@@ -35,6 +35,8 @@ SPEC = PathSpec(
     ),  # fmt: skip
     run="modeling.lod.path:run_lod",
     summary="modeling.lod.path:summary_lines",
+    tasks=True,
+    check="modeling.lod.path:check_inputs",
 )
 
 __all__ = ["SPEC", "LodOptions"]

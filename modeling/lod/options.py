@@ -10,6 +10,7 @@ from workbench.options import (
     comma_choices,
     documented,
     option,
+    workers_option,
 )
 
 LODS = ("0", "1", "2")
@@ -78,4 +79,5 @@ class LodOptions:
     )  # fmt: skip
     block_m: float | None = block_side_option()
     block_margin_m: float = block_margin_option()
+    workers: int | None = workers_option()
     seed: int = option(0, "seed of the RANSACs and the classifier", kind="non_negative")

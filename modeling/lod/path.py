@@ -22,6 +22,7 @@ from fusion.planar_objects import COUNTS as PLANAR_COUNTS
 from fusion.planar_objects import planar_roof_cells
 from modeling.shared.in_blocks import (
     BlockPlan,
+    block_engine,
     blocks_lines,
     blocks_record,
     each_block,
@@ -30,14 +31,13 @@ from modeling.shared.in_blocks import (
 from modeling.shared.opened_parts import mid_wall_region
 from modeling.shared.raster_ground import dtm_across_holes, vertex_colours
 from modeling.shared.roof_model import closed_roof_model
-from workbench.engine import ThreadEngine
+from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
 from workbench.errors import InputError, WorkbenchError
-from workbench.fusion_run import read_fusion_run
+from workbench.fusion_run import ONE_CELL, checked_fusion_run, read_fusion_run
 from workbench.grid_blocks import Block
 from workbench.ground_grass_colours import fit_flat_colours, ground_factor
 from workbench.model_run import Building, ModelRun
 from workbench.pictures import colorize_classes, contact_sheet
-from workbench.progress import progress
 from workbench.raster import BUILDING, GRASS, GROUND, TREE, Grid, raster_header, read_raster
 from workbench.records import StageTimer, run_speed
 from workbench.texture_seams import rgb_to_lab
@@ -67,11 +67,13 @@ log = logging.getLogger(__name__)
 FUSION_RASTERS = ("ortho", "dsm", "dtm", "class_prob")
 SIMPLIFY_CELLS = 2.25  # the super-pixel path's simplification of face outlines
 MARGIN_CELLS = 4
+STROKE_ROWS = 1024  # rows of strokes the input check reads at a time
 
 
 @dataclass
 class LodInputs:
-    """What every building's step reads: the fusion's rasters on one grid."""
+    """What every building's task reads (:func:`building_lod`): a block's rasters, its
+    building regions and their boxes, shared once with every worker."""
 
     grid: Grid
     rgb: np.ndarray
@@ -79,10 +81,16 @@ class LodInputs:
     filled: np.ndarray  # the DSM's holes filled for the outlines (labelling.fill_holes)
     dtm: np.ndarray
     normal: np.ndarray | None
+    parts: np.ndarray  # (h, w) int32 building regions 1..n, 0 elsewhere
+    boxes: list  # region k's (rows, cols) slices at k - 1 (ndimage.find_objects)
 
 
 def run_lod(
-    fusion_dir: str | Path, options: LodOptions | None = None, labels: str | Path | None = None
+    fusion_dir: str | Path,
+    options: LodOptions | None = None,
+    labels: str | Path | None = None,
+    *,
+    engine: Engine | None = None,
 ) -> ModelRun:
     """The LOD paper on a fusion run: MRF labelling, regular roof planes, segment
     arrangements, LOD0/1/2.
@@ -102,14 +110,17 @@ def run_lod(
     options : LodOptions
     labels : path, optional
         Training strokes (class codes 1-4, 0 unlabelled) for the tree classifier.
+    engine : Engine, optional
+        Runs the buildings' tasks (default: this process, one after another). With a task
+        store and several blocks, the run's own rasters are written block by block to the
+        store's folder, not held whole.
     """
     options = options or LodOptions()
-    if not {"1", "2"} & set(options.lod):
-        raise WorkbenchError("--lod: give 1 or 2 as well: every building needs a closed mesh "
-                             "(LOD0 is its footprint)")  # fmt: skip
+    _check_levels(options)
+    engine = engine or ThreadEngine(1)
     timer = StageTimer()
     t_start = time.perf_counter()
-    plan = plan_blocks(fusion_dir, options.block_m, options.block_margin_m, ThreadEngine(1))
+    plan = plan_blocks(fusion_dir, options.block_m, options.block_margin_m, engine)
     grid, blocks = plan.grid, plan.blocks
     with timer.stage("tree probability"):
         learned = learn_from_strokes(fusion_dir, labels, grid, blocks, options)
@@ -119,7 +130,8 @@ def run_lod(
             mean_d2 = whole_grid_colour_difference(fusion_dir, grid, blocks)
     done = []
     for b in each_block(blocks):
-        done.append(lod_block(fusion_dir, b, plan, options, learned, mean_d2, timer))
+        done.append(lod_block(fusion_dir, b, plan, options, learned, mean_d2,
+                              block_engine(engine, blocks, b), timer))  # fmt: skip
     buildings = plan.buildings
     with timer.stage("preview"):
         layers, _ = plan.rasters.preview_layers()
@@ -132,6 +144,7 @@ def run_lod(
         "skipped": [s for d in done for s in d["skipped"]],
         "labelling": {"tree_probability": learned.source, "flat_colours": learned.colours,
                       "mean_ground_m": trace, "cells": cells},
+        **engine.describe(),
         **run_speed(seconds, len(buildings), grid.width * grid.height),
     }  # fmt: skip
     if len(blocks) > 1:
@@ -147,6 +160,26 @@ def run_lod(
                 "normal_map": "normal.tif" if done[0]["normal_map"] else "from the DSM"},
         counts=counts, record=record,
     )  # fmt: skip
+
+
+def check_inputs(fusion_dir: Path, options: LodOptions, labels: Path | None = None) -> None:
+    """Read what :func:`run_lod` refuses, before a command starts its workers: the levels
+    asked for, the fusion run's rasters (on one cell), its normal map's grid and the
+    strokes' codes (a band of rows at a time; one line, with no worker's shutdown noise
+    after it)."""
+    _check_levels(options)
+    grid = checked_fusion_run(fusion_dir, FUSION_RASTERS, classes=False).grid
+    _normal_map(Path(fusion_dir), grid, ONE_CELL)
+    if labels is not None:
+        for r in range(0, grid.height, STROKE_ROWS):
+            _strokes(labels, grid, (slice(r, min(r + STROKE_ROWS, grid.height)),
+                                    slice(0, grid.width)))  # fmt: skip
+
+
+def _check_levels(options: LodOptions) -> None:
+    if not {"1", "2"} & set(options.lod):
+        raise WorkbenchError("--lod: give 1 or 2 as well: every building needs a closed mesh "
+                             "(LOD0 is its footprint)")  # fmt: skip
 
 
 @dataclass
@@ -239,11 +272,12 @@ def whole_grid_colour_difference(fusion_dir, grid: Grid, blocks: list[Block]) ->
     return total / max(pairs, 1)
 
 
-def lod_block(fusion_dir, block: Block, plan: BlockPlan, options: LodOptions,
-              learned: Learned, mean_d2: float | None, timer: StageTimer) -> dict:  # fmt: skip
+def lod_block(fusion_dir, block: Block, plan: BlockPlan, options: LodOptions, learned: Learned,
+              mean_d2: float | None, engine: Engine, timer: StageTimer) -> dict:  # fmt: skip
     """Sections 4-5 over the outer cells of ``block``: the tree probability, the MRF
     labelling, and the LOD models of the buildings ``plan.claims`` gives it (every one
-    when the block is the whole grid), put into ``plan``; returns the block's record
+    when the block is the whole grid), each a task of ``engine`` (:func:`building_lod`),
+    put into ``plan``; returns the block's record
     (cells of each class in its inner cells, the labelling's trace, skipped regions,
     counts)."""
     with timer.stage("read"):
@@ -280,13 +314,15 @@ def lod_block(fusion_dir, block: Block, plan: BlockPlan, options: LodOptions,
         todo = [k for k in todo if sizes[k] >= options.min_area_m2]
         number = plan.claims.claim(block, parts, n, todo)
         outline_heights = fill_holes(dsm, ground, options.h_trunc, from_below=filled)
-    inputs = LodInputs(grid, rgb, dsm, outline_heights, ground, normal)
+    inputs = LodInputs(grid, rgb, dsm, outline_heights, ground, normal, parts.astype(np.int32),
+                       ndi.find_objects(parts))  # fmt: skip
     buildings, skipped, painted = [], [], np.zeros(grid.shape, np.int64)
     first = len(plan.buildings)  # the buildings of the blocks before
     with timer.stage("buildings"):
-        boxes = ndi.find_objects(parts)
-        for k in progress(todo, "lod: buildings"):
-            b, plane_raster, (rows, cols) = building_lod(k, parts, boxes[k - 1], inputs, options)
+        done = engine.map(building_lod, todo, engine.share(inputs), options, stage="buildings",
+                          keys=[str(k) for k in todo],
+                          in_flight=BUILDINGS_IN_FLIGHT * engine.workers)  # fmt: skip
+        for k, (b, plane_raster, (rows, cols)) in zip(todo, done, strict=True):
             if isinstance(b, str):
                 skipped.append({"region": int(number[k]), "reason": b})
             else:
@@ -310,12 +346,13 @@ def lod_block(fusion_dir, block: Block, plan: BlockPlan, options: LodOptions,
 
 
 def building_lod(
-    k: int, parts: np.ndarray, box: tuple, inputs: LodInputs, options: LodOptions
+    k: int, inputs: LodInputs, options: LodOptions
 ) -> tuple[Building | str, np.ndarray, tuple[slice, slice]]:
-    """Sections 5.1-5.4 and the LOD generation for the building region ``k``; returns
-    the building (or why there is none), its cells' plane index + 1 and its window."""
+    """Task: sections 5.1-5.4 and the LOD generation for the building region ``k`` of
+    ``inputs.parts``; returns the building (or why there is none), its cells' plane
+    index + 1 and its window (rows, columns of the block)."""
     t0 = time.perf_counter()
-    g = inputs.grid
+    g, parts, box = inputs.grid, inputs.parts, inputs.boxes[k - 1]
     H, W = parts.shape
     r0, r1 = max(box[0].start - MARGIN_CELLS, 0), min(box[0].stop + MARGIN_CELLS, H)
     c0, c1 = max(box[1].start - MARGIN_CELLS, 0), min(box[1].stop + MARGIN_CELLS, W)

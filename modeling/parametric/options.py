@@ -10,6 +10,7 @@ from workbench.options import (
     comma_choices,
     documented,
     option,
+    workers_option,
 )
 
 FAMILIES = ("rect", "L", "T", "U", "courtyard")
@@ -85,7 +86,4 @@ class ParametricOptions:
     )  # fmt: skip
     block_m: float | None = block_side_option()
     block_margin_m: float = block_margin_option()
-    workers: int | None = option(
-        None, "buildings modelled at once: worker processes of a local Dask cluster (1: in "
-        "this process; the models do not depend on it)", auto="every core",
-    )  # fmt: skip
+    workers: int | None = workers_option()

@@ -47,6 +47,7 @@ from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
 from workbench.errors import InputError
 from workbench.fusion_run import (
     building_cells,
+    checked_fusion_run,
     class_map,
     read_fusion_run,
     tree_cells,
@@ -308,9 +309,7 @@ def check_inputs(
     """Read what :func:`run_parametric` refuses, before a command starts its workers: the
     fusion run's rasters and the footprints (one line, with no worker's shutdown noise
     after it)."""
-    fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
-    if not options.all_building:
-        class_map(fusion_dir, fusion.grid)  # a class map on another grid
+    fusion = checked_fusion_run(fusion_dir, FUSION_RASTERS, not options.all_building)
     if footprints is not None and not options.all_building:
         initial_region(fusion, footprints)
 

@@ -4,7 +4,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from workbench.options import block_margin_option, block_side_option, documented, option
+from workbench.options import (
+    block_margin_option,
+    block_side_option,
+    documented,
+    option,
+    workers_option,
+)
 
 
 @documented
@@ -83,8 +89,4 @@ class SuperpixelOptions:
     seed: int = option(0, "seed of RANSAC and affinity propagation", kind="non_negative")
     block_m: float | None = block_side_option()
     block_margin_m: float = block_margin_option()
-    workers: int | None = option(
-        None, "buildings modelled at once: worker processes of a local Dask cluster (1: in "
-        "this process), and Quickshift tiles segmented at once in threads; the model does "
-        "not depend on it", auto="every core",
-    )  # fmt: skip
+    workers: int | None = workers_option(", and Quickshift tiles segmented at once in threads")

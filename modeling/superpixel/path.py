@@ -28,7 +28,7 @@ from modeling.shared.raster_ground import vertex_colours
 from workbench import metrics
 from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
 from workbench.errors import InputError, WorkbenchError
-from workbench.fusion_run import FusionRun, class_map, read_fusion_run
+from workbench.fusion_run import FusionRun, checked_fusion_run, class_map, read_fusion_run
 from workbench.grid_blocks import Block
 from workbench.model_run import Building, ModelRun
 from workbench.parallel import default_workers
@@ -246,7 +246,7 @@ def check_inputs(fusion_dir: Path, options: SuperpixelOptions, truth: Path | Non
     fusion run's rasters, the training strokes ``--omega-class auto`` needs and a
     ``--truth`` a run in blocks cannot take (one line, with no worker's shutdown noise
     after it)."""
-    fusion = read_fusion_run(fusion_dir, FUSION_RASTERS)
+    fusion = checked_fusion_run(fusion_dir, FUSION_RASTERS, True)
     if len(model_blocks(fusion.grid, options.block_m, options.block_margin_m)[0]) > 1:
         refuse_in_blocks(truth)
     if options.omega_class is None and not options.all_building:

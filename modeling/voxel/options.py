@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from workbench.options import documented, option
+from workbench.options import documented, option, workers_option
 
 
 @documented
@@ -109,7 +109,4 @@ class VoxelOptions:
         kind="any", auto="from the depth maps of the most downward-looking views",
     )  # fmt: skip
     seed: int = option(0, "random seed", kind="non_negative")
-    workers: int | None = option(
-        None, "buildings modelled at once: worker processes of a local Dask cluster (1: in "
-        "this process; the models do not depend on it)", auto="every core",
-    )  # fmt: skip
+    workers: int | None = workers_option()
