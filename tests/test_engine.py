@@ -281,7 +281,8 @@ def test_two_worker_processes_give_the_products_of_one_process(
         a, _, _ = read_raster(one / name)
         b, _, _ = read_raster(two / name)
         np.testing.assert_array_equal(a, b, err_msg=name)
-    for path, inputs in (("voxel", [tiny_scene, "--fusion", one]), ("superpixel", [one])):
+    for path, inputs in (("voxel", [tiny_scene, "--fusion", one]), ("superpixel", [one]),
+                         ("lod", [one])):  # fmt: skip
         m1, m2 = tmp_path / f"{path}1", tmp_path / f"{path}2"
         for out, how in ((m1, ["--workers", "1"]),
                          (m2, ["--scheduler", cluster.scheduler_address])):  # fmt: skip
