@@ -414,7 +414,8 @@ class FusedSurface:
 
     ``dsm`` has its isolated spikes dropped and small holes filled, ``dtm`` is NaN where
     the DSM is, ``dtm_full`` defined everywhere; ``context`` is what a view's features
-    need (None when the views are not classified)."""
+    need (None when the views are not classified); ``origin`` the (row, col) of the
+    grid's first cell in the whole grid, when it is a block's (for the holes' fill)."""
 
     grid: Grid
     cache: ObservationCache
@@ -425,6 +426,7 @@ class FusedSurface:
     spikes: np.ndarray
     holes: np.ndarray
     context: ViewContext | None
+    origin: tuple[int, int] = (0, 0)
 
 
 def fused_surface(views, shared_views, grid: Grid, mode: str, given, opts: FusionOptions,
@@ -466,7 +468,7 @@ def fused_products(s: FusedSurface, shared_views, forest, strokes, class_source,
     h = s.heights
     dsm, ndsm, class_prob, classes, ortho, count16, crowns, cleared, planar, flat, class_source = (
         _finish(c, h, s.dsm, s.dtm, s.spikes, s.holes, forest, strokes, class_source, s.grid,
-                mode, opts, timer, engine)
+                mode, opts, timer, engine, s.origin)
     )  # fmt: skip
     record = {
         "tiles": len(s.cache.tiles),
@@ -725,10 +727,13 @@ def tile_heights(t: int, cache: ObservationCache) -> tuple:
         count, len(z)  # fmt: skip
 
 
-def fused_ground(h: FusedHeights, grid: Grid, mode: str, given):
+def fused_ground(h: FusedHeights, grid: Grid, mode: str, given,
+                 origin: tuple[int, int] = (0, 0)):  # fmt: skip
     """The DSM with its isolated spikes dropped and small holes filled (or the given DSM
     on the grid), the DTM under it (NaN where the DSM is), the DTM everywhere, the spikes
-    and the holes."""
+    and the holes. ``origin``: (row, col) of the grid's first cell in the whole grid, when
+    it is a block's: a hole is filled as the whole grid fills it
+    (:func:`~.interpolate.fill_small_holes`)."""
     if mode == "depth maps":
         spikes = isolated_spikes(h.dsm, h.count)
         dsm = np.where(spikes, np.float32(np.nan), h.dsm)
@@ -737,7 +742,7 @@ def fused_ground(h: FusedHeights, grid: Grid, mode: str, given):
         dsm = sample_to_grid(given[0], given[1], grid)[0].astype(np.float32)
         spikes = np.zeros(grid.shape, bool)
     holes = small_holes(~np.isfinite(dsm), HOLE_CELLS)
-    dsm = fill_small_holes(dsm, np.isfinite(dsm), holes, HOLE_CELLS)
+    dsm = fill_small_holes(dsm, np.isfinite(dsm), holes, HOLE_CELLS, origin)
     dtm_full, _ = dtm_from_dsm(dsm, grid.gsd)
     dtm = np.where(np.isfinite(dsm), dtm_full, np.nan).astype(np.float32)
     return dsm, dtm, dtm_full, spikes, holes
@@ -915,6 +920,7 @@ def _finish(
     opts: FusionOptions,
     timer: StageTimer,
     engine: Engine,
+    origin: tuple[int, int] = (0, 0),
 ):
     """Normalised classes with the elevation prior, the class CRF's labels, planar objects
     classed tree made building, the crowns' corrections of the DSM (none of them in the
@@ -922,7 +928,7 @@ def _finish(
     median = dsm
     with timer.stage("finish"):
         dsm, ndsm, class_prob, ortho, flat, class_source = _class_confidences(
-            c, h, dsm, dtm, holes, forest, strokes, class_source, grid, opts
+            c, h, dsm, dtm, holes, forest, strokes, class_source, grid, opts, origin
         )
     with timer.stage("class_crf"):
         classes = contrast_class_crf(class_prob, ortho, dsm, opts.class_crf, engine=engine)
@@ -958,7 +964,8 @@ def _finish(
 
 
 def _class_confidences(c: FusedColours, h: FusedHeights, dsm, dtm, holes, forest, strokes,
-                       class_source, grid: Grid, opts: FusionOptions):  # fmt: skip
+                       class_source, grid: Grid, opts: FusionOptions,
+                       origin: tuple[int, int] = (0, 0)):  # fmt: skip
     """The accumulated class confidences normalised, with the elevation prior, ground
     and grass weighed by their colours (:mod:`fusion.flat_colours`) and the raster
     forest; the DSM with the crowns' sightings; the ortho's small holes filled; the
@@ -977,7 +984,7 @@ def _class_confidences(c: FusedColours, h: FusedHeights, dsm, dtm, holes, forest
             f"; tree and building damped below {opts.label_split / 2:g} m nDSM, ground "
             f"and grass above {opts.label_split + 2:g} m"
         )
-    ortho = fill_small_holes(c.ortho, seen, holes, HOLE_CELLS)
+    ortho = fill_small_holes(c.ortho, seen, holes, HOLE_CELLS, origin)
     flat = {"used": False, "reason": "--no-flat-colours, or no training strokes"}
     if strokes is not None:
         flat = weigh_by_stroke_colours(class_prob, ortho, sample_to_grid(*strokes, grid),

@@ -356,6 +356,18 @@ def test_a_window_fills_its_holes_as_the_whole_grid_given_its_origin():
     shifted = fill_small_holes(dsm[rows, cols], ~missing[rows, cols], holes[rows, cols], 9)
     assert not np.array_equal(shifted[inner], whole[rows, cols][inner])  # without it
 
+    # the fusion's ground step of a block fills its DSM so, given the block's origin
+    from fusion.scene_fusion import FusedHeights, fused_ground
+
+    def heights(z):  # each cell seen 10 times: none is a spike to drop
+        return FusedHeights(z, z, z, np.zeros_like(z), 10 * np.isfinite(z).astype(np.int32), 0)
+
+    grid = Grid(0.0, 256.0, 1.0, 192, 256)
+    full = fused_ground(heights(dsm.copy()), grid, "depth maps", None)[0]
+    block = fused_ground(heights(dsm[rows, cols].copy()), grid.window(rows, cols), "depth maps",
+                         None, origin=(37, 45))[0]  # fmt: skip
+    np.testing.assert_array_equal(block[inner], full[rows, cols][inner])
+
 
 def test_small_holes_only_inner_and_small():
     m = np.zeros((20, 20), bool)
