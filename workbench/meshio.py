@@ -288,9 +288,8 @@ def write_obj_pieces(
     ``pieces`` is as for :func:`write_ply_pieces`; the vertices are coloured when the
     pieces' colours are not None."""
     with open(path, "w") as f:
-        for lines in _obj_chunks(pieces, n_triangles, material, mtllib, uvs):
-            if lines:
-                f.write("\n".join(lines) + "\n")
+        for text in _obj_chunks(pieces, n_triangles, material, mtllib, uvs):
+            f.write(text)
 
 
 # rows of an array formatted at once by write_obj: a city's ground of 1.5 M vertices as
@@ -298,39 +297,42 @@ def write_obj_pieces(
 OBJ_CHUNK = 65536
 
 
+def _rows(pattern: str, values: np.ndarray) -> str:
+    """``pattern`` (one row, its newline included) formatted with each row of ``values``
+    (N, k), as one string: one ``%`` over the chunk's numbers, 2-3 times faster than a
+    formatted string a row (the city's ground and scene OBJ: 3.5 s)."""
+    return (pattern * len(values)) % tuple(values.ravel().tolist())
+
+
 def _obj_chunks(pieces, n_triangles, material, mtllib, uvs):
-    """:func:`write_obj_pieces`'s lines, a list at a time."""
-    yield ["# city-workbench"] + ([f"mtllib {mtllib}"] if mtllib else [])
+    """:func:`write_obj_pieces`'s text, at most ``OBJ_CHUNK`` rows at a time."""
+    yield "# city-workbench\n" + (f"mtllib {mtllib}\n" if mtllib else "")
     for vertices, _, colours in pieces():
-        vertices = np.asarray(vertices)
+        vertices = np.asarray(vertices, np.float64)
         c = None if colours is None else np.asarray(colours, np.float64) / 255.0
         for i in range(0, len(vertices), OBJ_CHUNK):
-            # rows as Python numbers: iterating an array's rows is several times slower
-            v = vertices[i : i + OBJ_CHUNK].tolist()
+            v = vertices[i : i + OBJ_CHUNK]
             if c is None:
-                yield [f"v {x:.3f} {y:.3f} {z:.3f}" for x, y, z in v]
+                yield _rows("v %.3f %.3f %.3f\n", v)
             else:
-                yield [
-                    f"v {x:.3f} {y:.3f} {z:.3f} {r:.3f} {g:.3f} {b:.3f}"
-                    for (x, y, z), (r, g, b) in zip(v, c[i : i + OBJ_CHUNK].tolist(), strict=True)
-                ]
+                yield _rows("v %.3f %.3f %.3f %.3f %.3f %.3f\n",
+                            np.hstack([v, c[i : i + OBJ_CHUNK]]))  # fmt: skip
     if uvs is not None:
-        uv = np.asarray(uvs).reshape(-1, 2)
+        uv = np.asarray(uvs, np.float64).reshape(-1, 2)
         for i in range(0, len(uv), OBJ_CHUNK):
-            yield [f"vt {u:.6f} {v:.6f}" for u, v in uv[i : i + OBJ_CHUNK].tolist()]
+            yield _rows("vt %.6f %.6f\n", uv[i : i + OBJ_CHUNK])
     runs = [(material, n_triangles)] if isinstance(material, str) else material
     rows = _TriangleRows(pieces)
     for name, count in runs or [(None, n_triangles)]:
         if name:
-            yield [f"usemtl {name}"]
+            yield f"usemtl {name}\n"
         for first, corners in rows.take(count):
             if uvs is None:
-                yield [f"f {a} {b} {c}" for a, b, c in corners]
-            else:
-                yield [
-                    f"f {a}/{3 * k + 1} {b}/{3 * k + 2} {c}/{3 * k + 3}"
-                    for k, (a, b, c) in enumerate(corners, start=first)
-                ]
+                yield _rows("f %d %d %d\n", corners)
+            else:  # each corner with its own texture coordinate, 3 k + 1.. of triangle k
+                k = 3 * np.arange(first, first + len(corners), dtype=np.int64)[:, None]
+                both = np.stack([corners, k + np.arange(1, 4)], axis=2).reshape(-1, 6)
+                yield _rows("f %d/%d %d/%d %d/%d\n", both)
 
 
 class _TriangleRows:
@@ -352,7 +354,7 @@ class _TriangleRows:
             offset += len(v)
 
     def take(self, n: int):
-        """Yields (index of the first triangle, its corners as lists) up to ``n`` rows."""
+        """Yields (index of the first triangle, its corners (m, 3)) up to ``n`` rows."""
         while n > 0:
             if not len(self._left):
                 self._left = next(self._chunks, None)
@@ -360,7 +362,7 @@ class _TriangleRows:
                     self._left = np.zeros((0, 3), np.int64)
                     return
             rows, self._left = self._left[:n], self._left[n:]
-            yield self.first, rows.tolist()
+            yield self.first, rows
             self.first += len(rows)
             n -= len(rows)
 
