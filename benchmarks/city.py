@@ -54,6 +54,14 @@ def _peak(text: str) -> float | None:
     return float(peak[-1].split()[1]) / 1024 if peak else None
 
 
+def _mesh_worker_peaks(text: str) -> list[float] | None:
+    """The peak memory of `workbench mesh`'s workers (MiB), from what it printed."""
+    for line in text.splitlines():
+        if "Dask workers; their peak memory" in line:
+            return [float(p) for p in line.split("peak memory")[1].strip(" MiB").split(",")]
+    return None
+
+
 def _recorded_s(record: Path, key: str | None = None) -> float | None:
     """The seconds a finished run's record gives: its ``key``, else the sum of its
     stages (None if there is no such run)."""
@@ -157,7 +165,8 @@ def mesh_chain(scene: Path, out: Path, reuse_runs: bool = False,
     res = {}
     kept = 0.0 if reuse_runs and mesh.exists() else None
     wall, peak = run("mesh", scene, "-o", mesh, "--overwrite", log=out / "mesh.log", kept=kept)
-    res["mesh"] = {"wall_s": wall, "peak_mb": peak}
+    workers = _mesh_worker_peaks((out / "mesh.log").read_text())
+    res["mesh"] = {"wall_s": wall, "peak_mb": peak, "worker_peak_mb": workers}
     kept = _recorded_s(fusion / "fusion.json", "stages_total_s") if reuse_runs else None
     wall, peak = run("fusion", "--mesh", mesh, "-o", fusion, "--gsd", doc["gsd"], "--bounds",
                      *doc["bounds"], "--overwrite", log=out / "fusion_mesh.log",

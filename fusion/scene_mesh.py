@@ -25,6 +25,7 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 
+from workbench.engine import Engine, ThreadEngine
 from workbench.errors import InputError, WorkbenchError
 from workbench.progress import progress
 from workbench.scene import Scene
@@ -143,36 +144,55 @@ def _defaults(function) -> dict:
             if p.default is not inspect.Parameter.empty}  # fmt: skip
 
 
-def write_views_mesh(path, scene: Scene, **mesh_options) -> dict:
+def write_views_mesh(path, scene: Scene, *, workers: int | None = None,
+                     scheduler: str | None = None, resume: bool = False,
+                     **mesh_options) -> dict:  # fmt: skip
     """:func:`integrate_views` (``mesh_options``: its keyword arguments) written to
     ``path`` (:func:`write_scene_mesh`'s PLY, the scene's CRS in its header), whole or
     not at all. A tiled mesh is written tile after tile, one tile's triangles in memory
-    at a time. Returns the mesh's record."""
+    at a time; its tiles are tasks of an engine (:mod:`workbench.engine`: ``workers``
+    processes of a local cluster, by default one per core, or ``scheduler``'s), each
+    kept in ``path``'s partial folder as it finishes, so that a run started again with
+    ``resume`` meshes only the tiles not finished. Returns the mesh's record."""
+    from workbench.engine import engine_for, full_disk_named
+    from workbench.meshio import PlyWriter
+
     o = {**_defaults(integrate_views), **mesh_options}
     plan = _plan(scene, o["voxel_m"], o["trunc_voxels"], o["bounds"], o["min_weight"],
                  o["max_memory_fraction"], o["tile_m"])  # fmt: skip
     if plan.tiles is None:
+        if scheduler is not None or resume:
+            log.warning("--scheduler and --resume apply to a mesh in tiles; this one is one "
+                        "grid, meshed in this process")  # fmt: skip
         mesh = integrate_views(scene, **mesh_options)
         write_scene_mesh(path, mesh, scene.crs)
         return mesh.record
-    from workbench.engine import full_disk_named
-    from workbench.meshio import PlyWriter
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    signature = {"inputs": {"scene": str(Path(scene.scene_json).absolute())},
+                 "parameters": {k: o[k] for k in MESH_SIGNATURE}}  # fmt: skip
     n_blocks = 0
     with (
+        engine_for(path, signature, workers=workers, scheduler=scheduler, resume=resume,
+                   preload=("fusion.scene_mesh",)) as engine,
         full_disk_named(path),
         PlyWriter(path, colours=True, comments=_crs_comments(scene.crs)) as ply,
-    ):
-        plan, blocks = planned_tiles(scene.views, plan)
-        for piece in tile_pieces(scene.views, plan, blocks):
+    ):  # fmt: skip
+        plan, blocks = planned_tiles(scene.views, plan, engine)
+        for piece in tile_pieces(scene.views, plan, blocks, engine):
             ply.add_vertices(piece.vertices, piece.colours)
             ply.add_triangles(piece.triangles)
             n_blocks += piece.blocks
         if not ply.n_triangles:
             raise WorkbenchError("mesh: the views' depth maps gave no surface inside the bounds")
-    return plan.record(len(scene.views), n_blocks, ply.n_vertices, ply.n_triangles)
+        described = engine.describe()  # the workers' peak memory, while they live
+    return {**plan.record(len(scene.views), n_blocks, ply.n_vertices, ply.n_triangles),
+            **described}  # fmt: skip
+
+
+# what an interrupted mesh must share with its resumption, beside the scene
+MESH_SIGNATURE = ("voxel_m", "trunc_voxels", "bounds", "min_weight", "max_memory_fraction",
+                  "tile_m")  # fmt: skip
 
 
 @dataclass
@@ -441,17 +461,86 @@ def fitted_tiles(plan: MeshPlan, keys: np.ndarray, max_blocks: int = TILE_BLOCKS
         tiles = mesh_tiles(plan.bounds, plan.voxel_m, side)
 
 
-def planned_tiles(views, plan: MeshPlan) -> tuple[MeshPlan, ViewBlocks]:
-    """The views' blocks (:func:`view_blocks`) and the plan with its tiles made to hold
-    at most ``TILE_BLOCKS`` of them when it sized them itself (:func:`fitted_tiles`)."""
-    blocks = view_blocks(views, plan.bounds, plan.voxel_m, plan.trunc_voxels, plan.origin)
+def planned_tiles(views, plan: MeshPlan,
+                  engine: Engine | None = None) -> tuple[MeshPlan, ViewBlocks]:  # fmt: skip
+    """The views' blocks (:func:`view_blocks`; kept in ``engine``'s task store, when it
+    has one, for a resumed run) and the plan with its tiles made to hold at most
+    ``TILE_BLOCKS`` of them when it sized them itself (:func:`fitted_tiles`)."""
+    store = engine.store if engine is not None else None
+    if store is not None and store.has("view_blocks", "all"):
+        blocks = store.load("view_blocks", "all")
+    else:
+        blocks = view_blocks(views, plan.bounds, plan.voxel_m, plan.trunc_voxels, plan.origin)
+        if store is not None:
+            store.save("view_blocks", "all", blocks)
     if plan.fit_tiles:
         plan = dataclasses.replace(plan, tiles=fitted_tiles(plan, blocks.keys))
     return plan, blocks
 
 
-def tile_pieces(views, plan: MeshPlan, blocks: ViewBlocks) -> Iterator[TilePiece]:
-    """The tiles' meshes, one after another, joined into one mesh.
+@dataclass
+class TileContext:
+    """What every tile's task reads (:func:`tile_mesh`): the views with the boxes of their
+    blocks (views that see nothing dropped), the plan and every block's x and y indices."""
+
+    footed: list
+    plan: MeshPlan
+    xy: np.ndarray
+
+
+class TileMesh(NamedTuple):
+    """A tile's surface, its triangles whose centre lies in its core: (N, 3) float64
+    vertices in the plan's local frame, (N, 3) float colours (0-1), (T, 3) int64
+    triangles on them, and the voxel blocks the tile integrated."""
+
+    vertices: np.ndarray
+    colours: np.ndarray
+    triangles: np.ndarray
+    blocks: int
+
+
+def tile_mesh(k: int, ctx: TileContext) -> TileMesh:
+    """Task: tile ``k`` of ``ctx.plan`` integrated from the views whose blocks reach it,
+    its surface extracted by marching cubes and cut to its core."""
+    plan = ctx.plan
+    core, grown = plan.tiles[k]
+    box = tile_box(core, grown, plan.origin, plan.voxel_m, ctx.xy)
+    desc = f"mesh: tile {k + 1} of {len(plan.tiles)}"
+    grid = _integrate(ctx.footed, box, plan.voxel_m, plan.trunc_voxels, plan.bounds,
+                      plan.origin, tile_block_count(box, ctx.xy) + 1000, desc)  # fmt: skip
+    held = int(grid.hashmap().size())
+    mesh = grid.extract_triangle_mesh(weight_threshold=plan.min_weight).to_legacy()
+    del grid
+    V = np.asarray(mesh.vertices, np.float64)
+    T = np.asarray(mesh.triangles, np.int64)
+    if not len(T):
+        return TileMesh(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3), np.int64), held)
+    c = (V[T].mean(axis=1) + plan.origin)[:, :2]
+    keep = ((c[:, 0] >= core[0]) & (c[:, 0] < core[2])
+            & (c[:, 1] >= core[1]) & (c[:, 1] < core[3]))  # fmt: skip
+    used, T = np.unique(T[keep], return_inverse=True)
+    return TileMesh(V[used], np.asarray(mesh.vertex_colors)[used], T.reshape(-1, 3), held)
+
+
+def check_tile_memory(plan: MeshPlan, xy: np.ndarray, at_once: int) -> None:
+    """Refuse, before any tile is meshed, a plan whose largest tile's voxel grid, times
+    the ``at_once`` tiles meshed at once on this machine, would not fit in its memory."""
+    for k, (core, grown) in enumerate(plan.tiles):
+        count = tile_block_count(tile_box(core, grown, plan.origin, plan.voxel_m, xy), xy)
+        need = count * BLOCK_BYTES * PEAK_FACTOR
+        if need * at_once > plan.limit:
+            fewer = f" and {at_once} at once (fewer --workers)" if at_once > 1 else ""
+            raise WorkbenchError(
+                f"mesh: tile {k + 1} holds {count:,} voxel blocks, about "
+                f"{need / 2**30:.1f} GiB{fewer}, more than this machine allows "
+                f"({plan.limit / 2**30:.1f} GiB); use a smaller --tile"
+            )
+
+
+def tile_pieces(views, plan: MeshPlan, blocks: ViewBlocks,
+                engine: Engine | None = None) -> Iterator[TilePiece]:  # fmt: skip
+    """The tiles' meshes, each a task of ``engine`` (:func:`tile_mesh`; default: this
+    process, one after another), joined into one mesh in the tiles' order.
 
     A first pass has found every view's blocks (``blocks``, :func:`view_blocks`): each
     tile's grid is made for the blocks it will hold (Open3D's block grid does not grow
@@ -465,41 +554,23 @@ def tile_pieces(views, plan: MeshPlan, blocks: ViewBlocks) -> Iterator[TilePiece
     position, which of them), and keeps its own for the tiles still to come: those of
     the row of tiles before it and of its own row, all a tile can touch, so the table
     does not grow with the area."""
+    engine = engine or ThreadEngine(1)
     tiles, voxel_m, origin = plan.tiles, plan.voxel_m, plan.origin
-    boxes, xy = blocks.boxes, key_xy(blocks.keys)
-    footed = [(v, b) for v, b in zip(views, boxes, strict=True) if b is not None]
+    xy = key_xy(blocks.keys)
+    check_tile_memory(plan, xy, engine.workers if engine.local else 1)
+    footed = [(v, b) for v, b in zip(views, blocks.boxes, strict=True) if b is not None]
+    shared = engine.share(TileContext(footed, plan, xy))
     near = 2.0 * voxel_m  # more than a cube's diagonal in x and y
     border = _BorderVertices()
     n_vertices = 0
-    for k, (core, grown) in enumerate(tiles):
-        box = tile_box(core, grown, origin, voxel_m, xy)
-        count = tile_block_count(box, xy)
-        if count * BLOCK_BYTES * PEAK_FACTOR > plan.limit:
-            raise WorkbenchError(
-                f"mesh: tile {k + 1} holds {count:,} voxel blocks, about "
-                f"{count * BLOCK_BYTES * PEAK_FACTOR / 2**30:.1f} GiB, more than this "
-                f"machine allows ({plan.limit / 2**30:.1f} GiB); use a smaller --tile"
-            )
-        desc = f"mesh: tile {k + 1} of {len(tiles)}"
-        grid = _integrate(footed, box, voxel_m, plan.trunc_voxels, plan.bounds, origin,
-                          count + 1000, desc)  # fmt: skip
-        held = int(grid.hashmap().size())
-        mesh = grid.extract_triangle_mesh(weight_threshold=plan.min_weight).to_legacy()
-        del grid
-        V = np.asarray(mesh.vertices, np.float64)
-        T = np.asarray(mesh.triangles, np.int64)
+    meshes = engine.map(tile_mesh, range(len(tiles)), shared, stage="tiles",
+                        in_flight=engine.workers)  # fmt: skip
+    for (core, grown), (V, colours, T, held) in zip(tiles, meshes, strict=True):
         border.start_row(grown[1])
         if not len(T):
             yield TilePiece(np.zeros((0, 3)), np.zeros((0, 3), np.uint8),
                             np.zeros((0, 3), np.int64), held)  # fmt: skip
             continue
-        c = (V[T].mean(axis=1) + origin)[:, :2]
-        keep = ((c[:, 0] >= core[0]) & (c[:, 0] < core[2])
-                & (c[:, 1] >= core[1]) & (c[:, 1] < core[3]))  # fmt: skip
-        used, T = np.unique(T[keep], return_inverse=True)
-        T = T.reshape(-1, 3)
-        V, colours = V[used], np.asarray(mesh.vertex_colors)[used]
-        del mesh
         key = _position_keys(V, _occurrence(V))
         w = V[:, :2] + origin[:2]
         edge = np.min(np.abs(np.column_stack([w - core[:2], w - core[2:]])), axis=1) < near

@@ -289,6 +289,42 @@ def test_a_tiled_mesh_is_the_whole_grid_s_mesh(mesh_fusion, tiny_scene, tmp_path
     assert np.array_equal(memory.triangles, tiled.triangles)
 
 
+def test_an_interrupted_tiled_mesh_resumes_with_only_its_unfinished_tiles(
+    tiny_scene, tmp_path, monkeypatch
+):  # fmt: skip
+    """Nine tiles of 30 m, each a task: stopped (Ctrl-C) at the fourth, the run leaves no
+    mesh and keeps three tiles and the views' blocks; started again with resume, it
+    meshes the six others only and writes the run through's file, byte for byte."""
+    import fusion.scene_mesh as sm
+    from workbench.engine import TaskStore, partial_folder
+
+    scene = load_scene(tiny_scene)
+    through = tmp_path / "through.ply"
+    sm.write_views_mesh(through, scene, workers=1, tile_m=30)
+    out = tmp_path / "mesh.ply"
+    real, calls = sm.tile_mesh, []
+
+    def dies_at_the_fourth(*args):
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        calls.append(1)
+        return real(*args)
+
+    monkeypatch.setattr(sm, "tile_mesh", dies_at_the_fourth)
+    with pytest.raises(KeyboardInterrupt):
+        sm.write_views_mesh(out, scene, workers=1, tile_m=30)
+    assert not out.exists()
+    store = TaskStore(partial_folder(out))
+    assert store.finished("tiles") == 3 and store.has("view_blocks", "all")
+    calls.clear()
+    monkeypatch.setattr(sm, "tile_mesh", lambda *a: calls.append(1) or real(*a))
+    monkeypatch.setattr(sm, "view_blocks", lambda *a: pytest.fail("the views' blocks again"))
+    record = sm.write_views_mesh(out, scene, workers=1, tile_m=30, resume=True)
+    assert len(calls) == 6 and record["tiles"] == 9
+    assert out.read_bytes() == through.read_bytes()
+    assert not partial_folder(out).exists()
+
+
 def test_mesh_tiles_by_hand():
     # 0.25 m voxels: blocks of 2 m; a 3 m tile rounds up to 4 m
     tiles = mesh_tiles((0.0, 0.0, 10.0, 7.0), 0.25, 3.0)

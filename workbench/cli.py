@@ -217,9 +217,14 @@ def _add_mesh(sub) -> None:
     p.add_argument("--trunc", type=number("positive"), default=4.0, metavar="VOXELS",
                    help="truncation of the signed distance, voxels (default: 4)")  # fmt: skip
     p.add_argument("--tile", type=number("positive"), metavar="M",
-                   help="mesh the area in square tiles of M metres, one after another (the "
-                   "same mesh in less memory; default: tiles only when one grid of the "
-                   "whole area would not fit in 60%% of the memory)")  # fmt: skip
+                   help="mesh the area in square tiles of M metres (the same mesh in less "
+                   "memory; default: tiles only when one grid of the whole area would not "
+                   "fit in 60%% of the memory)")  # fmt: skip
+    p.add_argument("--workers", type=number("positive", int), metavar="N",
+                   help="tiles meshed at once: worker processes of a local Dask cluster, each "
+                   "holding a tile's voxel grid (default: every core; 1: in this process; "
+                   "the mesh does not depend on it)")  # fmt: skip
+    _add_engine_arguments(p)
     p.add_argument("--overwrite", action="store_true", help="replace MESH.ply if it exists")
     p.set_defaults(func=cmd_mesh)
 
@@ -447,7 +452,8 @@ def cmd_mesh(args) -> int:
         raise WorkbenchError(f"{out}: exists (give --overwrite to replace it)")
     t0 = time.perf_counter()
     scene = load_scene(args.scene)
-    r = write_views_mesh(out, scene, voxel_m=args.voxel, trunc_voxels=args.trunc,
+    r = write_views_mesh(out, scene, workers=args.workers, scheduler=args.scheduler,
+                         resume=args.resume, voxel_m=args.voxel, trunc_voxels=args.trunc,
                          tile_m=args.tile)  # fmt: skip
     print(
         f"wrote {out}: {r['triangles']:,} triangles, {r['vertices']:,} vertices from "
@@ -455,6 +461,9 @@ def cmd_mesh(args) -> int:
         f"{', ' + str(r['tiles']) + ' tiles' if r['tiles'] > 1 else ''}, "
         f"{time.perf_counter() - t0:.1f} s"
     )
+    if r.get("worker_peak_memory_mb"):
+        peaks = ", ".join(f"{p:.0f}" for p in r["worker_peak_memory_mb"])
+        print(f"  tiles meshed by {r['workers']} Dask workers; their peak memory {peaks} MiB")
     return 0
 
 

@@ -212,6 +212,11 @@ class Engine:
     store: TaskStore | None = None
     name: str = ""
 
+    @property
+    def local(self) -> bool:
+        """Whether the workers run on this machine (and share its memory)."""
+        return True
+
     def share(self, obj):
         """A handle on ``obj`` to pass to every task of :meth:`map` (the object itself)."""
         return obj
@@ -321,6 +326,10 @@ class DaskEngine(Engine):
         self.settings = None  # dask settings kept while a local cluster lives
         self.workers = max(1, sum(client.nthreads().values()))
         self.address = client.scheduler.address
+
+    @property
+    def local(self) -> bool:
+        return self.cluster is not None
 
     def share(self, obj):
         # one copy per worker, deserialised once; tasks receive that object
