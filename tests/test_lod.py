@@ -303,3 +303,30 @@ def test_lod_bad_input_is_one_line(tmp_path, lod_run):
     proc = run_cli("model", "lod", root / "fusion", "-o", tmp_path / "out2", "--labels", bad)
     assert proc.returncode == 2 and str(bad) in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "out2").exists()
+
+
+def test_strokes_on_another_grid_are_read_under_the_window_only(tmp_path, monkeypatch):
+    """Strokes at 0.1 m under a 0.25 m grid: a window's codes are those of the nearest
+    stroke cells, as from the whole raster, reading only the stroke cells under it."""
+    import modeling.lod.path as lp
+    from workbench.raster import Grid, read_raster, write_raster
+
+    fine = Grid(100.0, 200.0, 0.1, 400, 300)
+    codes = np.random.default_rng(3).integers(0, 5, fine.shape).astype(np.uint8)
+    write_raster(tmp_path / "labels.tif", codes, fine, None, nodata=None)
+    grid = Grid(100.0, 200.0, 0.25, 160, 120)
+    window = (slice(30, 70), slice(50, 110))
+    X, Y = grid.window(*window).cell_centers()
+    r, c = fine.cell_index(X.ravel(), Y.ravel(), clip=True)
+    read = []
+
+    def reading(path, **kw):
+        read.append(kw.get("window"))
+        return read_raster(path, **kw)
+
+    monkeypatch.setattr(lp, "read_raster", reading)
+    got = lp._strokes(tmp_path / "labels.tif", grid, window)
+    assert np.array_equal(got, codes[r, c].reshape(X.shape))
+    rows, cols = read[0]
+    # the centres 0.125 m to 9.875 m into the window: fine rows 1 to 98 of its 100
+    assert (rows.stop - rows.start, cols.stop - cols.start) == (98, 148)  # not 300 x 400

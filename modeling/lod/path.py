@@ -513,16 +513,18 @@ def _normals(normal: np.ndarray | None, dsm: np.ndarray, gsd: float, win) -> np.
 
 def _strokes(path, grid: Grid, window: tuple[slice, slice]) -> np.ndarray:
     """(h, w) int64 the training strokes, codes 0-4, on the cells ``window`` of ``grid``:
-    read in the window when they are on that grid, else sampled at the nearest cell."""
+    read in the window when they are on that grid, else sampled at the nearest cell of
+    the strokes' cells under the window (only those read)."""
     path = Path(path)
     g, _, _ = raster_header(path, "labels")
     if g == grid:
         codes = read_raster(path, window=window)[0][0]
     else:
-        data, g, _ = read_raster(path)
         X, Y = grid.window(*window).cell_centers()
         r, c = g.cell_index(X.ravel(), Y.ravel(), clip=True)
-        codes = data[0][r, c].reshape(X.shape)
+        (r0, r1), (c0, c1) = (r.min(), r.max() + 1), (c.min(), c.max() + 1)
+        data = read_raster(path, window=(slice(r0, r1), slice(c0, c1)))[0]
+        codes = data[0][r - r0, c - c0].reshape(X.shape)
     if codes.size and (np.nanmax(codes) > 4 or np.nanmin(codes) < 0):
         raise InputError(path, "band 1", "class codes must be 0 (unlabelled) to 4")
     return codes.astype(np.int64)
