@@ -123,9 +123,10 @@ def integrate_views(
         mesh = grid.extract_triangle_mesh(weight_threshold=min_weight).to_legacy()
         n_blocks = int(grid.hashmap().size())
         del grid
-        order, triangles = canonical_order(mesh.vertices, mesh.triangles)
+        colors = _uint8_colours(np.asarray(mesh.vertex_colors))
+        order, triangles = canonical_order(mesh.vertices, mesh.triangles, colors)
         vertices = np.asarray(mesh.vertices, np.float64)[order] + plan.origin
-        colors = _uint8_colours(np.asarray(mesh.vertex_colors)[order])
+        colors = colors[order]
     else:
         plan, blocks = planned_tiles(scene.views, plan)
         pieces = list(tile_pieces(scene.views, plan, blocks))
@@ -571,17 +572,20 @@ def tile_pieces(views, plan: MeshPlan, blocks: ViewBlocks,
             yield TilePiece(np.zeros((0, 3)), np.zeros((0, 3), np.uint8),
                             np.zeros((0, 3), np.int64), held)  # fmt: skip
             continue
-        key = _position_keys(V, _occurrence(V))
+        colours = _uint8_colours(colours)  # as written: a file read back orders the same
+        same = _same_positions(V)
+        ties = tie_keys(V, colours, T, same)
+        key = _position_keys(V, _occurrence(same, ties))
         w = V[:, :2] + origin[:2]
         edge = np.min(np.abs(np.column_stack([w - core[:2], w - core[2:]])), axis=1) < near
         ids = np.full(len(V), -1, np.int64)
         ids[edge] = border.find(key[edge])
         new = np.flatnonzero(ids < 0)
-        new = new[np.lexsort((V[new, 2], V[new, 1], V[new, 0]))]
+        new = new[np.lexsort((*ties[new].T[::-1], V[new, 2], V[new, 1], V[new, 0]))]
         ids[new] = n_vertices + np.arange(len(new))
         n_vertices += len(new)
         border.add(key[edge], ids[edge])
-        yield TilePiece(V[new] + origin, _uint8_colours(colours[new]),
+        yield TilePiece(V[new] + origin, colours[new],
                         canonical_triangles(ids[T]), held)  # fmt: skip
 
 
@@ -627,20 +631,58 @@ def _position_keys(V: np.ndarray, repeat: np.ndarray) -> np.ndarray:
     return rows.view(np.dtype((np.void, rows.itemsize * 4))).reshape(-1)
 
 
-def _occurrence(V: np.ndarray) -> np.ndarray:
-    """(V,) how many earlier rows of ``V`` have the same position."""
-    _, inverse = np.unique(V, axis=0, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    order = np.argsort(inverse, kind="stable")
-    sorted_inv = inverse[order]
-    starts = np.flatnonzero(np.r_[True, sorted_inv[1:] != sorted_inv[:-1]])
-    rank = np.arange(len(V)) - np.repeat(starts, np.diff(np.r_[starts, len(V)]))
-    out = np.empty(len(V), np.float64)
+def _same_positions(V: np.ndarray) -> np.ndarray:
+    """(V,) int64 a number shared by the rows of ``V`` at one position."""
+    return np.unique(V, axis=0, return_inverse=True)[1].reshape(-1)
+
+
+def _occurrence(same: np.ndarray, ties: np.ndarray) -> np.ndarray:
+    """(V,) float how many rows at the same position (``same``, :func:`_same_positions`)
+    come before each in the order of their ``ties`` (:func:`tie_keys`)."""
+    order = np.lexsort((*ties.T[::-1], same))
+    sorted_same = same[order]
+    starts = np.flatnonzero(np.r_[True, sorted_same[1:] != sorted_same[:-1]])
+    rank = np.arange(len(same)) - np.repeat(starts, np.diff(np.r_[starts, len(same)]))
+    out = np.empty(len(same), np.float64)
     out[order] = rank
     return out
 
 
-def canonical_order(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def tie_keys(V: np.ndarray, colours: np.ndarray | None, T: np.ndarray,
+             same: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+    """(V, 6) float what orders vertices at one position, by their geometry alone: the
+    colour (as written, uint8), then the least (by x, then y, then z) of the other
+    corners of the triangles the vertex is a corner of; zeros for a vertex alone at its
+    position.
+
+    Marching cubes gives a few vertices twice at one position, where two sheets of the
+    surface meet (22 of the 968,056 of a tile of the city); Open3D gives them in an order
+    of its threads, and ordered by position alone they took one or the other place from
+    run to run (the city's mesh: 68 bytes of 1 GB). 2 of those 22 had one colour too.
+    """
+    same = _same_positions(V) if same is None else same
+    out = np.zeros((len(V), 6))
+    shared = np.bincount(same)[same] > 1
+    if not shared.any():
+        return out
+    if colours is not None:
+        out[shared, :3] = np.asarray(colours, np.float64)[shared]
+    T = np.asarray(T, np.int64)
+    t, j = np.nonzero(shared[T])
+    a, b = V[T[t, (j + 1) % 3]], V[T[t, (j + 2) % 3]]
+    a_first = (a[:, 0] < b[:, 0]) | ((a[:, 0] == b[:, 0]) & (
+        (a[:, 1] < b[:, 1]) | ((a[:, 1] == b[:, 1]) & (a[:, 2] <= b[:, 2]))))  # fmt: skip
+    q = np.where(a_first[:, None], a, b)
+    v = T[t, j]
+    order = np.lexsort((q[:, 2], q[:, 1], q[:, 0], v))
+    first = order[np.r_[True, v[order][1:] != v[order][:-1]]]
+    out[v[first], 3:] = q[first]
+    return out
+
+
+def canonical_order(
+    vertices: np.ndarray, triangles: np.ndarray, colours: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """The order of a mesh that depends on its geometry alone.
 
     Open3D integrates and extracts its voxel blocks in many threads, so the same surface
@@ -649,13 +691,16 @@ def canonical_order(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.nda
     tie for a ray, the mesh's sampling then takes one or the other, and the LOD path's
     figures moved between runs of the same code (seed 2's 2D quality by 0.017, seed 4's
     roof types by 0.05). Vertices are
-    sorted by position (x, then y, then z); each triangle is turned, keeping its winding,
-    to start at its lowest vertex, and the triangles sorted.
+    sorted by position (x, then y, then z), those at one position by :func:`tie_keys`;
+    each triangle is turned, keeping its winding, to start at its lowest vertex, and the
+    triangles sorted.
 
     Parameters
     ----------
     vertices : (V, 3) float
     triangles : (T, 3) int
+    colours : (V, 3) optional
+        The vertices' colours as written (uint8), the first of the ties' keys.
 
     Returns
     -------
@@ -665,7 +710,8 @@ def canonical_order(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.nda
         The triangles on the reordered vertices.
     """
     v = np.asarray(vertices)
-    order = np.lexsort((v[:, 2], v[:, 1], v[:, 0]))
+    ties = tie_keys(v, colours, triangles)
+    order = np.lexsort((*ties.T[::-1], v[:, 2], v[:, 1], v[:, 0]))
     rank = np.empty(len(order), np.int64)
     rank[order] = np.arange(len(order))
     return order, canonical_triangles(rank[np.asarray(triangles, np.int64)])

@@ -280,7 +280,7 @@ def test_a_tiled_mesh_is_the_whole_grid_s_mesh(mesh_fusion, tiny_scene, tmp_path
     whole, tiled = read_surface_mesh(root / "city.ply"), read_surface_mesh(tmp_path / "tiled.ply")
     assert len(tiled.vertices) == len(whole.vertices)
     assert not np.array_equal(tiled.triangles, whole.triangles)  # the tiles' order
-    order, triangles = canonical_order(tiled.vertices, tiled.triangles)
+    order, triangles = canonical_order(tiled.vertices, tiled.triangles, tiled.colors)
     assert np.array_equal(tiled.vertices[order], whole.vertices)
     assert np.array_equal(tiled.colors[order], whole.colors)
     assert np.array_equal(triangles, whole.triangles)
@@ -397,6 +397,29 @@ def test_canonical_order_ignores_the_order_a_mesher_gave():
                 for t in triangles for a, b in zip(t, np.roll(t, -1), strict=True)}  # fmt: skip
 
     assert directed(V, T) == directed(V[o1], t1)
+
+
+@pytest.mark.parametrize("colours", ["equal", "different"])
+def test_vertices_at_one_position_take_one_order_whichever_the_mesher_gave(colours):
+    """Two sheets touching at the origin, each with its own vertex there (as marching
+    cubes gives where two sheets meet): given in either order, the same arrays; the
+    twins told apart by their colour, or, of one colour, by their triangles' corners."""
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0], [-1, 0, 0], [0, -1, 0]], float)
+    T = np.array([[0, 1, 2], [3, 4, 5]])
+    C = np.full((6, 3), 100, np.uint8)
+    if colours == "different":
+        C[0] = 50  # the twin of the sheet at x, y >= 0 darker
+    swap = np.array([3, 1, 2, 0, 4, 5])  # the twins' places exchanged
+    o1, t1 = canonical_order(V, T, C)
+    o2, t2 = canonical_order(V[swap], swap[T], C[swap])
+    assert np.array_equal(V[o1], V[swap][o2]) and np.array_equal(C[o1], C[swap][o2])
+    assert np.array_equal(t1, t2)
+    # by position: (-1, 0, 0) 0, (0, -1, 0) 1, the twins 2 and 3, (0, 1, 0) 4, (1, 0, 0) 5;
+    # of one colour, the twin whose least other corner is (-1, 0, 0) first, else the darker
+    if colours == "equal":
+        assert t1.tolist() == [[0, 1, 2], [3, 5, 4]]
+    else:
+        assert t1.tolist() == [[0, 1, 3], [2, 5, 4]]
 
 
 def test_an_open3d_ply_is_read_a_part_at_a_time_as_open3d_reads_it(tmp_path):
