@@ -170,8 +170,12 @@ def write_views_mesh(path, scene: Scene, *, workers: int | None = None,
         return mesh.record
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    # the tiles as planned (their side follows this machine's memory by default): a run
+    # resumed elsewhere must cut the area as the interrupted one did
+    parameters = {k: o[k] for k in MESH_SIGNATURE}
+    parameters["tiles"] = [[float(x) for x in core] for core, _ in plan.tiles]
     signature = {"inputs": {"scene": str(Path(scene.scene_json).absolute())},
-                 "parameters": {k: o[k] for k in MESH_SIGNATURE}}  # fmt: skip
+                 "parameters": parameters}  # fmt: skip
     n_blocks = 0
     with (
         engine_for(path, signature, workers=workers, scheduler=scheduler, resume=resume,

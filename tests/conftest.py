@@ -62,6 +62,20 @@ def tiny_meta(tiny_scene) -> dict:
     return json.loads((tiny_scene / "sample.json").read_text())
 
 
+def interrupted_after(fn, n: int, calls: list):
+    """``fn`` counting its calls in ``calls`` (one item each), and stopped as by Ctrl-C
+    (KeyboardInterrupt) when it is called once more after ``n``: a task of an interrupted
+    run."""
+
+    def wrapped(*args):
+        if len(calls) == n:
+            raise KeyboardInterrupt
+        calls.append(1)
+        return fn(*args)
+
+    return wrapped
+
+
 def run_cli(*args) -> subprocess.CompletedProcess:
     """Run ``workbench ARGS...`` in a fresh interpreter, capturing its output."""
     return subprocess.run(

@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 
-from tests.conftest import run_cli
+from tests.conftest import interrupted_after, run_cli
 from workbench.engine import (
     TaskStore,
     ThreadEngine,
@@ -336,15 +336,7 @@ def test_an_interrupted_voxel_run_redoes_only_its_unfinished_buildings(
     out = tmp_path / "vx"
     sig = run_signature(opts, {"scene": tiny_scene, "fusion": tiny_fusion})
     real_texture = vp.texture_task
-    done = []
-
-    def dies_at_the_fourth(*args):
-        if len(done) == 3:
-            raise KeyboardInterrupt  # Ctrl-C
-        done.append(1)
-        return real_texture(*args)
-
-    monkeypatch.setattr(vp, "texture_task", dies_at_the_fourth)
+    monkeypatch.setattr(vp, "texture_task", interrupted_after(real_texture, 3, []))
     with pytest.raises(KeyboardInterrupt), engine_for(out, sig, workers=1) as engine:
         vp.run_voxel(tiny_scene, opts, fusion_dir=tiny_fusion, engine=engine)
     store = TaskStore(partial_folder(out))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from modeling.shared.in_blocks import BlockRasters, SegmentClaims
-from tests.conftest import model_and_score, run_cli
+from tests.conftest import interrupted_after, model_and_score, run_cli
 from workbench.grid_blocks import block_layout, whole_grid_block
 from workbench.meshio import read_ply
 from workbench.model_run import SurfacePieces
@@ -250,14 +250,7 @@ def test_an_interrupted_lod_run_in_blocks_redoes_only_its_unfinished_buildings(
     out = tmp_path / "lod"
     sig = run_signature(opts, {"fusion_dir": tiny_fusion, "labels": None})
     real, calls = lp.building_lod, []
-
-    def dies_at_the_fourth(*args):
-        if len(calls) == 3:
-            raise KeyboardInterrupt
-        calls.append(1)
-        return real(*args)
-
-    monkeypatch.setattr(lp, "building_lod", dies_at_the_fourth)
+    monkeypatch.setattr(lp, "building_lod", interrupted_after(real, 3, calls))
     with pytest.raises(KeyboardInterrupt), engine_for(out, sig, workers=1) as engine:
         lp.run_lod(tiny_fusion, opts, engine=engine)
     partial = partial_folder(out)

@@ -16,7 +16,8 @@ from fusion.scene_mesh import (
     largest_tile_m,
     mesh_tiles,
 )
-from tests.conftest import run_cli
+from tests.conftest import interrupted_after, run_cli
+from workbench.errors import WorkbenchError
 from workbench.imageio import write_rgb
 from workbench.meshio import write_mtl, write_obj, write_ply
 from workbench.raster import Grid, read_raster
@@ -303,19 +304,14 @@ def test_an_interrupted_tiled_mesh_resumes_with_only_its_unfinished_tiles(
     sm.write_views_mesh(through, scene, workers=1, tile_m=30)
     out = tmp_path / "mesh.ply"
     real, calls = sm.tile_mesh, []
-
-    def dies_at_the_fourth(*args):
-        if len(calls) == 3:
-            raise KeyboardInterrupt
-        calls.append(1)
-        return real(*args)
-
-    monkeypatch.setattr(sm, "tile_mesh", dies_at_the_fourth)
+    monkeypatch.setattr(sm, "tile_mesh", interrupted_after(real, 3, calls))
     with pytest.raises(KeyboardInterrupt):
         sm.write_views_mesh(out, scene, workers=1, tile_m=30)
     assert not out.exists()
     store = TaskStore(partial_folder(out))
     assert store.finished("tiles") == 3 and store.has("view_blocks", "all")
+    with pytest.raises(WorkbenchError, match="parameters.tile_m: the interrupted run"):
+        sm.write_views_mesh(out, scene, workers=1, tile_m=20, resume=True)  # other tiles
     calls.clear()
     monkeypatch.setattr(sm, "tile_mesh", lambda *a: calls.append(1) or real(*a))
     monkeypatch.setattr(sm, "view_blocks", lambda *a: pytest.fail("the views' blocks again"))
