@@ -94,7 +94,7 @@ def read_fusion_run(
 ONE_CELL = (slice(0, 1), slice(0, 1))
 
 
-def checked_fusion_run(folder: str | Path, names: tuple[str, ...], classes: bool) -> FusionRun:
+def checked_fusion_run(folder: str | Path, names: tuple[str, ...], *, classes: bool) -> FusionRun:
     """What :func:`read_fusion_run` refuses of the rasters ``names``, and with
     ``classes`` of the class map when there is one (:func:`class_map`), checked on the
     grid's first cell: a command's check of its inputs reads no whole-grid raster.

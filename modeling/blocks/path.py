@@ -233,7 +233,7 @@ def check_inputs(fusion_dir: Path, options: BlocksOptions, supports: Path | None
     """Read what :func:`run_blocks` refuses, before a command starts its workers: the
     fusion run's rasters and the supports' file (one line, with no worker's shutdown
     noise after it)."""
-    fusion = checked_fusion_run(fusion_dir, FUSION_RASTERS, not options.all_building)
+    fusion = checked_fusion_run(fusion_dir, FUSION_RASTERS, classes=not options.all_building)
     if supports is not None:
         _given_supports(supports, fusion, fusion.grid, None, None, None)
 

@@ -491,21 +491,23 @@ def lod_preview(rgb: np.ndarray, classes: np.ndarray, planes: np.ndarray) -> np.
 
 
 def _normal_map(folder: Path, grid: Grid, window: tuple[slice, slice]) -> np.ndarray | None:
-    """(3, h, w) the fusion's normal map (a mesh's) on the cells ``window`` of its
-    ``grid``, or None when it has none."""
+    """(3, h, w) float32 the fusion's normal map (a mesh's) on the cells ``window`` of
+    its ``grid``, or None when it has none (as stored: a building's crop is made float64,
+    :func:`_normals`, and the block's map shared with the workers is half the size)."""
     path = folder / "normal.tif"
     if not path.exists():
         return None
     g, bands, _ = raster_header(path)
     if g != grid or bands != 3:
         raise InputError(path, "transform", "not 3 bands on the fusion's grid")
-    return read_raster(path, window=window)[0].astype(np.float64)
+    return read_raster(path, window=window)[0].astype(np.float32, copy=False)
 
 
 def _normals(normal: np.ndarray | None, dsm: np.ndarray, gsd: float, win) -> np.ndarray:
-    """(3, h, w) unit normals of a crop: the normal map's, else the DSM's gradient's."""
+    """(3, h, w) float64 unit normals of a crop: the normal map's, else the DSM's
+    gradient's."""
     if normal is not None:
-        return normal[(slice(None), *win)]
+        return normal[(slice(None), *win)].astype(np.float64)
     gy, gx = np.gradient(dsm, gsd)
     n = np.stack([-gx, gy, np.ones_like(dsm)])  # rows run south: dz/dy = -gy
     return n / np.linalg.norm(n, axis=0)

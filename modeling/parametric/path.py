@@ -309,7 +309,7 @@ def check_inputs(
     """Read what :func:`run_parametric` refuses, before a command starts its workers: the
     fusion run's rasters and the footprints (one line, with no worker's shutdown noise
     after it)."""
-    fusion = checked_fusion_run(fusion_dir, FUSION_RASTERS, not options.all_building)
+    fusion = checked_fusion_run(fusion_dir, FUSION_RASTERS, classes=not options.all_building)
     if footprints is not None and not options.all_building:
         initial_region(fusion, footprints)
 

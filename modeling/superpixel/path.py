@@ -246,7 +246,7 @@ def check_inputs(fusion_dir: Path, options: SuperpixelOptions, truth: Path | Non
     fusion run's rasters, the training strokes ``--omega-class auto`` needs and a
     ``--truth`` a run in blocks cannot take (one line, with no worker's shutdown noise
     after it)."""
-    fusion = checked_fusion_run(fusion_dir, FUSION_RASTERS, True)
+    fusion = checked_fusion_run(fusion_dir, FUSION_RASTERS, classes=True)
     if len(model_blocks(fusion.grid, options.block_m, options.block_margin_m)[0]) > 1:
         refuse_in_blocks(truth)
     if options.omega_class is None and not options.all_building:
