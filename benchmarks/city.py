@@ -2,7 +2,8 @@
 modeling paths that run from a scene or a fusion (super-pixel, voxel, parametric, blocks),
 ``workbench mesh`` and ``fusion --mesh`` with the LOD path on that mesh's fusion (as its
 paper has it), and ``compare``, each a command of its own; wall time, throughput and the
-peak memory of every process (the command's, and each Dask worker's).
+peak memory of every process (the command's, and each Dask worker's). The super-pixel and
+LOD paths run again with ``--workers 1``: what the workers buy.
 
 ``make bench BENCH_ARGS="--preset city"`` runs it on the 1 km² city (about two hours on
 2 cores); ``--preset small`` gives the same table on the everyday sample, to set beside
@@ -141,6 +142,15 @@ def city_run(
                              "--overwrite", log=out / f"{name}_blocks.log", kept=kept)  # fmt: skip
             res[f"{name}_blocks"] = model_figures(folder, wall, peak)
     res.update(mesh_chain(scene, out, reuse_runs, block_m))
+    # two paths again in the command's process alone: what the workers buy
+    labels = ("--labels", scene / "training" / "labels.tif")
+    for name, args in (("superpixel", paths["superpixel"]),
+                       ("lod", ["lod", out / "fusion_mesh", *labels])):  # fmt: skip
+        folder = out / f"{name}_one"
+        kept = _recorded_s(folder / "model.json") if reuse_runs else None
+        wall, peak = run("model", *args, "--workers", "1", "-o", folder, "--overwrite",
+                         log=out / f"{name}_one.log", kept=kept)  # fmt: skip
+        res[f"{name}_one"] = model_figures(folder, wall, peak)
     runs = [fusion, *(out / name for name in paths), out / "lod"]
     kept = 0.0 if reuse_runs and (report / "metrics.json").exists() else None
     wall, peak = run("compare", *runs, "--truth", scene, "-o", report, "--overwrite",
@@ -241,12 +251,16 @@ def print_city(r: dict) -> None:
     print(f"  superpixel  {m['wall_s']:8.1f} s  {peaks(m)}; {m['buildings']} buildings, "
           f"{m['wall_s'] / (f['cells'] / 1e6):.1f} s per ortho megapixel")  # fmt: skip
     names = ("voxel", "parametric", "blocks", *(f"{n}_blocks" for n in BLOCK_PATHS), "mesh",
-             "fusion_mesh", "lod", "fusion_mesh_blocks", "lod_blocks")  # fmt: skip
+             "fusion_mesh", "lod", "fusion_mesh_blocks", "lod_blocks", "superpixel_one",
+             "lod_one")  # fmt: skip
     for name in names:
         if name not in r:  # a record from before the path was benched
             continue
         m = r[name]
         label = f"{name.removesuffix('_blocks')} --block" if name.endswith("_blocks") else name
+        if name.endswith("_one"):  # against the same run on the workers
+            base = name.removesuffix("_one")
+            label = f"{base} --workers 1 (x {m['wall_s'] / r[base]['wall_s']:.2f})"
         if "buildings" not in m:  # the mesh and its fusion
             print(f"  {label:<11} {m['wall_s']:8.1f} s  {peaks(m)}")
             continue
