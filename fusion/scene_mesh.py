@@ -25,7 +25,7 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 
-from workbench.engine import Engine, ThreadEngine
+from workbench.engine import Engine, ThreadEngine, engine_for, full_disk_named
 from workbench.errors import InputError, WorkbenchError
 from workbench.progress import progress
 from workbench.scene import Scene
@@ -155,7 +155,6 @@ def write_views_mesh(path, scene: Scene, *, workers: int | None = None,
     processes of a local cluster, by default one per core, or ``scheduler``'s), each
     kept in ``path``'s partial folder as it finishes, so that a run started again with
     ``resume`` meshes only the tiles not finished. Returns the mesh's record."""
-    from workbench.engine import engine_for, full_disk_named
     from workbench.meshio import PlyWriter
 
     o = {**_defaults(integrate_views), **mesh_options}
