@@ -251,6 +251,22 @@ def test_the_tree_classifier_learns_green_crowns_from_strokes():
     assert [r.start for r, _ in feature_bands(img, 7, rows=np.array([15, 50]))] == [14, 49]
 
 
+def test_the_tree_probability_in_bands_on_two_workers_is_the_whole_images(monkeypatch):
+    """Bands of 7 rows, each a task of two threads: the probability the stumps give the
+    whole image's features at once."""
+    import modeling.lod.tree_probability as tp
+    from workbench.engine import ThreadEngine
+
+    rng = np.random.default_rng(1)
+    img = rng.integers(0, 255, (60, 50, 3)).astype(np.uint8)
+    strokes = np.zeros((60, 50), np.int64)
+    strokes[5:20, 5:25], strokes[30:50, 30:45] = 1, 3
+    model = train_tree_classifier(img, strokes, rounds=20)
+    whole = model.predict_proba(tree_features(img).reshape(-1, 26))[:, 1].reshape(60, 50)
+    monkeypatch.setattr(tp, "BAND_ROWS", 7)
+    np.testing.assert_array_equal(tree_probability(model, img, ThreadEngine(2)), whole)
+
+
 @pytest.fixture(scope="module")
 def lod_run(tiny_scene, tmp_path_factory):
     root = tmp_path_factory.mktemp("lod")

@@ -287,7 +287,7 @@ def lod_block(fusion_dir, block: Block, plan: BlockPlan, options: LodOptions, le
         normal = _normal_map(Path(fusion_dir), plan.grid, block.outer)
     with timer.stage("tree probability"):
         if learned.tree is not None:
-            t = tree_probability(learned.tree, rgb)
+            t = tree_probability(learned.tree, rgb, engine)
         else:
             prob = fusion.rasters["class_prob"]
             t = np.nan_to_num(prob[GRASS - 1] + prob[TREE - 1], nan=0.5)
