@@ -173,7 +173,7 @@ def fuse_in_blocks(scene: Scene, opts: FusionOptions, engine: Engine | None, wri
                 levels.append(store.load("surfaces", str(b.index)))
                 continue
             with timer.stage("ground"):
-                surface = fused_ground(h, cache.grid, mode, given, _origin(b))
+                surface = fused_ground(h, cache.grid, mode, given, b.origin)
             levels.append(files.write(b, surface, h.spread, opts.geometry_cues))
             store.save("surfaces", str(b.index), levels[-1])
             del h, surface
@@ -226,7 +226,7 @@ def _block_products(b: Block, heights, files: GridFiles, shared_views, forest, s
     sub, cache, h = heights(b)
     dsm, dtm, dtm_full, spikes, holes = (files.read(name, b.outer) for name in SURFACE)
     h.count[spikes] = 0  # as the first step's ground filter left it
-    s = FusedSurface(cache.grid, cache, h, dsm, dtm, dtm_full, spikes, holes, None, _origin(b))
+    s = FusedSurface(cache.grid, cache, h, dsm, dtm, dtm_full, spikes, holes, None, b.origin)
     result = fused_products(s, shared_views, forest, strokes, class_source, mode, opts, sub,
                             timer)  # fmt: skip
     del s, h
@@ -334,8 +334,3 @@ class ViewsInBlocks:
 
     def probs_path(self, i: int) -> Path:
         return self.probs_folder / f"{i}_probs.npy"
-
-
-def _origin(b: Block) -> tuple[int, int]:
-    """(row, col) of the block's first outer cell in the whole grid."""
-    return b.outer[0].start, b.outer[1].start

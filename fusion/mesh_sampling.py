@@ -733,9 +733,8 @@ def fuse_mesh_in_blocks(mesh, grid: Grid, opts: FusionOptions, timer: StageTimer
     figures: dict = {}
     for b in progress(blocks, "fusion: the mesh's blocks"):
         ortho = np.moveaxis(ortho_all.read(*b.outer), 0, -1)
-        corner = (b.outer[0].start, b.outer[1].start)
         products, f = surface_products(ortho, dsm_all.read(*b.outer)[0], grid.gsd, opts, timer,
-                                       corner)  # fmt: skip
+                                       b.origin)  # fmt: skip
         products["ortho"] = ortho
         # the inside of each: class_prob is (4, h, w), the others (h, w) or (h, w, 3)
         cut = {k: v[(slice(None), *b.inside)] if k == "class_prob" else v[b.inside]

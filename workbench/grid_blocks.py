@@ -30,6 +30,11 @@ class Block:
     outer: tuple[slice, slice]
 
     @property
+    def origin(self) -> tuple[int, int]:
+        """(row, col) of the first outer cell in the whole grid."""
+        return self.outer[0].start, self.outer[1].start
+
+    @property
     def inside(self) -> tuple[slice, slice]:
         """``inner`` as slices of the outer block's arrays."""
         return tuple(

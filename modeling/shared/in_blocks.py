@@ -243,7 +243,7 @@ class SegmentClaims:
         centre_r = np.bincount(labels, rows.ravel(), q + 1) / np.maximum(n, 1)
         centre_c = np.bincount(labels, cols.ravel(), q + 1) / np.maximum(n, 1)
         taken = np.bincount(labels, (self.ids.read(*block.outer) > 0).ravel(), q + 1)
-        r, c = block.outer[0].start, block.outer[1].start
+        r, c = block.origin
         owner = self.block_of(np.floor(centre_r[1:]).astype(int) + r,
                               np.floor(centre_c[1:]).astype(int) + c)  # fmt: skip
         todo, wide = [], 0
