@@ -1,7 +1,8 @@
 """A whole preset end to end, as a user runs it: ``workbench sample``, ``fusion``, the
 modeling paths that run from a scene or a fusion (super-pixel, voxel, parametric, blocks),
 ``workbench mesh`` and ``fusion --mesh`` with the LOD path on that mesh's fusion (as its
-paper has it), and ``compare``, each a command of its own; wall time, throughput and the
+paper has it), the scene scanned as LiDAR tiles and ``fusion --points`` on them, and
+``compare``, each a command of its own; wall time, throughput and the
 peak memory of every process (the command's, and each Dask worker's). The super-pixel and
 LOD paths run again with ``--workers 1``: what the workers buy.
 
@@ -142,6 +143,7 @@ def city_run(
                              "--overwrite", log=out / f"{name}_blocks.log", kept=kept)  # fmt: skip
             res[f"{name}_blocks"] = model_figures(folder, wall, peak)
     res.update(mesh_chain(scene, out, reuse_runs, block_m))
+    res.update(lidar_chain(scene, out, reuse_runs))
     # two paths again in the command's process alone: what the workers buy
     labels = ("--labels", scene / "training" / "labels.tif")
     for name, args in (("superpixel", paths["superpixel"]),
@@ -200,6 +202,34 @@ def mesh_chain(scene: Path, out: Path, reuse_runs: bool = False,
         wall, peak = run("model", "lod", blocks, *labels, "--block", block_m, "-o", folder,
                          "--overwrite", log=out / "lod_blocks.log", kept=kept)  # fmt: skip
         res["lod_blocks"] = model_figures(folder, wall, peak)
+    return res
+
+
+def lidar_chain(scene: Path, out: Path, reuse_runs: bool = False) -> dict:
+    """The scene scanned as airborne LiDAR tiles of 250 m (:mod:`data_samples.lidar`),
+    then ``fusion --points`` on the tiles, as it decides (whole, or blocks as tasks of the
+    workers), and again with ``--workers 1``: their figures."""
+    tiles, res = out / "lidar", {}
+    if not (reuse_runs and (tiles / "lidar.json").exists()):
+        subprocess.run([sys.executable, "-m", "data_samples.lidar", str(scene), str(tiles)],
+                       check=True, capture_output=True)  # fmt: skip
+    n_returns = json.loads((tiles / "lidar.json").read_text())["points"]
+    for name, extra in (("fusion_points", ()), ("fusion_points_one", ("--workers", "1"))):
+        fusion = out / name
+        kept = _recorded_s(fusion / "fusion.json", "stages_total_s") if reuse_runs else None
+        wall, peak = run("fusion", "--points", tiles, "-o", fusion, "--truth", scene, *extra,
+                         "--overwrite", log=out / f"{name}.log", kept=kept)  # fmt: skip
+        rec = json.loads((fusion / "fusion.json").read_text())
+        q = rec.get("quality", {})
+        res[name] = {
+            "wall_s": wall, "peak_mb": peak, "own_peak_mb": rec.get("peak_memory_mb"),
+            "worker_peak_mb": rec.get("worker_peak_memory_mb"), "returns": n_returns,
+            "cells": rec["grid"]["width"] * rec["grid"]["height"], "blocks": rec.get("blocks"),
+            "stages": {k: v["wall_s"] for k, v in rec["stages"].items()},
+            "dtm_rmse_m": q.get("dtm", {}).get("rmse_m"),
+            "dsm_rmse_off_jumps_m": q.get("dsm", {}).get("rmse_off_jumps_m"),
+            "classes": q.get("classification", {}).get("overall_accuracy"),
+        }  # fmt: skip
     return res
 
 
@@ -267,6 +297,24 @@ def print_city(r: dict) -> None:
         print(f"  {label:<11} {m['wall_s']:8.1f} s  {peaks(m)}; {m['buildings']} buildings, "
               f"{m['seconds_per_building']:.2f} s per building")  # fmt: skip
         print("              " + ", ".join(f"{k} {v:.1f}" for k, v in m["stages"].items()))
+    for name in ("fusion_points", "fusion_points_one"):
+        if name not in r:  # a record from before it was benched
+            continue
+        p = r[name]
+        b = p.get("blocks")
+        how = (f"{b['count']} blocks of {b['side_m']:g} m (+ {b['margin_m']:g} m margins: at "
+               f"most {b['largest_block_returns'] / 1e6:.2f} M returns a block, "
+               f"{b['returns_read_per_return']:.2f} returns read per return)" if b
+               else "whole")  # fmt: skip
+        ratio = p["wall_s"] / r["fusion_points"]["wall_s"]
+        label = name if name == "fusion_points" else f"fusion_points --workers 1 (x {ratio:.2f})"
+        print(f"  {label:<11} {p['wall_s']:8.1f} s  {peaks(p)}; {p['returns'] / 1e6:.2f} M "
+              f"returns, {p['returns'] / p['wall_s'] / 1e6:.2f} M/s, {how}")  # fmt: skip
+        print("              " + ", ".join(f"{k} {v:.1f}" for k, v in p["stages"].items()))
+        if p.get("classes") is not None:
+            dsm, dtm = p["dsm_rmse_off_jumps_m"], p["dtm_rmse_m"]
+            print(f"              classes overall {p['classes']:.3f}, DSM RMSE off jumps "
+                  f"{dsm:.2f} m, DTM RMSE {dtm:.3f} m")  # fmt: skip
     print(f"  compare     {r['compare']['wall_s']:8.1f} s  {peaks(r['compare'])}")
     print(f"  total       {r['total_s']:8.1f} s")
     print_fusion_quality(f.get("quality", {}), "  fusion ")

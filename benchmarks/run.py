@@ -728,7 +728,7 @@ def run_city(args) -> dict:
     small, city = results["small"], results["city"]
     for stage in ("fusion", "fusion_blocks", "superpixel", "voxel", "parametric", "blocks",
                   *(f"{n}_blocks" for n in BLOCK_PATHS), "mesh", "fusion_mesh", "lod",
-                  "fusion_mesh_blocks", "lod_blocks", "compare"):  # fmt: skip
+                  "fusion_mesh_blocks", "lod_blocks", "fusion_points", "compare"):  # fmt: skip
         # a run in blocks against small's run of one grid, about a block's size
         a, b = small.get(stage.removesuffix("_blocks")), city.get(stage)
         if a is None or b is None:  # a record from before it was benched

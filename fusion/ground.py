@@ -37,6 +37,7 @@ def progressive_morphological_filter(
     slope: float = 0.3,
     dh0: float = 0.5,
     dh_max: float = LOWEST_BUILDING_M,
+    origin=(0, 0),
 ) -> np.ndarray:
     """(H, W) bool mask of ground cells.
 
@@ -53,9 +54,10 @@ def progressive_morphological_filter(
     dh0, dh_max : float
         Initial and largest height thresholds, metres; ``dh_max`` below the lowest
         building's height.
+    origin : (row, col) of the first cell in the whole grid ``dsm`` is a block of
     """
     valid = np.isfinite(dsm)
-    surface = push_pull_fill(dsm, valid).astype(np.float32)
+    surface = push_pull_fill(dsm, valid, origin).astype(np.float32)
     ground = valid.copy()
     largest = max(3, int(max_window / cell) | 1)
     windows = [w for w in (2 * 2**k + 1 for k in range(32)) if w < largest] + [largest]
@@ -71,7 +73,7 @@ def progressive_morphological_filter(
 
 
 def dtm_from_dsm(
-    dsm: np.ndarray, gsd: float, *, coarse: float = 1.0, **kw
+    dsm: np.ndarray, gsd: float, *, coarse: float = 1.0, origin=(0, 0), **kw
 ) -> tuple[np.ndarray, np.ndarray]:
     """DTM and ground mask of a DSM.
 
@@ -83,6 +85,9 @@ def dtm_from_dsm(
         Cell size of ``dsm``, metres.
     coarse : float
         Cell size at which the filter runs, metres (at least ``gsd``).
+    origin : (row, col) of the first cell in the whole grid ``dsm`` is a block of: the
+        coarse cells and the interpolation's levels are the whole grid's, so that a block
+        gives the whole grid's DTM where its margin holds what that depends on
     **kw
         Passed to :func:`progressive_morphological_filter`.
 
@@ -93,10 +98,12 @@ def dtm_from_dsm(
     """
     H, W = dsm.shape
     f = max(1, int(round(coarse / gsd)))
-    hc, wc = -(-H // f), -(-W // f)
+    r0, c0 = origin[0] % f, origin[1] % f  # the cells before the first whole coarse cell
+    hc, wc = -(-(r0 + H) // f), -(-(c0 + W) // f)
     pad = np.full((hc * f, wc * f), np.nan, np.promote_types(dsm.dtype, np.float32))
-    pad[:H, :W] = dsm
+    pad[r0 : r0 + H, c0 : c0 + W] = dsm
     blocks = pad.reshape(hc, f, wc, f)
+    coarse_origin = (origin[0] // f, origin[1] // f)
     with np.errstate(all="ignore"):
         import warnings
 
@@ -107,14 +114,14 @@ def dtm_from_dsm(
             )  # the lowest return of a block is the best ground candidate
     # a 5 x 5 median removes the pits that gross depth errors leave, before the openings
     # (which follow the lowest points) can take them for terrain
-    low = cv2.medianBlur(push_pull_fill(low, np.isfinite(low)).astype(np.float32), 5)
-    ground_c = progressive_morphological_filter(low, gsd * f, **kw)
-    dtm_c = push_pull_fill(low, ground_c)
-    dtm = cv2.resize(dtm_c.astype(np.float32), (wc * f, hc * f), interpolation=cv2.INTER_LINEAR)[
-        :H, :W
-    ]
+    low = push_pull_fill(low, np.isfinite(low), coarse_origin).astype(np.float32)
+    low = cv2.medianBlur(low, 5)
+    ground_c = progressive_morphological_filter(low, gsd * f, origin=coarse_origin, **kw)
+    dtm_c = push_pull_fill(low, ground_c, coarse_origin).astype(np.float32)
+    dtm = cv2.resize(dtm_c, (wc * f, hc * f), interpolation=cv2.INTER_LINEAR)
+    dtm = dtm[r0 : r0 + H, c0 : c0 + W]
     ground = np.isfinite(dsm) & (np.abs(dsm - dtm) < kw.get("dh0", 0.5) + 0.25)
     # refine at full resolution: interpolate the ground cells only
-    dtm = push_pull_fill(dsm, ground).astype(np.float32)
+    dtm = push_pull_fill(dsm, ground, origin).astype(np.float32)
     np.minimum(dtm, np.where(np.isfinite(dsm), dsm, np.inf), out=dtm)
     return dtm, ground

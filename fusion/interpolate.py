@@ -6,13 +6,19 @@ import cv2
 import numpy as np
 
 
-def push_pull_fill(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
+def push_pull_fill(values: np.ndarray, valid: np.ndarray, origin=(0, 0)) -> np.ndarray:
     """Fill invalid cells by pyramid (push-pull) interpolation of the valid ones.
+
+    Each level's cells are the means of 2 x 2 cells of the level below, paired as the
+    whole grid pairs them when ``values`` is a window of it (a block): a block then
+    averages the same cells as the whole grid wherever its levels' cells lie inside it,
+    and fills its holes alike.
 
     Parameters
     ----------
     values : (H, W) float
     valid : (H, W) bool
+    origin : (row, col) of ``values``' first cell in the whole grid it is a window of
 
     Returns
     -------
@@ -28,41 +34,67 @@ def push_pull_fill(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
     # the whole raster holds one float64 array (8 bytes a cell, not 64 in float64
     # values, weights, their product, paddings and the blend's terms).
     H, W = values.shape
-    h2, w2 = (H + 1) // 2, (W + 1) // 2
+    pad, (h2, w2), up_origin = _halving((H, W), origin)
+    inside = (slice(pad[0], pad[0] + H), slice(pad[1], pad[1] + W))
     sums = np.zeros((2 * h2, 2 * w2))
-    sums[:H, :W][valid] = values[valid]
+    sums[inside][valid] = values[valid]
     vs = sums.reshape(h2, 2, w2, 2).sum(axis=(1, 3))
     del sums
-    ws = np.pad(valid, ((0, 2 * h2 - H), (0, 2 * w2 - W))).reshape(h2, 2, w2, 2).sum(axis=(1, 3))
+    ws = np.zeros((2 * h2, 2 * w2), np.uint8)
+    ws[inside] = valid
+    ws = ws.reshape(h2, 2, w2, 2).sum(axis=(1, 3))
     with np.errstate(invalid="ignore", divide="ignore"):
         v = np.where(ws > 0, vs / ws, 0.0)
-    filled = _push_pull_coarse(v, np.minimum(ws, 1.0))
-    out = cv2.resize(filled, (W, H), interpolation=cv2.INTER_LINEAR)
+    filled = _push_pull_coarse(v, np.minimum(ws, 1.0), up_origin)
+    out = _doubled(filled, (H, W), pad)
     out[valid] = values[valid]
     return out
 
 
-def _push_pull_coarse(v: np.ndarray, w: np.ndarray) -> np.ndarray:
+def _halving(shape: tuple[int, int], origin) -> tuple[tuple, tuple, tuple]:
+    """How a level of ``shape`` whose first cell is ``origin`` in its level of the whole
+    grid pairs its cells: the rows and columns it is padded with before them (1 where its
+    first cell is the second of a pair), the next level's shape and origin."""
+    pad = (origin[0] % 2, origin[1] % 2)
+    half = ((pad[0] + shape[0] + 1) // 2, (pad[1] + shape[1] + 1) // 2)
+    return pad, half, (origin[0] // 2, origin[1] // 2)
+
+
+def _push_pull_coarse(v: np.ndarray, w: np.ndarray, origin=(0, 0)) -> np.ndarray:
     """The pyramid from a level of block means ``v`` and weights ``w`` (in [0, 1]) up:
-    ``v`` blended with the next coarser level where ``w`` is under 1."""
+    ``v`` blended with the next coarser level where ``w`` is under 1. ``origin``: the
+    level's first cell in the whole grid's level (:func:`push_pull_fill`)."""
     levels = []
     while True:
-        levels.append((v, w))
         if min(v.shape) <= 2 or (w > 0).all():
+            levels.append((v, w, None))
             break
-        h2, w2 = (v.shape[0] + 1) // 2, (v.shape[1] + 1) // 2
-        vp = np.pad(v * w, ((0, 2 * h2 - v.shape[0]), (0, 2 * w2 - v.shape[1])))
-        wp = np.pad(w, ((0, 2 * h2 - w.shape[0]), (0, 2 * w2 - w.shape[1])))
+        pad, (h2, w2), up_origin = _halving(v.shape, origin)
+        levels.append((v, w, pad))
+        vp = np.zeros((2 * h2, 2 * w2))
+        wp = np.zeros((2 * h2, 2 * w2))
+        inside = (slice(pad[0], pad[0] + v.shape[0]), slice(pad[1], pad[1] + v.shape[1]))
+        vp[inside], wp[inside] = v * w, w
         ws = wp.reshape(h2, 2, w2, 2).sum(axis=(1, 3))
         vs = vp.reshape(h2, 2, w2, 2).sum(axis=(1, 3))
         with np.errstate(invalid="ignore", divide="ignore"):
             v = np.where(ws > 0, vs / ws, 0.0)
         w = np.minimum(ws, 1.0)
-    filled, _ = levels[-1]
-    for v, w in reversed(levels[:-1]):
-        up = cv2.resize(filled, (v.shape[1], v.shape[0]), interpolation=cv2.INTER_LINEAR)
-        filled = w * v + (1 - w) * up
+        origin = up_origin
+    filled = levels[-1][0]
+    for v, w, pad in reversed(levels[:-1]):
+        filled = w * v + (1 - w) * _doubled(filled, v.shape, pad)
     return filled
+
+
+def _doubled(coarse: np.ndarray, shape: tuple[int, int], pad=(0, 0)) -> np.ndarray:
+    """The level ``coarse`` up by a factor of two (bilinear), cut to ``shape`` after the
+    ``pad`` rows and columns of :func:`_halving`: each of its cells stands over the 2 x 2
+    cells it was made of, wherever the raster ends. Resized to an odd ``shape`` instead,
+    a level would be stretched by up to a cell of its own at the far side of the raster."""
+    up = cv2.resize(coarse, (2 * coarse.shape[1], 2 * coarse.shape[0]),
+                    interpolation=cv2.INTER_LINEAR)  # fmt: skip
+    return up[pad[0] : pad[0] + shape[0], pad[1] : pad[1] + shape[1]]
 
 
 def small_holes(missing: np.ndarray, max_cells: int) -> np.ndarray:
@@ -122,7 +154,8 @@ def fill_small_holes(values: np.ndarray, valid: np.ndarray, holes: np.ndarray,
         rows, cols = aligned(y, y + h, H, origin[0]), aligned(x, x + w, W, origin[1])
         inside = labels[rows, cols] == k
         for c in range(planes.shape[2]):
-            filled = push_pull_fill(planes[rows, cols, c], valid[rows, cols])
+            filled = push_pull_fill(planes[rows, cols, c], valid[rows, cols],
+                                    (rows.start + origin[0], cols.start + origin[1]))  # fmt: skip
             if np.issubdtype(out.dtype, np.integer):
                 filled = np.round(filled)
             planes[rows, cols, c][inside] = filled[inside]

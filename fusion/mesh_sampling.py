@@ -653,7 +653,7 @@ def surface_products(
         holes = small_holes(~hit, HOLE_CELLS)
         dsm = fill_small_holes(dsm, hit, holes, HOLE_CELLS, origin)
     with timer.stage("ground"):
-        dtm, _ = dtm_from_dsm(dsm, gsd)
+        dtm, _ = dtm_from_dsm(dsm, gsd, origin=origin)
         dtm = np.where(np.isfinite(dsm), np.minimum(dtm, dsm), np.nan).astype(np.float32)
         ndsm = (dsm - dtm).astype(np.float32)
     with timer.stage("classes"):

@@ -32,11 +32,12 @@ class FusionOptions:
     )  # fmt: skip
     tile: int = option(512, "cells per tile side", cli=False)
     block: float | None = option(
-        None, "views and meshes: fuse blocks of this side one after another, each with a "
-        "margin of the ground filter's largest window (80 m), and write their insides into "
-        "windows of the rasters: the command's memory follows the block, not the area",
-        unit="m", auto="the whole grid at once up to 4096 x 4096 cells, else blocks of "
-        "4096 cells less their margins",
+        None, "fuse blocks of this side one after another, each with a margin of the "
+        "ground filter's largest window (80 m), and write their insides into windows of the "
+        "rasters: the command's memory follows the block, not the area",
+        unit="m", auto="the whole grid at once up to 4096 x 4096 cells (clouds: and 3 "
+        "million returns), else blocks of 4096 cells (clouds: of about 3 million returns "
+        "with their margins) less their margins",
     )  # fmt: skip
     tolerance: float = option(
         1.0, "visibility band behind the nearest surface of a cell", unit="m", cli=False

@@ -83,14 +83,8 @@ def run_fusion(
                         "sampled in this process")  # fmt: skip
         return _fuse_mesh(out, mesh, crs, options, truth, overwrite, command, t0)
     if points is not None:
-        from .points import fuse_points
-
-        if scheduler is not None or resume:
-            log.warning("--scheduler and --resume apply to the fusion of views; clouds are "
-                        "rasterised in this process")  # fmt: skip
-        result, crs, inputs = fuse_points(points, options, crs=crs)
-        return _write(out, result, crs, inputs, options, truth, save_classifier_to, overwrite,
-                      command, t0)  # fmt: skip
+        return _fuse_points(out, points, crs, options, truth, overwrite, command, t0,
+                            scheduler, resume)  # fmt: skip
     loaded = load_scene(scene)
     check_height_source(loaded)  # before the workers start: bad input stops at once
     inputs = {"scene": str(loaded.scene_json), "views": len(loaded.views)}
@@ -156,12 +150,18 @@ def _fuse_blocks(out, scene, grid, block_m, engine, inputs, options, truth, save
             windows.discard()
             raise
         record = _record(grid, scene.crs, inputs, options, figures, command, t0)
-        windows.close(record)
-        if truth is not None:
-            record["quality"] = fusion_quality(read_fusion(tmp), truth)
-            write_record(tmp, record)
+        _close_windows(tmp, windows, record, truth)
         _save_forest(save_classifier_to, forest, record, options)
     return record
+
+
+def _close_windows(tmp: Path, windows: FusionWindows, record: dict, truth) -> None:
+    """The rasters written window by window closed with the run's record, scored against
+    ``truth`` if given (which reads the whole rasters back)."""
+    windows.close(record)
+    if truth is not None:
+        record["quality"] = fusion_quality(read_fusion(tmp), truth)
+        write_record(tmp, record)
 
 
 def _fuse_mesh(out, path, crs, options, truth, overwrite, command, t0) -> dict:
@@ -199,10 +199,56 @@ def _fuse_mesh(out, path, crs, options, truth, overwrite, command, t0) -> dict:
         normal.close()
         record = _record(grid, mesh.crs, mesh_inputs(mesh), options,
                          mesh_record(mesh, options, figures, timer, t0), command, t0)  # fmt: skip
-        windows.close(record)
-        if truth is not None:
-            record["quality"] = fusion_quality(read_fusion(tmp), truth)
-            write_record(tmp, record)
+        _close_windows(tmp, windows, record, truth)
+    return record
+
+
+def _fuse_points(out, paths, crs, options, truth, overwrite, command, t0, scheduler,
+                 resume) -> dict:  # fmt: skip
+    """A survey's fusion: its tiles read once into a scratch folder beside ``out``
+    (:func:`~fusion.cloud_survey.spilled_survey`), then rasterised whole, or block by
+    block as tasks of the engine (:func:`~fusion.points.fuse_points_in_blocks`) into
+    windows of the run folder, which appears atomically; returns the record."""
+    from .cloud_survey import spilled_survey
+    from .points import (
+        cloud_block_size,
+        fuse_points_in_blocks,
+        fuse_survey,
+        point_workers,
+        points_inputs,
+        points_record,
+    )
+
+    timer = StageTimer()
+    parent = Path(out).absolute().parent
+    with tempfile.TemporaryDirectory(prefix=".points-scratch-", dir=parent) as scratch:
+        with timer.stage("read"):
+            survey = spilled_survey(paths, options, crs, Path(scratch))
+        grid = survey.grid(options)
+        block = cloud_block_size(grid, survey, options)
+        if block is None:
+            if scheduler is not None or resume:
+                log.warning("--scheduler and --resume apply to a cloud in blocks (--block); "
+                            "this one is rasterised whole in this process")  # fmt: skip
+            result, crs, inputs = fuse_survey(survey, grid, options, timer)
+            return _write(out, result, crs, inputs, options, truth, None, overwrite, command,
+                          t0)  # fmt: skip
+        check_disk(grid, parent)
+        signature = run_signature(options, {"points": survey.files})
+        with engine_for(out, signature, workers=point_workers(options), scheduler=scheduler,
+                        resume=resume, preload=("fusion.points",)) as engine, \
+                atomic_output_dir(out, overwrite=overwrite) as tmp:  # fmt: skip
+            windows = FusionWindows(tmp, grid, survey.crs)
+            try:
+                figures = fuse_points_in_blocks(survey, grid, options, timer, windows, block,
+                                                engine)  # fmt: skip
+            except BaseException:
+                windows.discard()
+                raise
+            figures = points_record(survey, options, figures, timer)
+            record = _record(grid, survey.crs, points_inputs(survey), options, figures, command,
+                             t0)  # fmt: skip
+            _close_windows(tmp, windows, record, truth)
     return record
 
 

@@ -743,7 +743,7 @@ def fused_ground(h: FusedHeights, grid: Grid, mode: str, given,
         spikes = np.zeros(grid.shape, bool)
     holes = small_holes(~np.isfinite(dsm), HOLE_CELLS)
     dsm = fill_small_holes(dsm, np.isfinite(dsm), holes, HOLE_CELLS, origin)
-    dtm_full, _ = dtm_from_dsm(dsm, grid.gsd)
+    dtm_full, _ = dtm_from_dsm(dsm, grid.gsd, origin=origin)
     dtm = np.where(np.isfinite(dsm), dtm_full, np.nan).astype(np.float32)
     return dsm, dtm, dtm_full, spikes, holes
 

@@ -11,7 +11,7 @@ from pyproj import CRS
 from data_samples.terrace import scan_lines, write_terrace
 from fusion.point_clouds import read_clouds
 from fusion.points import default_gsd
-from tests.conftest import SHARED_DATA, run_cli
+from tests.conftest import SHARED_DATA, interrupted_after, run_cli
 from workbench.errors import InputError
 from workbench.raster import read_raster
 
@@ -202,3 +202,158 @@ def test_unclassified_trees_are_trees_and_the_footbridge_is_not(tmp_path):
     assert (cls[0][tree_cells] == 3).mean() > 0.97
     assert (cls[0][tree_cells] == 4).mean() < 0.01
     assert (cls[0][deck_cells] == 4).mean() > 0.9
+
+
+# -- a survey larger than memory: its tiles read once, rasterised block by block ----------
+
+
+def _street(folder, classified: bool = True) -> list:
+    """A 420 x 110 m street as three LAZ tiles in UTM: sloping ground, houses (ASPRS 6)
+    up to 24 m wide and crowns (ASPRS 5), returns on scan lines; unclassified (ASPRS 1)
+    when not ``classified``."""
+    rng = np.random.default_rng(11)
+    xy = scan_lines((0.0, 0.0, 420.0, 110.0), rng, line_spacing=0.8, point_spacing=0.5)
+    z = 2.0 + 0.01 * xy[:, 0] + 0.3 * np.sin(xy[:, 1] / 20.0)
+    cls = np.full(len(xy), 2, np.uint8)
+    for k in range(24):
+        x0, y0 = 10 + 17 * k, rng.uniform(10, 70)
+        w, d = rng.uniform(8, 24, 2)
+        inside = (np.abs(xy[:, 0] - x0) < w / 2) & (np.abs(xy[:, 1] - y0) < d / 2)
+        z[inside] += rng.uniform(4, 12) + 0.3 * (xy[inside, 1] - y0)  # a shed roof
+        cls[inside] = 6
+        crown = np.hypot(xy[:, 0] - x0 - 4, xy[:, 1] - 92) < rng.uniform(2.5, 5)
+        z[crown] += rng.uniform(5, 9) + rng.normal(0, 0.5, crown.sum())
+        cls[crown] = 5
+    z += rng.normal(0, 0.03, len(z))
+    if not classified:
+        cls[:] = 1
+    xyz = np.column_stack([xy + ORIGIN, z])
+    folder.mkdir(exist_ok=True)
+    tiles = []
+    for t, (a, b) in enumerate([(0, 150), (150, 300), (300, 421)]):
+        sel = (xy[:, 0] >= a) & (xy[:, 0] < b)
+        _write_las(folder / f"street_{t}.laz", xyz[sel], "EPSG:32631", cls[sel])
+        tiles.append(folder / f"street_{t}.laz")
+    return tiles
+
+
+@pytest.mark.parametrize("classified", [True, False])
+def test_a_survey_in_blocks_is_the_whole_grid_byte_for_byte(tmp_path, classified):
+    """Blocks of 100 m with their 80 m margins (outer blocks of at most 260 m of the
+    street's 420 m) give every raster of the whole grid's run, byte for byte: the DSM's
+    triangulation and hole filling, the DTM from the ground class (or, unclassified, the
+    morphological filter), and the classes from the files (or the returns' geometry)."""
+    tiles = _street(tmp_path, classified)
+    whole, blocks = tmp_path / "whole", tmp_path / "blocks"
+    proc = run_cli("fusion", "--points", *tiles, "-o", whole)
+    assert proc.returncode == 0, proc.stderr
+    workers = ("--workers", "2") if classified else ()  # and as tasks of two workers
+    proc = run_cli("fusion", "--points", tmp_path, "-o", blocks, "--block", "100", *workers)
+    assert proc.returncode == 0, proc.stderr
+    record = json.loads((blocks / "fusion.json").read_text())
+    assert record["blocks"]["count"] == 10 and "blocks" not in json.loads(
+        (whole / "fusion.json").read_text())  # fmt: skip
+    assert record["dtm_source"] == ("LAS ground class (2), interpolated" if classified
+                                    else "progressive morphological filter")  # fmt: skip
+    for name in ("dsm", "dtm", "ndsm", "ortho", "class", "class_prob", "count"):
+        a, grid_a, _ = read_raster(whole / f"{name}.tif")
+        b, grid_b, _ = read_raster(blocks / f"{name}.tif")
+        assert grid_a == grid_b
+        np.testing.assert_array_equal(a, b, err_msg=name)
+    cls = read_raster(blocks / "class.tif")[0][0]
+    assert (cls == 4).mean() > 0.05 and (cls == 3).mean() > 0.005  # houses and crowns
+    assert not any(p.name.startswith(".points-scratch") for p in tmp_path.iterdir())
+
+
+def test_the_blocks_follow_the_survey_density():
+    """By default a survey of up to 3 million returns is rasterised whole; a denser or
+    larger one in blocks whose margins hold about that many returns."""
+    from fusion.cloud_survey import Survey
+    from fusion.points import BLOCK_RETURNS, cloud_block_size
+    from workbench.grid_blocks import block_layout
+    from workbench.raster import Grid
+
+    def survey(n, area):
+        tile = SpilledTile(None, np.zeros(2), np.ones(2), n)
+        return Survey([], [tile], None, (), 1.0, n, area, None, 0)
+
+    from fusion.cloud_survey import SpilledTile
+    from fusion.options import FusionOptions
+
+    grid = Grid(0.0, 1000.0, 0.3, 3334, 3334)
+    opts = FusionOptions()
+    assert cloud_block_size(grid, survey(BLOCK_RETURNS, 1e6), opts) is None
+    # 12 returns a m2: an outer block of 500 m holds 3 million returns, 340 m less its
+    # margins; the 1000 m grid is cut in three blocks a side (not four)
+    side = cloud_block_size(grid, survey(12_000_000, 1e6), opts)
+    assert side == pytest.approx(1000.2 / 3 + 0.3)
+    assert len(block_layout(grid, side, 80.0)) == 9
+    assert cloud_block_size(grid, survey(12_000_000, 1e6), FusionOptions(block=250)) == 250
+    feet = Survey([], [SpilledTile(None, np.zeros(2), np.ones(2), 10)], None, (), 0.3048, 10,
+                  1.0, None, 0)  # fmt: skip
+    assert cloud_block_size(grid, feet, FusionOptions(block=250)) == pytest.approx(250 / 0.3048)
+
+
+def test_intensity_percentile_of_a_histogram_is_numpys():
+    from fusion.cloud_survey import percentile_of_counts
+
+    values = np.random.default_rng(2).integers(0, 3000, 10_001)
+    counts = np.bincount(values, minlength=1 << 16)
+    for q in (0.0, 50.0, 99.0, 99.9, 100.0):
+        assert percentile_of_counts(counts, q) == pytest.approx(np.percentile(values, q))
+    assert percentile_of_counts(np.zeros(4, np.int64), 99.0) == 0.0
+
+
+def test_a_bad_tile_among_good_ones_leaves_nothing_behind(tmp_path):
+    tiles = _street(tmp_path)
+    (tmp_path / "street_1.laz").write_bytes(b"LASF" + b"\0" * 50)
+    proc = run_cli("fusion", "--points", *tiles, "-o", tmp_path / "o", "--block", "100")
+    assert proc.returncode == 2
+    assert "street_1.laz" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == [t.name for t in tiles]
+
+
+def test_an_interrupted_survey_resumes_with_only_its_unfinished_blocks(tmp_path, monkeypatch):
+    """Ten blocks, each a task: stopped (Ctrl-C) at the fourth, the run leaves no output
+    and keeps three blocks; started again with resume, it rasterises the seven others
+    only, and its rasters are the run through's, byte for byte."""
+    import fusion.points as fp
+    from fusion.options import FusionOptions
+    from fusion.run import run_fusion
+    from workbench.engine import TaskStore, partial_folder
+
+    tiles = _street(tmp_path / "tiles")
+    opts = FusionOptions(block=100.0, workers=1)
+    through, out = tmp_path / "through", tmp_path / "out"
+    run_fusion(through, opts, points=tiles)
+    real, calls = fp.block_products, []
+    monkeypatch.setattr(fp, "block_products", interrupted_after(real, 3, calls))
+    with pytest.raises(KeyboardInterrupt):
+        run_fusion(out, opts, points=tiles)
+    assert not out.exists() and TaskStore(partial_folder(out)).finished("blocks") == 3
+    calls.clear()
+    monkeypatch.setattr(fp, "block_products", lambda *a: calls.append(1) or real(*a))
+    record = run_fusion(out, opts, points=tiles, resume=True)
+    assert len(calls) == 7 and record["blocks"]["count"] == 10
+    for name in ("dsm", "dtm", "ortho", "class_prob", "count"):
+        np.testing.assert_array_equal(read_raster(out / f"{name}.tif")[0],
+                                      read_raster(through / f"{name}.tif")[0])  # fmt: skip
+    assert not partial_folder(out).exists()
+    assert not list(tmp_path.glob(".points-scratch*"))
+
+
+def test_a_full_disk_while_spilling_the_tiles_is_one_line(tmp_path, monkeypatch):
+    import errno
+
+    import fusion.cloud_survey as cs
+    from fusion.options import FusionOptions
+    from workbench.errors import WorkbenchError
+
+    tiles = _street(tmp_path / "tiles")
+
+    def full(path, _a):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(cs.np, "save", full)
+    with pytest.raises(WorkbenchError, match="disk full while keeping the survey's returns"):
+        cs.spilled_survey(tiles, FusionOptions(), None, tmp_path / "scratch")

@@ -182,7 +182,9 @@ def run_signature(options, inputs: dict) -> dict:
     from .options import options_record
 
     params = {k: v for k, v in options_record(options).items() if k != "workers"}
-    paths = {k: str(Path(v).absolute()) if v is not None else None for k, v in inputs.items()}
+    paths = {k: [str(Path(p).absolute()) for p in v] if isinstance(v, list | tuple)
+             else str(Path(v).absolute()) if v is not None else None
+             for k, v in inputs.items()}  # fmt: skip
     return {"inputs": paths, "parameters": params}
 
 
