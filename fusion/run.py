@@ -221,6 +221,7 @@ def _fuse_points(out, paths, crs, options, truth, overwrite, command, t0, schedu
 
     timer = StageTimer()
     parent = Path(out).absolute().parent
+    parent.mkdir(parents=True, exist_ok=True)  # as the output's atomic folder would
     with tempfile.TemporaryDirectory(prefix=".points-scratch-", dir=parent) as scratch:
         with timer.stage("read"):
             survey = spilled_survey(paths, options, crs, Path(scratch))
