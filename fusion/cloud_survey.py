@@ -19,10 +19,10 @@ import numpy as np
 
 from workbench.errors import InputError, WorkbenchError
 from workbench.progress import progress
-from workbench.raster import Grid, crs_name
+from workbench.raster import Grid
 
 from .options import FusionOptions
-from .point_clouds import PointCloud, cloud_files, read_points
+from .point_clouds import PointCloud, check_same_crs, cloud_files, read_points
 
 ASPRS_NOISE = (7, 18)
 ASPRS_GROUND = 2
@@ -192,12 +192,7 @@ def spilled_survey(paths, opts: FusionOptions, crs: str | None, scratch: Path) -
         cloud = read_points(f, crs)
         if first is None:
             first = cloud
-        elif (cloud.crs is None) != (first.crs is None) or (
-                cloud.crs is not None and cloud.crs != first.crs):  # fmt: skip
-            raise InputError(
-                cloud.source, "crs", f"{crs_name(cloud.crs)} differs from "
-                f"{crs_name(first.crs)} of {first.source}; reproject the tiles to one CRS",
-            )  # fmt: skip
+        check_same_crs(cloud, first)
         n_points += len(cloud.xyz)
         keep = kept_returns(cloud, opts)
         attributes &= {a for a in ATTRIBUTES if getattr(cloud, a) is not None}

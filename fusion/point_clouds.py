@@ -122,6 +122,14 @@ def cloud_files(paths) -> list[Path]:
     return files
 
 
+def check_same_crs(cloud: PointCloud, first: PointCloud) -> None:
+    """Refuse a tile whose CRS is not the survey's first tile's, naming both."""
+    a, b = cloud.crs, first.crs
+    if (a is None) != (b is None) or (a is not None and a != b):
+        raise InputError(cloud.source, "crs", f"{crs_name(a)} differs from {crs_name(b)} of "
+                         f"{first.source}; reproject the tiles to one CRS")  # fmt: skip
+
+
 def read_clouds(paths, crs: str | None = None) -> PointCloud:
     """Read and merge point-cloud tiles (files or folders of them) into one cloud.
 
@@ -136,11 +144,7 @@ def read_clouds(paths, crs: str | None = None) -> PointCloud:
     clouds = [read_points(f, crs) for f in files]
     first = clouds[0]
     for c in clouds[1:]:
-        if (c.crs is None) != (first.crs is None) or (c.crs is not None and c.crs != first.crs):
-            raise InputError(
-                c.source, "crs", f"{crs_name(c.crs)} differs from {crs_name(first.crs)} of "
-                f"{first.source}; reproject the tiles to one CRS",
-            )  # fmt: skip
+        check_same_crs(c, first)
     if len(clouds) == 1:
         return first
 

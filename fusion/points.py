@@ -20,7 +20,6 @@ import numpy as np
 
 from workbench.engine import Engine, ThreadEngine
 from workbench.grid_blocks import Block, auto_block_size, block_layout
-from workbench.parallel import default_workers
 from workbench.raster import Grid, class_codes
 from workbench.records import StageTimer, peak_memory_mb
 
@@ -30,7 +29,7 @@ from .interpolate import fill_small_holes, push_pull_fill, small_holes
 from .options import FusionOptions
 from .point_classes import LOW_M, UNCLASSIFIED, classify_returns
 from .point_clouds import PointCloud
-from .scene_fusion import FILLED, HOLE_CELLS, FusionResult, check_memory, physical_memory
+from .scene_fusion import FILLED, HOLE_CELLS, FusionResult, check_memory, workers_in_memory
 
 log = logging.getLogger(__name__)
 
@@ -376,10 +375,7 @@ def point_workers(opts: FusionOptions) -> int:
     """Blocks rasterised at once: ``opts.workers``, or as many as this machine has cores
     and as ``opts.max_memory_fraction`` of its memory holds blocks of
     :data:`BLOCK_RETURNS` returns."""
-    if opts.workers is not None:
-        return opts.workers
-    fit = int(opts.max_memory_fraction * physical_memory() // (BLOCK_RETURNS * BYTES_PER_RETURN))
-    return max(1, min(default_workers(), fit))
+    return workers_in_memory(opts, BLOCK_RETURNS * BYTES_PER_RETURN)
 
 
 def cloud_block_size(grid: Grid, survey: Survey, opts: FusionOptions) -> float | None:

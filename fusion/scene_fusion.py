@@ -201,12 +201,17 @@ def view_workers(views: list[View], opts: FusionOptions) -> int:
     A view's Sigma Points peak at about :data:`FEATURE_BYTES_PER_PIXEL` per pixel (the
     patch moments and their Cholesky factors), and every worker holds one view's.
     """
+    largest = max((v.camera.width * v.camera.height for v in views), default=0)
+    return workers_in_memory(opts, largest * FEATURE_BYTES_PER_PIXEL)
+
+
+def workers_in_memory(opts: FusionOptions, task_bytes: float) -> int:
+    """Tasks run at once: ``opts.workers``, or as many as this process has cores and as
+    ``opts.max_memory_fraction`` of the machine's memory holds, each task peaking at
+    ``task_bytes``."""
     if opts.workers is not None:
         return opts.workers
-    largest = max((v.camera.width * v.camera.height for v in views), default=0)
-    fit = int(
-        opts.max_memory_fraction * physical_memory() // max(largest * FEATURE_BYTES_PER_PIXEL, 1)
-    )
+    fit = int(opts.max_memory_fraction * physical_memory() // max(task_bytes, 1))
     return max(1, min(default_workers(), fit))
 
 
