@@ -50,7 +50,7 @@ class Survey:
     ----------
     attributes : the attributes every tile has (those of :class:`PointCloud` but xyz)
     unit : metres per unit of the CRS (1 without a projected CRS)
-    covered_m2 : the area the returns cover, in the CRS's units squared
+    covered : the area the returns cover, in the CRS's units squared
         (:func:`covered_area`), summed over the tiles
     intensity_counts : (65536,) returns per intensity, or None without intensities
     ground_returns : returns of the ground class (ASPRS 2)
@@ -108,16 +108,14 @@ class Survey:
         cloud : PointCloud of the returns, tile after tile
         cells : (N,) int64, row * width + col within the window
         """
-        x0, y1 = grid.xmin + cols.start * grid.gsd, grid.ymax - rows.start * grid.gsd
-        x1, y0 = grid.xmin + cols.stop * grid.gsd, grid.ymax - rows.stop * grid.gsd
-        first_row, first_col = rows.start == 0, cols.start == 0
-        last_row, last_col = rows.stop == grid.height, cols.stop == grid.width
+        window = grid.window(rows, cols)
+        x0, y0, x1, y1 = window.bounds
         parts, cells = [], []
         for t in self.tiles:
-            # a cell's width of slack: the border cells take what lies beyond the grid
-            if ((t.hi[0] < x0 - grid.gsd and not first_col) or (t.lo[0] > x1 + grid.gsd and
-                    not last_col) or (t.hi[1] < y0 - grid.gsd and not last_row) or
-                    (t.lo[1] > y1 + grid.gsd and not first_row)):  # fmt: skip
+            # every kept return lies on the grid (:meth:`grid`); a cell's width of slack
+            # for the rounding of a return on a cell's edge
+            if (t.hi[0] < x0 - grid.gsd or t.lo[0] > x1 + grid.gsd or
+                    t.hi[1] < y0 - grid.gsd or t.lo[1] > y1 + grid.gsd):  # fmt: skip
                 continue
             xyz = np.load(t.folder / "xyz.npy", mmap_mode="r")
             r, c = grid.cell_index(xyz[:, 0], xyz[:, 1], clip=True)
