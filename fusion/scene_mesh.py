@@ -85,7 +85,7 @@ def integrate_views(
     A voxel's signed distance depends only on the views' depths along its rays, so the
     tiles' triangles are the whole grid's, and the mesh the same surface (tested); it
     comes tile after tile (:func:`tile_pieces`), where one grid's is in
-    :func:`canonical_order`. :func:`write_views_mesh` writes the tiles to a PLY as they
+    :func:`welded`'s order. :func:`write_views_mesh` writes the tiles to a PLY as they
     come, in memory that does not grow with the area.
 
     Parameters
@@ -123,10 +123,10 @@ def integrate_views(
         mesh = grid.extract_triangle_mesh(weight_threshold=min_weight).to_legacy()
         n_blocks = int(grid.hashmap().size())
         del grid
-        colors = _uint8_colours(np.asarray(mesh.vertex_colors))
-        order, triangles = canonical_order(mesh.vertices, mesh.triangles, colors)
-        vertices = np.asarray(mesh.vertices, np.float64)[order] + plan.origin
-        colors = colors[order]
+        vertices, colors, triangles = welded(
+            mesh.vertices, mesh.triangles, _uint8_colours(np.asarray(mesh.vertex_colors))
+        )
+        vertices = vertices + plan.origin
     else:
         plan, blocks = planned_tiles(scene.views, plan)
         pieces = list(tile_pieces(scene.views, plan, blocks))
@@ -554,8 +554,8 @@ def tile_pieces(views, plan: MeshPlan, blocks: ViewBlocks,
     A vertex two tiles share is the same float in both; it lies within a voxel's
     diagonal of the edge between their cores, since the triangles of marching cubes do
     not leave their cube. So each tile looks up its vertices near its core's edges
-    among the earlier tiles' (by position and, for vertices a tile itself repeats at one
-    position, which of them), and keeps its own for the tiles still to come: those of
+    among the earlier tiles' (by position and colour, which :func:`welded` makes one
+    vertex's), and keeps its own for the tiles still to come: those of
     the row of tiles before it and of its own row, all a tile can touch, so the table
     does not grow with the area."""
     engine = engine or ThreadEngine(1)
@@ -575,16 +575,14 @@ def tile_pieces(views, plan: MeshPlan, blocks: ViewBlocks,
             yield TilePiece(np.zeros((0, 3)), np.zeros((0, 3), np.uint8),
                             np.zeros((0, 3), np.int64), held)  # fmt: skip
             continue
-        colours = _uint8_colours(colours)  # as written: a file read back orders the same
-        same = _same_positions(V)
-        ties = tie_keys(V, colours, T, same)
-        key = _position_keys(V, _occurrence(same, ties))
+        # welded as written: a file read back orders the same
+        V, colours, T = welded(V, T, _uint8_colours(colours))
+        key = _vertex_keys(V, colours)
         w = V[:, :2] + origin[:2]
         edge = np.min(np.abs(np.column_stack([w - core[:2], w - core[2:]])), axis=1) < near
         ids = np.full(len(V), -1, np.int64)
         ids[edge] = border.find(key[edge])
-        new = np.flatnonzero(ids < 0)
-        new = new[np.lexsort((*ties[new].T[::-1], V[new, 2], V[new, 1], V[new, 0]))]
+        new = np.flatnonzero(ids < 0)  # in welded's order
         ids[new] = n_vertices + np.arange(len(new))
         n_vertices += len(new)
         border.add(key[edge], ids[edge])
@@ -628,96 +626,59 @@ class _BorderVertices:
         return owner[inverse[len(known) :]]
 
 
-def _position_keys(V: np.ndarray, repeat: np.ndarray) -> np.ndarray:
-    """(N,) keys equal exactly when position and repeat are (32-byte rows)."""
-    rows = np.ascontiguousarray(np.column_stack([V, repeat]), np.float64)
-    return rows.view(np.dtype((np.void, rows.itemsize * 4))).reshape(-1)
+def _vertex_keys(V: np.ndarray, colours: np.ndarray) -> np.ndarray:
+    """(N,) keys equal exactly when position and colour are (48-byte rows)."""
+    rows = np.ascontiguousarray(np.column_stack([V, colours]), np.float64)
+    return rows.view(np.dtype((np.void, rows.itemsize * 6))).reshape(-1)
 
 
-def _same_positions(V: np.ndarray) -> np.ndarray:
-    """(V,) int64 a number shared by the rows of ``V`` at one position."""
-    return np.unique(V, axis=0, return_inverse=True)[1].reshape(-1)
-
-
-def _occurrence(same: np.ndarray, ties: np.ndarray) -> np.ndarray:
-    """(V,) float how many rows at the same position (``same``, :func:`_same_positions`)
-    come before each in the order of their ``ties`` (:func:`tie_keys`)."""
-    order = np.lexsort((*ties.T[::-1], same))
-    sorted_same = same[order]
-    starts = np.flatnonzero(np.r_[True, sorted_same[1:] != sorted_same[:-1]])
-    rank = np.arange(len(same)) - np.repeat(starts, np.diff(np.r_[starts, len(same)]))
-    out = np.empty(len(same), np.float64)
-    out[order] = rank
-    return out
-
-
-def tie_keys(V: np.ndarray, colours: np.ndarray | None, T: np.ndarray,
-             same: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
-    """(V, 6) float what orders vertices at one position, by their geometry alone: the
-    colour (as written, uint8), then the least (by x, then y, then z) of the other
-    corners of the triangles the vertex is a corner of; zeros for a vertex alone at its
-    position.
-
-    Marching cubes gives a few vertices twice at one position, where two sheets of the
-    surface meet (22 of the 968,056 of a tile of the city); Open3D gives them in an order
-    of its threads, and ordered by position alone they took one or the other place from
-    run to run (the city's mesh: 68 bytes of 1 GB). 2 of those 22 had one colour too.
-    """
-    same = _same_positions(V) if same is None else same
-    out = np.zeros((len(V), 6))
-    shared = np.bincount(same)[same] > 1
-    if not shared.any():
-        return out
-    if colours is not None:
-        out[shared, :3] = np.asarray(colours, np.float64)[shared]
-    T = np.asarray(T, np.int64)
-    t, j = np.nonzero(shared[T])
-    a, b = V[T[t, (j + 1) % 3]], V[T[t, (j + 2) % 3]]
-    a_first = (a[:, 0] < b[:, 0]) | ((a[:, 0] == b[:, 0]) & (
-        (a[:, 1] < b[:, 1]) | ((a[:, 1] == b[:, 1]) & (a[:, 2] <= b[:, 2]))))  # fmt: skip
-    q = np.where(a_first[:, None], a, b)
-    v = T[t, j]
-    order = np.lexsort((q[:, 2], q[:, 1], q[:, 0], v))
-    first = order[np.r_[True, v[order][1:] != v[order][:-1]]]
-    out[v[first], 3:] = q[first]
-    return out
-
-
-def canonical_order(
+def welded(
     vertices: np.ndarray, triangles: np.ndarray, colours: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """The order of a mesh that depends on its geometry alone.
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """The mesh in an order of its geometry alone, its vertices at one position and of
+    one colour made one.
 
     Open3D integrates and extracts its voxel blocks in many threads, so the same surface
     comes out with its vertices and triangles in another order from run to run (seed 5
     of `small`: 3.2 M triangles, the same sets, the files different); where two triangles
     tie for a ray, the mesh's sampling then takes one or the other, and the LOD path's
-    figures moved between runs of the same code (seed 2's 2D quality by 0.017, seed 4's
-    roof types by 0.05). Vertices are
-    sorted by position (x, then y, then z), those at one position by :func:`tie_keys`;
-    each triangle is turned, keeping its winding, to start at its lowest vertex, and the
-    triangles sorted.
+    figures moved between runs of the same code. Marching cubes also gives a few
+    vertices twice at one position, where two sheets of the surface meet (185 positions
+    among the city's 20.7 M vertices), most of one colour: nothing geometric orders such
+    twins (their triangles' corners did not, the city's mesh from 1 and 2 workers then
+    differed in 4 bytes), so they are one vertex here, as they are one point of the
+    surface. A triangle two of whose corners become one has no area and is dropped.
+
+    Vertices are sorted by position (x, then y, then z), then colour; each triangle is
+    turned, keeping its winding, to start at its lowest vertex, and the triangles sorted.
 
     Parameters
     ----------
     vertices : (V, 3) float
     triangles : (T, 3) int
-    colours : (V, 3) optional
-        The vertices' colours as written (uint8), the first of the ties' keys.
+    colours : (V, 3) uint8, optional
+        The vertices' colours as written; twins of other colours stay apart.
 
     Returns
     -------
-    order : (V,) int64
-        The vertices' new order: ``vertices[order]``.
-    triangles : (T, 3) int64
-        The triangles on the reordered vertices.
+    vertices : (V', 3) float64
+    colours : (V', 3) uint8 or None
+    triangles : (T', 3) int64
     """
-    v = np.asarray(vertices)
-    ties = tie_keys(v, colours, triangles)
-    order = np.lexsort((*ties.T[::-1], v[:, 2], v[:, 1], v[:, 0]))
-    rank = np.empty(len(order), np.int64)
-    rank[order] = np.arange(len(order))
-    return order, canonical_triangles(rank[np.asarray(triangles, np.int64)])
+    rows = np.asarray(vertices, np.float64)
+    if colours is not None:
+        rows = np.column_stack([rows, np.asarray(colours, np.float64)])
+    order = np.lexsort(rows.T[::-1])
+    rows = rows[order]
+    first = np.r_[True, np.any(rows[1:] != rows[:-1], axis=1)]
+    vertex = np.empty(len(order), np.int64)
+    vertex[order] = np.cumsum(first) - 1
+    t = vertex[np.asarray(triangles, np.int64)].reshape(-1, 3)
+    t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])]
+    used, t = np.unique(t, return_inverse=True)
+    rows = rows[first][used]
+    out_colours = None if colours is None else rows[:, 3:].astype(np.uint8)
+    return rows[:, :3], out_colours, canonical_triangles(t.reshape(-1, 3))
 
 
 def canonical_triangles(t: np.ndarray) -> np.ndarray:

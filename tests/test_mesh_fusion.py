@@ -9,12 +9,12 @@ import pytest
 
 from fusion.mesh_sampling import SurfaceMesh, orthogonal_sampling, read_surface_mesh
 from fusion.scene_mesh import (
-    canonical_order,
     fitting_tile_m,
     grid_bytes,
     integrate_views,
     largest_tile_m,
     mesh_tiles,
+    welded,
 )
 from tests.conftest import interrupted_after, run_cli
 from workbench.errors import WorkbenchError
@@ -281,9 +281,9 @@ def test_a_tiled_mesh_is_the_whole_grid_s_mesh(mesh_fusion, tiny_scene, tmp_path
     whole, tiled = read_surface_mesh(root / "city.ply"), read_surface_mesh(tmp_path / "tiled.ply")
     assert len(tiled.vertices) == len(whole.vertices)
     assert not np.array_equal(tiled.triangles, whole.triangles)  # the tiles' order
-    order, triangles = canonical_order(tiled.vertices, tiled.triangles, tiled.colors)
-    assert np.array_equal(tiled.vertices[order], whole.vertices)
-    assert np.array_equal(tiled.colors[order], whole.colors)
+    vertices, colours, triangles = welded(tiled.vertices, tiled.triangles, tiled.colors)
+    assert np.array_equal(vertices, whole.vertices)
+    assert np.array_equal(colours, whole.colors)
     assert np.array_equal(triangles, whole.triangles)
     memory = integrate_views(load_scene(tiny_scene), tile_m=30)
     assert np.array_equal(memory.vertices, tiled.vertices)
@@ -369,9 +369,9 @@ def test_tiles_are_made_to_hold_their_blocks():
     assert fitted_tiles(plan, keys, max_blocks=10**6) == plan.tiles  # dense enough already
 
 
-def test_canonical_order_ignores_the_order_a_mesher_gave():
+def test_welded_ignores_the_order_a_mesher_gave():
     """A closed box shuffled (vertices and triangles, each triangle turned): the same
-    arrays after canonical_order, and every triangle keeps its winding."""
+    arrays once welded, and every triangle keeps its winding."""
     import open3d as o3d
 
     box = o3d.geometry.TriangleMesh.create_box(2.0, 3.0, 5.0)
@@ -383,39 +383,55 @@ def test_canonical_order_ignores_the_order_a_mesher_gave():
     T2 = inverse[T][rng.permutation(len(T))]
     T2 = np.array([np.roll(t, k) for t, k in zip(T2, rng.integers(0, 3, len(T2)), strict=True)])
     V2 = V[perm]
-    o1, t1 = canonical_order(V, T)
-    o2, t2 = canonical_order(V2, T2)
-    assert np.array_equal(V[o1], V2[o2]) and np.array_equal(t1, t2)
+    w1, _, t1 = welded(V, T)
+    w2, _, t2 = welded(V2, T2)
+    assert np.array_equal(w1, w2) and np.array_equal(t1, t2) and len(w1) == len(V)
 
     # winding: the same directed edges, by their ends' positions
     def directed(vertices, triangles):
         return {tuple(np.r_[vertices[a], vertices[b]].round(6))
                 for t in triangles for a, b in zip(t, np.roll(t, -1), strict=True)}  # fmt: skip
 
-    assert directed(V, T) == directed(V[o1], t1)
+    assert directed(V, T) == directed(w1, t1)
 
 
 @pytest.mark.parametrize("colours", ["equal", "different"])
 def test_vertices_at_one_position_take_one_order_whichever_the_mesher_gave(colours):
     """Two sheets touching at the origin, each with its own vertex there (as marching
-    cubes gives where two sheets meet): given in either order, the same arrays; the
-    twins told apart by their colour, or, of one colour, by their triangles' corners."""
+    cubes gives where two sheets meet): given in either order, the same arrays; twins of
+    one colour made one vertex, of two colours ordered by colour."""
     V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0], [-1, 0, 0], [0, -1, 0]], float)
     T = np.array([[0, 1, 2], [3, 4, 5]])
     C = np.full((6, 3), 100, np.uint8)
     if colours == "different":
         C[0] = 50  # the twin of the sheet at x, y >= 0 darker
     swap = np.array([3, 1, 2, 0, 4, 5])  # the twins' places exchanged
-    o1, t1 = canonical_order(V, T, C)
-    o2, t2 = canonical_order(V[swap], swap[T], C[swap])
-    assert np.array_equal(V[o1], V[swap][o2]) and np.array_equal(C[o1], C[swap][o2])
-    assert np.array_equal(t1, t2)
-    # by position: (-1, 0, 0) 0, (0, -1, 0) 1, the twins 2 and 3, (0, 1, 0) 4, (1, 0, 0) 5;
-    # of one colour, the twin whose least other corner is (-1, 0, 0) first, else the darker
+    w1, c1, t1 = welded(V, T, C)
+    w2, c2, t2 = welded(V[swap], swap[T], C[swap])
+    assert np.array_equal(w1, w2) and np.array_equal(c1, c2) and np.array_equal(t1, t2)
+    # by position: (-1, 0, 0) 0, (0, -1, 0) 1, the twin(s) 2 (and 3), then (0, 1, 0)
+    # and (1, 0, 0); of two colours the darker twin first
     if colours == "equal":
-        assert t1.tolist() == [[0, 1, 2], [3, 5, 4]]
+        assert len(w1) == 5 and t1.tolist() == [[0, 1, 2], [2, 4, 3]]
     else:
-        assert t1.tolist() == [[0, 1, 3], [2, 5, 4]]
+        assert len(w1) == 6 and t1.tolist() == [[0, 1, 3], [2, 5, 4]]
+
+
+def test_a_triangle_of_twins_is_dropped_whichever_order_the_mesher_gave():
+    """Three vertices at one position and of one colour, the corners of a triangle of no
+    area beside a sheet's triangle through that point (as the city's mesh had twice, the
+    only bytes by which its files from 1 and 2 workers differed): one vertex, the
+    triangle gone, the same arrays in either order."""
+    V = np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+    T = np.array([[0, 1, 2], [2, 3, 4]])
+    C = np.full((5, 3), 100, np.uint8)
+    w1, c1, t1 = welded(V, T, C)
+    for perm in ([2, 0, 1, 3, 4], [1, 2, 0, 4, 3]):
+        perm = np.array(perm)
+        inverse = np.argsort(perm)
+        w2, c2, t2 = welded(V[perm], inverse[T], C[perm])
+        assert np.array_equal(w1, w2) and np.array_equal(c1, c2) and np.array_equal(t1, t2)
+    assert w1.tolist() == [[0, 0, 0], [0, 1, 0], [1, 0, 0]] and t1.tolist() == [[0, 2, 1]]
 
 
 def test_an_open3d_ply_is_read_a_part_at_a_time_as_open3d_reads_it(tmp_path):
