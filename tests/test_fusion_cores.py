@@ -21,7 +21,7 @@ from fusion.observations import (
     observe,
     visibility_groups,
 )
-from fusion.points import top_surface_at_centres
+from fusion.points import top_surface_at_cells
 from fusion.scene_fusion import (
     ObservationCache,
     elevation_image,
@@ -707,7 +707,10 @@ def test_top_surface_is_read_at_the_cell_centres_and_keeps_walls_sharp():
     def surface(p):
         return np.where(p[:, 0] < 6, 0.0, 5.0 + slope * (p[:, 0] - 6))
 
-    z = top_surface_at_centres(np.column_stack([xy, surface(xy)]), centres)
+    xyz = np.column_stack([xy, surface(xy)])
+    grid = Grid(0.0, 8.0, 1.0, 12, 8)  # the cell of centre (x, y): row 7.5 - y, col x - 0.5
+    cells = ((7.5 - centres[:, 1]) * 12 + centres[:, 0] - 0.5).astype(int)
+    z = top_surface_at_cells(xyz, grid, cells, xyz[:, 2])
     roof = (centres[:, 0] > 7) & (centres[:, 0] < 11)
     inner = roof & (centres[:, 1] > 1) & (centres[:, 1] < 7)
     np.testing.assert_allclose(z[inner], surface(centres)[inner], atol=1e-9)
@@ -715,6 +718,42 @@ def test_top_surface_is_read_at_the_cell_centres_and_keeps_walls_sharp():
     # beside the 5 m step the wall is not smeared into a ramp
     np.testing.assert_allclose(z[centres[:, 0] == 5.5], 0.0)
     assert z[centres[:, 0] == 6.5].min() >= 5.0
+
+
+def test_top_surface_finds_the_triangles_scipy_finds():
+    """3,000 returns, one in each of most cells of a 60 x 50 grid at 0.5 m (UTM-sized
+    coordinates), on a rough surface: every cell centre takes the height of the triangle
+    scipy's ``find_simplex`` locates it in, or keeps its fallback off the hull and on the
+    steep triangles."""
+    from scipy.spatial import Delaunay
+
+    rng = np.random.default_rng(7)
+    grid = Grid(500_000.0, 5_700_025.0, 0.5, 60, 50)
+    rows, cols = np.divmod(np.arange(3000), 60)
+    keep = rng.random(3000) > 0.1
+    x, y = grid.cell_center(rows[keep], cols[keep])
+    x, y = x + rng.uniform(-0.24, 0.24, x.size), y + rng.uniform(-0.24, 0.24, y.size)
+    z = 10 + rng.normal(0, 0.3, x.size) + 8.0 * (rng.random(x.size) < 0.05)  # spikes
+    xyz = np.column_stack([x, y, z])
+    cells = np.arange(3000)
+    fallback = np.full(3000, -1.0)
+    got = top_surface_at_cells(xyz, grid, cells, fallback)
+
+    origin = xyz[:, :2].min(axis=0)
+    tri = Delaunay(xyz[:, :2] - origin)
+    centres = np.column_stack(grid.cell_center(rows, cols)) - origin
+    s = tri.find_simplex(centres)
+    want = fallback.copy()
+    inside = s >= 0
+    affine = tri.transform[s[inside]]
+    b = np.einsum("mij,mj->mi", affine[:, :2], centres[inside] - affine[:, 2])
+    w = np.column_stack([b, 1 - b.sum(axis=1)])
+    corners = xyz[tri.simplices[s[inside]]]
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    gentle = np.abs(normal[:, 2]) >= np.cos(np.radians(70)) * np.linalg.norm(normal, axis=1)
+    want[np.flatnonzero(inside)[gentle]] = np.einsum("mk,mk->m", w, corners[..., 2])[gentle]
+    assert 0.05 < (want == -1).mean() < 0.5  # steep triangles and the rim keep theirs
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
 
 
 def test_plane_residual_is_zero_on_a_roof_and_the_spread_of_a_crown():
