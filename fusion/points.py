@@ -204,7 +204,7 @@ def fuse_survey(survey: Survey, grid: Grid, opts: FusionOptions, timer: StageTim
 
 
 def cloud_products(cloud: PointCloud, cells: np.ndarray, grid: Grid, survey: Survey,
-                   opts: FusionOptions, timer: StageTimer, origin=(0, 0)):  # fmt: skip
+                   opts: FusionOptions, timer: StageTimer, origin=(0, 0), zone=None):  # fmt: skip
     """The fusion's rasters from the returns of a grid or a block.
 
     Parameters
@@ -215,23 +215,27 @@ def cloud_products(cloud: PointCloud, cells: np.ndarray, grid: Grid, survey: Sur
     survey : what the whole survey decides (the intensity drawn white, the DTM's source)
     origin : (row, col) of the block's first cell in the whole grid (small holes are
         filled on the whole grid's blocks, :func:`~fusion.interpolate.fill_small_holes`)
+    zone : (rows, cols) slices, optional: the cells whose DSM is read on the
+        triangulation (a block's inside and :data:`DSM_MARGIN_CELLS`); default all
 
     Returns
     -------
     products : {ortho, dsm, dtm, ndsm, class_prob, classes, count}
-    figures : {filled_cells, fill_radius, dtm_source, cells_by_geometry, cells_classed}
+    figures : {filled_cells, fill_radius, dtm_source, cells_by_geometry, cells_classed,
+        triangulated (top returns, one a cell, in ``zone``)}
     """
     xyz, unit = cloud.xyz, survey.unit
     with timer.stage("rasterise"):
         top = _top_per_cell(cells, xyz[:, 2])
         radius = opts.fill_radius / unit if opts.fill_radius is not None else 2.0 * grid.gsd
-        dsm, count, filled, source = top_surface_raster(xyz, cells, top, grid, radius, origin)
+        dsm, tops, count, filled, source = top_surface_raster(xyz, cells, top, grid, radius,
+                                                              origin, zone)  # fmt: skip
         # the return whose colour and class each cell takes
         at = np.flatnonzero(source >= 0)
         returns = top[source[at]]
         ortho = _ortho(cloud, at, returns, grid, survey.intensity_white)
     with timer.stage("ground"):
-        dtm, dtm_source = cloud_dtm(xyz, cells, cloud.classification, dsm, grid, unit,
+        dtm, dtm_source = cloud_dtm(xyz, cells, cloud.classification, dsm, tops, grid, unit,
                                     survey.ground_class, origin)  # fmt: skip
         ndsm = (dsm - dtm).astype(np.float32)
     with timer.stage("classes"):
@@ -240,9 +244,10 @@ def cloud_products(cloud: PointCloud, cells: np.ndarray, grid: Grid, survey: Sur
     count16[filled] = FILLED
     products = {"ortho": ortho, "dsm": dsm, "dtm": dtm, "ndsm": ndsm, "class_prob": prob,
                 "classes": class_codes(prob), "count": count16}  # fmt: skip
+    triangulated = len(top) if zone is None else int(_in_zone(cells[top], grid.width, zone).sum())
     figures = {"filled_cells": int(filled.sum()), "fill_radius": round(radius, 6),
                "dtm_source": dtm_source, "cells_by_geometry": by_geometry,
-               "cells_classed": len(returns)}  # fmt: skip
+               "cells_classed": len(returns), "triangulated": triangulated}  # fmt: skip
     return products, figures
 
 
@@ -280,7 +285,7 @@ def points_record(survey: Survey, opts: FusionOptions, figures: dict, timer: Sta
 
 def top_surface_raster(
     xyz: np.ndarray, cells: np.ndarray, top: np.ndarray, grid: Grid, fill_radius: float,
-    origin: tuple[int, int] = (0, 0),
+    origin: tuple[int, int] = (0, 0), zone: tuple[slice, slice] | None = None,
 ):  # fmt: skip
     """The DSM read at the cell centres on the top returns; empty cells inside the
     coverage filled, and small enclosed holes.
@@ -297,10 +302,15 @@ def top_surface_raster(
     fill_radius : float
         In the units of ``xyz``.
     origin : (row, col) of ``grid``'s first cell in the whole grid it is a block of
+    zone : (rows, cols) slices, optional: where to read the DSM on the triangulation of
+        the top returns there (a block's inside and its :data:`DSM_MARGIN_CELLS`); the
+        rest keeps ``tops``. Default: everywhere.
 
     Returns
     -------
     dsm : (H, W) float32, NaN unknown
+    tops : (H, W) float32, each cell's own top return's height (or the nearest one's),
+        holes filled as the DSM's
     count : (H, W) returns per cell
     filled : (H, W) bool, the cells with no return that were given a height
     source : (H * W,) int, index into ``top`` of the return whose colour and class each
@@ -320,14 +330,29 @@ def top_surface_raster(
     reached = (distance_transform_edt(near) * grid.gsd > fill_radius).ravel() | occupied
     source = np.where(reached, slot[(nr * grid.width + nc).ravel()], -1)
     targets = np.flatnonzero(source >= 0)
-    dsm = np.full(n, np.nan)
-    dsm[targets] = top_surface_at_cells(xyz[top], grid, targets, xyz[top][source[targets], 2])
-    dsm = dsm.reshape(grid.shape)
+    tops = np.full(n, np.nan)
+    tops[targets] = xyz[top][source[targets], 2]
+    dsm = tops.copy()
+    read, used = targets, top
+    if zone is not None:
+        read = targets[_in_zone(targets, grid.width, zone)]
+        used = top[_in_zone(cells[top], grid.width, zone)]
+    dsm[read] = top_surface_at_cells(xyz[used], grid, read, tops[read])
     count = np.bincount(cells, minlength=n).reshape(grid.shape)
-    holes = small_holes(~np.isfinite(dsm), HOLE_CELLS)
-    dsm = fill_small_holes(dsm, np.isfinite(dsm), holes, HOLE_CELLS, origin).astype(np.float32)
+    dsm, tops = dsm.reshape(grid.shape), tops.reshape(grid.shape)
+    known = np.isfinite(tops)  # the DSM's too
+    holes = small_holes(~known, HOLE_CELLS)
+    dsm, tops = (fill_small_holes(r, known, holes, HOLE_CELLS, origin).astype(np.float32)
+                 for r in (dsm, tops))  # fmt: skip
     filled = (reached & ~occupied).reshape(grid.shape) | holes
-    return dsm, count, filled, source
+    return dsm, tops, count, filled, source
+
+
+def _in_zone(flat: np.ndarray, width: int, zone: tuple[slice, slice]) -> np.ndarray:
+    """(N,) bool: the flat cells ``flat`` of a grid ``width`` wide within ``zone``."""
+    r, c = np.divmod(flat, width)
+    rows, cols = zone
+    return (r >= rows.start) & (r < rows.stop) & (c >= cols.start) & (c < cols.stop)
 
 
 def _ortho(cloud: PointCloud, at: np.ndarray, returns: np.ndarray, grid: Grid,
@@ -343,12 +368,17 @@ def _ortho(cloud: PointCloud, at: np.ndarray, returns: np.ndarray, grid: Grid,
     return ortho.reshape(*grid.shape, 3)
 
 
-def cloud_dtm(xyz, cells, cls, dsm: np.ndarray, grid: Grid, unit: float, ground_class: bool,
-              origin=(0, 0)):  # fmt: skip
+def cloud_dtm(xyz, cells, cls, dsm: np.ndarray, tops: np.ndarray, grid: Grid, unit: float,
+              ground_class: bool, origin=(0, 0)):  # fmt: skip
     """The DTM from the ground class (its lowest return per cell, interpolated) where the
     survey has one (``ground_class``) and the cloud holds ground returns, else the
-    morphological filter on the DSM; NaN where the DSM is. ``origin``: the grid's first
-    cell in the whole grid it is a block of."""
+    morphological filter on ``tops`` (each cell's top return); below the DSM, NaN where
+    it is. ``origin``: the grid's first cell in the whole grid it is a block of.
+
+    The filter opens ``tops``, not the DSM read at the centres: its windows (1 m and up)
+    and height steps (0.5 m and up) do not see the centre's correction (a fraction of a
+    cell's slope), and the DSM of a block is read on the triangulation near its inside
+    only, while the filter reaches 80 m into its margins."""
     n = grid.width * grid.height
     if ground_class and cls is not None and (cls == 2).any():
         g = cls == 2
@@ -365,7 +395,7 @@ def cloud_dtm(xyz, cells, cls, dsm: np.ndarray, grid: Grid, unit: float, ground_
             dh0=0.5 / unit,
             dh_max=LOWEST_BUILDING_M / unit,
         )
-        dtm, _ = dtm_from_dsm(dsm, grid.gsd, origin=origin, **metric)
+        dtm, _ = dtm_from_dsm(tops, grid.gsd, origin=origin, **metric)
         dtm_source = "progressive morphological filter"
     dtm = np.where(np.isfinite(dsm), np.minimum(dtm, dsm), np.nan).astype(np.float32)
     return dtm, dtm_source
@@ -422,6 +452,11 @@ def class_source(survey: Survey, by_geometry: int, cells: int) -> str:
 # million whole), mostly the triangulation of the top returns (qhull) and its search
 BLOCK_RETURNS = 3_000_000
 BYTES_PER_RETURN = 1100
+# A block's DSM is read on the triangulation this far past its inside, not over its 80 m
+# margins (which only the ground filter needs): a small hole is filled from up to 57
+# cells away (fill_small_holes: its 9 cells, 18 more, out to blocks of 32), and the
+# triangles near the edge of those triangulated differ from the whole grid's (32 more)
+DSM_MARGIN_CELLS = 96
 
 
 def point_workers(opts: FusionOptions) -> int:
@@ -468,11 +503,15 @@ def block_products(k: int, ctx: CloudBlocks) -> tuple[dict, dict]:
     b, timer = ctx.blocks[k], StageTimer()
     with timer.stage("read"):
         cloud, cells = ctx.survey.returns_in(ctx.grid, *b.outer)
-    products, figures = cloud_products(cloud, cells, ctx.grid.window(*b.outer), ctx.survey,
-                                       ctx.opts, timer, b.origin)  # fmt: skip
+    outer = ctx.grid.window(*b.outer)
+    zone = tuple(slice(max(s.start - DSM_MARGIN_CELLS, 0), min(s.stop + DSM_MARGIN_CELLS, n))
+                 for s, n in zip(b.inside, outer.shape, strict=True))  # fmt: skip
+    products, figures = cloud_products(cloud, cells, outer, ctx.survey, ctx.opts, timer,
+                                       b.origin, zone)  # fmt: skip
     inside = {k: v[(slice(None), *b.inside)] if k == "class_prob" else v[b.inside]
               for k, v in products.items()}  # fmt: skip
     figures["filled_cells"] = int(np.count_nonzero(inside["count"] == FILLED))  # not the margin's
+    figures["occupied"] = int(np.count_nonzero(inside["count"] > 0))
     figures.update(returns=len(cells), stages=timer.stages)
     return {k: np.ascontiguousarray(v) for k, v in inside.items()}, figures
 
@@ -507,12 +546,13 @@ def fuse_points_in_blocks(survey: Survey, grid: Grid, opts: FusionOptions, timer
     done = engine.map(block_products, range(len(blocks)), shared, stage="blocks",
                       keys=[str(b.index) for b in blocks], in_flight=engine.workers)  # fmt: skip
     figures = dict.fromkeys(("filled_cells", "cells_by_geometry", "cells_classed"), 0)
-    returns, sources = [], set()
+    returns, sources, triangulated, occupied = [], set(), 0, 0
     for b, (products, f) in zip(blocks, done, strict=True):
         write(b, products)
         for k in figures:
             figures[k] += f[k]
         returns.append(f["returns"])
+        triangulated, occupied = triangulated + f["triangulated"], occupied + f["occupied"]
         sources.add(f["dtm_source"])
         figures["fill_radius"] = f["fill_radius"]
         for name, st in f["stages"].items():  # the tasks' stages, summed
@@ -523,6 +563,8 @@ def fuse_points_in_blocks(survey: Survey, grid: Grid, opts: FusionOptions, timer
     read = round(sum(returns) / survey.n_used, 3)  # the work the margins add
     figures["blocks"] = {"count": len(blocks), "side_m": round(float(block * survey.unit), 3),
                          "margin_m": LARGEST_WINDOW_M, "largest_block_returns": max(returns),
-                         "returns_read_per_return": read}  # fmt: skip
+                         "returns_read_per_return": read,
+                         "triangulated_per_cell": round(triangulated / max(occupied, 1), 3),
+                         "dsm_margin_cells": DSM_MARGIN_CELLS}  # fmt: skip
     figures["engine"] = engine.describe()
     return figures

@@ -241,18 +241,23 @@ def _street(folder, classified: bool = True) -> list:
 def test_a_survey_in_blocks_is_the_whole_grid_byte_for_byte(tmp_path, classified):
     """Blocks of 100 m with their 80 m margins (outer blocks of at most 260 m of the
     street's 420 m) give every raster of the whole grid's run, byte for byte: the DSM's
-    triangulation and hole filling, the DTM from the ground class (or, unclassified, the
+    triangulation (near each block's inside only) and hole filling, the DTM from the ground class (or, unclassified, the
     morphological filter), and the classes from the files (or the returns' geometry)."""
     tiles = _street(tmp_path, classified)
     whole, blocks = tmp_path / "whole", tmp_path / "new" / "blocks"  # a folder to make too
-    proc = run_cli("fusion", "--points", *tiles, "-o", whole)
+    # cells of 0.35 m: the DSM's triangulated margin (96 cells) is 34 m of the 80 m
+    proc = run_cli("fusion", "--points", *tiles, "-o", whole, "--gsd", "0.35")
     assert proc.returncode == 0, proc.stderr
     workers = ("--workers", "2") if classified else ()  # and as tasks of two workers
-    proc = run_cli("fusion", "--points", tmp_path, "-o", blocks, "--block", "100", *workers)
+    proc = run_cli("fusion", "--points", tmp_path, "-o", blocks, "--block", "100", *workers,
+                   "--gsd", "0.35")  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     record = json.loads((blocks / "fusion.json").read_text())
     assert record["blocks"]["count"] == 10 and "blocks" not in json.loads(
         (whole / "fusion.json").read_text())  # fmt: skip
+    # the DSM read on the triangulation near each block's inside only, not its margins
+    assert record["blocks"]["triangulated_per_cell"] < 0.7 * record["blocks"][
+        "returns_read_per_return"]  # fmt: skip
     assert record["dtm_source"] == ("LAS ground class (2), interpolated" if classified
                                     else "progressive morphological filter")  # fmt: skip
     for name in ("dsm", "dtm", "ndsm", "ortho", "class", "class_prob", "count"):
