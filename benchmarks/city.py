@@ -304,7 +304,9 @@ def print_city(r: dict) -> None:
         b = p.get("blocks")
         how = (f"{b['count']} blocks of {b['side_m']:g} m (+ {b['margin_m']:g} m margins: at "
                f"most {b['largest_block_returns'] / 1e6:.2f} M returns a block, "
-               f"{b['returns_read_per_return']:.2f} returns read per return)" if b
+               f"{b['returns_read_per_return']:.2f} returns read per return"
+               + (f", {b['triangulated_per_cell']:.2f} triangulated per cell"
+                  if "triangulated_per_cell" in b else "") + ")" if b
                else "whole")  # fmt: skip
         ratio = p["wall_s"] / r["fusion_points"]["wall_s"]
         label = name if name == "fusion_points" else f"fusion_points --workers 1 (x {ratio:.2f})"
