@@ -241,8 +241,9 @@ def _street(folder, classified: bool = True) -> list:
 def test_a_survey_in_blocks_is_the_whole_grid_byte_for_byte(tmp_path, classified):
     """Blocks of 100 m with their 80 m margins (outer blocks of at most 260 m of the
     street's 420 m) give every raster of the whole grid's run, byte for byte: the DSM's
-    triangulation (near each block's inside only) and hole filling, the DTM from the ground class (or, unclassified, the
-    morphological filter), and the classes from the files (or the returns' geometry)."""
+    triangulation (near each block's inside only) and hole filling, the DTM from the
+    ground class (or, unclassified, the morphological filter), and the classes from the
+    files (or the returns' geometry)."""
     tiles = _street(tmp_path, classified)
     whole, blocks = tmp_path / "whole", tmp_path / "new" / "blocks"  # a folder to make too
     # cells of 0.35 m: the DSM's triangulated margin (96 cells) is 34 m of the 80 m
