@@ -721,8 +721,8 @@ def test_top_surface_is_read_at_the_cell_centres_and_keeps_walls_sharp():
 
 
 def test_top_surface_finds_the_triangles_scipy_finds():
-    """3,000 returns, one in each of most cells of a 60 x 50 grid at 0.5 m (UTM-sized
-    coordinates), on a rough surface: every cell centre takes the height of the triangle
+    """Returns in most cells of a 60 x 50 grid at 0.5 m (UTM-sized coordinates) but a
+    round lake, on a rough surface: every cell centre takes the height of the triangle
     scipy's ``find_simplex`` locates it in, or keeps its fallback off the hull and on the
     steep triangles."""
     from scipy.spatial import Delaunay
@@ -731,6 +731,7 @@ def test_top_surface_finds_the_triangles_scipy_finds():
     grid = Grid(500_000.0, 5_700_025.0, 0.5, 60, 50)
     rows, cols = np.divmod(np.arange(3000), 60)
     keep = rng.random(3000) > 0.1
+    keep &= np.hypot(rows - 25, cols - 30) > 12  # a lake: long triangles across it
     x, y = grid.cell_center(rows[keep], cols[keep])
     x, y = x + rng.uniform(-0.24, 0.24, x.size), y + rng.uniform(-0.24, 0.24, y.size)
     z = 10 + rng.normal(0, 0.3, x.size) + 8.0 * (rng.random(x.size) < 0.05)  # spikes
@@ -754,6 +755,24 @@ def test_top_surface_finds_the_triangles_scipy_finds():
     want[np.flatnonzero(inside)[gentle]] = np.einsum("mk,mk->m", w, corners[..., 2])[gentle]
     assert 0.05 < (want == -1).mean() < 0.5  # steep triangles and the rim keep theirs
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+
+
+def test_a_long_thin_triangle_is_scanned_along_itself_not_its_box():
+    """A sliver across a 600 x 600 cell box (as a triangle across a lake): the centres
+    scanned are those in it, found by brute force over its box, not the box's 360,000."""
+    from fusion.points import _barycentric, _centres_in_triangles
+
+    u = np.array([[0.3, 599.6, 597.2], [10.5, 14.5, 12.0]])
+    v = np.array([[0.2, 599.4, 599.9], [3.0, 3.0, 7.0]])  # and one with a flat edge
+    t, col, row = _centres_in_triangles(u, v, 700, 700)
+    for k in range(2):
+        r, c = np.mgrid[0 : int(v[k].max()) + 1, 0 : int(u[k].max()) + 1]
+        r, c = r.ravel(), c.ravel()
+        w = _barycentric(np.tile(u[k], (len(r), 1)), np.tile(v[k], (len(r), 1)), c, r)
+        inside = set(zip(r[w.min(axis=1) >= -1e-9], c[w.min(axis=1) >= -1e-9], strict=True))
+        found = set(zip(row[t == k], col[t == k], strict=True))
+        assert inside <= found and len(found) <= len(inside) + 2 * (np.ptp(v[k]) + 1)
+    assert (t == 0).sum() < 3_000
 
 
 def test_plane_residual_is_zero_on_a_roof_and_the_spread_of_a_crown():
