@@ -363,3 +363,33 @@ def test_a_full_disk_while_spilling_the_tiles_is_one_line(tmp_path, monkeypatch)
     monkeypatch.setattr(cs.np, "save", full)
     with pytest.raises(WorkbenchError, match="disk full while keeping the survey's returns"):
         cs.spilled_survey(tiles, FusionOptions(), None, tmp_path / "scratch")
+
+
+def test_a_sample_city_scanned_as_lidar_tiles_fuses_to_its_truth(tiny_scene, tmp_path):
+    """``python -m data_samples.lidar`` on the tiny city (64 m): 4 LAZ tiles of 40 m in the
+    scene's CRS, ASPRS classes, the scan's density (one return per 0.45 x 0.18 m); fused
+    as one survey and scored against the truth, measured 0.053 m DSM RMSE off the jumps
+    and 0.978 of the cells in their class."""
+    import subprocess
+    import sys
+
+    from workbench.raster import raster_header
+
+    tiles = tmp_path / "tiles"
+    proc = subprocess.run([sys.executable, "-m", "data_samples.lidar", str(tiny_scene),
+                           str(tiles), "--tile", "40"], capture_output=True, text=True)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    record = json.loads((tiles / "lidar.json").read_text())
+    assert len(record["tiles"]) == 4 and sorted(p.name for p in tiles.glob("*.laz")) == sorted(
+        record["tiles"])  # fmt: skip
+    assert record["points"] / 64.0**2 == pytest.approx(1 / (0.45 * 0.18), rel=0.03)
+    crs = raster_header(tiny_scene / "truth" / "dsm.tif", "truth")[2]
+    for name in record["tiles"]:
+        las = laspy.read(tiles / name)
+        assert CRS.from_user_input(las.header.parse_crs()) == CRS.from_wkt(crs.to_wkt())
+        assert set(np.unique(las.classification)) <= {2, 3, 5, 6}
+    proc = run_cli("fusion", "--points", tiles, "-o", tmp_path / "fused", "--truth", tiny_scene)
+    assert proc.returncode == 0, proc.stderr
+    quality = json.loads((tmp_path / "fused" / "fusion.json").read_text())["quality"]
+    assert quality["dsm"]["rmse_off_jumps_m"] < 0.07
+    assert quality["classification"]["overall_accuracy"] > 0.97
