@@ -77,9 +77,9 @@ class Survey:
         return self.n_used / max(self.covered, 1e-12)
 
     def default_gsd(self, returns_per_cell: float = RETURNS_PER_CELL) -> float:
-        """The cell that holds ``returns_per_cell`` returns on average, rounded to two
-        significant digits (:func:`~fusion.points.default_gsd`)."""
-        return float(f"{np.sqrt(returns_per_cell / self.density):.2g}")
+        """The cell that holds ``returns_per_cell`` returns on average
+        (:func:`cell_holding`; :func:`~fusion.points.default_gsd` of one cloud)."""
+        return cell_holding(returns_per_cell, self.density)
 
     def grid(self, opts: FusionOptions) -> Grid:
         """The grid of ``opts.bounds``, else the one covering every kept return, at
@@ -135,6 +135,12 @@ class Survey:
         cloud = PointCloud(**{k: merged.get(k) for k in ("xyz", *ATTRIBUTES)}, crs=self.crs,
                            source=self.source)  # fmt: skip
         return cloud, np.concatenate(cells) if cells else np.zeros(0, np.int64)
+
+
+def cell_holding(returns_per_cell: float, density: float) -> float:
+    """The side of the cell that holds ``returns_per_cell`` returns at ``density`` returns
+    per unit area, rounded to two significant digits."""
+    return float(f"{np.sqrt(returns_per_cell / density):.2g}")
 
 
 def covered_area(xy: np.ndarray) -> float:

@@ -23,7 +23,13 @@ from workbench.grid_blocks import Block, auto_block_size, block_layout
 from workbench.raster import Grid, class_codes
 from workbench.records import StageTimer, peak_memory_mb
 
-from .cloud_survey import RETURNS_PER_CELL, Survey, covered_area, spilled_survey
+from .cloud_survey import (
+    RETURNS_PER_CELL,
+    Survey,
+    cell_holding,
+    covered_area,
+    spilled_survey,
+)
 from .ground import LARGEST_WINDOW_M, LOWEST_BUILDING_M, dtm_from_dsm
 from .interpolate import fill_small_holes, push_pull_fill, small_holes
 from .options import FusionOptions
@@ -53,8 +59,7 @@ def default_gsd(xyz: np.ndarray, returns_per_cell: float = RETURNS_PER_CELL) -> 
     -------
     float, in the units of ``xyz``, rounded to two significant digits.
     """
-    density = len(xyz) / covered_area(xyz[:, :2])
-    return float(f"{np.sqrt(returns_per_cell / density):.2g}")
+    return cell_holding(returns_per_cell, len(xyz) / covered_area(xyz[:, :2]))
 
 
 def _top_per_cell(cells: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -149,12 +154,10 @@ def _centres_in_triangles(u: np.ndarray, v: np.ndarray, width: int, height: int)
     Not the triangles' boxes: a triangle across a void (a lake, a dark roof) is long and
     thin, and its box can hold millions of cells it does not; the triangles of a
     triangulation tile its hull, so their centres are about the hull's cells."""
-    n = len(u)
     r0 = np.clip(np.ceil(v.min(axis=1)), 0, height).astype(np.int64)
     r1 = np.clip(np.floor(v.max(axis=1)), -1, height - 1).astype(np.int64)
-    rows = np.maximum(r1 - r0 + 1, 0)
-    t = np.repeat(np.arange(n), rows)
-    row = r0[t] + np.arange(len(t)) - np.repeat(np.cumsum(rows) - rows, rows)
+    t, step = _runs(np.maximum(r1 - r0 + 1, 0))
+    row = r0[t] + step
     lo, hi = np.full(len(t), np.inf), np.full(len(t), -np.inf)
     for a, b in ((0, 1), (1, 2), (2, 0)):  # where each edge crosses the row
         ua, va, ub, vb = u[t, a], v[t, a], u[t, b], v[t, b]
@@ -166,10 +169,15 @@ def _centres_in_triangles(u: np.ndarray, v: np.ndarray, width: int, height: int)
         hi = np.where(crosses, np.fmax(hi, np.where(flat, np.maximum(ua, ub), x)), hi)
     c0 = np.clip(np.ceil(lo - 1e-9), 0, width).astype(np.int64)
     c1 = np.clip(np.floor(hi + 1e-9), -1, width - 1).astype(np.int64)
-    cols = np.maximum(c1 - c0 + 1, 0)
-    k = np.repeat(np.arange(len(t)), cols)
-    col = c0[k] + np.arange(len(k)) - np.repeat(np.cumsum(cols) - cols, cols)
-    return t[k], col, row[k]
+    k, step = _runs(np.maximum(c1 - c0 + 1, 0))
+    return t[k], c0[k] + step, row[k]
+
+
+def _runs(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Runs of ``counts[i]`` items for each ``i``, laid end to end: each item's run ``i``
+    and its place in it (0, 1, ...), each (sum(counts),) int64."""
+    owner = np.repeat(np.arange(len(counts)), counts)
+    return owner, np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts)
 
 
 def _barycentric(u: np.ndarray, v: np.ndarray, px: np.ndarray, py: np.ndarray) -> np.ndarray:
