@@ -146,6 +146,9 @@ def top_surface_at_cells(
     return out
 
 
+_SLACK = 1e-3  # cells added to a triangle's span on each side for its candidate centres
+
+
 def _centres_in_triangles(u: np.ndarray, v: np.ndarray, width: int, height: int):
     """The cell centres (whole ``col``, ``row``) in or on each triangle (corners ``u``,
     ``v``, (n, 3) in cell units) on a grid of ``width`` x ``height``, row by row along
@@ -154,21 +157,23 @@ def _centres_in_triangles(u: np.ndarray, v: np.ndarray, width: int, height: int)
     Not the triangles' boxes: a triangle across a void (a lake, a dark roof) is long and
     thin, and its box can hold millions of cells it does not; the triangles of a
     triangulation tile its hull, so their centres are about the hull's cells."""
-    r0 = np.clip(np.ceil(v.min(axis=1)), 0, height).astype(np.int64)
-    r1 = np.clip(np.floor(v.max(axis=1)), -1, height - 1).astype(np.int64)
+    # candidates a little wide: the barycentric test decides, and its tolerance, in parts
+    # of a triangle's altitudes, reaches further out of a large one than a fixed width
+    r0 = np.clip(np.ceil(v.min(axis=1) - _SLACK), 0, height).astype(np.int64)
+    r1 = np.clip(np.floor(v.max(axis=1) + _SLACK), -1, height - 1).astype(np.int64)
     t, step = _runs(np.maximum(r1 - r0 + 1, 0))
     row = r0[t] + step
     lo, hi = np.full(len(t), np.inf), np.full(len(t), -np.inf)
-    for a, b in ((0, 1), (1, 2), (2, 0)):  # where each edge crosses the row
+    for a, b in ((0, 1), (1, 2), (2, 0)):  # where each edge crosses the row (or nearly)
         ua, va, ub, vb = u[t, a], v[t, a], u[t, b], v[t, b]
-        crosses = (np.minimum(va, vb) <= row) & (row <= np.maximum(va, vb))
+        crosses = (np.minimum(va, vb) - _SLACK <= row) & (row <= np.maximum(va, vb) + _SLACK)
         flat = va == vb  # an edge along the row: both its ends
         with np.errstate(invalid="ignore", divide="ignore"):
-            x = ua + (row - va) * (ub - ua) / (vb - va)
+            x = ua + np.clip((row - va) / (vb - va), 0.0, 1.0) * (ub - ua)
         lo = np.where(crosses, np.fmin(lo, np.where(flat, np.minimum(ua, ub), x)), lo)
         hi = np.where(crosses, np.fmax(hi, np.where(flat, np.maximum(ua, ub), x)), hi)
-    c0 = np.clip(np.ceil(lo - 1e-9), 0, width).astype(np.int64)
-    c1 = np.clip(np.floor(hi + 1e-9), -1, width - 1).astype(np.int64)
+    c0 = np.clip(np.ceil(lo - _SLACK), 0, width).astype(np.int64)
+    c1 = np.clip(np.floor(hi + _SLACK), -1, width - 1).astype(np.int64)
     k, step = _runs(np.maximum(c1 - c0 + 1, 0))
     return t[k], c0[k] + step, row[k]
 
