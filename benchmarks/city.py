@@ -301,13 +301,14 @@ def print_city(r: dict) -> None:
         if name not in r:  # a record from before it was benched
             continue
         p = r[name]
-        b = p.get("blocks")
-        how = (f"{b['count']} blocks of {b['side_m']:g} m (+ {b['margin_m']:g} m margins: at "
-               f"most {b['largest_block_returns'] / 1e6:.2f} M returns a block, "
-               f"{b['returns_read_per_return']:.2f} returns read per return"
-               + (f", {b['triangulated_per_cell']:.2f} triangulated per cell"
-                  if "triangulated_per_cell" in b else "") + ")" if b
-               else "whole")  # fmt: skip
+        b, how = p.get("blocks"), "whole"
+        if b:
+            how = (f"{b['count']} blocks of {b['side_m']:g} m (+ {b['margin_m']:g} m margins: "
+                   f"at most {b['largest_block_returns'] / 1e6:.2f} M returns a block, "
+                   f"{b['returns_read_per_return']:.2f} returns read per return")  # fmt: skip
+            if "triangulated_per_cell" in b:  # a record from before lacks it
+                how += f", {b['triangulated_per_cell']:.2f} triangulated per cell"
+            how += ")"
         ratio = p["wall_s"] / r["fusion_points"]["wall_s"]
         label = name if name == "fusion_points" else f"fusion_points --workers 1 (x {ratio:.2f})"
         print(f"  {label:<11} {p['wall_s']:8.1f} s  {peaks(p)}; {p['returns'] / 1e6:.2f} M "
