@@ -40,7 +40,8 @@ class ViewObservations:
         z of the surface normal estimated from the depth map, the normal turned toward
         the camera (1 level and facing up, 0 vertical, negative facing down).
     near_jump : (N,) bool
-        Within a few pixels of a depth discontinuity (:func:`depth_jumps`).
+        Within a few pixels of a depth discontinuity (:func:`depth_jumps`), and not on
+        its nearer surface (:func:`near_side`).
     height_weight : (N,) float32
         Weight of the point's height in its cell's median (:func:`height_weights`).
     """
@@ -166,6 +167,81 @@ def depth_jumps(depth: np.ndarray, *, k: int = 3, rel: float = 0.03, jump: float
     return near
 
 
+# (axis, sign) of each side a pixel's nearer surface can lie on (:func:`near_side`): the
+# side's pixels are ``np.roll(image, sign * k, axis)``'s, ``k`` pixels up, down, left, right
+NEAR_SIDES = ((0, 1), (0, -1), (1, 1), (1, -1))
+NEAR_SIDE_AGREE = 0.1  # of the jump threshold: chosen on small seeds 0-2 (0.05, 0.1, 0.25)
+
+
+def near_side(
+    depth: np.ndarray, jumps: np.ndarray, *, k: int = 3, rel: float = 0.03, jump: float = 1.0,
+    agree: float = NEAR_SIDE_AGREE,
+) -> np.ndarray:  # fmt: skip
+    """(H, W) int8: for a pixel near a depth jump (``jumps``: :func:`depth_jumps` of
+    ``depth`` with the same ``k``, ``rel`` and ``jump``) that lies on the jump's nearer
+    surface, not on the ramp between the two, 1 + the index in :data:`NEAR_SIDES` of the
+    side that surface lies on; 0 elsewhere.
+
+    Dense matching rounds a jump into a ramp a few pixels wide, so :func:`depth_jumps`
+    drops every pixel within ``k`` of it, and with them the rim of each roof: beside a
+    tall building whose ground is hidden, no view kept the roof's outer 0.5-0.75 m
+    (``small`` seed 0: a 72 m tower's north rim, 3 cells wide, fused as unknown). A pixel
+    is on the nearer surface when, across every axis along which it is near a jump, the
+    jump's nearer side is known two-sided and the pixel's depth lies on the line through
+    that side's depths ``k`` and ``2 k`` pixels away, within ``agree`` x the jump
+    threshold ``max(jump, rel * depth)``: on the ramp it is off that line by a share of
+    the jump itself. Its normal is then read ``2 k`` pixels in on that side
+    (:func:`normals_from_near_side`), since the one at the pixel is smoothed across the
+    jump. Pixels whose side reaches past the image keep their jump (``np.roll`` wraps).
+    """
+    d = np.asarray(depth, dtype=np.float32)
+    code = np.zeros(d.shape, np.int8)
+    rows, cols = np.nonzero(jumps)  # only those: a few percent of the pixels
+    at = (rows, cols)
+    z = d[at]
+    thr = np.maximum(jump, rel * z)
+    placed = np.zeros(len(z), np.int8)
+    on_side = np.ones(len(z), bool)
+
+    def depth_at(axis: int, offset: int) -> np.ndarray:  # np.roll's: wraps at the edges
+        if axis == 0:
+            return d[(rows + offset) % d.shape[0], cols]
+        return d[rows, (cols + offset) % d.shape[1]]
+
+    with np.errstate(invalid="ignore"):
+        for axis in (0, 1):
+            before, after = depth_at(axis, -k), depth_at(axis, k)
+            both = np.isfinite(before) & np.isfinite(after)
+            across = both & (np.abs(before - after) > thr)
+            one_sided = ~both & (2 * np.fmax(np.abs(z - before), np.abs(z - after)) > thr)
+            continues = np.zeros(len(z), bool)
+            for i, (ax, sign) in enumerate(NEAR_SIDES):
+                if ax != axis:
+                    continue
+                n1, n2 = depth_at(axis, -sign * k), depth_at(axis, -2 * sign * k)
+                far = depth_at(axis, sign * k)
+                source = at[axis] - 2 * sign * k  # where its normal is read
+                inside = (source >= 0) & (source < d.shape[axis])
+                ok = across & inside & (n1 < far) & (np.abs(z - (2 * n1 - n2)) <= agree * thr)
+                placed = np.where(ok & (placed == 0), np.int8(i + 1), placed)
+                continues |= ok
+            on_side &= ~(across | one_sided) | continues
+    code[at] = np.where(on_side, placed, np.int8(0))
+    return code
+
+
+def normals_from_near_side(nz: np.ndarray, side: np.ndarray, k: int = 3) -> np.ndarray:
+    """``nz`` (H, W, :func:`normal_z_image`) with each pixel :func:`near_side` puts on a
+    jump's nearer surface given the normal ``2 k`` pixels in on that side (``side``: its
+    codes, on the same window)."""
+    out = nz.copy()
+    for i, (axis, sign) in enumerate(NEAR_SIDES):
+        on = side == i + 1
+        if on.any():
+            out[on] = np.roll(nz, sign * 2 * k, axis=axis)[on]
+    return out
+
+
 def height_weights(center: np.ndarray, xyz: np.ndarray) -> np.ndarray:
     """(N,) float32 weight of each point's height in its cell's median: ``cos**2`` of
     its ray's angle from the vertical.
@@ -270,8 +346,9 @@ def visibility_groups(
 
 
 # pixels the normals read around a pixel in :func:`observe`: OpenCV's Gaussian kernel of
-# sigma 1.5 reaches 6, and the differences a step of 3
-OBSERVE_MARGIN = 6 + 3
+# sigma 1.5 reaches 6, the differences a step of 3, and a pixel on a jump's nearer
+# surface reads its normal 6 pixels in (:func:`normals_from_near_side`)
+OBSERVE_MARGIN = 6 + 3 + 6
 COLUMN_BLOCK = 64  # float32 columns: four AVX-512 vectors
 WINDOW_BAND = 32  # image rows whose rays grid_window holds at once: 0.6 MB at 1024 columns
 
@@ -361,13 +438,14 @@ def observe(
     depth = np.where(depth_outliers(depth), np.float32(np.nan), depth)
     # on the whole image: np.roll compares the pixels by its edges with its far side
     jumps = depth_jumps(depth)
+    side = near_side(depth, jumps)
     window = grid_window(depth, camera, grid, OBSERVE_MARGIN)
     if window is None:
         none = np.zeros(0, np.int64)
         return ViewObservations(none, none, np.zeros((0, 3)), np.zeros(0, np.float32),
                                 np.zeros(0, bool), np.zeros(0, np.float32), np.zeros(0, bool),
                                 np.zeros(0, np.float32))  # fmt: skip
-    depth, jumps = depth[window], jumps[window]
+    depth, jumps, side = depth[window], jumps[window], side[window]
     _, rays = camera.pixel_grid_rays(window=window)
     pixels, xyz = lift_depth(camera, depth, rays)
     # indices of half cells: the cell is the index // 2, the quarter of it the index % 2
@@ -377,7 +455,11 @@ def observe(
     pixels, xyz, hr, hc = pixels[inside], xyz[inside], hr[inside], hc[inside]
     cells = (hr // 2) * grid.width + hc // 2
     d = depth.ravel()[pixels]
-    nz = np.nan_to_num(normal_z_image(camera, depth, rays=rays).ravel()[pixels], nan=1.0)
+    # a pixel on a jump's nearer surface takes that surface's normal, and is trusted
+    # unless that normal is unknown
+    nz_image = normals_from_near_side(normal_z_image(camera, depth, rays=rays), side)
+    jumps = jumps & ~((side > 0) & np.isfinite(nz_image))
+    nz = np.nan_to_num(nz_image.ravel()[pixels], nan=1.0)
     top = nz > STEEP_NORMAL_Z
     groups, n_groups = visibility_groups(
         cells, 2 * (hr % 2) + hc % 2, top, grid.width * grid.height

@@ -233,6 +233,20 @@ def test_self_intersection_ignores_open3d_coplanar_false_positives():
     tilted[3:, 2] += np.array([-1.0, 1.0, 0.0])
     tilted[3:, :2] = crossing[3:, :2]  # B pierces A's plane inside A
     assert self_intersecting(tilted, t)
+    # two triangles of one sloped roof polygon in a CityJSON file (vertices rounded to the
+    # millimetre), 1.4 m apart: Open3D has them cross
+    roof = np.array([
+        [-5.33, 27.001, 3.527], [-5.24, -2.491, 3.632], [-2.54, -0.991, 6.155],
+        [-2.639, -2.491, 6.063], [-2.54, -2.491, 6.156], [-2.54, -2.39, 6.156],
+    ])  # fmt: skip
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(roof), o3d.utility.Vector3iVector(t)
+    )
+    assert mesh.is_self_intersecting() and self_intersecting(roof, t)
+    assert not self_intersecting(roof, t, coplanar_m=0.01)  # planar to 1 cm, as checked
+    # within that tolerance, the crossing pairs above still cross
+    assert self_intersecting(crossing, t, coplanar_m=0.01)
+    assert self_intersecting(tilted, t, coplanar_m=0.01)
 
 
 def test_surface_samples_are_on_the_mesh_and_spread_by_area():

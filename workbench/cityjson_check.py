@@ -9,7 +9,9 @@ A solid's shell must be (as val3dity tests it, with its default tolerances):
   (which also makes it consistently oriented);
 - **outward**: its signed volume positive;
 - **not self-intersecting**: its polygons triangulated (constrained Delaunay, no new
-  vertex) and tested pairwise by Open3D, as :func:`workbench.meshes.self_intersecting`.
+  vertex) and tested pairwise by Open3D, as :func:`workbench.meshes.self_intersecting`
+  (triangles within ``PLANARITY_M`` of one plane intersect only if they overlap by an
+  area).
 """
 
 from __future__ import annotations
@@ -107,7 +109,8 @@ def check_shell(shell: list, vertices: np.ndarray) -> list[str]:
     a, b, c = (local[triangles[:, i]] for i in range(3))
     if np.einsum("ij,ij->i", a, np.cross(b, c)).sum() <= 0:
         problems.append("oriented inwards (volume not positive)")
-    if self_intersecting(local, triangles):
+    # its polygons are planar within PLANARITY_M: so are two triangles of one
+    if self_intersecting(local, triangles, coplanar_m=PLANARITY_M):
         problems.append("self-intersecting")
     return problems
 

@@ -104,24 +104,32 @@ def is_watertight(vertices: np.ndarray, triangles: np.ndarray) -> bool:
 
 
 def self_intersecting(
-    vertices: np.ndarray, triangles: np.ndarray, mesh: o3d.geometry.TriangleMesh | None = None
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    mesh: o3d.geometry.TriangleMesh | None = None,
+    coplanar_m: float = 0.0,
 ) -> bool:
     """Whether two triangles that share no vertex intersect (Open3D), with the pairs Open3D
     reports in one plane checked again by their overlap in that plane.
 
     Open3D reports disjoint coplanar triangles as intersecting when their coordinates are
-    large (isl-org/Open3D#6462: a proxy's floor in world metres); a coplanar pair intersects
-    only if it overlaps by an area.
+    large (isl-org/Open3D#6462: a proxy's floor in world metres), and also disjoint
+    triangles of one polygon whose corners were rounded off its plane by millimetres (a
+    CityJSON file's). A coplanar pair intersects only if it overlaps by an area.
 
     Parameters
     ----------
     vertices : (V, 3) float
     triangles : (T, 3) int
+    coplanar_m : float
+        Two triangles whose corners lie this close to each other's plane, metres, are
+        coplanar (besides those within a millionth of their size): the tolerance the
+        vertices were rounded or checked planar to.
     """
     mesh = mesh if mesh is not None else _o3d_mesh(vertices, triangles)
     for a, b in np.asarray(mesh.get_self_intersecting_triangles()):
         ta, tb = vertices[triangles[a]], vertices[triangles[b]]
-        if not _coplanar(ta, tb) or _overlap_area(ta, tb) > 0:
+        if not _coplanar(ta, tb, abs_tol=coplanar_m) or _overlap_area(ta, tb) > 0:
             return True
     return False
 
@@ -133,14 +141,15 @@ def _o3d_mesh(vertices: np.ndarray, triangles: np.ndarray) -> o3d.geometry.Trian
     )
 
 
-def _coplanar(ta: np.ndarray, tb: np.ndarray, rel_tol: float = 1e-6) -> bool:
-    """Whether ``tb``'s corners lie in ``ta``'s plane, within ``rel_tol`` of their size."""
+def _coplanar(ta: np.ndarray, tb: np.ndarray, rel_tol: float = 1e-6, abs_tol: float = 0.0) -> bool:
+    """Whether ``tb``'s corners lie in ``ta``'s plane, within ``rel_tol`` of their size or
+    ``abs_tol`` metres."""
     n = np.cross(ta[1] - ta[0], ta[2] - ta[0])
     norm = float(np.linalg.norm(n))
     if norm == 0.0:
         return False
     size = float(np.ptp(np.vstack([ta, tb]), axis=0).max())
-    return bool(np.all(np.abs((tb - ta[0]) @ (n / norm)) <= rel_tol * size))
+    return bool(np.all(np.abs((tb - ta[0]) @ (n / norm)) <= max(rel_tol * size, abs_tol)))
 
 
 def _overlap_area(ta: np.ndarray, tb: np.ndarray) -> float:
