@@ -170,7 +170,9 @@ def depth_jumps(depth: np.ndarray, *, k: int = 3, rel: float = 0.03, jump: float
 # (axis, sign) of each side a pixel's nearer surface can lie on (:func:`near_side`): the
 # side's pixels are ``np.roll(image, sign * k, axis)``'s, ``k`` pixels up, down, left, right
 NEAR_SIDES = ((0, 1), (0, -1), (1, 1), (1, -1))
-NEAR_SIDE_AGREE = 0.1  # of the jump threshold: chosen on small seeds 0-2 (0.05, 0.1, 0.25)
+# of the jump threshold; chosen on small seed 0 (DSM RMSE off the height jumps 0.439, 0.435
+# and 0.473 m at 0.05, 0.1, 0.25; 0.460 m before) and checked on seeds 1 and 2
+NEAR_SIDE_AGREE = 0.1
 
 
 def near_side(
@@ -192,7 +194,7 @@ def near_side(
     threshold ``max(jump, rel * depth)``: on the ramp it is off that line by a share of
     the jump itself. Its normal is then read ``2 k`` pixels in on that side
     (:func:`normals_from_near_side`), since the one at the pixel is smoothed across the
-    jump. Pixels whose side reaches past the image keep their jump (``np.roll`` wraps).
+    jump. A pixel whose normal would be read past the image keeps its jump.
     """
     d = np.asarray(depth, dtype=np.float32)
     code = np.zeros(d.shape, np.int8)
@@ -231,9 +233,9 @@ def near_side(
 
 
 def normals_from_near_side(nz: np.ndarray, side: np.ndarray, k: int = 3) -> np.ndarray:
-    """``nz`` (H, W, :func:`normal_z_image`) with each pixel :func:`near_side` puts on a
-    jump's nearer surface given the normal ``2 k`` pixels in on that side (``side``: its
-    codes, on the same window)."""
+    """``nz`` ((H, W), of :func:`normal_z_image`) with each pixel that :func:`near_side`
+    puts on a jump's nearer surface given the normal ``2 k`` pixels in on that side
+    (``side``: its codes, on the same window)."""
     out = nz.copy()
     for i, (axis, sign) in enumerate(NEAR_SIDES):
         on = side == i + 1
