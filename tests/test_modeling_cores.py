@@ -25,7 +25,11 @@ from modeling.superpixel.buildings import split_buildings
 from modeling.superpixel.class_crf import geometry_factor
 from modeling.superpixel.options import SuperpixelOptions
 from modeling.superpixel.plane_hypotheses import SuperpixelPoints
-from modeling.superpixel.prototype_crf import edges_within, label_prototypes
+from modeling.superpixel.prototype_crf import (
+    cells_to_fitting_planes,
+    edges_within,
+    label_prototypes,
+)
 from modeling.superpixel.prototypes import cluster_prototypes, hypothesis_similarity
 from modeling.superpixel.quickshift import (
     colour_height_image,
@@ -375,6 +379,35 @@ def test_edges_within_groups_the_edges_both_ends_of_a_building_own():
     edges = np.array([[0, 1], [1, 2], [2, 3], [3, 4], [1, 5], [4, 5], [2, 5]])
     groups = edges_within(edges, owner)
     assert [g.tolist() for g in groups] == [[0, 2, 5], [1, 4, 6], [3]]
+
+
+def test_cells_past_a_ridge_take_the_plane_that_fits_them():
+    """A gable roof, ridge along x = 0, slopes of 1 in 2; the super-pixel of its west slope
+    reaches 1 m past the ridge and took the west plane. Its cells past the ridge by more
+    than 0.15 m (where the west plane stands more than the inlier distance above the roof)
+    take the east plane, its neighbour's; the others stay; a cell with no height stays."""
+    gsd = 0.1
+    xs = np.arange(-3.0, 3.0, gsd) + gsd / 2
+    X, Y = np.meshgrid(xs, np.arange(5) * gsd)
+    heights = 10.0 - 0.5 * np.abs(X)
+    labels = np.where(X < 1.0, 0, 1)
+    labels[:, :2] = -1  # off the building
+    heights[2, 35] = np.nan
+    west, east = [-0.5, 0.0, 1.0, -10.0], [0.5, 0.0, 1.0, -10.0]  # z = 10 +- x / 2
+    planes = np.array([west, east]) / np.linalg.norm([0.5, 0.0, 1.0])
+    faces = cells_to_fitting_planes(labels, np.array([0, 1]), np.array([[0, 1]]), heights,
+                                    X, Y, planes, 0.15)  # fmt: skip
+    assert (faces[labels < 0] == 0).all() and (faces[labels == 1] == 2).all()
+    west_sp = labels == 0
+    past = X > 0.15 / 1.0  # the west plane stands x above the roof east of the ridge
+    assert (faces[west_sp & past & np.isfinite(heights)] == 2).all()
+    assert (faces[west_sp & ~past] == 1).all()
+    assert faces[2, 35] == 1  # unknown height: its super-pixel's plane
+    # with no neighbour, nothing to move to
+    alone = cells_to_fitting_planes(np.where(labels == 0, 0, -1), np.array([0]),
+                                    np.zeros((0, 2), np.int64), heights, X, Y, planes[:1],
+                                    0.15)  # fmt: skip
+    assert (alone[west_sp] == 1).all()
 
 
 def test_prototype_crf_of_a_building_among_others_by_hand():

@@ -20,7 +20,12 @@ from workbench.raster import Grid
 from .aggregation import SuperpixelGraph
 from .options import SuperpixelOptions
 from .plane_hypotheses import SuperpixelPoints, plane_hypotheses
-from .prototype_crf import edges_within, label_prototypes, refit_planes
+from .prototype_crf import (
+    cells_to_fitting_planes,
+    edges_within,
+    label_prototypes,
+    refit_planes,
+)
 from .prototypes import roof_prototypes
 from .rooftop import model_building, observed_faces
 
@@ -163,8 +168,12 @@ def model_building_roofs(
     assign = timed("prototype_crf", label_prototypes, members, protos, pts, graph, options,
                    anchors, inner)  # fmt: skip
     protos = timed("prototype_crf", refit_planes, members, assign, protos, pts, options)
-    on = graph.labels >= 0
-    crop = np.where(on, (assign + 1)[np.where(on, graph.labels, 0)], 0)
+    heights = np.full(share.known.shape, np.nan)
+    r, c = share.grid.cell_index(pts.points[:, 0], pts.points[:, 1], clip=True)
+    heights[r, c] = pts.points[:, 2]
+    X, Y = share.grid.cell_centers()
+    crop = timed("prototype_crf", cells_to_fitting_planes, graph.labels, assign, graph.edges,
+                 heights, X, Y, protos, options.ransac_threshold_m)  # fmt: skip
     crop = observed_faces(crop, share.known, int(round(edge_reach_m / share.grid.gsd)))
     parts = timed("roof_modeling", model_building, crop, share.grid, protos, share.dtm, options)
     counts = {"superpixels": graph.n, "hypotheses": len(hyps), "prototypes": len(protos)}
