@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from workbench.graph_cuts import alpha_expansion
-from workbench.planes import point_plane_distances, ransac_planes
+from workbench.planes import plane_heights, point_plane_distances, ransac_planes
 
 from .aggregation import SuperpixelGraph
 from .options import SuperpixelOptions
@@ -160,14 +160,11 @@ def cells_to_fitting_planes(
     """
     on = labels >= 0
     faces = np.where(on, assignment[np.where(on, labels, 0)] + 1, 0)
-    own = faces - 1
-    nz = planes[:, 2]
     best_err = np.full(labels.shape, np.inf)
     best = np.full(labels.shape, -1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        err_own = np.abs(
-            -(planes[own, 0] * X + planes[own, 1] * Y + planes[own, 3]) / nz[own] - heights
-        )
+        own = np.moveaxis(planes[faces - 1], -1, 0)  # (4, h, w): each cell's plane
+        err_own = np.abs(plane_heights(own, X, Y) - heights)
     misfit = on & (err_own > inlier_m)  # NaN heights compare False: kept
     if not misfit.any():
         return faces
@@ -182,8 +179,7 @@ def cells_to_fitting_planes(
         take = has[sp]
         r, c = rows[take], cols[take]
         with np.errstate(invalid="ignore", divide="ignore"):
-            err = np.abs(-(planes[k, 0] * X[r, c] + planes[k, 1] * Y[r, c] + planes[k, 3])
-                         / planes[k, 2] - heights[r, c])  # fmt: skip
+            err = np.abs(plane_heights(planes[k], X[r, c], Y[r, c]) - heights[r, c])
         better = err < best_err[r, c]
         best_err[r[better], c[better]] = err[better]
         best[r[better], c[better]] = k
