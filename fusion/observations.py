@@ -158,13 +158,22 @@ def depth_jumps(depth: np.ndarray, *, k: int = 3, rel: float = 0.03, jump: float
     with np.errstate(invalid="ignore"):
         thr = np.maximum(jump, rel * d)
         for axis in (0, 1):
-            a = np.roll(d, k, axis=axis)
-            b = np.roll(d, -k, axis=axis)
-            # beside a hole (an occlusion's, often) only one side is known: the pixel
-            # then stands for the middle of the ramp, half the jump from that side
-            one_sided = 2 * np.fmax(np.abs(d - a), np.abs(d - b))
-            near |= np.where(np.isfinite(a) & np.isfinite(b), np.abs(a - b), one_sided) > thr
+            across, one_sided = _across_jump(
+                d, np.roll(d, k, axis=axis), np.roll(d, -k, axis=axis), thr
+            )
+            near |= across | one_sided
     return near
+
+
+def _across_jump(z, before, after, thr) -> tuple[np.ndarray, np.ndarray]:
+    """Whether depths ``z`` lie within reach of a jump larger than ``thr``, given the
+    depths ``before`` and ``after`` them along an axis (same shapes): with both sides
+    known (``across``), or with one (``one_sided``: beside a hole, an occlusion's often,
+    the pixel stands for the middle of the ramp, half the jump from the known side)."""
+    both = np.isfinite(before) & np.isfinite(after)
+    across = both & (np.abs(before - after) > thr)
+    one_sided = ~both & (2 * np.fmax(np.abs(z - before), np.abs(z - after)) > thr)
+    return across, one_sided
 
 
 # (axis, sign) of each side a pixel's nearer surface can lie on (:func:`near_side`): the
@@ -212,10 +221,7 @@ def near_side(
 
     with np.errstate(invalid="ignore"):
         for axis in (0, 1):
-            before, after = depth_at(axis, -k), depth_at(axis, k)
-            both = np.isfinite(before) & np.isfinite(after)
-            across = both & (np.abs(before - after) > thr)
-            one_sided = ~both & (2 * np.fmax(np.abs(z - before), np.abs(z - after)) > thr)
+            across, one_sided = _across_jump(z, depth_at(axis, -k), depth_at(axis, k), thr)
             continues = np.zeros(len(z), bool)
             for i, (ax, sign) in enumerate(NEAR_SIDES):
                 if ax != axis:
