@@ -176,6 +176,11 @@ def _mansard_beside_a_crown(rng):
     return dsm, classes, crown_only, shed, inner
 
 
+def _no_wall_foot(dsm, building):
+    """``_rise_to_building`` as if every building neighbour stood below: no wall's foot."""
+    return np.full(dsm.shape, -np.inf)
+
+
 def test_a_roofs_faces_joined_to_a_crown_are_roof_and_the_crown_stays_tree(monkeypatch):
     rng = np.random.default_rng(11)
     dsm, classes, crown, shed, faces_inner = _mansard_beside_a_crown(rng)
@@ -192,7 +197,39 @@ def test_a_roofs_faces_joined_to_a_crown_are_roof_and_the_crown_stays_tree(monke
     assert 5.0 > FACE_EDGE_M and not faces[shed].any()
     monkeypatch.setattr("fusion.planar_objects.FACE_CONTINUES", 0.0)
     faces, _ = roof_faces_beside_buildings(classes, dsm, dsm.copy(), GSD)
+    assert not faces[shed].any()  # nor with the wall's foot left out of its edge
+    monkeypatch.setattr("fusion.planar_objects._rise_to_building", _no_wall_foot)
+    faces, _ = roof_faces_beside_buildings(classes, dsm, dsm.copy(), GSD)
     assert faces[shed].mean() > 0.9
+
+
+def test_a_lower_tier_joined_to_a_crown_is_roof_beside_its_upper_tier(monkeypatch):
+    """A two-tier building (upper tier 10 x 12 m at 12 m, lower 8 x 12 m at 8 m), the
+    lower tier's southern 10 m classed tree and joined to a crown of 5 m radius beside
+    it (dev seed 2's building 12). The strip's edge with the building class is 10 m at
+    the foot of the upper tier's wall and 8 m with its own tier, where the heights go
+    on: 0.44 of the whole edge, under the half asked, and the whole of it off the wall's
+    foot. The face step makes the strip building, and the crown stays tree (here the
+    whole-object step would take the strip first; on seed 2 the crown outweighed it)."""
+    rng = np.random.default_rng(13)
+    rows, cols = np.indices((120, 160))
+    x, y = cols * GSD, (120 - rows) * GSD
+    upper = (x > 4) & (x < 14) & (y > 4) & (y < 16)
+    lower = (x >= 14) & (x < 22) & (y > 4) & (y < 16)
+    strip = lower & (y < 14)
+    dsm = np.where(upper, 12.0, np.where(lower, 8.0, 0.0))
+    crown = _crown(x, y, 26.0, 8.0, 5.0, 4.0, 10.0, rng)
+    crown_only = np.isfinite(crown) & ~lower
+    dsm = np.where(crown_only, crown, dsm) + rng.normal(0, SIGMA, dsm.shape)
+    classes = np.where(upper | lower, BUILDING, 1).astype(np.uint8)
+    classes[strip | crown_only] = TREE
+    labels, _ = ndimage.label((classes == TREE) & (dsm > 2.5))
+    assert len(np.unique(labels[strip | crown_only])) == 1  # the case: one tree object
+    faces, found = roof_faces_beside_buildings(classes, dsm, dsm.copy(), GSD)
+    assert found == 1 and faces[strip].mean() > 0.97 and faces[crown_only].mean() < 0.01
+    monkeypatch.setattr("fusion.planar_objects._rise_to_building", _no_wall_foot)
+    faces, _ = roof_faces_beside_buildings(classes, dsm, dsm.copy(), GSD)
+    assert not faces[strip].any()  # judged on the whole edge, it stays tree
 
 
 def test_faces_are_made_building_in_both_rasters():
