@@ -23,6 +23,7 @@ from modeling.parametric.path import (
     fit_wings,
     model_heights,
     planar_residual,
+    region_sources,
     roof_wings,
     segment_boxes,
     stack_tiers,
@@ -601,16 +602,43 @@ def test_models_match_the_truth_from_fused_rasters(modelled):
     assert record["segmentation"]["rounds"][0]["labels_k"] >= 1
 
 
+class _RimFusion:
+    """A fusion's rasters as region_sources reads them: a 10 m roof 4 m wide on flat
+    ground, its outer cell and the two ground cells beyond it unknown."""
+
+    def __init__(self):
+        self.grid = Grid(0.0, 2.5, 0.25, 12, 10)
+        x = (np.arange(12) + 0.5) * 0.25
+        row = np.where(x < 1.0, 10.0, 0.0)
+        row[(x > 0.75) & (x < 1.5)] = np.nan  # cells 3, 4 and 5
+        self.dsm = np.tile(row, (10, 1)).astype(np.float32)
+        self.rgb = np.full((10, 12, 3), 100, np.uint8)
+        self.rasters = {"class_prob": np.full((4, 10, 12), 0.25, np.float32)}
+
+    def band(self, name):
+        return self.dsm if name == "dsm" else np.where(np.isfinite(self.dsm), 0.0, np.nan)
+
+
+def test_the_height_term_reads_a_roofs_unseen_rim_at_its_height():
+    fusion = _RimFusion()
+    (height, valid, _) = region_sources(fusion, ParametricOptions())[1]
+    assert valid[:, 3].all() and (height[:, 3, 0] == 10.0).all()  # the roof's rim
+    assert valid[:, 5].all() and (height[:, 5, 0] == 0.0).all()  # the ground's
+    assert not valid[:, 4].any()  # farther than a cell from both: unknown
+    (_, valid, _) = region_sources(fusion, ParametricOptions(unseen_rim_m=0.0))[1]
+    assert not valid[:, 3:6].any()
+
+
 def test_missing_raster_is_one_line_and_writes_nothing(tiny_fusion, tmp_path):
     broken = tmp_path / "fusion"
     broken.mkdir()
     for f in tiny_fusion.iterdir():
-        if f.name != "ndsm.tif":
+        if f.name != "dtm.tif":
             (broken / f.name).write_bytes(f.read_bytes())
     out = tmp_path / "out"
     proc = run_cli("model", "parametric", broken, "-o", out, "--workers", "1")
     assert proc.returncode != 0
-    assert "ndsm.tif" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    assert "dtm.tif" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
     assert not out.exists()
 
 

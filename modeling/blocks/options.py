@@ -53,6 +53,12 @@ class BlocksOptions:
         "where its DSM's walls stand at half its eaves' height (0: the class's edge)",
         unit="m", kind="non_negative",
     )  # fmt: skip
+    unseen_rim_m: float = option(
+        0.25, "the outline may take in the unknown cells this close to a roof's known ones "
+        "(a fusion of depth maps keeps no roof up to its wall: each view drops the "
+        "pixels of a depth jump's ramp; 0: the known cells only)", unit="m",
+        kind="non_negative",
+    )  # fmt: skip
     wall_blur_m: float = option(
         0.25, "cells this close to the building's outline or on a step between its parts "
         "are left out of the likelihood: a DSM's walls are blurred over them (0 keeps "

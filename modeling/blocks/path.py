@@ -31,7 +31,7 @@ from modeling.shared.in_blocks import (
     kept_buildings,
     plan_blocks,
 )
-from modeling.shared.opened_parts import building_segments, mid_wall_region
+from modeling.shared.opened_parts import building_segments, mid_wall_region, unseen_rim_filled
 from modeling.shared.raster_ground import vertex_colours
 from modeling.shared.roof_envelope import BuildingMesh, building_solid, face_planes
 from modeling.shared.roof_model import closed_roof_model
@@ -288,6 +288,7 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
     crop = g.window(slice(r0, r1), slice(c0, c1))
     whole, dtm = inputs.dsm[r0:r1, c0:c1], inputs.dtm[r0:r1, c0:c1]
     dsm = whole if inputs.crowns is None else np.where(inputs.crowns[r0:r1, c0:c1], np.nan, whole)
+    seen = np.isfinite(whole)
     xs = crop.xmin + (np.arange(crop.width) + 0.5) * g.gsd
     ys = crop.ymax - (np.arange(crop.height) + 0.5) * g.gsd
     min_cells = int(np.ceil(max(options.min_part_m**2, 0.5 * options.min_area_m2) / g.gsd**2))
@@ -298,8 +299,12 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
         if options.all_building:  # a cloud of one building: no ground to find walls against
             mask = seg == k
         else:
-            mask = mid_wall_region(seg == k, whole - dtm, (seg > 0) & (seg != k), g.gsd,
+            reach = int(round(options.unseen_rim_m / g.gsd))
+            rim_dsm, rim_dtm = unseen_rim_filled([whole, dtm], seen, reach)
+            mask = mid_wall_region(seg == k, rim_dsm - rim_dtm, (seg > 0) & (seg != k), g.gsd,
                                    options.outline_reach_m)  # fmt: skip
+            # the supports' steps on the filled heights too: a NaN reads as the lowest
+            whole = rim_dsm
         mask &= np.isfinite(whole)
         supports, regions, off_level = automatic_supports(mask, whole, xs, ys, crop,
                                                       options.min_part_m, min_cells,
@@ -310,9 +315,10 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
         regions, off_level = np.zeros(mask.shape, np.int32), np.zeros(mask.shape, bool)
     # crowns are no roof: their cells stay out of the likelihood
     cells = [c & np.isfinite(dsm) for c in support_cells(supports, mask, regions, crop)]
-    # the walls blur the DSM next to them: those cells, and the small levels joined to a
-    # region, are left out of the likelihood
-    clear = ndi.distance_transform_edt(mask & ~off_level) * g.gsd > options.wall_blur_m
+    # the walls blur the DSM next to them: those cells (from the known cells' edge: a
+    # filled rim is no roof), and the small levels joined to a region, are left out of the
+    # likelihood
+    clear = ndi.distance_transform_edt(mask & ~off_level & seen) * g.gsd > options.wall_blur_m
     cells = [c & clear if (c & clear).sum() >= _MIN_CELLS else c for c in cells]
     kept = [i for i, c in enumerate(cells) if c.sum() >= _MIN_CELLS]
     if not kept:

@@ -41,6 +41,12 @@ class ParametricOptions:
         0.85, "weight of the height's region term against the colour's (eq. 1's varrho)",
         kind="non_negative",
     )  # fmt: skip
+    unseen_rim_m: float = option(
+        0.25, "the height term reads the unknown cells this close to a known one at its "
+        "height (a fusion of depth maps keeps no roof up to its wall: each view drops "
+        "the pixels of a depth jump's ramp; 0: the known cells only)", unit="m",
+        kind="non_negative",
+    )  # fmt: skip
     probability_weight: float = option(
         1.0, "weight of a third region term on the fusion's building probability, beside "
         "colour and height (0: the paper's two sources)", kind="non_negative",
