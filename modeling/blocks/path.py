@@ -67,7 +67,7 @@ from .supports import (
     supports_from_file,
 )
 
-FUSION_RASTERS = ("ortho", "dsm", "dtm", "ndsm", "class_prob")
+FUSION_RASTERS = ("ortho", "dsm", "dtm", "class_prob")
 _MIN_CELLS = 10  # a support with fewer cells of DSM carries no block
 _OVERLAP_M = 0.02
 _MESH_FRAMES = 3  # frames tried for the envelope before the supports are grown
@@ -114,7 +114,7 @@ def run_blocks(
     Parameters
     ----------
     fusion_dir : path
-        A fusion run folder (ortho, dsm, dtm, ndsm, class_prob; its class.tif, when it has
+        A fusion run folder (ortho, dsm, dtm, class_prob; its class.tif, when it has
         one, says where crowns are), from images or points.
     options : BlocksOptions
         With ``block_m``, the grid is modelled block by block (:func:`model_block`).

@@ -340,8 +340,8 @@ def region_sources(fusion, options: ParametricOptions) -> list:
     height (varrho), the building probability's log-odds (a third source). The height
     reads the unknown cells within ``options.unseen_rim_m`` of a known one at its
     height (:func:`~modeling.shared.opened_parts.unseen_rim_filled`): a roof's rim that
-    no view kept is then the roof's, and its segment reaches the wall (seeds 0-2: height
-    RMSE off the jumps 2.31, 3.49, 1.35 to 1.53, 3.46, 1.35 m)."""
+    no view kept is then the roof's, and its segment reaches the wall (dev fusions of
+    seeds 0-2: height RMSE off the jumps 2.31, 3.49, 1.35 to 1.53, 3.46, 1.35 m)."""
     rgb = fusion.rgb.astype(np.float64)
     rgb /= 255.0  # in place: a city's RGB in float64 is 150 MiB
     dsm, dtm = fusion.band("dsm"), fusion.band("dtm")
