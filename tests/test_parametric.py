@@ -1,6 +1,7 @@
 """`workbench model parametric`: the variational paper's steps on hand-made cases, and the
 path end to end from fused rasters, scored by the shared metrics."""
 
+import dataclasses
 import json
 import shutil
 
@@ -22,6 +23,7 @@ from modeling.parametric.path import (
     building_task,
     fit_wings,
     model_heights,
+    outline_at_the_walls,
     planar_residual,
     region_sources,
     roof_wings,
@@ -600,6 +602,31 @@ def test_models_match_the_truth_from_fused_rasters(modelled):
     assert len(b["wings"][0]["omega_deg"]) == 4
     assert (out / "segments.tif").exists() and (out / "preview.png").exists()
     assert record["segmentation"]["rounds"][0]["labels_k"] >= 1
+
+
+def test_a_notch_the_level_set_rounded_off_is_found_at_the_walls():
+    """An L of two 12 m x 6 m wings, flat at 10 m, whose segment cut its inner corner
+    across (the level set's length term; dev seed 6's 59 m² L): on the walls' outline
+    the L is registered again, with the notch's 36 m² left out."""
+    grid = Grid(-2.0, 14.0, 0.25, 64, 64)
+    xs = grid.xmin + (np.arange(grid.width) + 0.5) * grid.gsd
+    ys = grid.ymax - (np.arange(grid.height) + 0.5) * grid.gsd
+    X, Y = np.meshgrid(xs, ys)
+    inside = (X > 0) & (Y > 0) & (X < 12) & (Y < 12)
+    house = inside & ((X < 6) | (Y < 6))
+    dsm = np.where(house, 10.0, 0.0) + np.random.default_rng(0).normal(0, 0.03, X.shape)
+    dtm = np.zeros_like(dsm)
+    segment = house | (inside & (X + Y < 16))  # the notch's corner cut across
+    options = ParametricOptions()
+    min_cells = int(np.ceil(max(options.min_part_m**2, 0.5 * options.min_area_m2) / 0.0625))
+    none = np.zeros_like(segment)
+    found, cells = outline_at_the_walls("no prior", segment, dsm, dtm, none, xs, ys, grid,
+                                        options, min_cells, options.lambda_)  # fmt: skip
+    assert found.priors[0].family == "L" and abs(found.outline.area - 108.0) < 4.0
+    assert not cells[inside & ~house & (X > 7) & (Y > 7)].any()
+    off = dataclasses.replace(options, outline_reach_m=0.0)
+    assert outline_at_the_walls("no prior", segment, dsm, dtm, none, xs, ys, grid, off,
+                                min_cells, options.lambda_)[0] == "no prior"  # fmt: skip
 
 
 class _RimFusion:

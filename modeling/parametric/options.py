@@ -47,6 +47,11 @@ class ParametricOptions:
         "the pixels of a depth jump's ramp; 0: the known cells only)", unit="m",
         kind="non_negative",
     )  # fmt: skip
+    outline_reach_m: float = option(
+        1.0, "a segment that no prior explains is tried again on its outline where its "
+        "DSM's walls stand at half its eaves' height, within this reach (the block "
+        "path's; 0: not tried)", unit="m", kind="non_negative",
+    )  # fmt: skip
     probability_weight: float = option(
         1.0, "weight of a third region term on the fusion's building probability, beside "
         "colour and height (0: the paper's two sources)", kind="non_negative",
