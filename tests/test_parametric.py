@@ -87,7 +87,8 @@ def _roof(omega_deg, cap=None, z=10.0, wing=WING):
         ((90, 30, 90, 90), None, "shed"),
         ((90, 35, 90, 35), None, "gable"),
         ((35, 35, 35, 35), None, "hipped"),
-        ((40, 30, 25, 30), None, "dissymmetric"),
+        ((40, 30, 25, 30), None, "hipped"),  # hip ends of two pitches: the ridge off centre
+        ((40, 30, 25, 45), None, "dissymmetric"),  # all angles different, as the paper says
         ((70, 70, 70, 70), 2.5, "mansard"),
     ],
 )
@@ -156,6 +157,19 @@ def test_a_plane_under_another_wing_does_not_make_a_hip():
     fit = RoofFit(10.0, np.radians([40.0, 35.0, 89.5, 35.0]), None, 0, 0, 0)
     assert roof_type(fit, WING) == "hipped"
     assert roof_type(fit, WING, hidden=(True, False, False, False)) == "gable"
+
+
+def test_a_side_hidden_under_another_wing_partners_the_plane_opposite_it():
+    """An L's wing whose one long side lies under the other wing: the roof goes on there,
+    so the side and hip end it shows make a hipped roof, not two adjacent planes (a
+    dissymmetric roof), and a lone long side a gable, not a shed."""
+    hipped = RoofFit(10.0, np.radians([89.5, 35.0, 40.0, 35.0]), None, 0, 0, 0)
+    assert roof_type(hipped, WING) == "hipped"
+    assert roof_type(hipped, WING, hidden=(False, False, False, True)) == "hipped"
+    gable = RoofFit(10.0, np.radians([89.5, 35.0, 89.5, 35.0]), None, 0, 0, 0)
+    assert roof_type(gable, WING, hidden=(False, False, False, True)) == "gable"
+    adjacent = RoofFit(10.0, np.radians([89.5, 35.0, 40.0, 89.5]), None, 0, 0, 0)
+    assert roof_type(adjacent, WING) == "dissymmetric"
 
 
 def test_registration_turns_a_frame_read_a_few_degrees_off():
