@@ -282,6 +282,26 @@ def _roof_and_crown(crown_z, seed=0, leaves_m=0.5):
     return inputs, roof, crown
 
 
+def test_a_roof_notch_no_view_saw_is_in_the_outline():
+    """An 18 m x 14 m flat roof at 30 m whose south side hides an 8 m x 7 m notch from
+    every view, with the ground beyond it: the segment is a U, and the outline is the
+    whole rectangle, the notch between the roof's known sides (measured without
+    :func:`~modeling.shared.opened_parts.unseen_between`: a U of 198.3 m²)."""
+    grid = Grid(-20.0, 16.0, 0.25, 160, 128)
+    X, Y = np.meshgrid(grid.xmin + (np.arange(grid.width) + 0.5) * grid.gsd,
+                       grid.ymax - (np.arange(grid.height) + 0.5) * grid.gsd)  # fmt: skip
+    roof = (np.abs(X) <= 9) & (np.abs(Y) <= 7)
+    dsm = np.where(roof, 30.0, 0.0) + np.random.default_rng(0).normal(0, 0.03, X.shape)
+    dsm[(np.abs(X) < 4.0) & (Y < 0.0) & (Y > -10.0)] = np.nan
+    segments = (roof & np.isfinite(dsm)).astype(np.int32)
+    inputs = ParametricInputs(grid, dsm, np.zeros_like(dsm), np.zeros(dsm.shape + (3,), np.uint8),
+                              segments, segment_boxes(segments, 1))  # fmt: skip
+    b = building_task(1, inputs, ParametricOptions()).building
+    assert b.record["family"] == "rect"
+    assert abs(b.footprint.area - 18 * 14) < 3.0  # measured 253.6 m²
+    assert b.roof_type == "flat" and abs(b.ridge_z - 30.0) < 0.1
+
+
 def test_a_crown_beside_the_roof_is_left_to_the_data_term():
     """A crown below the roof beside its corner: the first fit leaves it unexplained, so
     eq. 4 gives it to the unknown label and the segment without it is a rectangle."""

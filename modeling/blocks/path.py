@@ -31,7 +31,12 @@ from modeling.shared.in_blocks import (
     kept_buildings,
     plan_blocks,
 )
-from modeling.shared.opened_parts import building_segments, mid_wall_region, unseen_rim_filled
+from modeling.shared.opened_parts import (
+    building_segments,
+    mid_wall_region,
+    unseen_between,
+    unseen_rim_filled,
+)
 from modeling.shared.raster_ground import vertex_colours
 from modeling.shared.roof_envelope import BuildingMesh, building_solid, face_planes
 from modeling.shared.roof_model import closed_roof_model
@@ -305,6 +310,8 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
                                    options.outline_reach_m)  # fmt: skip
             # the supports' steps on the filled heights too: a NaN reads as the lowest
             whole = rim_dsm
+            hidden, whole = unseen_between(mask & np.isfinite(whole), whole, rim_dtm)
+            mask |= hidden
         mask &= np.isfinite(whole)
         supports, regions, off_level = automatic_supports(mask, whole, xs, ys, crop,
                                                       options.min_part_m, min_cells,

@@ -44,6 +44,7 @@ from modeling.shared.opened_parts import (
     building_segments,
     mid_wall_region,
     opened_parts,
+    unseen_between,
     unseen_rim_filled,
 )
 from modeling.shared.raster_ground import vertex_colours
@@ -414,8 +415,12 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
             crowns = tree_crowns(mask, tree, crop.gsd, options, min_cells)
     unknown = crowns  # left to the data term (eq. 4): out of the segment and of the fits
     unknown_overruled = None
+    # the building's parts no view saw between its known sides: in its outline, not in
+    # the fits (their DSM is NaN)
+    hidden, _ = unseen_between(mask & ~unknown & np.isfinite(dsm), dsm, dtm)
+    hidden &= inputs.segments[r0:r1, c0:c1] == 0
     if found is None:
-        known, known_dsm = mask & ~unknown, np.where(unknown, np.nan, dsm)
+        known, known_dsm = (mask & ~unknown) | hidden, np.where(unknown, np.nan, dsm)
         found = segment_roofs(known, known_dsm, dtm, xs, ys, crop, options, min_cells, lambda_)
         building = None if inputs.building is None else inputs.building[r0:r1, c0:c1]
         if isinstance(found, str) and building is not None and _classed(mask, building):
@@ -429,7 +434,8 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     if not isinstance(found, str):
         more = unknown_objects(dsm, mask & ~unknown, found.heights, crop.gsd, options, min_cells)
         if more.any():  # the segment without them, again
-            again = segment_roofs(mask & ~(unknown | more), np.where(unknown | more, np.nan, dsm),
+            again = segment_roofs((mask & ~(unknown | more)) | hidden,
+                                  np.where(unknown | more, np.nan, dsm),
                                   dtm, xs, ys, crop, options, min_cells, lambda_)  # fmt: skip
             if not isinstance(again, str):
                 found, unknown = again, unknown | more

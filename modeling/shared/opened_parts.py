@@ -97,3 +97,60 @@ def unseen_rim_filled(
     dist, (ri, ci) = ndimage.distance_transform_edt(~known, return_indices=True)
     near = ~known & (dist <= reach_cells)
     return [np.where(near, h[ri, ci], h) for h in heights]
+
+
+def unseen_between(
+    region: np.ndarray, dsm: np.ndarray, dtm: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The building's parts no view saw: the unknown cells (``dsm`` NaN) that have cells
+    of ``region`` ((h, w) bool, a building's cells with a height) on both sides along one
+    of the building's two directions (its least rectangle's sides,
+    :func:`cv2.minAreaRect`), in groups that do not border the ground; and ``dsm`` with
+    each of them given the height of the nearest cell of ``region``.
+
+    Where every view looks at a roof from one side (at the edge of a survey), the
+    building's upper parts hide its lower tier, and the fusion knows nothing there: an
+    outline on the known cells stops at the tall part, a notch cut into the building
+    between its known sides. Hidden ground beside a wall, or in an L's inner corner,
+    has the building on one side only along each direction; in a U's courtyard it has
+    it on two, but borders the courtyard's ground the views saw: a group whose known
+    neighbours stand at the ground (below half the building's eaves, as in
+    :func:`mid_wall_region`) for more than a tenth is left out.
+
+    dsm, dtm : (h, w) float, metres, NaN unknown."""
+    unknown = ~np.isfinite(dsm)
+    none = np.zeros(region.shape, bool)
+    if region.sum() < 3 or not unknown.any():
+        return none, dsm
+    h, w = region.shape
+    (cx, cy), _, angle = cv2.minAreaRect(np.argwhere(region)[:, ::-1].astype(np.float32))
+    side = int(np.ceil(np.hypot(h, w))) + 2
+    turn = cv2.getRotationMatrix2D((cx, cy), angle, 1.0)  # into the rectangle's frame
+    turn[:, 2] += (side / 2 - cx, side / 2 - cy)
+    framed = cv2.warpAffine(region.astype(np.uint8), turn, (side, side),
+                            flags=cv2.INTER_NEAREST) > 0  # fmt: skip
+    between = np.zeros(framed.shape, bool)
+    for axis in (0, 1):
+        ahead = np.maximum.accumulate(framed, axis=axis)
+        behind = np.flip(np.maximum.accumulate(np.flip(framed, axis), axis=axis), axis)
+        between |= ahead & behind
+    back = cv2.warpAffine((between & ~framed).astype(np.uint8), turn, (w, h),
+                          flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP) > 0  # fmt: skip
+    groups, n = ndimage.label(back & unknown, structure=np.ones((3, 3)))
+    if n == 0:
+        return none, dsm
+    ndsm = dsm - dtm
+    low = float(np.nanpercentile(ndsm[region], 10))
+    known = np.isfinite(ndsm) & ~region
+    ground = known & (ndsm < 0.5 * low)
+    inside = none.copy()
+    for j, box in enumerate(ndimage.find_objects(groups), start=1):
+        grown = tuple(slice(max(b.start - 1, 0), b.stop + 1) for b in box)
+        group = groups[grown] == j
+        ring = ndimage.binary_dilation(group, structure=np.ones((3, 3))) & ~group
+        if ground[grown][ring].sum() <= 0.1 * (ring & (known | region)[grown]).sum():
+            inside[grown] |= group
+    if not inside.any():
+        return none, dsm
+    _, (ri, ci) = ndimage.distance_transform_edt(~region, return_indices=True)
+    return inside, np.where(inside, dsm[ri, ci], dsm)
