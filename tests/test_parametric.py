@@ -286,7 +286,8 @@ def test_a_roof_notch_no_view_saw_is_in_the_outline():
     """An 18 m x 14 m flat roof at 30 m whose south side hides an 8 m x 7 m notch from
     every view, with the ground beyond it: the segment is a U, and the outline is the
     whole rectangle, the notch between the roof's known sides (measured without
-    :func:`~modeling.shared.opened_parts.unseen_between`: a U of 198.3 m²)."""
+    :func:`~modeling.shared.opened_parts.unseen_between`: a U of 198.3 m²). With
+    ``all_building`` (a cloud of one building) the unknown cells are off the building."""
     grid = Grid(-20.0, 16.0, 0.25, 160, 128)
     X, Y = np.meshgrid(grid.xmin + (np.arange(grid.width) + 0.5) * grid.gsd,
                        grid.ymax - (np.arange(grid.height) + 0.5) * grid.gsd)  # fmt: skip
@@ -300,6 +301,9 @@ def test_a_roof_notch_no_view_saw_is_in_the_outline():
     assert b.record["family"] == "rect"
     assert abs(b.footprint.area - 18 * 14) < 3.0  # measured 253.6 m²
     assert b.roof_type == "flat" and abs(b.ridge_z - 30.0) < 0.1
+    # a cloud of one building (--all-building) has no hidden parts: off it is no building
+    b = building_task(1, inputs, ParametricOptions(all_building=True)).building
+    assert b.footprint.area < 18 * 14 - 40.0  # measured 198.3 m², a U
 
 
 def test_a_crown_beside_the_roof_is_left_to_the_data_term():

@@ -416,9 +416,12 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     unknown = crowns  # left to the data term (eq. 4): out of the segment and of the fits
     unknown_overruled = None
     # the building's parts no view saw between its known sides: in its outline, not in
-    # the fits (their DSM is NaN)
-    hidden, _ = unseen_between(mask & ~unknown & np.isfinite(dsm), dsm, dtm)
-    hidden &= inputs.segments[r0:r1, c0:c1] == 0
+    # the fits (their DSM is NaN); a cloud of one building has no hidden parts, its
+    # unknown cells are off the building (AHN3 clouds: median RMS 0.486 -> 0.515 m)
+    hidden = np.zeros(mask.shape, bool)
+    if not options.all_building:
+        hidden, _ = unseen_between(mask & ~unknown & np.isfinite(dsm), dsm, dtm)
+        hidden &= inputs.segments[r0:r1, c0:c1] == 0
     if found is None:
         known, known_dsm = (mask & ~unknown) | hidden, np.where(unknown, np.nan, dsm)
         found = segment_roofs(known, known_dsm, dtm, xs, ys, crop, options, min_cells, lambda_)
