@@ -65,17 +65,25 @@ def mid_wall_region(
     The building class's edge wanders by a cell or two where the classifier is unsure;
     a DSM blurs a wall over a cell or two too, and its mid-height is where the wall
     stands. ndsm : (h, w) metres, NaN unknown."""
-    low = float(np.nanpercentile(ndsm[segment], 10)) if np.isfinite(ndsm[segment]).any() else 0.0
     r = max(1, int(round(reach_m / gsd)))
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
     near = cv2.dilate(segment.astype(np.uint8), disc).astype(bool) & ~others
-    high = near & (np.nan_to_num(ndsm, nan=-np.inf) > 0.5 * low)
+    high = near & (np.nan_to_num(ndsm, nan=-np.inf) > half_eaves(ndsm, segment))
     # the majority of each 3 x 3: a DSM's noise leaves single cells in and out of the
     # edge, whose staircase would outweigh the sides in the outline's direction
     high = cv2.medianBlur(high.astype(np.uint8) * 255, 3) > 0
     labels, _ = ndimage.label(high)
     keep = np.unique(labels[segment & high])
     return np.isin(labels, keep[keep > 0])
+
+
+def half_eaves(ndsm: np.ndarray, cells: np.ndarray) -> float:
+    """Half the eaves' height of the building on ``cells`` ((h, w) bool): half the 10th
+    percentile of its nDSM (``ndsm``, metres, NaN unknown), 0 where it has none. A wall
+    stands where its DSM passes this."""
+    z = ndsm[cells]
+    z = z[np.isfinite(z)]
+    return 0.5 * float(np.percentile(z, 10)) if len(z) else 0.0
 
 
 def unseen_rim_filled(
@@ -140,9 +148,8 @@ def unseen_between(
     if n == 0:
         return none, dsm
     ndsm = dsm - dtm
-    low = float(np.nanpercentile(ndsm[region], 10))
     known = np.isfinite(ndsm) & ~region
-    ground = known & (ndsm < 0.5 * low)
+    ground = known & (ndsm < half_eaves(ndsm, region))
     inside = none.copy()
     for j, box in enumerate(ndimage.find_objects(groups), start=1):
         grown = tuple(slice(max(b.start - 1, 0), b.stop + 1) for b in box)
