@@ -34,6 +34,7 @@ from modeling.shared.in_blocks import (
 from modeling.shared.opened_parts import (
     building_segments,
     mid_wall_region,
+    nearest_of,
     unseen_between,
     unseen_rim_filled,
 )
@@ -310,7 +311,9 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
                                    options.outline_reach_m)  # fmt: skip
             # the supports' steps on the filled heights too: a NaN reads as the lowest
             whole = rim_dsm
-            hidden, whole = unseen_between(mask & np.isfinite(whole), whole, rim_dtm)
+            region = mask & np.isfinite(whole)
+            hidden = unseen_between(region, whole, rim_dtm)
+            whole = nearest_of(whole, region, hidden)
             mask |= hidden
         mask &= np.isfinite(whole)
         supports, regions, off_level = automatic_supports(mask, whole, xs, ys, crop,

@@ -107,14 +107,12 @@ def unseen_rim_filled(
     return [np.where(near, h[ri, ci], h) for h in heights]
 
 
-def unseen_between(
-    region: np.ndarray, dsm: np.ndarray, dtm: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The building's parts no view saw: the unknown cells (``dsm`` NaN) that have cells
-    of ``region`` ((h, w) bool, a building's cells with a height) on both sides along one
-    of the building's two directions (its least rectangle's sides,
-    :func:`cv2.minAreaRect`), in groups that do not border the ground; and ``dsm`` with
-    each of them given the height of the nearest cell of ``region``.
+def unseen_between(region: np.ndarray, dsm: np.ndarray, dtm: np.ndarray) -> np.ndarray:
+    """(h, w) bool the building's parts no view saw: the unknown cells (``dsm`` NaN) that
+    have cells of ``region`` ((h, w) bool, a building's cells with a height) on both
+    sides along one of the building's two directions (its least rectangle's sides,
+    :func:`cv2.minAreaRect`), in groups that do not border the ground. What they are
+    given is the caller's (:func:`nearest_of`: the nearest cell's height or roof face).
 
     Where every view looks at a roof from one side (at the edge of a survey), the
     building's upper parts hide its lower tier, and the fusion knows nothing there: an
@@ -125,11 +123,17 @@ def unseen_between(
     neighbours stand at the ground (below half the building's eaves, as in
     :func:`mid_wall_region`) for more than a tenth is left out.
 
+    Whatever else stands between the cell and the building's sides is not asked: a
+    lower tier often holds a few cells some view saw, and asking that the nearest seen
+    cells be the building's lost more hidden tiers than it kept out hidden ground (dev
+    fusions of seeds 0-2 and 6-14: block path off the jumps worse on 7 seeds, 1.06 ->
+    1.68 m on seed 0; a super-pixel roof better on one seed).
+
     dsm, dtm : (h, w) float, metres, NaN unknown."""
     unknown = ~np.isfinite(dsm)
     none = np.zeros(region.shape, bool)
     if region.sum() < 3 or not unknown.any():
-        return none, dsm
+        return none
     h, w = region.shape
     (cx, cy), _, angle = cv2.minAreaRect(np.argwhere(region)[:, ::-1].astype(np.float32))
     side = int(np.ceil(np.hypot(h, w))) + 2
@@ -146,7 +150,7 @@ def unseen_between(
                           flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP) > 0  # fmt: skip
     groups, n = ndimage.label(back & unknown, structure=np.ones((3, 3)))
     if n == 0:
-        return none, dsm
+        return none
     ndsm = dsm - dtm
     known = np.isfinite(ndsm) & ~region
     ground = known & (ndsm < half_eaves(ndsm, region))
@@ -157,7 +161,14 @@ def unseen_between(
         ring = ndimage.binary_dilation(group, structure=np.ones((3, 3))) & ~group
         if ground[grown][ring].sum() <= 0.1 * (ring & (known | region)[grown]).sum():
             inside[grown] |= group
-    if not inside.any():
-        return none, dsm
+    return inside
+
+
+def nearest_of(values: np.ndarray, region: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """``values`` ((h, w), any dtype) with each of ``cells`` ((h, w) bool) given the value
+    of the nearest cell of ``region`` ((h, w) bool; ties as
+    :func:`scipy.ndimage.distance_transform_edt` breaks them)."""
+    if not cells.any() or not region.any():
+        return values
     _, (ri, ci) = ndimage.distance_transform_edt(~region, return_indices=True)
-    return inside, np.where(inside, dsm[ri, ci], dsm)
+    return np.where(cells, values[ri, ci], values)

@@ -10,6 +10,10 @@ ROOF_TYPES = (
 )  # fmt: skip
 
 
+# a mansard's lower faces are steeper than this
+STEEP_DEG = 55.0
+
+
 def roof_type(
     planes: np.ndarray,
     areas: np.ndarray,
@@ -18,7 +22,7 @@ def roof_type(
     ridge_z: float | None = None,
     centre: tuple[float, float, float] | None = None,
     flat_deg: float = 5.0,
-    steep_deg: float = 55.0,
+    steep_deg: float = STEEP_DEG,
 ) -> str:
     """Name the roof of a building from its planes.
 

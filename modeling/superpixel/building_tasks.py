@@ -27,7 +27,7 @@ from .prototype_crf import (
     refit_planes,
 )
 from .prototypes import roof_prototypes
-from .rooftop import model_building, observed_faces
+from .rooftop import model_building, observed_faces, with_unseen_parts
 
 ROOF_STEPS = ("plane_hypotheses", "prototypes", "prototype_crf", "roof_modeling")
 
@@ -49,10 +49,8 @@ class BuildingShare:
         between two of them; ``labels`` is the window, -1 off the building.
     points : SuperpixelPoints
         Their DSM points, world metres.
-    known : (h, w) bool
-        Cells of the window with a height.
-    dtm : (h, w) float
-        Metres.
+    dsm, dtm : (h, w) float
+        The window's DSM and DTM, metres, NaN unknown.
     """
 
     id: int
@@ -60,8 +58,13 @@ class BuildingShare:
     grid: Grid
     graph: SuperpixelGraph
     points: SuperpixelPoints
-    known: np.ndarray
+    dsm: np.ndarray
     dtm: np.ndarray
+
+    @property
+    def known(self) -> np.ndarray:
+        """(h, w) bool the cells of the window with a height."""
+        return np.isfinite(self.dsm)
 
 
 @dataclass
@@ -129,8 +132,7 @@ def building_shares(
         )  # fmt: skip
         shares.append(BuildingShare(
             b, (int(r0), int(r1), int(c0), int(c1)), grid.window(slice(r0, r1), slice(c0, c1)),
-            sub, points_of(pts, members), np.isfinite(dsm[r0:r1, c0:c1]),
-            dtm[r0:r1, c0:c1].copy(),
+            sub, points_of(pts, members), dsm[r0:r1, c0:c1].copy(), dtm[r0:r1, c0:c1].copy(),
         ))  # fmt: skip
     return shares
 
@@ -175,6 +177,8 @@ def model_building_roofs(
     crop = timed("prototype_crf", cells_to_fitting_planes, graph.labels, assign, graph.edges,
                  heights, X, Y, protos, options.ransac_threshold_m)  # fmt: skip
     crop = observed_faces(crop, share.known, int(round(edge_reach_m / share.grid.gsd)))
+    if not options.all_building:  # a cloud of one building: its unknown cells are off it
+        crop = with_unseen_parts(crop, protos, share.dsm, share.dtm)
     parts = timed("roof_modeling", model_building, crop, share.grid, protos, share.dtm, options)
     counts = {"superpixels": graph.n, "hypotheses": len(hyps), "prototypes": len(protos)}
     for k, part in enumerate(parts):
