@@ -683,7 +683,7 @@ def test_a_gable_notch_no_view_saw_takes_its_side_face():
     nx, ny = -np.sin(t), np.cos(t)  # v's direction: z = 13 - 0.5 |x nx + y ny|
     planes = np.array([_plane(slope * nx, slope * ny, 13), _plane(-slope * nx, -slope * ny, 13),
                        _plane(2.75 * nx, 2.75 * ny, 16)])  # fmt: skip
-    filled = with_unseen_parts(faces, planes, dsm, np.zeros((n, n)))
+    filled = with_unseen_parts(faces, planes, dsm, np.zeros((n, n)), X, Y)
     # a turned grid's staircase along the roof's edge: measured 125 of 129 cells in,
     # 7 cells of ground past the eaves out
     assert (filled[notch & rect] == 1).sum() >= 0.95 * (notch & rect).sum()
@@ -695,6 +695,24 @@ def test_a_gable_notch_no_view_saw_takes_its_side_face():
     assert whole.watertight
     assert whole.footprint.area == pytest.approx(288, rel=0.02)
     assert cut.footprint.area == pytest.approx(256, rel=0.02)
+
+
+def test_a_hidden_lower_tier_takes_the_lower_face():
+    """A 24 m x 12 m building, its north half at 20 m, its south half at 10 m, with an
+    8 m x 6 m part of the lower half behind the upper one from every view (and the
+    ground beyond it): the hidden cells take the lower half's face, all of them, where
+    the nearest face would have given the upper one's to those nearer to it."""
+    gsd, n = 0.5, 80
+    grid = Grid(-20.0, 20.0, gsd, n, n)
+    X, Y = grid.cell_centers()
+    rect = (np.abs(X) < 12) & (np.abs(Y) < 6)
+    hidden = (np.abs(X) < 4) & (Y > -9) & (Y < 0)
+    dsm = np.where(rect, np.where(Y > 0, 20.0, 10.0), 0.0)
+    dsm[hidden] = np.nan
+    faces = np.where(rect & ~hidden, np.where(Y > 0, 1, 2), 0)
+    planes = np.array([_plane(0, 0, 20), _plane(0, 0, 10)])
+    filled = with_unseen_parts(faces, planes, dsm, np.zeros((n, n)), X, Y)
+    assert (filled[hidden & rect] == 2).all() and (filled[hidden & ~rect] == 0).all()
 
 
 @pytest.mark.parametrize("rotation_deg", [0.0, 30.0])

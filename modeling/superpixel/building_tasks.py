@@ -178,7 +178,7 @@ def model_building_roofs(
                  heights, X, Y, protos, options.ransac_threshold_m)  # fmt: skip
     crop = observed_faces(crop, share.known, int(round(edge_reach_m / share.grid.gsd)))
     if not options.all_building:  # a cloud of one building: its unknown cells are off it
-        crop = with_unseen_parts(crop, protos, share.dsm, share.dtm)
+        crop = with_unseen_parts(crop, protos, share.dsm, share.dtm, X, Y)
     parts = timed("roof_modeling", model_building, crop, share.grid, protos, share.dtm, options)
     counts = {"superpixels": graph.n, "hypotheses": len(hyps), "prototypes": len(protos)}
     for k, part in enumerate(parts):

@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from scipy import ndimage
 
 from modeling.shared.opened_parts import nearest_of, unseen_between
 from modeling.shared.roof_mesh import untangle_diagonals
 from modeling.shared.roof_model import closed_roof_model
 from modeling.shared.roof_types import STEEP_DEG
 from workbench.model_run import Building
+from workbench.planes import plane_heights
 from workbench.raster import Grid
 
 from .options import SuperpixelOptions
@@ -55,30 +57,50 @@ def observed_faces(faces: np.ndarray, observed: np.ndarray, reach: int) -> np.nd
 
 
 def with_unseen_parts(
-    faces: np.ndarray, planes: np.ndarray, dsm: np.ndarray, dtm: np.ndarray
+    faces: np.ndarray,
+    planes: np.ndarray,
+    dsm: np.ndarray,
+    dtm: np.ndarray,
+    X: np.ndarray,
+    Y: np.ndarray,
 ) -> np.ndarray:
     """Face labels (``faces``, (h, w) int, face + 1, 0 off the building) with the
     building's parts no view saw between its known sides
-    (:func:`~modeling.shared.opened_parts.unseen_between`) given the nearest cell's face,
-    among the faces less steep than a mansard's lower ones when there are any.
+    (:func:`~modeling.shared.opened_parts.unseen_between`) given, group by group, the
+    lowest of the faces around it less steep than a mansard's lower ones.
 
     A lower tier that the upper parts hide from every view is unknown in the fusion, and
     its super-pixels are no building's: the roof would have a notch cut into it down to
-    the ground. The nearest face's plane carries the roof over it instead; not a steep
-    face's: the cells at a wall's top, where its DSM blurs, often fit one, and over a few
-    metres it would rise or fall by metres (``small`` dev seed 9: a gable's 68-degree
-    face of 0.2 m² took 2 m² and its outline's heights, and read as hipped).
+    the ground. A face around it carries the roof over it instead: the lowest, since what
+    the views could not see lies below what hid it; not a steep face: the cells at a
+    wall's top, where its DSM blurs, often fit one, and over a few metres it would rise
+    or fall by metres (``small`` dev seed 9: a gable's 68-degree face of 0.2 m² took
+    2 m² and its outline's heights, and read as hipped). A group no such face borders
+    takes the nearest cell's face.
 
     planes : (P, 4) the faces' planes (unit normal up, offset). dsm, dtm : (h, w) float,
-    metres, NaN unknown.
+    metres, NaN unknown. X, Y : (h, w) cell centres, metres.
     """
     region = (faces > 0) & np.isfinite(dsm)
     hidden = unseen_between(region, dsm, dtm) & (faces == 0)
     if not hidden.any():
         return faces
     slope = np.degrees(np.arccos(np.clip(planes[:, 2], -1, 1)))
-    gentle = np.r_[False, slope < STEEP_DEG][faces] & region
-    return nearest_of(faces, gentle if gentle.any() else region, hidden)
+    gentle = np.r_[False, slope < STEEP_DEG][faces]
+    out = nearest_of(faces, gentle & region if (gentle & region).any() else region, hidden)
+    groups, _ = ndimage.label(hidden, np.ones((3, 3)))
+    for j, box in enumerate(ndimage.find_objects(groups), start=1):
+        near = tuple(slice(max(b.start - 2, 0), b.stop + 2) for b in box)
+        group = groups[near] == j
+        ring = ndimage.binary_dilation(group, np.ones((3, 3)), iterations=2) & gentle[near]
+        around = np.unique(faces[near][ring])
+        if len(around) < 2:
+            continue
+        with np.errstate(invalid="ignore", divide="ignore"):
+            z = [plane_heights(planes[k - 1], X[near][group], Y[near][group]).mean()
+                 for k in around]  # fmt: skip
+        out[near][group] = around[int(np.nanargmin(z))]
+    return out
 
 
 def model_building(
