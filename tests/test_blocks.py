@@ -31,7 +31,12 @@ from modeling.blocks.supports import (
     supports_from_file,
 )
 from modeling.shared.footprint_priors import Prior
-from modeling.shared.opened_parts import nearest_of, unseen_between, unseen_rim_filled
+from modeling.shared.opened_parts import (
+    lowest_around,
+    nearest_of,
+    unseen_between,
+    unseen_rim_filled,
+)
 from modeling.shared.roof_envelope import building_solid
 from tests.conftest import run_cli
 from workbench.errors import InputError
@@ -469,6 +474,27 @@ def test_unseen_between_fills_a_notch_not_a_corner_or_a_courtyard(angle):
     dsm[strip] = np.nan
     inside = unseen_between(u_shape, dsm, zero)
     assert not inside.any()
+
+
+def test_a_hidden_part_takes_the_lowest_level_around_it():
+    """Hidden cells between an upper tier at 20 m (north) and the lower tier's known
+    ends at 10 m (east and west) take 10 m, all of them (the nearest cell's height
+    would give the upper rows 20 m); hidden cells with only the upper tier within two
+    cells take 20 m; nothing else changes."""
+    heights = np.full((12, 12), np.nan)
+    heights[:4, :] = 20.0
+    heights[4:8, :3] = heights[4:8, 9:] = 10.0
+    hidden = np.zeros((12, 12), bool)
+    hidden[4:8, 3:9] = True
+    out = lowest_around(heights, np.isfinite(heights), hidden)
+    assert (out[hidden] == 10.0).all()
+    np.testing.assert_array_equal(out[~hidden], heights[~hidden])
+    assert (nearest_of(heights, np.isfinite(heights), hidden)[4, 3:9] == 20.0).any()
+    heights[4:8, 9:] = np.nan
+    hidden[:] = False
+    hidden[4:6, 6:10] = True  # the lower tier's cells 4 columns away
+    out = lowest_around(heights, np.isfinite(heights), hidden)
+    assert (out[hidden] == 20.0).all()
 
 
 def test_a_roof_notch_no_view_saw_is_modelled():

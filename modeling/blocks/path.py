@@ -33,8 +33,8 @@ from modeling.shared.in_blocks import (
 )
 from modeling.shared.opened_parts import (
     building_segments,
+    lowest_around,
     mid_wall_region,
-    nearest_of,
     unseen_between,
     unseen_rim_filled,
 )
@@ -313,7 +313,7 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
             whole = rim_dsm
             region = mask & np.isfinite(whole)
             hidden = unseen_between(region, whole, rim_dtm)
-            whole = nearest_of(whole, region, hidden)
+            whole = lowest_around(whole, region, hidden)
             mask |= hidden
         mask &= np.isfinite(whole)
         supports, regions, off_level = automatic_supports(mask, whole, xs, ys, crop,

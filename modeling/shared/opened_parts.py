@@ -164,6 +164,32 @@ def unseen_between(region: np.ndarray, dsm: np.ndarray, dtm: np.ndarray) -> np.n
     return inside
 
 
+def lowest_around(heights: np.ndarray, region: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """``heights`` ((h, w) float, metres) with each group of ``cells`` ((h, w) bool,
+    8-connected) given the lowest level of the cells of ``region`` ((h, w) bool) within
+    two cells of it: the 10th percentile of their heights (the nearest cell's where none
+    is so near). What the views could not see lies below what hid it."""
+    out = nearest_of(heights, region, cells)
+    for near, group, ring in groups_and_rings(cells, region):
+        z = heights[near][ring]
+        z = z[np.isfinite(z)]
+        if len(z):
+            out[near][group] = np.percentile(z, 10)
+    return out
+
+
+def groups_and_rings(cells: np.ndarray, around: np.ndarray, reach: int = 2):
+    """Each 8-connected group of ``cells`` ((h, w) bool) as (window, group, ring): the
+    slices of a window round it, the group's cells and the cells of ``around`` ((h, w)
+    bool) within ``reach`` cells of it, both (h', w') bool in the window."""
+    groups, _ = ndimage.label(cells, np.ones((3, 3)))
+    for j, box in enumerate(ndimage.find_objects(groups), start=1):
+        near = tuple(slice(max(b.start - reach, 0), b.stop + reach) for b in box)
+        group = groups[near] == j
+        ring = ndimage.binary_dilation(group, np.ones((3, 3)), iterations=reach)
+        yield near, group, ring & around[near]
+
+
 def nearest_of(values: np.ndarray, region: np.ndarray, cells: np.ndarray) -> np.ndarray:
     """``values`` ((h, w), any dtype) with each of ``cells`` ((h, w) bool) given the value
     of the nearest cell of ``region`` ((h, w) bool; ties as

@@ -5,9 +5,8 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scipy import ndimage
 
-from modeling.shared.opened_parts import nearest_of, unseen_between
+from modeling.shared.opened_parts import groups_and_rings, nearest_of, unseen_between
 from modeling.shared.roof_mesh import untangle_diagonals
 from modeling.shared.roof_model import closed_roof_model
 from modeling.shared.roof_types import STEEP_DEG
@@ -88,11 +87,7 @@ def with_unseen_parts(
     slope = np.degrees(np.arccos(np.clip(planes[:, 2], -1, 1)))
     gentle = np.r_[False, slope < STEEP_DEG][faces]
     out = nearest_of(faces, gentle & region if (gentle & region).any() else region, hidden)
-    groups, _ = ndimage.label(hidden, np.ones((3, 3)))
-    for j, box in enumerate(ndimage.find_objects(groups), start=1):
-        near = tuple(slice(max(b.start - 2, 0), b.stop + 2) for b in box)
-        group = groups[near] == j
-        ring = ndimage.binary_dilation(group, np.ones((3, 3)), iterations=2) & gentle[near]
+    for near, group, ring in groups_and_rings(hidden, gentle):
         around = np.unique(faces[near][ring])
         if len(around) < 2:
             continue
