@@ -193,8 +193,8 @@ def groups_and_rings(cells: np.ndarray, around: np.ndarray, reach: int = 2):
 def nearest_of(values: np.ndarray, region: np.ndarray, cells: np.ndarray) -> np.ndarray:
     """``values`` ((h, w), any dtype) with each of ``cells`` ((h, w) bool) given the value
     of the nearest cell of ``region`` ((h, w) bool; ties as
-    :func:`scipy.ndimage.distance_transform_edt` breaks them)."""
+    :func:`scipy.ndimage.distance_transform_edt` breaks them); a new array."""
     if not cells.any() or not region.any():
-        return values
+        return values.copy()
     _, (ri, ci) = ndimage.distance_transform_edt(~region, return_indices=True)
     return np.where(cells, values[ri, ci], values)

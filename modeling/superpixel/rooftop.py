@@ -91,10 +91,9 @@ def with_unseen_parts(
         around = np.unique(faces[near][ring])
         if len(around) < 2:
             continue
-        with np.errstate(invalid="ignore", divide="ignore"):
-            z = [plane_heights(planes[k - 1], X[near][group], Y[near][group]).mean()
-                 for k in around]  # fmt: skip
-        out[near][group] = around[int(np.nanargmin(z))]
+        z = [plane_heights(planes[k - 1], X[near][group], Y[near][group]).mean()
+             for k in around]  # fmt: skip
+        out[near][group] = around[int(np.argmin(z))]
     return out
 
 
