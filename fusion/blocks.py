@@ -235,6 +235,7 @@ def _block_products(b: Block, heights, files: GridFiles, shared_views, forest, s
         "ortho": result.ortho[inside], "dsm": result.dsm[inside], "dtm": result.dtm[inside],
         "ndsm": result.ndsm[inside], "class_prob": result.class_prob[(slice(None), *inside)],
         "classes": result.classes[inside], "count": result.count[inside],
+        "ceiling": result.ceiling[inside],
     }  # fmt: skip
     return {k: np.ascontiguousarray(v) for k, v in products.items()}, result.record
 

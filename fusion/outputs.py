@@ -35,6 +35,11 @@ RASTERS = (
 )
 
 
+# over the cells no view saw, from views with depth maps only (fusion.hidden_ceiling)
+CEILING = ("ceiling.tif", "ceiling", np.float32, 1, None,
+           ["lowest height a view sees through an unseen cell's column (NaN: seen)"])  # fmt: skip
+
+
 def _bands(product: str, data: np.ndarray) -> np.ndarray:
     """A product's array as bands: the ortho (h, w, 3) becomes (3, h, w)."""
     return np.moveaxis(data, -1, 0) if product == "ortho" else data
@@ -43,7 +48,8 @@ def _bands(product: str, data: np.ndarray) -> np.ndarray:
 def write_fusion(out: Path, result, crs, record: dict) -> None:
     """Write every product of a :class:`~fusion.scene_fusion.FusionResult` into ``out``."""
     g = result.grid
-    for name, product, dtype, _, nodata, descriptions in RASTERS:
+    for name, product, dtype, _, nodata, descriptions in RASTERS + (CEILING,) * (
+            result.ceiling is not None):  # fmt: skip
         data = _bands(product, getattr(result, product))
         write_raster(out / name, data.astype(dtype, copy=False), g, crs, nodata=nodata,
                      descriptions=descriptions)  # fmt: skip
@@ -79,13 +85,15 @@ class FusionWindows:
     grid : Grid
         The whole grid.
     crs : CRS or None
+    ceiling : bool
+        Whether the blocks' products hold a ``ceiling`` (views with depth maps do).
     """
 
-    def __init__(self, out: Path, grid, crs):
+    def __init__(self, out: Path, grid, crs, *, ceiling: bool = False):
         self.out = Path(out)
         self.files = {}
         try:
-            for name, product, dtype, bands, nodata, described in RASTERS:
+            for name, product, dtype, bands, nodata, described in RASTERS + (CEILING,) * ceiling:
                 self.files[product] = WindowedRaster(
                     out / name, grid, crs, dtype, bands, nodata=nodata, descriptions=described
                 )

@@ -143,7 +143,7 @@ def _fuse_blocks(out, scene, grid, block_m, engine, inputs, options, truth, save
     window into the run folder, which appears atomically; returns the record. Scoring
     against ``truth`` reads the whole rasters back."""
     with atomic_output_dir(out, overwrite=overwrite) as tmp:
-        windows = FusionWindows(tmp, grid, scene.crs)
+        windows = FusionWindows(tmp, grid, scene.crs, ceiling=True)
         try:
             grid, figures, forest = fuse_in_blocks(scene, options, engine, windows, block_m)
         except BaseException:

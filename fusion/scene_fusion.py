@@ -81,6 +81,7 @@ from .flat_colours import weigh_by_stroke_colours
 from .geometry_cues import cue_columns, geometric_cues
 from .grid_rasters import GridRasters
 from .ground import dtm_from_dsm
+from .hidden_ceiling import hidden_ceilings
 from .interpolate import fill_small_holes, push_pull_fill, small_holes
 from .observations import (
     close_neighbours,
@@ -128,6 +129,8 @@ class FusionResult:
     normal: np.ndarray | None = None  # (3, H, W) float32 unit normals, from a mesh
     class_map: np.ndarray | None = None  # (H, W) uint8 decided classes (the class CRF's and
     # planar objects'; a mesh's: its most probable class and planar objects')
+    ceiling: np.ndarray | None = None  # (H, W) float32 over the cells no view saw, metres
+    # (fusion.hidden_ceiling); None for a cloud's or a mesh's
 
     @property
     def classes(self) -> np.ndarray:
@@ -465,8 +468,11 @@ def fused_products(s: FusedSurface, shared_views, forest, strokes, class_source,
     """Pass 3 of the fusion on ``s.grid``, the views classified (:func:`classify_views`)
     by ``forest`` (or None), ground and grass weighed by the colours of the ortho under
     the training ``strokes`` (:func:`training_strokes`, or None): the colour pass, the
-    classes and the crowns' corrections.
+    classes and the crowns' corrections, and the ceiling over the cells no view saw.
     The result's record holds the figures of these products; the caller adds the run's."""
+    with timer.stage("ceiling"):
+        ceiling = hidden_ceilings(engine, shared_views, len(s.cache.present), s.grid, s.dsm,
+                                  s.dtm_full, opts.tolerance)  # fmt: skip
     with timer.stage("colour_and_class"):
         c = colours_and_classes(s.cache, shared_views, forest is not None, s.dsm, s.heights,
                                 mode, opts, engine)  # fmt: skip
@@ -486,10 +492,12 @@ def fused_products(s: FusedSurface, shared_views, forest, strokes, class_source,
         "crown_cells_raised": int(crowns.sum()),
         "crown_sightings_raised": int((np.isfinite(c.crown_z) & ~cleared).sum()),
         "crown_sightings_cleared_beside_buildings": int(cleared.sum()),
+        "hidden_cells": int(np.isfinite(ceiling).sum()),
     }
     ablation = {"dsm_mean": h.dsm_mean, "ortho_mean": c.ortho_mean}
+    ceiling[np.isfinite(dsm)] = np.nan  # the crowns' corrections fill a few
     return FusionResult(s.grid, ortho, dsm, s.dtm, ndsm, class_prob, count16, ablation, record,
-                        forest, class_map=classes)  # fmt: skip
+                        forest, class_map=classes, ceiling=ceiling)  # fmt: skip
 
 
 @contextmanager

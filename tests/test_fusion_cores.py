@@ -1045,3 +1045,71 @@ def test_dsm_surface_depth_at_some_pixels_is_its_depth_map_there():
     assert len(tiled._tiles) == 4
     roof = np.isfinite(whole) & (whole < np.nanmedian(whole) - 5)
     assert roof.sum() > 1000  # the block's roof is nearer than the ground behind it
+
+
+def _tower_and_tier_views():
+    """A 20 m tower (x 0-10 m) with a 10 m tier along its east side (x 10-14 m), seen by
+    a 45-degree oblique camera from the west on the line through the tower's top edge
+    (its rays past the edge fall a metre per metre: over x they pass at 30 - x m) and
+    by a nadir camera over x = 15 m; their depth maps ray-cast from the DSM."""
+    from fusion.dsm_depth import DsmSurface
+
+    grid = Grid.from_bounds(-20.0, -20.0, 40.0, 20.0, 0.25)
+    X, Y = grid.cell_centers()
+    dsm = np.where((X > 0) & (X < 10) & (np.abs(Y) < 10), 20.0, 0.0)
+    dsm[(X > 10) & (X < 14) & (np.abs(Y) < 10)] = 10.0
+    surface = DsmSurface(dsm, grid)
+    K = np.array([[800.0, 0, 319.5], [0, 800.0, 239.5], [0, 0, 1]])
+
+    def camera(center, forward):
+        R = look_at_rotation(np.asarray(forward, float))
+        return Camera(K, R, -R @ np.asarray(center, float), 640, 480)
+
+    oblique = camera([-70.0, 0.0, 100.0], [1.0, 0.0, -1.0])
+    nadir = camera([15.0, 0.0, 100.0], [0.0, 0.0, -1.0])
+    return grid, dsm, surface, oblique, nadir
+
+
+def test_the_ceiling_over_a_hidden_column_is_the_lowest_ray_past_it():
+    """Over the tier hidden behind the tower, and the ground beyond it, the oblique view
+    sees past each column from 30 - x m up: exactly so on the ray-cast depth, half a
+    metre higher once the 3 pixels beside the tower's edge are untrusted (a matched
+    depth map's ramp). The nadir view sees past the tier's columns from its roof up
+    (plus the 1 m tolerance) and past the ground's from the ground up; the fusion's
+    ceiling is the lower of the two, and NaN on the cells some view saw."""
+    from fusion.hidden_ceiling import (
+        HiddenColumns,
+        column_ceilings,
+        hidden_ceilings,
+        trusted_depth,
+    )
+    from workbench.engine import ThreadEngine
+
+    grid, dsm, surface, oblique, nadir = _tower_and_tier_views()
+    xs = np.array([10.5, 11.0, 12.0, 13.0, 16.0, 18.0])
+    columns = HiddenColumns(xs, np.zeros_like(xs), np.zeros_like(xs), 20.0, 0.25)
+    depth = surface.depth_map(oblique).astype(np.float32)
+    exact = column_ceilings(oblique, depth, columns, 1.0)
+    np.testing.assert_allclose(exact, 30.0 - xs, atol=1e-6)
+    np.testing.assert_allclose(column_ceilings(oblique, trusted_depth(depth), columns, 1.0),
+                               30.0 - xs + 0.5, atol=1e-6)  # fmt: skip
+    from_above = column_ceilings(nadir, surface.depth_map(nadir).astype(np.float32), columns,
+                                 1.0)  # fmt: skip
+    np.testing.assert_allclose(from_above, np.where(xs < 14, 11.25, 1.25), atol=1e-6)
+
+    class RayCast:
+        def __init__(self, camera):
+            self.camera = camera
+
+        def read_depth(self):
+            return surface.depth_map(self.camera).astype(np.float32)
+
+    X, Y = grid.cell_centers()
+    unseen = dsm.copy()
+    unseen[(X > 10) & (X < 20) & (np.abs(Y) < 8)] = np.nan
+    ceiling = hidden_ceilings(ThreadEngine(1), [RayCast(oblique), RayCast(nadir)], 2, grid,
+                              unseen, np.zeros(grid.shape), 1.0)  # fmt: skip
+    r, c = grid.world_to_cell(xs, np.zeros_like(xs))
+    np.testing.assert_allclose(ceiling[r.astype(int), c.astype(int)], from_above)
+    assert np.isnan(ceiling[np.isfinite(unseen)]).all()
+    assert np.isfinite(ceiling[~np.isfinite(unseen)]).all()

@@ -24,6 +24,7 @@ PRODUCTS = (
     "class_prob.tif",
     "class.tif",
     "count.tif",
+    "ceiling.tif",
     "fusion.json",
     "preview.png",
 )
@@ -67,6 +68,12 @@ def test_products_are_georeferenced_rasters(fused, tiny_scene):
     count = read_raster(out / "count.tif")[0][0]
     assert (np.isnan(dsm) == (count == 0)).all()  # unseen stays unseen; -1 marks filled holes
     assert record["filled_cells"] == int((count == -1).sum())
+    # a ceiling over every cell no view saw, and over none other; each at or above the
+    # ground beside it, none above the highest roof
+    ceiling = read_raster(out / "ceiling.tif")[0][0]
+    assert (np.isfinite(ceiling) == (count == 0)).all() and (count == 0).any()
+    assert record["hidden_cells"] == int((count == 0).sum())
+    assert np.nanmin(ceiling) >= np.nanmin(dtm) - 0.25 and np.nanmax(ceiling) <= np.nanmax(dsm)
 
 
 def test_quality_against_truth(fused):

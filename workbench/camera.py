@@ -78,14 +78,19 @@ class Camera:
         pc = self.world_to_camera(points)
         depth = pc[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
-            x = pc[:, 0] / depth
-            y = pc[:, 1] / depth
+            uv = np.stack(self.project_camera_frame(pc[:, 0], pc[:, 1], depth), axis=1)
+        uv[depth <= 0] = np.nan
+        return uv, depth
+
+    def project_camera_frame(self, x, y, z) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel columns and rows (u, v) of camera-frame points (``x``, ``y``, ``z``:
+        arrays of one shape, metres), distortion applied; meaningless where ``z <= 0``
+        (behind the camera: the caller masks them)."""
+        x, y = x / z, y / z
         if self.has_distortion:
             x, y = _distort(x, y, self.distortion)
         K = self.K
-        uv = np.stack([K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]], axis=1)
-        uv[depth <= 0] = np.nan
-        return uv, depth
+        return K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]
 
     def pixel_rays(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rays through pixels, scaled so that the ray parameter is the z-depth.

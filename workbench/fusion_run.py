@@ -134,13 +134,29 @@ def class_map(
     """(H, W) the class codes of the fusion's class map (``class.tif``) on ``grid`` (the
     cells ``window`` of the run's grid, if given), or None when the run has none (a
     cloud's, a run from another tool)."""
-    if not (Path(fusion_dir) / "class.tif").exists():
+    return _optional_band(fusion_dir, "class", grid, window)
+
+
+def hidden_ceiling(
+    fusion_dir: Path, grid: Grid, window: tuple[slice, slice] | None = None
+) -> np.ndarray | None:
+    """(H, W) float64 the fusion's ceiling over the cells no view saw (``ceiling.tif``,
+    metres, NaN elsewhere: :mod:`fusion.hidden_ceiling`) on ``grid`` (the cells
+    ``window`` of the run's grid, if given), or None when the run has none (a cloud's,
+    a mesh's, an older run's)."""
+    band = _optional_band(fusion_dir, "ceiling", grid, window)
+    return None if band is None else band.astype(np.float64)
+
+
+def _optional_band(fusion_dir: Path, name: str, grid: Grid, window) -> np.ndarray | None:
+    """The first band of the fusion's ``name``.tif on ``grid``, or None without one."""
+    path = Path(fusion_dir) / f"{name}.tif"
+    if not path.exists():
         return None
-    classes = read_fusion_run(fusion_dir, ("class",), window)
-    if classes.grid != grid:
-        raise InputError(Path(fusion_dir) / "class.tif", "transform", "grid differs from the "
-                         "fusion's other rasters'")  # fmt: skip
-    return classes.rasters["class"][0]
+    run = read_fusion_run(fusion_dir, (name,), window)
+    if run.grid != grid:
+        raise InputError(path, "transform", "grid differs from the fusion's other rasters'")
+    return run.rasters[name][0]
 
 
 def tree_cells(classes: np.ndarray | None, class_prob: np.ndarray) -> np.ndarray:

@@ -35,7 +35,8 @@ from modeling.shared.opened_parts import (
     building_segments,
     lowest_around,
     mid_wall_region,
-    unseen_between,
+    under_ceiling,
+    unseen_parts,
     unseen_rim_filled,
 )
 from modeling.shared.raster_ground import vertex_colours
@@ -47,6 +48,7 @@ from workbench.fusion_run import (
     building_cells,
     checked_fusion_run,
     class_map,
+    hidden_ceiling,
     read_fusion_run,
     tree_cells,
 )
@@ -94,6 +96,8 @@ class BlocksInputs:
     boxes: np.ndarray  # (q + 1, 4) r0, r1, c0, c1 of each building with a margin
     segments: np.ndarray | None = None  # (H, W) int: the buildings (automatic supports)
     given: list = field(default_factory=list)  # per building its supports from a file
+    # (H, W) metres over the cells no view saw (fusion.hidden_ceiling), None without one
+    ceiling: np.ndarray | None = None
 
 
 @dataclass
@@ -217,7 +221,10 @@ def model_block(
             opening = 0.0 if options.all_building else options.opening_m
             segments = building_segments(mask, grid.gsd, opening, options.min_area_m2)
             margin = int(np.ceil(options.outline_reach_m / grid.gsd)) + 4
-            inputs = BlocksInputs(grid, dsm, dtm, crowns, _boxes(segments, margin), segments)
+            ceiling = None if options.all_building else hidden_ceiling(fusion_dir, grid,
+                                                                       block.outer)  # fmt: skip
+            inputs = BlocksInputs(grid, dsm, dtm, crowns, _boxes(segments, margin), segments,
+                                  ceiling=ceiling)  # fmt: skip
         q = len(inputs.boxes) - 1
         todo, wide = claims.segments_to_model(block, segments, q, inputs.boxes, last=True)
     with timer.stage("blocks"):
@@ -298,6 +305,7 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
     xs = crop.xmin + (np.arange(crop.width) + 0.5) * g.gsd
     ys = crop.ymax - (np.arange(crop.height) + 0.5) * g.gsd
     min_cells = int(np.ceil(max(options.min_part_m**2, 0.5 * options.min_area_m2) / g.gsd**2))
+    unseen = np.zeros(whole.shape, bool)  # the parts no view saw the outline takes in
     if inputs.segments is not None:
         seg = inputs.segments[r0:r1, c0:c1]
         # the outline and its parts where the whole DSM's walls and steps stand: a
@@ -307,14 +315,22 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
         else:
             reach = int(round(options.unseen_rim_m / g.gsd))
             rim_dsm, rim_dtm = unseen_rim_filled([whole, dtm], seen, reach)
-            mask = mid_wall_region(seg == k, rim_dsm - rim_dtm, (seg > 0) & (seg != k), g.gsd,
+            others = (seg > 0) & (seg != k)
+            mask = mid_wall_region(seg == k, rim_dsm - rim_dtm, others, g.gsd,
                                    options.outline_reach_m)  # fmt: skip
             # the supports' steps on the filled heights too: a NaN reads as the lowest
             whole = rim_dsm
             region = mask & np.isfinite(whole)
-            hidden = unseen_between(region, whole, rim_dtm)
+            ceiling = None if inputs.ceiling is None else inputs.ceiling[r0:r1, c0:c1]
+            reach_cells = int(round(options.outline_reach_m / g.gsd))
+            hidden = unseen_parts(region, whole, rim_dtm, ceiling, reach_cells)
             whole = lowest_around(whole, region, hidden)
-            mask |= hidden
+            unseen = under_ceiling(hidden, whole, ceiling, region)
+            whole[hidden & ~unseen] = np.nan
+            mask |= unseen
+            if unseen.any():  # and the walls beside them: a lower tier's cells some view saw
+                mask |= mid_wall_region(mask, whole - rim_dtm, others, g.gsd,
+                                        options.outline_reach_m)  # fmt: skip
         mask &= np.isfinite(whole)
         supports, regions, off_level = automatic_supports(mask, whole, xs, ys, crop,
                                                       options.min_part_m, min_cells,
@@ -323,8 +339,13 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
         supports = inputs.given[k - 1]
         mask = rasterize_on(unary_union([s.polygon for s in supports]), crop) & np.isfinite(dsm)
         regions, off_level = np.zeros(mask.shape, np.int32), np.zeros(mask.shape, bool)
-    # crowns are no roof: their cells stay out of the likelihood
-    cells = [c & np.isfinite(dsm) for c in support_cells(supports, mask, regions, crop)]
+    # crowns are no roof: their cells stay out of the likelihood; so do the parts no view
+    # saw, but for a support that has nothing else (a lower tier behind the upper one
+    # from every view): it is fitted to the level they were given, or it had no block
+    observed = np.isfinite(dsm)
+    dsm = np.where(unseen, whole, dsm)
+    cells = [c & observed if (c & observed).sum() >= _MIN_CELLS else c & unseen
+             for c in support_cells(supports, mask, regions, crop)]  # fmt: skip
     # the walls blur the DSM next to them: those cells (from the known cells' edge: a
     # filled rim is no roof), and the small levels joined to a region, are left out of the
     # likelihood

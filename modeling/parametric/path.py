@@ -42,9 +42,11 @@ from modeling.shared.in_blocks import (
 )
 from modeling.shared.opened_parts import (
     building_segments,
+    lowest_around,
     mid_wall_region,
     opened_parts,
-    unseen_between,
+    under_ceiling,
+    unseen_parts,
     unseen_rim_filled,
 )
 from modeling.shared.raster_ground import vertex_colours
@@ -55,6 +57,7 @@ from workbench.fusion_run import (
     building_cells,
     checked_fusion_run,
     class_map,
+    hidden_ceiling,
     read_fusion_run,
     tree_cells,
 )
@@ -108,6 +111,8 @@ class ParametricInputs:
     tree: np.ndarray | None = None
     # (H, W) bool: the cells the fusion calls building (None with --all-building)
     building: np.ndarray | None = None
+    # (H, W) metres over the cells no view saw (fusion.hidden_ceiling), None without one
+    ceiling: np.ndarray | None = None
 
 
 @dataclass
@@ -250,10 +255,11 @@ def model_block(
             init, init_source = initial_region(fusion, footprints, claims.whole)
         sources = region_sources(fusion, options)
         prob = fusion.rasters["class_prob"]
-        tree = building = None
+        tree = building = ceiling = None
         if not options.all_building:
             classes = class_map(fusion_dir, grid, block.outer)
             tree, building = tree_cells(classes, prob), building_cells(classes, prob)
+            ceiling = hidden_ceiling(fusion_dir, grid, block.outer)
     pull = None
     results: list[SegmentResult] = []
     rounds = []
@@ -274,7 +280,8 @@ def model_block(
             boxes = segment_boxes(segments, q)
             last = r + 1 == n_rounds
             todo, cut = claims.segments_to_model(block, segments, q, boxes, last)
-            inputs = ParametricInputs(grid, dsm, dtm, rgb, segments, boxes, tree, building)
+            inputs = ParametricInputs(grid, dsm, dtm, rgb, segments, boxes, tree, building,
+                                      ceiling)  # fmt: skip
         with timer.stage("priors_and_roofs" if r == 0 else f"priors_and_roofs_{r + 1}"):
             shared = engine.share(inputs)
             results = list(engine.map(building_task, todo, shared, options,
@@ -420,8 +427,12 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
     # unknown cells are off the building (AHN3 clouds: median RMS 0.486 -> 0.515 m)
     hidden = np.zeros(mask.shape, bool)
     if not options.all_building:
-        hidden = unseen_between(mask & ~unknown & np.isfinite(dsm), dsm, dtm)
+        region = mask & ~unknown & np.isfinite(dsm)
+        ceiling = None if inputs.ceiling is None else inputs.ceiling[r0:r1, c0:c1]
+        reach = int(round(options.outline_reach_m / g.gsd))
+        hidden = unseen_parts(region, dsm, dtm, ceiling, reach)
         hidden &= inputs.segments[r0:r1, c0:c1] == 0
+        hidden = under_ceiling(hidden, lowest_around(dsm, region, hidden), ceiling, region)
     if found is None:
         known, known_dsm = (mask & ~unknown) | hidden, np.where(unknown, np.nan, dsm)
         found = segment_roofs(known, known_dsm, dtm, xs, ys, crop, options, min_cells, lambda_)

@@ -51,6 +51,9 @@ class BuildingShare:
         Their DSM points, world metres.
     dsm, dtm : (h, w) float
         The window's DSM and DTM, metres, NaN unknown.
+    ceiling : (h, w) float or None
+        The fusion's ceiling over the window's cells no view saw, metres
+        (:mod:`fusion.hidden_ceiling`); None without one.
     """
 
     id: int
@@ -60,6 +63,7 @@ class BuildingShare:
     points: SuperpixelPoints
     dsm: np.ndarray
     dtm: np.ndarray
+    ceiling: np.ndarray | None = None
 
     @property
     def known(self) -> np.ndarray:
@@ -95,6 +99,7 @@ def building_shares(
     dsm: np.ndarray,
     dtm: np.ndarray,
     grid: Grid,
+    ceiling: np.ndarray | None = None,
 ) -> list[BuildingShare]:
     """Each building's share of the whole grid (:class:`BuildingShare`).
 
@@ -109,6 +114,8 @@ def building_shares(
     dsm, dtm : (H, W) float
         Metres.
     grid : Grid
+    ceiling : (H, W) float or None
+        The fusion's ceiling over the cells no view saw, metres.
     """
     labels = graph.labels
     n = int(owner.max())
@@ -133,6 +140,7 @@ def building_shares(
         shares.append(BuildingShare(
             b, (int(r0), int(r1), int(c0), int(c1)), grid.window(slice(r0, r1), slice(c0, c1)),
             sub, points_of(pts, members), dsm[r0:r1, c0:c1].copy(), dtm[r0:r1, c0:c1].copy(),
+            None if ceiling is None else ceiling[r0:r1, c0:c1].copy(),
         ))  # fmt: skip
     return shares
 
@@ -178,7 +186,8 @@ def model_building_roofs(
                  heights, X, Y, protos, options.ransac_threshold_m)  # fmt: skip
     crop = observed_faces(crop, share.known, int(round(edge_reach_m / share.grid.gsd)))
     if not options.all_building:  # a cloud of one building: its unknown cells are off it
-        crop = with_unseen_parts(crop, protos, share.dsm, share.dtm, X, Y)
+        crop = with_unseen_parts(crop, protos, share.dsm, share.dtm, X, Y, share.ceiling,
+                                 int(round(edge_reach_m / share.grid.gsd)))  # fmt: skip
     parts = timed("roof_modeling", model_building, crop, share.grid, protos, share.dtm, options)
     counts = {"superpixels": graph.n, "hypotheses": len(hyps), "prototypes": len(protos)}
     for k, part in enumerate(parts):

@@ -28,7 +28,13 @@ from modeling.shared.raster_ground import vertex_colours
 from workbench import metrics
 from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
 from workbench.errors import InputError, WorkbenchError
-from workbench.fusion_run import FusionRun, checked_fusion_run, class_map, read_fusion_run
+from workbench.fusion_run import (
+    FusionRun,
+    checked_fusion_run,
+    class_map,
+    hidden_ceiling,
+    read_fusion_run,
+)
 from workbench.grid_blocks import Block
 from workbench.model_run import Building, ModelRun
 from workbench.parallel import default_workers
@@ -168,9 +174,12 @@ def model_block(
         number = plan.claims.claim(block, segments, q, todo)
         pts = superpixel_points(labels, dsm, grid, wanted=number[owner] > 0)
     with timer.stage("roofs"):
+        ceiling = None if options.all_building else hidden_ceiling(fusion_dir, grid,
+                                                                   block.outer)  # fmt: skip
         buildings, faces, seconds = model_buildings(
-            graph, owner, number, pts, dsm, dtm, grid, options, decided["edge_reach_m"], engine
-        )
+            graph, owner, number, pts, dsm, dtm, grid, options, decided["edge_reach_m"], engine,
+            ceiling,
+        )  # fmt: skip
     for b in buildings:
         b.mesh.vertex_colors = vertex_colours(b.mesh.vertices, fusion.rgb, grid)
     plan.keep_buildings(buildings)
@@ -318,19 +327,22 @@ def model_buildings(
     options: SuperpixelOptions,
     edge_reach_m: float,
     engine: Engine,
+    ceiling: np.ndarray | None = None,
 ) -> tuple[list[Building], np.ndarray, dict]:
     """Sections 5.1-5.3, each building a task of ``engine``
     (:func:`~.building_tasks.model_building_roofs`).
 
     ``owner`` (N,) is each super-pixel's building 1..B (0 none); ``number`` (B + 1,)
-    each building's number on the whole grid, 0 for those another block models.
+    each building's number on the whole grid, 0 for those another block models;
+    ``ceiling`` (H, W) the fusion's over the cells no view saw (None without one).
 
     Returns
     -------
     buildings, (H, W) int32 prototype face of every building cell (1000 * building +
     face), and the seconds the tasks spent in each of ``ROOF_STEPS``, summed.
     """
-    shares = [s for s in building_shares(graph, owner, pts, dsm, dtm, grid) if number[s.id]]
+    shares = [s for s in building_shares(graph, owner, pts, dsm, dtm, grid, ceiling)
+              if number[s.id]]  # fmt: skip
     for s in shares:
         s.id = int(number[s.id])
     faces = np.zeros(graph.labels.shape, np.int32)

@@ -6,7 +6,12 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from modeling.shared.opened_parts import groups_and_rings, nearest_of, unseen_between
+from modeling.shared.opened_parts import (
+    groups_and_rings,
+    nearest_of,
+    under_ceiling,
+    unseen_parts,
+)
 from modeling.shared.roof_mesh import untangle_diagonals
 from modeling.shared.roof_model import closed_roof_model
 from modeling.shared.roof_types import STEEP_DEG
@@ -62,11 +67,15 @@ def with_unseen_parts(
     dtm: np.ndarray,
     X: np.ndarray,
     Y: np.ndarray,
+    ceiling: np.ndarray | None = None,
+    reach: int = 0,
 ) -> np.ndarray:
     """Face labels (``faces``, (h, w) int, face + 1, 0 off the building) with the
-    building's parts no view saw between its known sides
-    (:func:`~modeling.shared.opened_parts.unseen_between`) given, group by group, the
-    lowest of the faces around it less steep than a mansard's lower ones.
+    building's parts no view saw (:func:`~modeling.shared.opened_parts.unseen_parts`,
+    within ``reach`` cells of its least rectangle) given, group by group, the lowest of
+    the faces around it less steep than a mansard's lower ones; the cells whose face
+    would rise above the fusion's ``ceiling`` over them are left out
+    (:func:`~modeling.shared.opened_parts.under_ceiling`).
 
     A lower tier that the upper parts hide from every view is unknown in the fusion, and
     its super-pixels are no building's: the roof would have a notch cut into it down to
@@ -78,10 +87,11 @@ def with_unseen_parts(
     takes the nearest cell's face.
 
     planes : (P, 4) the faces' planes (unit normal up, offset). dsm, dtm : (h, w) float,
-    metres, NaN unknown. X, Y : (h, w) cell centres, metres.
+    metres, NaN unknown. X, Y : (h, w) cell centres, metres. ceiling : (h, w) metres,
+    NaN where the fusion gives none, or None.
     """
     region = (faces > 0) & np.isfinite(dsm)
-    hidden = unseen_between(region, dsm, dtm) & (faces == 0)
+    hidden = unseen_parts(region, dsm, dtm, ceiling, reach) & (faces == 0)
     if not hidden.any():
         return faces
     slope = np.degrees(np.arccos(np.clip(planes[:, 2], -1, 1)))
@@ -94,6 +104,11 @@ def with_unseen_parts(
         z = [plane_heights(planes[k - 1], X[near][group], Y[near][group]).mean()
              for k in around]  # fmt: skip
         out[near][group] = around[int(np.argmin(z))]
+    if ceiling is not None:
+        k = out[hidden] - 1
+        level = np.full(faces.shape, np.nan)
+        level[hidden] = plane_heights(planes[k].T, X[hidden], Y[hidden])  # a plane a cell
+        out[hidden & ~under_ceiling(hidden, level, ceiling, region)] = 0
     return out
 
 
