@@ -174,8 +174,9 @@ def hidden_ceilings(engine: Engine, shared_views, n_views: int, grid: Grid, dsm:
         return out
     columns = hidden_columns(hidden, ground, dsm, grid)
     ceiling = np.full(len(columns.x), np.float32(columns.top), np.float32)
-    for seen in engine.map(view_ceilings, range(n_views), shared_views, columns, tolerance,
-                           stage="ceiling"):  # fmt: skip
+    shared_columns = engine.share(columns)  # a city's are megabytes: sent once
+    for seen in engine.map(view_ceilings, range(n_views), shared_views, shared_columns,
+                           tolerance, stage="ceiling"):  # fmt: skip
         np.minimum(ceiling, seen, out=ceiling)
     out[hidden] = ceiling
     return out

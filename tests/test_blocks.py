@@ -525,9 +525,9 @@ def _tower_with_a_hidden_tier():
     """A 12 m x 10 m building: a 20 m tower (x -6 to 2 m, y -4 to 4 m) and a 10 m tier
     round its north and east sides (2 m and 4 m wide). Every view looks from the west
     and north: the tier's east part is hidden behind the tower, and so is the ground
-    2 m beyond it. The fusion's ceiling over the hidden tier is the rays past the
-    tower's edge (28 - x m, above the tier); over the ground beyond, 5 m: the rays that
-    saw the ground further out passed lower."""
+    2 m beyond it and south of the building. The fusion's ceiling over the hidden tier
+    is the rays past the tower's edge (28 - x m, above the tier); over the ground
+    beyond, 5 m: the rays that saw the ground further out passed lower."""
     grid = Grid(-10.0, 10.0, 0.25, 96, 80)
     X, Y = grid.cell_centers()
     tower = (X > -6) & (X < 2) & (np.abs(Y) < 4)
@@ -535,7 +535,7 @@ def _tower_with_a_hidden_tier():
     dsm = np.where(tower, 20.0, np.where(building, 10.0, 0.0))
     dsm += np.random.default_rng(0).normal(0, 0.03, X.shape)
     tier = building & ~tower & (Y < 4)
-    beyond = (X > 6) & (X < 8) & (Y > -6) & (Y < 4)
+    beyond = ((X > 6) & (X < 8) & (Y > -6) & (Y < 4)) | ((np.abs(X) < 8) & (Y > -6) & (Y < -4))
     dsm[tier | beyond] = np.nan
     ceiling = np.full(X.shape, np.nan)
     ceiling[tier] = 28.0 - X[tier]
@@ -556,7 +556,7 @@ def test_a_hidden_part_is_kept_where_its_level_fits_under_the_ceiling():
     assert not (unseen_between(region, dsm, dtm) & tier).any()
     hidden = unseen_parts(region, dsm, dtm, ceiling, reach=4)
     X, Y = grid.cell_centers()
-    assert (hidden == (tier | (beyond & (X < 7) & (Y > -5)))).all()
+    assert (hidden == (tier | (beyond & (X > -7) & (X < 7) & (Y > -5)))).all()
     levels = lowest_around(dsm, region, hidden)
     np.testing.assert_allclose(levels[hidden], 10.0, atol=0.1)
     assert (under_ceiling(hidden, levels, ceiling, region) == tier).all()
@@ -583,8 +583,9 @@ def test_a_tier_no_view_saw_along_the_outer_side_is_modelled():
         inputs = BlocksInputs(grid, dsm, dtm, None, boxes, segments, ceiling=c)
         areas.append(building_task(1, inputs, BlocksOptions(iterations=2000)).building
                      .footprint.area)  # fmt: skip
-    # measured 122.6 and 67.4 m²
-    assert abs(areas[0] - 120.0) < 4.0 and areas[1] < 70.0
+    # measured 126.7 and 67.4 m²: the unknown rim's cell (unseen_rim_m) on the north
+    # and south sides, where the ground beyond is unknown too
+    assert 118.0 < areas[0] < 129.0 and areas[1] < 70.0
 
 
 def test_a_roof_whose_rim_no_view_kept_reaches_its_wall():

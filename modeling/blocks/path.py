@@ -322,14 +322,14 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
             whole = rim_dsm
             region = mask & np.isfinite(whole)
             ceiling = None if inputs.ceiling is None else inputs.ceiling[r0:r1, c0:c1]
-            reach_cells = int(round(options.outline_reach_m / g.gsd))
-            hidden = unseen_parts(region, whole, rim_dtm, ceiling, reach_cells)
+            hidden = unseen_parts(region, whole, rim_dtm, ceiling,
+                                  int(round(options.outline_reach_m / g.gsd)))  # fmt: skip
             whole = lowest_around(whole, region, hidden)
             unseen = under_ceiling(hidden, whole, ceiling, region)
             whole[hidden & ~unseen] = np.nan
             mask |= unseen
             if unseen.any():  # and the walls beside them: a lower tier's cells some view saw
-                mask |= mid_wall_region(mask, whole - rim_dtm, others, g.gsd,
+                mask |= mid_wall_region((seg == k) | unseen, whole - rim_dtm, others, g.gsd,
                                         options.outline_reach_m)  # fmt: skip
         mask &= np.isfinite(whole)
         supports, regions, off_level = automatic_supports(mask, whole, xs, ys, crop,
@@ -340,11 +340,11 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
         mask = rasterize_on(unary_union([s.polygon for s in supports]), crop) & np.isfinite(dsm)
         regions, off_level = np.zeros(mask.shape, np.int32), np.zeros(mask.shape, bool)
     # crowns are no roof: their cells stay out of the likelihood; so do the parts no view
-    # saw, but for a support that has nothing else (a lower tier behind the upper one
-    # from every view): it is fitted to the level they were given, or it had no block
+    # saw, but for a support that is mostly such a part (a lower tier behind the upper
+    # one from every view): it is fitted to the level they were given, or it had no block
     observed = np.isfinite(dsm)
     dsm = np.where(unseen, whole, dsm)
-    cells = [c & observed if (c & observed).sum() >= _MIN_CELLS else c & unseen
+    cells = [c & unseen if (c & unseen).sum() > 0.5 * c.sum() else c & observed
              for c in support_cells(supports, mask, regions, crop)]  # fmt: skip
     # the walls blur the DSM next to them: those cells (from the known cells' edge: a
     # filled rim is no roof), and the small levels joined to a region, are left out of the

@@ -108,7 +108,8 @@ def with_unseen_parts(
         k = out[hidden] - 1
         level = np.full(faces.shape, np.nan)
         level[hidden] = plane_heights(planes[k].T, X[hidden], Y[hidden])  # a plane a cell
-        out[hidden & ~under_ceiling(hidden, level, ceiling, region)] = 0
+        # reaching the faces, not only their known cells: the rim observed_faces kept
+        out[hidden & ~under_ceiling(hidden, level, ceiling, faces > 0)] = 0
     return out
 
 
