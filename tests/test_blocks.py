@@ -549,8 +549,8 @@ def test_a_hidden_part_is_kept_where_its_level_fits_under_the_ceiling():
     :func:`unseen_between` leaves it out. With the ceiling, the unknown cells within the
     building's rectangle, and up to a metre past it, are candidates; at the tier's level
     (10 m, the lowest around) the tier fits under its ceiling and the ground beyond does
-    not. Below a ceiling of 9 m the tier would not fit either; a roof whose rim alone
-    is unknown gets no skirt from the reach."""
+    not. Nor would the tier under a ceiling less than the margin above its level; a roof
+    whose rim alone is unknown gets no skirt from the reach."""
     grid, building, tier, beyond, dsm, dtm, ceiling = _tower_with_a_hidden_tier()
     region = building & np.isfinite(dsm)
     assert not (unseen_between(region, dsm, dtm) & tier).any()
@@ -559,10 +559,11 @@ def test_a_hidden_part_is_kept_where_its_level_fits_under_the_ceiling():
     assert (hidden == (tier | (beyond & (X > -7) & (X < 7) & (Y > -5)))).all()
     levels = lowest_around(dsm, region, hidden)
     np.testing.assert_allclose(levels[hidden], 10.0, atol=0.1)
-    assert (under_ceiling(hidden, levels, ceiling, region) == tier).all()
-    low = np.where(tier, 9.0, ceiling)
-    assert not under_ceiling(hidden, levels, low, region).any()
-    assert (under_ceiling(hidden, levels, None, region) == hidden).all()
+    assert (under_ceiling(hidden, levels, ceiling, region, 0.5) == tier).all()
+    for over, fits in ((0.4, False), (0.6, True)):  # the margin: 0.5 m
+        near = np.where(tier, levels + over, ceiling)
+        assert (under_ceiling(hidden, levels, near, region, 0.5) == (tier & fits)).all()
+    assert (under_ceiling(hidden, levels, None, region, 0.5) == hidden).all()
     roof = (np.abs(X) < 6) & (np.abs(Y) < 4)
     rim = (np.maximum(np.abs(X) - 5.75, np.abs(Y) - 3.75) > 0) & ~roof
     flat = np.where(roof & ~rim, 10.0, np.where(rim, np.nan, 0.0))

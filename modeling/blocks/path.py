@@ -325,7 +325,7 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
             hidden = unseen_parts(region, whole, rim_dtm, ceiling,
                                   int(round(options.outline_reach_m / g.gsd)))  # fmt: skip
             whole = lowest_around(whole, region, hidden)
-            unseen = under_ceiling(hidden, whole, ceiling, region)
+            unseen = under_ceiling(hidden, whole, ceiling, region, 2 * g.gsd)
             whole[hidden & ~unseen] = np.nan
             mask |= unseen
             if unseen.any():  # and the walls beside them: a lower tier's cells some view saw

@@ -433,7 +433,8 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
         reach = int(round(options.outline_reach_m / g.gsd))
         hidden = unseen_parts(region, dsm, dtm, ceiling, reach)
         hidden &= inputs.segments[r0:r1, c0:c1] == 0
-        hidden = under_ceiling(hidden, lowest_around(dsm, region, hidden), ceiling, region)
+        hidden = under_ceiling(hidden, lowest_around(dsm, region, hidden), ceiling, region,
+                               2 * g.gsd)  # fmt: skip
     if found is None:
         known, known_dsm = (mask & ~unknown) | hidden, np.where(unknown, np.nan, dsm)
         found = segment_roofs(known, known_dsm, dtm, xs, ys, crop, options, min_cells, lambda_)

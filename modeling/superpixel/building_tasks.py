@@ -187,7 +187,8 @@ def model_building_roofs(
     crop = observed_faces(crop, share.known, int(round(edge_reach_m / share.grid.gsd)))
     if not options.all_building:  # a cloud of one building: its unknown cells are off it
         crop = with_unseen_parts(crop, protos, share.dsm, share.dtm, X, Y, share.ceiling,
-                                 int(round(edge_reach_m / share.grid.gsd)))  # fmt: skip
+                                 int(round(edge_reach_m / share.grid.gsd)),
+                                 2 * share.grid.gsd)  # fmt: skip
     parts = timed("roof_modeling", model_building, crop, share.grid, protos, share.dtm, options)
     counts = {"superpixels": graph.n, "hypotheses": len(hyps), "prototypes": len(protos)}
     for k, part in enumerate(parts):

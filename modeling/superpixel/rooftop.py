@@ -69,13 +69,14 @@ def with_unseen_parts(
     Y: np.ndarray,
     ceiling: np.ndarray | None = None,
     reach: int = 0,
+    margin: float = 0.0,
 ) -> np.ndarray:
     """Face labels (``faces``, (h, w) int, face + 1, 0 off the building) with the
     building's parts no view saw (:func:`~modeling.shared.opened_parts.unseen_parts`,
     within ``reach`` cells of its least rectangle) given, group by group, the lowest of
     the faces around it less steep than a mansard's lower ones; the cells whose face
-    would rise above the fusion's ``ceiling`` over them are left out
-    (:func:`~modeling.shared.opened_parts.under_ceiling`).
+    would not stay ``margin`` metres under the fusion's ``ceiling`` over them are left
+    out (:func:`~modeling.shared.opened_parts.under_ceiling`).
 
     A lower tier that the upper parts hide from every view is unknown in the fusion, and
     its super-pixels are no building's: the roof would have a notch cut into it down to
@@ -109,7 +110,7 @@ def with_unseen_parts(
         level = np.full(faces.shape, np.nan)
         level[hidden] = plane_heights(planes[k].T, X[hidden], Y[hidden])  # a plane a cell
         # reaching the faces, not only their known cells: the rim observed_faces kept
-        out[hidden & ~under_ceiling(hidden, level, ceiling, faces > 0)] = 0
+        out[hidden & ~under_ceiling(hidden, level, ceiling, faces > 0, margin)] = 0
     return out
 
 
