@@ -61,12 +61,12 @@ def trusted_depth(depth: np.ndarray) -> np.ndarray:
 def column_ceilings(
     camera: Camera, depth: np.ndarray, columns: HiddenColumns, tolerance: float
 ) -> np.ndarray:
-    """(n,) float32, for each column, the lowest of its tested heights (the multiples of
-    ``step``, from the one below its ``bottom`` up to ``top``: the same heights whatever
-    the other columns, so that a block of the grid gives a column what the whole grid
-    gives it)
-    that the view sees past: the point projects onto a pixel whose depth lies more than
-    ``tolerance`` metres beyond the point's; +inf where the view sees past none of them.
+    """(n,) float32, for each column, the lowest of its tested heights that the view
+    sees past: the point projects onto a pixel whose depth lies more than ``tolerance``
+    metres beyond the point's; +inf where the view sees past none of them. The tested
+    heights are the multiples of ``step`` from the one below the column's ``bottom`` up
+    to ``top``: the same whatever the other columns, so that a block of the grid gives a
+    column what the whole grid gives it.
 
     Parameters
     ----------

@@ -122,10 +122,12 @@ def unseen_parts(
     NaN where it has none: :mod:`fusion.hidden_ceiling`), the views' geometry decides: a
     candidate is any unknown cell within the building's least rectangle (its two
     directions, as :func:`unseen_between` takes them) that reaches the building's known
-    cells (``region``) through unknown ones; a part within it may carry on ``reach``
-    cells past it (the outline's reach: a fusion keeps no roof up to its wall, and the
-    rectangle of the known cells stops short of it). A lower tier along the building's outer
-    side, hidden behind its upper part, has the building on one side only, and
+    cells (``region``) through unknown ones, in groups that border the seen ground for
+    at most a tenth (:func:`off_the_ground`); such a part may carry on ``reach`` cells
+    past the rectangle (the outline's reach: a fusion keeps no roof up to its wall, and
+    the rectangle of the known cells stops short of it). A lower tier along the
+    building's outer side, hidden behind its upper part, has the building on one side
+    only, and
     :func:`unseen_between` left it out: on ``small`` seed 1 a quarter of a 72-79 m
     tower. Elsewhere (a cloud's fusion, a run from another tool) the candidates are
     :func:`unseen_between`'s.
