@@ -27,7 +27,7 @@ from workbench.camera import Camera
 from workbench.engine import Engine
 from workbench.raster import Grid
 
-from .observations import depth_jumps, depth_outliers, near_side
+from .observations import screened_depth
 
 CHUNK_SAMPLES = 1 << 21  # heights tested at once in a view: 50 MB of float64 work arrays
 
@@ -52,10 +52,8 @@ def trusted_depth(depth: np.ndarray) -> np.ndarray:
     and the ramps dense matching draws across depth jumps (:func:`depth_jumps`, but not
     a jump's nearer surface, :func:`near_side`), whose depth floats between the two
     surfaces."""
-    depth = np.where(depth_outliers(depth), np.float32(np.nan), depth).astype(np.float32)
-    jumps = depth_jumps(depth)
-    ramp = jumps & (near_side(depth, jumps) == 0)
-    return np.where(ramp, np.float32(np.nan), depth)
+    depth, jumps, side = screened_depth(depth)
+    return np.where(jumps & (side == 0), np.float32(np.nan), depth).astype(np.float32)
 
 
 def column_ceilings(

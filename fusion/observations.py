@@ -426,6 +426,15 @@ def in_window(window: tuple[slice, slice], shape: tuple[int, int], pixels, xyz):
     return local, xyz[inside]
 
 
+def screened_depth(depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A view's depth map (H, W) with its gross matching errors NaN
+    (:func:`depth_outliers`), the pixels near its jumps (:func:`depth_jumps`) and those
+    of them on a jump's nearer surface (:func:`near_side`), each (H, W)."""
+    depth = np.where(depth_outliers(depth), np.float32(np.nan), depth)
+    jumps = depth_jumps(depth)
+    return depth, jumps, near_side(depth, jumps)
+
+
 def observe(
     camera: Camera, depth: np.ndarray, grid: Grid, *, tolerance: float = 1.0
 ) -> ViewObservations:
@@ -443,10 +452,8 @@ def observe(
         surface, metres (absorbs depth noise and slanted surfaces).
     """
     H, W = depth.shape
-    depth = np.where(depth_outliers(depth), np.float32(np.nan), depth)
     # on the whole image: np.roll compares the pixels by its edges with its far side
-    jumps = depth_jumps(depth)
-    side = near_side(depth, jumps)
+    depth, jumps, side = screened_depth(depth)
     window = grid_window(depth, camera, grid, OBSERVE_MARGIN)
     if window is None:
         none = np.zeros(0, np.int64)

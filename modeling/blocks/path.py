@@ -32,6 +32,7 @@ from modeling.shared.in_blocks import (
     plan_blocks,
 )
 from modeling.shared.opened_parts import (
+    CEILING_MARGIN_CELLS,
     building_segments,
     lowest_around,
     mid_wall_region,
@@ -325,7 +326,8 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
             hidden = unseen_parts(region, whole, rim_dtm, ceiling,
                                   int(round(options.outline_reach_m / g.gsd)))  # fmt: skip
             whole = lowest_around(whole, region, hidden)
-            unseen = under_ceiling(hidden, whole, ceiling, region, 2 * g.gsd)
+            unseen = under_ceiling(hidden, whole, ceiling, region,
+                                   CEILING_MARGIN_CELLS * g.gsd)  # fmt: skip
             whole[hidden & ~unseen] = np.nan
             mask |= unseen
             if unseen.any():  # and the walls beside them: a lower tier's cells some view saw

@@ -41,6 +41,7 @@ from modeling.shared.in_blocks import (
     plan_blocks,
 )
 from modeling.shared.opened_parts import (
+    CEILING_MARGIN_CELLS,
     building_segments,
     lowest_around,
     mid_wall_region,
@@ -434,7 +435,7 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
         hidden = unseen_parts(region, dsm, dtm, ceiling, reach)
         hidden &= inputs.segments[r0:r1, c0:c1] == 0
         hidden = under_ceiling(hidden, lowest_around(dsm, region, hidden), ceiling, region,
-                               2 * g.gsd)  # fmt: skip
+                               CEILING_MARGIN_CELLS * g.gsd)  # fmt: skip
     if found is None:
         known, known_dsm = (mask & ~unknown) | hidden, np.where(unknown, np.nan, dsm)
         found = segment_roofs(known, known_dsm, dtm, xs, ys, crop, options, min_cells, lambda_)

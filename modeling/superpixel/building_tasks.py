@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from modeling.shared.opened_parts import CEILING_MARGIN_CELLS
 from workbench.model_run import Building
 from workbench.raster import Grid
 
@@ -188,7 +189,7 @@ def model_building_roofs(
     if not options.all_building:  # a cloud of one building: its unknown cells are off it
         crop = with_unseen_parts(crop, protos, share.dsm, share.dtm, X, Y, share.ceiling,
                                  int(round(edge_reach_m / share.grid.gsd)),
-                                 2 * share.grid.gsd)  # fmt: skip
+                                 CEILING_MARGIN_CELLS * share.grid.gsd)  # fmt: skip
     parts = timed("roof_modeling", model_building, crop, share.grid, protos, share.dtm, options)
     counts = {"superpixels": graph.n, "hypotheses": len(hyps), "prototypes": len(protos)}
     for k, part in enumerate(parts):
