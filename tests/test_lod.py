@@ -9,6 +9,7 @@ import pytest
 from modeling.lod.arrangement import arrangement_faces, label_faces, planarity_weight
 from modeling.lod.facades import facade_directions
 from modeling.lod.labelling import data_term, fill_holes, mrf_labelling, normalised_height
+from modeling.lod.path import unseen_in_outline
 from modeling.lod.segments import regularise_segments
 from modeling.lod.shapes import roof_directions, roof_planes, snap_to_facades
 from modeling.lod.tree_probability import (
@@ -134,6 +135,43 @@ def test_a_hole_on_a_roof_is_roof_and_a_hole_beside_a_wall_is_ground():
     assert (filled[2:4, 6:9] == 16.0).all()  # from below: the lowest rim is the roof
     assert (filled[6:8, 10:14] == 10.0).all()  # its rim reaches the ground: ground
     assert np.isfinite(filled).all() and (filled[np.isfinite(h)] == h[np.isfinite(h)]).all()
+
+
+def _cracked_roof():
+    """A 10 m roof on rows 10-29, columns 10-29 of 0.25 m cells over ground at 0 m; the
+    mesh has no surface on a crack across it (rows 19-20, columns 10-25) that runs out
+    past its west wall onto hidden ground (column 9, rows 17-22), nor on the hidden
+    ground along its east wall (columns 30-33)."""
+    dsm = np.zeros((40, 40))
+    dsm[10:30, 10:30] = 10.0
+    dsm[19:21, 10:26] = np.nan
+    dsm[17:23, 9] = np.nan
+    dsm[10:30, 30:34] = np.nan
+    return dsm, np.zeros((40, 40))
+
+
+def test_a_crack_across_a_roof_joins_the_outline_and_the_ground_beside_a_wall_does_not():
+    dsm, dtm = _cracked_roof()
+    mask = np.isfinite(dsm) & (dsm > 5.0)
+    hidden, level = unseen_in_outline(mask, dsm, dtm, np.zeros(mask.shape, bool))
+    crack = np.zeros(mask.shape, bool)
+    crack[19:21, 10:26] = True
+    assert (level[crack] == 10.0).all()  # the roof's level around it
+    # the crack has the roof on both sides (north and south); the ground beyond either
+    # wall has it on one side only. Ground-filled (fill_holes), it cut the roof in two.
+    np.testing.assert_array_equal(hidden, crack)
+    assert (fill_holes(dsm, dtm, 2.5)[crack] == 0.0).all()
+
+
+def test_a_crack_another_building_holds_stays_out():
+    dsm, dtm = _cracked_roof()
+    mask = np.isfinite(dsm) & (dsm > 5.0)
+    others = np.zeros(mask.shape, bool)
+    others[19:21, 18:26] = True  # a neighbour's region reaches into the crack
+    hidden = unseen_in_outline(mask, dsm, dtm, others)[0]
+    expected = np.zeros(mask.shape, bool)
+    expected[19:21, 10:18] = True
+    np.testing.assert_array_equal(hidden, expected)
 
 
 def test_the_dtm_goes_on_under_its_holes():

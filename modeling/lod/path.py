@@ -28,7 +28,7 @@ from modeling.shared.in_blocks import (
     each_block,
     plan_blocks,
 )
-from modeling.shared.opened_parts import mid_wall_region
+from modeling.shared.opened_parts import lowest_around, mid_wall_region, touching, unseen_between
 from modeling.shared.raster_ground import dtm_across_holes, vertex_colours
 from modeling.shared.roof_model import closed_roof_model
 from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
@@ -362,13 +362,17 @@ def building_lod(
     seg = parts[r0:r1, c0:c1]
     # the outline where the mesh's rounded walls stand at mid-height
     filled = inputs.filled[r0:r1, c0:c1]
-    mask = mid_wall_region(seg == k, filled - dtm, (seg > 0) & (seg != k), g.gsd,
-                           options.outline_reach_m)  # fmt: skip
+    others = (seg > 0) & (seg != k)
+    mask = mid_wall_region(seg == k, filled - dtm, others, g.gsd, options.outline_reach_m)
+    hidden, level = unseen_in_outline(mask, dsm, dtm, others)
+    mask |= hidden
     if mask.sum() * g.gsd**2 < options.min_area_m2:
         return "under --min-area at its walls' mid-height", np.zeros(mask.shape, np.int64), win
     normal = _normals(inputs.normal, dsm, g.gsd, win)
     X, Y = crop.cell_centers()
     points = np.dstack([X, Y, dsm])
+    # the faces over the hidden parts are labelled at their level, planes fit seen cells
+    faces_points = np.dstack([X, Y, np.where(hidden, level, dsm)])
     # 5.1 facade directions
     theta, share = facade_directions(wall_normals(normal, dsm, g.gsd, _ring(mask)),
                                      options.angle_threshold, seed=options.seed + k)  # fmt: skip
@@ -400,7 +404,7 @@ def building_lod(
             return "no height in the DSM", np.zeros(mask.shape, np.int64), win
         planes = np.array([[0.0, 0.0, 1.0, -z]])
     # 5.4 faces labelled with planes
-    face_plane = label_faces(faces, points, planes, options.beta, g.gsd)
+    face_plane = label_faces(faces, faces_points, planes, options.beta, g.gsd)
     plane_raster = np.where(faces > 0, face_plane[np.maximum(faces, 1) - 1] + 1, 0)
     b = lod_models(plane_raster, crop, planes, dsm, dtm, mask, options)
     if b is None:
@@ -416,6 +420,31 @@ def building_lod(
         "seconds": round(time.perf_counter() - t0, 3),
     })  # fmt: skip
     return b, plane_raster, win
+
+
+def unseen_in_outline(mask, dsm, dtm, others) -> tuple[np.ndarray, np.ndarray]:
+    """The building's parts the mesh has no surface for, to join its outline: (h, w) bool
+    the unknown cells between its cells with a height (``mask``) along one of its two
+    directions, in groups that do not border the seen ground
+    (:func:`~modeling.shared.opened_parts.unseen_between`, as the other paths take them
+    in), not another building's (``others``); and (h, w) metres ``dsm`` with them at
+    their level, the lowest of the building's heights around them
+    (:func:`~modeling.shared.opened_parts.lowest_around`: what no view saw lies below
+    what hid it).
+
+    A mesh from depth maps has no surface where no view saw one: a lower tier behind a
+    taller one, and cracks where its voxel blocks meet. :func:`~.labelling.fill_holes`
+    gives a hole that reaches the ground anywhere the ground's height, and the outline
+    cut a notch there. The arrangement's faces over such cells are labelled with the
+    plane nearest their level (:func:`~.arrangement.label_faces`); the planes are fitted
+    to the seen cells only. A views fusion's ceiling (``ceiling.tif``) is not read: the
+    cells it lets in beside the walls joined the outlines at the roofs' level (seed 0's
+    views fusion: 2D quality 0.928 without it, 0.915 with it, against 0.923 with neither).
+    dsm : (h, w) metres, NaN unknown; dtm : (h, w) metres, known everywhere."""
+    region = mask & np.isfinite(dsm)
+    hidden = unseen_between(region, dsm, dtm) & ~others
+    hidden = touching(hidden, region)
+    return hidden, lowest_around(dsm, region, hidden)
 
 
 def lod_models(
