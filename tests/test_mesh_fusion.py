@@ -268,6 +268,29 @@ def test_mesh_refuses_an_existing_file_and_a_view_without_depth(tiny_scene, tmp_
     assert proc.returncode == 2 and "PLY" in proc.stderr
 
 
+def test_a_view_that_touches_no_voxel_block_adds_nothing(tiny_scene, tmp_path):
+    """A view whose depth inside the area is one pixel by the image's border (an oblique
+    view that grazes the area: small seed 0's v002_E over part of the scene) touches no
+    voxel block; Open3D aborted the whole integration on it. It is skipped."""
+    import dataclasses
+
+    import fusion.scene_mesh as sm
+
+    scene = load_scene(tiny_scene)
+    v = scene.views[2]  # v000_E, whose second column sees the area from row 317
+    depth = v.read_depth()
+    one = np.full(depth.shape, np.nan, np.float32)
+    one[-18, 1] = depth[-18, 1]
+    assert sm.in_bounds(np.nan_to_num(one), v.camera, scene.bounds)[-18, 1] > 0
+    np.save(tmp_path / "one.npy", one)
+    grazing = dataclasses.replace(v, id="grazing", depth_path=tmp_path / "one.npy")
+    few = dataclasses.replace(scene, views=scene.views[5:7])
+    alone = integrate_views(few)
+    with_it = integrate_views(dataclasses.replace(few, views=[grazing, *few.views]))
+    assert np.array_equal(with_it.vertices, alone.vertices)
+    assert np.array_equal(with_it.triangles, alone.triangles)
+
+
 def test_a_tiled_mesh_is_the_whole_grid_s_mesh(mesh_fusion, tiny_scene, tmp_path):
     """Nine tiles of 30 m (the last ones cut by the 64 m area; each grid a block wider
     each side), written one after another, give the mesh of one grid over the area: the
