@@ -433,7 +433,9 @@ def unseen_in_outline(mask, dsm, dtm, others) -> tuple[np.ndarray, np.ndarray]:
     what hid it).
 
     A mesh from depth maps has no surface where no view saw one: a lower tier behind a
-    taller one, and cracks where its voxel blocks meet. :func:`~.labelling.fill_holes`
+    taller one, and cracks across a roof near its far edge (on ``small`` seed 0, the
+    mesh's unknown cells that the views' fusion knows are nearly twice as common on the
+    rows and columns where its 2 m voxel blocks meet). :func:`~.labelling.fill_holes`
     gives a hole that reaches the ground anywhere the ground's height, and the outline
     cut a notch there. The arrangement's faces over such cells are labelled with the
     plane nearest their level (:func:`~.arrangement.label_faces`); the planes are fitted
