@@ -2,6 +2,7 @@
 (`workbench fusion --mesh`): hand-computed planes, a texture, the tiny city against its
 truth, a modeling path run from it, and bad meshes refused in one line."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -11,6 +12,7 @@ from fusion.mesh_sampling import SurfaceMesh, orthogonal_sampling, read_surface_
 from fusion.scene_mesh import (
     fitting_tile_m,
     grid_bytes,
+    in_bounds,
     integrate_views,
     largest_tile_m,
     mesh_tiles,
@@ -272,16 +274,12 @@ def test_a_view_that_touches_no_voxel_block_adds_nothing(tiny_scene, tmp_path):
     """A view whose depth inside the area is one pixel by the image's border (an oblique
     view that grazes the area: small seed 0's v002_E over part of the scene) touches no
     voxel block; Open3D aborted the whole integration on it. It is skipped."""
-    import dataclasses
-
-    import fusion.scene_mesh as sm
-
     scene = load_scene(tiny_scene)
     v = scene.views[2]  # v000_E, whose second column sees the area from row 317
     depth = v.read_depth()
     one = np.full(depth.shape, np.nan, np.float32)
     one[-18, 1] = depth[-18, 1]
-    assert sm.in_bounds(np.nan_to_num(one), v.camera, scene.bounds)[-18, 1] > 0
+    assert in_bounds(np.nan_to_num(one), v.camera, scene.bounds)[-18, 1] > 0
     np.save(tmp_path / "one.npy", one)
     grazing = dataclasses.replace(v, id="grazing", depth_path=tmp_path / "one.npy")
     few = dataclasses.replace(scene, views=scene.views[5:7])
