@@ -32,12 +32,9 @@ from modeling.shared.in_blocks import (
     plan_blocks,
 )
 from modeling.shared.opened_parts import (
-    CEILING_MARGIN_CELLS,
     building_segments,
-    lowest_around,
     mid_wall_region,
-    under_ceiling,
-    unseen_parts,
+    unseen_at_level,
     unseen_rim_filled,
 )
 from modeling.shared.raster_ground import vertex_colours
@@ -323,12 +320,9 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
             whole = rim_dsm
             region = mask & np.isfinite(whole)
             ceiling = None if inputs.ceiling is None else inputs.ceiling[r0:r1, c0:c1]
-            hidden = unseen_parts(region, whole, rim_dtm, ceiling,
-                                  int(round(options.outline_reach_m / g.gsd)))  # fmt: skip
-            whole = lowest_around(whole, region, hidden)
-            unseen = under_ceiling(hidden, whole, ceiling, region,
-                                   CEILING_MARGIN_CELLS * g.gsd)  # fmt: skip
-            whole[hidden & ~unseen] = np.nan
+            unseen, whole = unseen_at_level(region, whole, rim_dtm, ceiling,
+                                            int(round(options.outline_reach_m / g.gsd)),
+                                            g.gsd)  # fmt: skip
             mask |= unseen
             if unseen.any():  # and the walls beside them: a lower tier's cells some view saw
                 mask |= mid_wall_region((seg == k) | unseen, whole - rim_dtm, others, g.gsd,

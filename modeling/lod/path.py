@@ -28,7 +28,7 @@ from modeling.shared.in_blocks import (
     each_block,
     plan_blocks,
 )
-from modeling.shared.opened_parts import lowest_around, mid_wall_region, touching, unseen_between
+from modeling.shared.opened_parts import mid_wall_region, touching, unseen_at_level
 from modeling.shared.raster_ground import dtm_across_holes, vertex_colours
 from modeling.shared.roof_model import closed_roof_model
 from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
@@ -444,9 +444,10 @@ def unseen_in_outline(mask, dsm, dtm, others) -> tuple[np.ndarray, np.ndarray]:
     views fusion: 2D quality 0.928 without it, 0.915 with it, against 0.923 with neither).
     dsm : (h, w) metres, NaN unknown; dtm : (h, w) metres, known everywhere."""
     region = mask & np.isfinite(dsm)
-    hidden = unseen_between(region, dsm, dtm) & ~others
-    hidden = touching(hidden, region)
-    return hidden, lowest_around(dsm, region, hidden)
+    # no ceiling (a mesh's fusion has none), so neither reach nor margin applies; a group
+    # another building's cells cut off from this one's stays out
+    hidden, level = unseen_at_level(region, dsm, dtm, None, 0, 0.0, exclude=others)
+    return touching(hidden, region), level
 
 
 def lod_models(

@@ -41,13 +41,10 @@ from modeling.shared.in_blocks import (
     plan_blocks,
 )
 from modeling.shared.opened_parts import (
-    CEILING_MARGIN_CELLS,
     building_segments,
-    lowest_around,
     mid_wall_region,
     opened_parts,
-    under_ceiling,
-    unseen_parts,
+    unseen_at_level,
     unseen_rim_filled,
 )
 from modeling.shared.raster_ground import vertex_colours
@@ -432,10 +429,8 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
         region = mask & ~unknown & np.isfinite(dsm)
         ceiling = None if inputs.ceiling is None else inputs.ceiling[r0:r1, c0:c1]
         reach = int(round(options.outline_reach_m / g.gsd))
-        hidden = unseen_parts(region, dsm, dtm, ceiling, reach)
-        hidden &= inputs.segments[r0:r1, c0:c1] == 0
-        hidden = under_ceiling(hidden, lowest_around(dsm, region, hidden), ceiling, region,
-                               CEILING_MARGIN_CELLS * g.gsd)  # fmt: skip
+        hidden, _ = unseen_at_level(region, dsm, dtm, ceiling, reach, g.gsd,
+                                    exclude=inputs.segments[r0:r1, c0:c1] != 0)  # fmt: skip
     if found is None:
         known, known_dsm = (mask & ~unknown) | hidden, np.where(unknown, np.nan, dsm)
         found = segment_roofs(known, known_dsm, dtm, xs, ys, crop, options, min_cells, lambda_)

@@ -186,6 +186,37 @@ def under_ceiling(
     return touching(fits, region)
 
 
+def unseen_at_level(
+    region: np.ndarray,
+    dsm: np.ndarray,
+    dtm: np.ndarray,
+    ceiling: np.ndarray | None,
+    reach: int,
+    gsd: float,
+    exclude: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The building's parts no view saw that its outline takes in, and their level:
+    (h, w) bool the cells of :func:`unseen_parts` (not of ``exclude``, another
+    building's) whose level, the lowest of the building's heights around them
+    (:func:`lowest_around`), stays :data:`CEILING_MARGIN_CELLS` cells of ``gsd`` metres
+    under the fusion's ``ceiling`` (:func:`under_ceiling`); and (h, w) metres ``dsm``
+    with those cells at that level (a new array). The raster paths' one sequence of
+    these steps; the super-pixel path gives a part the level of a roof face instead
+    (:func:`~modeling.superpixel.rooftop.with_unseen_parts`).
+
+    region : (h, w) bool, the building's cells with a height. dsm, dtm : (h, w) float,
+    metres, NaN unknown. ceiling : (h, w) metres, NaN where the fusion gives none, or
+    None. reach : cells past the building's least rectangle (:func:`unseen_parts`)."""
+    hidden = unseen_parts(region, dsm, dtm, ceiling, reach)
+    if exclude is not None:
+        hidden &= ~exclude
+    level = lowest_around(dsm, region, hidden)
+    kept = under_ceiling(hidden, level, ceiling, region, CEILING_MARGIN_CELLS * gsd)
+    dropped = hidden & ~kept
+    level[dropped] = dsm[dropped]
+    return kept, level
+
+
 def touching(cells: np.ndarray, region: np.ndarray) -> np.ndarray:
     """(h, w) bool the 8-connected groups of ``cells`` that touch ``region`` (both
     (h, w) bool)."""
