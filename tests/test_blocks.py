@@ -25,9 +25,11 @@ from modeling.blocks.rjmcmc import Pair, SupportData, _Chain, anneal, form_sweep
 from modeling.blocks.supports import (
     Support,
     connected_rectangles,
+    gap_supports,
     height_regions,
     junction_sides,
     neighbour_pairs,
+    rectangle_frame,
     supports_from_file,
 )
 from modeling.shared.footprint_priors import Prior
@@ -44,6 +46,7 @@ from tests.conftest import run_cli
 from workbench.errors import InputError
 from workbench.meshes import is_watertight
 from workbench.raster import Grid
+from workbench.truth import TopDown
 
 FREE = (False, False, False, False)
 FRAME = Frame(0.0, (0.0, 0.0), (0.0, 10.0, 0.0, 6.0))  # 10 m along u, 6 m along v
@@ -292,6 +295,37 @@ def test_a_tower_whose_tiers_cross_at_slivers_closes_from_the_raster():
     assert roof[:, 2].max() == pytest.approx(63.3277) and roof[:, 2].min() == pytest.approx(55.7371)
 
 
+def test_a_gap_narrower_than_a_support_is_filled_not_a_slot():
+    """A 16 m x 12 m building whose supports (a podium's south part at 10 m, a tower at
+    20 m) leave a 0.8 m strip between them, narrower than ``min_part_m`` (3 m) allows a
+    support: the blocks' envelope goes down to the ground there, a slot through the
+    building. :func:`gap_supports` makes the strip a support of its own, which a flat
+    block closes. A 4 m gap (a courtyard a support fits) and a strip off the building's
+    cells (an alley) are not filled."""
+    grid = Grid(-10.0, 8.0, 0.25, 80, 64)
+    X, Y = grid.cell_centers()
+    mask = (np.abs(X) < 8) & (np.abs(Y) < 6)
+    south, tower = box(-8, -6, 8, -2), box(-8, -1.2, 8, 6)
+    supports = [Support(p, rectangle_frame(p), 1) for p in (south, tower)]
+    gaps = gap_supports(supports, mask, grid, 3.0)
+    assert len(gaps) == 1 and gaps[0].polygon.symmetric_difference(box(-8, -2, 8, -1.2)).area < 1e-6
+    assert not gap_supports(supports, mask & ~((Y > -2) & (Y < -1.2)), grid, 3.0)
+    wide = [Support(p, rectangle_frame(p), 1) for p in (box(-8, -6, -2, 6), box(2, -6, 8, 6))]
+    assert not gap_supports(wide, mask, grid, 3.0)
+    blocks = [Block("flat", 0, False, (10.0,)), Block("flat", 0, False, (20.0,))]
+    covered = []
+    for extra, more in (([], []), (gaps, [Block("flat", 0, False, (15.0,))])):
+        _, _, _, solid, closed = closed_solid(blocks + more, supports + extra,
+                                              [FREE] * (2 + len(extra)), 0.0)  # fmt: skip
+        assert closed
+        ids, top, _ = TopDown(solid.vertices, solid.triangles, np.ones(len(solid.triangles)),
+                              grid).window(slice(0, grid.height), slice(0, grid.width))  # fmt: skip
+        covered.append((ids > 0)[mask].mean())
+    strip = mask & (Y > -1.9) & (Y < -1.3)
+    assert covered[0] == pytest.approx(1 - strip.sum() / mask.sum(), abs=0.01)  # the slot
+    assert covered[1] == 1.0 and np.allclose(top[strip], 15.0)
+
+
 def test_flat_fallback_is_the_roofs_median():
     """The last mesh attempt's block: flat at the median of the roof over its support."""
     support = Support(box(0, 0, 10, 6), FRAME)
@@ -367,14 +401,15 @@ def test_blocks_end_to_end_from_fused_rasters(blocks_run):
 
 
 def test_blocks_summary_counts_the_forms_the_sweep_changed(blocks_run):
-    """The command's summary: the blocks per form, and how many the zero-temperature
-    sweep changed, from model.json's buildings."""
+    """The command's summary: the blocks per form, how many the zero-temperature sweep
+    changed and the gaps filled flat, from model.json's buildings."""
     _, model, _ = blocks_run
     lines = summary_lines(model, model["buildings"])
     switched = sum(b["zero_temperature"]["forms_switched"] for b in model["buildings"])
-    blocks = sum(len(b["supports"]) for b in model["buildings"])
-    assert f"{blocks} blocks" in lines[0]
-    assert lines[1].endswith(f"({switched} changed form at zero temperature)")
+    supports = [s for b in model["buildings"] for s in b["supports"]]
+    gaps = sum(bool(s.get("gap")) for s in supports)
+    assert f"{len(supports) - gaps} blocks" in lines[0]
+    assert f"({switched} changed form at zero temperature); {gaps} gaps" in lines[1]
 
 
 def test_blocks_from_given_supports(blocks_run, tiny_fusion, tmp_path):

@@ -66,6 +66,7 @@ from .supports import (
     Support,
     automatic_supports,
     carried_polygon,
+    gap_supports,
     junction_sides,
     junction_strips,
     neighbour_pairs,
@@ -371,10 +372,17 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
                     seed=[options.seed, k])  # fmt: skip
     anneal_s = time.perf_counter() - t_anneal
     blocks = result.blocks
+    # the gaps between the supports too narrow for one, each a flat block at the level of
+    # the DSM in it: left open, each is a slot down to the ground
+    gaps = [] if inputs.segments is None else gap_supports(supports, mask, crop,
+                                                           options.min_part_m)  # fmt: skip
+    gap_blocks = [Block("flat", 0, False, (_gap_level(g_, whole, crop, blocks),)) for g_ in gaps]
+    all_supports, all_ends = supports + gaps, ends + [(False,) * 4] * len(gaps)
     ground = dtm[mask & np.isfinite(dtm)]
     roof_low = min(min(float(d.z.min()) for d in data), min(b.gutter for b in blocks))
     base_z = min(float(np.min(ground)) if len(ground) else roof_low - 3.0, roof_low - 0.5)
-    how, meshed, faces, solid, closed = closed_solid(blocks, supports, ends, base_z, strips, crop)
+    how, meshed, faces, solid, closed = closed_solid(blocks + gap_blocks, all_supports, all_ends,
+                                                     base_z, strips, crop)  # fmt: skip
     planes, areas = face_planes([f for fs in faces for f in fs])
     residual = np.concatenate([d.heights(b) - d.z for d, b in zip(data, blocks, strict=True)])
     warnings = []
@@ -387,9 +395,13 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
         "supports": [
             dict(s.record(), block=b.record(), junction_sides=[bool(x) for x in e])
             for s, b, e in zip(supports, blocks, ends, strict=True)
-        ],  # fmt: skip
+        ]
+        + [
+            dict(s.record(), block=b.record(), gap=True)
+            for s, b in zip(gaps, gap_blocks, strict=True)
+        ],
         "neighbours": [[p.i, p.j] for p in pairs],
-        "face_blocks": face_blocks(solid, supports, meshed, ends),
+        "face_blocks": face_blocks(solid, all_supports, meshed, all_ends),
         "meshed": how,
         "energy": round(result.energy, 4),
         "likelihood": round(float(sum(result.likelihoods)), 4),
@@ -413,17 +425,25 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
         "annealing_seconds": round(anneal_s, 3),
         "seconds": round(time.perf_counter() - t0, 3),
     }
-    outline = unary_union([s.polygon for s in supports])
+    outline = unary_union([s.polygon for s in all_supports])
     building = Building(
         str(k), Surface(solid.vertices, solid.triangles),
         "1.3" if all(b.form == "flat" for b in meshed) else "2.2", footprint=outline,
-        roof_type=building_roof_type(meshed, [s.polygon.area for s in supports]),
+        roof_type=building_roof_type(meshed, [s.polygon.area for s in all_supports]),
         planes=planes, plane_areas=areas, base_z=base_z,
         eave_z=min(b.gutter for b in blocks), ridge_z=float(solid.vertices[:, 2].max()),
         watertight=closed, record=record,
     )  # fmt: skip
-    return BuildingResult(k, building, supports=[mapping(s.polygon) for s in supports],
-                          forms=[b.form for b in blocks], trace=result.trace)  # fmt: skip
+    return BuildingResult(k, building, supports=[mapping(s.polygon) for s in all_supports],
+                          forms=[b.form for b in blocks + gap_blocks],
+                          trace=result.trace)  # fmt: skip
+
+
+def _gap_level(gap: Support, dsm: np.ndarray, grid: Grid, blocks: list[Block]) -> float:
+    """A gap's flat level: the median of ``dsm`` ((h, w) on ``grid``, metres) on its
+    cells; where it has none, the lowest block's gutter."""
+    z = dsm[rasterize_on(gap.polygon, grid) & np.isfinite(dsm)]
+    return float(np.median(z)) if len(z) else min(b.gutter for b in blocks)
 
 
 def closed_solid(blocks: list[Block], supports: list[Support], ends, base_z: float,
@@ -551,10 +571,13 @@ def summary_lines(record: dict, buildings=()) -> list[str]:
     """What ``workbench model blocks`` prints beside the counts (``buildings``: model.json's
     building records, read once)."""
     forms: dict[str, int] = {}
-    warned = switched = 0
+    warned = switched = gaps = 0
     for b in buildings:
         for s in b["supports"]:
-            forms[s["block"]["form"]] = forms.get(s["block"]["form"], 0) + 1
+            if s.get("gap"):
+                gaps += 1
+            else:
+                forms[s["block"]["form"]] = forms.get(s["block"]["form"], 0) + 1
         warned += bool(b["warnings"])
         switched += b["zero_temperature"]["forms_switched"]
     return [
@@ -562,7 +585,8 @@ def summary_lines(record: dict, buildings=()) -> list[str]:
         f"{record['iterations_per_second']:.0f} iterations/s, "
         f"{record['seconds_per_building']} s per building",
         "  blocks: " + ", ".join(f"{k} {v}" for k, v in sorted(forms.items()))
-        + f" ({switched} changed form at zero temperature)",
+        + f" ({switched} changed form at zero temperature); {gaps} gaps between supports "
+        "too narrow for one, flat",
         *([f"  {warned} buildings did not converge (see warnings in model.json)"]
           if warned else []),
         *blocks_lines(record.get("blocks")),

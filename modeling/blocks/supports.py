@@ -151,6 +151,34 @@ def automatic_supports(
     return out, regions, off_level
 
 
+def gap_supports(supports: list[Support], mask: np.ndarray, grid: Grid,
+                 width_m: float) -> list[Support]:  # fmt: skip
+    """Supports for the building's gaps between its supports narrower than ``width_m``:
+    the pieces of the supports' union closed by ``width_m / 2`` (square joins, so that a
+    rectilinear outline keeps its corners) that the union leaves uncovered, each at least
+    a cell wide and at least half on the building's cells ``mask`` ((h, w) on ``grid``).
+
+    No footprint prior has an arm narrower than ``width_m`` (the strip of a tier between a
+    tower's wall and the podium's edge, a leftover part of an outline), and the solid of
+    the blocks is their upper envelope down to the ground: such a strip would be a slot
+    through the building, as deep as the building is tall."""
+    if not supports:
+        return []
+    union = unary_union([s.polygon for s in supports])
+    d = width_m / 2
+    closed = union.buffer(d, join_style="mitre").buffer(-d, join_style="mitre")
+    out = []
+    for piece in getattr(closed.difference(union), "geoms", [closed.difference(union)]):
+        if not isinstance(piece, Polygon) or piece.is_empty or piece.interiors:
+            continue
+        if piece.buffer(-grid.gsd / 2, join_style="mitre").is_empty:
+            continue  # a sliver where the supports' directions differ by a hair
+        cells = rasterize_on(piece, grid)
+        if cells.any() and (cells & mask).sum() >= 0.5 * cells.sum():
+            out.append(Support(piece, rectangle_frame(piece), 0))
+    return out
+
+
 def support_cells(supports: list[Support], mask: np.ndarray, regions: np.ndarray,
                   grid: Grid) -> list[np.ndarray]:  # fmt: skip
     """(h, w) bool cells of each support: the building's cells of its region (any
