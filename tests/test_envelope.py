@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from data_samples.roofs import ROOF_TYPES, Wing, wing_roof_faces
-from modeling.shared.roof_envelope import GRID, _wall_pieces, building_mesh
+from modeling.shared.roof_envelope import GRID, RoofFace, _exclusive, _wall_pieces, building_mesh
 
 
 def _o3d(m):
@@ -56,6 +56,49 @@ def test_stepped_levels_volume():
     m = building_mesh(wing_roof_faces(base, "multi-level", 6.0, tiers=tiers), 0.0)
     expected = 20 * 12 * 6 + 12 * 8 * 6 + 6 * 4 * 8
     assert _closed_volume(m) == pytest.approx(expected, rel=1e-5)
+
+
+def _podium_and_tier():
+    """A podium at 46.53 m and a tier at 56.19 m as the parametric path fitted them on dev
+    seed 9 (its building 23, in the podium's frame): the tier's flat roof, and along its
+    south side a 0.11 m face of a plane rising 11.3 degrees from that side, whose top edge
+    has a vertex at the midpoint of the flat roof's straight south edge."""
+    podium = [RoofFace(np.array([[-4.351818, -7.07053], [4.295166, -7.07053],
+                                 [4.295166, 7.097362], [-4.351818, 7.097362]]),
+                       np.array([0.0, 0.0, 46.527271797]))]  # fmt: skip
+    top = RoofFace(np.array([[2.843111, -3.339889], [2.820884, 4.830842],
+                             [-2.852234, 4.81541], [-2.830008, -3.355321]]),
+                   np.array([0.0, 0.0, 56.191227147]))  # fmt: skip
+    side = RoofFace(np.array([[-2.829702, -3.467609], [2.843416, -3.452177],
+                              [2.843111, -3.339889], [0.006552, -3.347605],
+                              [-2.830008, -3.355321]]),
+                    np.array([-0.000543716, 0.199876783, 56.860339252]))  # fmt: skip
+    return podium, [top, side, top]
+
+
+def _area(xy):
+    return 0.5 * abs(
+        np.dot(xy[:, 0], np.roll(xy[:, 1], 1)) - np.dot(xy[:, 1], np.roll(xy[:, 0], 1))
+    )
+
+
+def test_a_tier_with_a_sliver_face_along_its_side_is_closed_and_on_top():
+    """The vertex in the middle of the tier's side was a node of the sliver's cell only:
+    the flat roof's triangles missed it and the mesh was open along the side (5 unpaired
+    edges); the fallback that gives each wing what the wings before it leave then
+    dropped the tier under the podium listed first: a closed box at the podium's height.
+    Every cell now takes its neighbours' vertices on its boundary, and the fallback
+    takes the highest wing first."""
+    podium, tier = _podium_and_tier()
+    bottom = 40.0
+    inside = _area(podium[0].xy) * (podium[0].plane[2] - bottom)
+    above = _area(tier[0].xy) * (tier[0].plane[2] - podium[0].plane[2])
+    sliver = _area(tier[1].xy) * (tier[0].plane[2] - 0.0112 - podium[0].plane[2])
+    m = building_mesh(podium + tier, bottom)
+    assert _closed_volume(m) == pytest.approx(inside + above + sliver, rel=1e-4)
+    assert m.vertices[:, 2].max() == pytest.approx(56.191227, abs=1e-4)
+    kept = building_mesh(_exclusive([podium, tier]), bottom)
+    assert _closed_volume(kept) == pytest.approx(inside + above + sliver, rel=1e-4)
 
 
 def test_cross_gable_L_has_one_closed_surface():

@@ -183,8 +183,17 @@ def _arrangement(faces: list[RoofFace], polys: list[Polygon]):
                 lines.append(cut)
     noded = shapely.set_precision(shapely.unary_union(lines), GRID)
     noded = shapely.unary_union(noded)  # re-node after snapping
-    cells = [orient(c, 1.0) for c in shapely.get_parts(shapely.polygonize([noded]).geoms)]
-    return [c for c in cells if c.area > 1e-6]
+    cells = [c for c in shapely.get_parts(shapely.polygonize([noded]).geoms) if c.area > 1e-6]
+    # a vertex a hair off its neighbour's straight edge (a face a few centimetres wide
+    # along another's side) is a node of one cell only once snapped: the other cell's
+    # triangles miss it and the mesh is open along the edge. Every cell takes the
+    # vertices the others have on its boundary.
+    if not cells:
+        return []
+    vertices = shapely.MultiPoint(np.concatenate([shapely.get_coordinates(c) for c in cells]))
+    snapped = [shapely.snap(c, vertices, GRID) for c in cells]
+    return [orient(n if isinstance(n, Polygon) and n.is_valid else c, 1.0)
+            for c, n in zip(cells, snapped, strict=True)]  # fmt: skip
 
 
 def building_mesh(faces: list[RoofFace], bottom_z: float) -> BuildingMesh:
@@ -385,9 +394,11 @@ def _to_frame(face: RoofFace, theta: float, origin: np.ndarray) -> RoofFace:
 
 
 def _exclusive(wing_faces_: list[list[RoofFace]]) -> list[RoofFace]:
-    """Each wing's faces less what earlier wings cover."""
+    """Each wing's faces less what higher wings cover (the highest roof point first: a
+    tier keeps its roof, the podium under it loses that part; in the given order, a
+    tier listed after its podium vanished from the mesh)."""
     taken, parts = None, []
-    for faces in wing_faces_:
+    for faces in sorted(wing_faces_, key=lambda fs: -max((_top_z(f) for f in fs), default=-np.inf)):
         outline = unary_union([Polygon(f.xy) for f in faces])
         for f in faces:
             region = Polygon(f.xy) if taken is None else Polygon(f.xy).difference(taken)
@@ -397,3 +408,8 @@ def _exclusive(wing_faces_: list[list[RoofFace]]) -> list[RoofFace]:
                     parts.append(RoofFace(xy, f.plane))
         taken = outline if taken is None else taken.union(outline)
     return parts
+
+
+def _top_z(face: RoofFace) -> float:
+    """The face's highest corner, metres."""
+    return float(np.max(_plane_z(face.plane, face.xy[:, 0], face.xy[:, 1])))
