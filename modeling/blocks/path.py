@@ -376,7 +376,7 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
     # the DSM in it: left open, each is a slot down to the ground
     gaps = [] if inputs.segments is None else gap_supports(supports, mask, crop,
                                                            options.min_part_m)  # fmt: skip
-    gap_blocks = [Block("flat", 0, False, (_gap_level(g_, whole, crop, blocks),)) for g_ in gaps]
+    gap_blocks = [Block("flat", 0, False, (_gap_level(gap, whole, crop, blocks),)) for gap in gaps]
     all_supports, all_ends = supports + gaps, ends + [(False,) * 4] * len(gaps)
     ground = dtm[mask & np.isfinite(dtm)]
     roof_low = min(min(float(d.z.min()) for d in data), min(b.gutter for b in blocks))
