@@ -7,7 +7,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from data_samples.roofs import ROOF_TYPES, Wing, wing_roof_faces
-from modeling.shared.roof_envelope import GRID, RoofFace, _exclusive, _wall_pieces, building_mesh
+from modeling.shared.roof_envelope import (
+    GRID,
+    RoofFace,
+    _exclusive,
+    _wall_pieces,
+    building_mesh,
+    building_solid,
+)
+from workbench.meshes import unpaired_edges
 
 
 def _o3d(m):
@@ -85,19 +93,22 @@ def _area(xy):
 def test_a_tier_with_a_sliver_face_along_its_side_is_closed_and_on_top():
     """The vertex in the middle of the tier's side was a node of the sliver's cell only:
     the flat roof's triangles missed it and the mesh was open along the side (5 unpaired
-    edges); the fallback that gives each wing what the wings before it leave then
+    edges at full precision); the fallback that gives each wing what the wings before it leave then
     dropped the tier under the podium listed first: a closed box at the podium's height.
-    Every cell now takes its neighbours' vertices on its boundary, and the fallback
-    takes the highest wing first."""
+    Where the mesh is open, every cell now takes its neighbours' vertices on its boundary,
+    and the last fallback takes the highest wing first."""
     podium, tier = _podium_and_tier()
     bottom = 40.0
     inside = _area(podium[0].xy) * (podium[0].plane[2] - bottom)
     above = _area(tier[0].xy) * (tier[0].plane[2] - podium[0].plane[2])
     sliver = _area(tier[1].xy) * (tier[0].plane[2] - 0.0112 - podium[0].plane[2])
-    m = building_mesh(podium + tier, bottom)
+    assert len(unpaired_edges(building_mesh(podium + tier, bottom).triangles))  # open
+    m = building_mesh(podium + tier, bottom, snap=True)
     assert _closed_volume(m) == pytest.approx(inside + above + sliver, rel=1e-4)
     assert m.vertices[:, 2].max() == pytest.approx(56.191227, abs=1e-4)
-    kept = building_mesh(_exclusive([podium, tier]), bottom)
+    solid = building_solid([podium, tier], bottom, 0.0, np.zeros(2))  # tries the snap
+    assert _closed_volume(solid) == pytest.approx(inside + above + sliver, rel=1e-4)
+    kept = building_mesh(_exclusive([podium, tier]), bottom, snap=True)
     assert _closed_volume(kept) == pytest.approx(inside + above + sliver, rel=1e-4)
 
 

@@ -159,7 +159,7 @@ def _crossing_ticks(common, d: np.ndarray) -> list:
     return ticks
 
 
-def _arrangement(faces: list[RoofFace], polys: list[Polygon]):
+def _arrangement(faces: list[RoofFace], polys: list[Polygon], snap: bool = False):
     lines = [p.exterior for p in polys]
     for i in range(len(faces)):
         for j in range(i + 1, len(faces)):
@@ -184,19 +184,20 @@ def _arrangement(faces: list[RoofFace], polys: list[Polygon]):
     noded = shapely.set_precision(shapely.unary_union(lines), GRID)
     noded = shapely.unary_union(noded)  # re-node after snapping
     cells = [c for c in shapely.get_parts(shapely.polygonize([noded]).geoms) if c.area > 1e-6]
+    if not snap or not cells:
+        return [orient(c, 1.0) for c in cells]
     # a vertex a hair off its neighbour's straight edge (a face a few centimetres wide
     # along another's side) is a node of one cell only once snapped: the other cell's
     # triangles miss it and the mesh is open along the edge. Every cell takes the
-    # vertices the others have on its boundary.
-    if not cells:
-        return []
+    # vertices the others have on its boundary (as a second try only: snapped cell by
+    # cell, a cell can take a vertex its neighbour does not, and a closed mesh opens)
     vertices = shapely.MultiPoint(np.concatenate([shapely.get_coordinates(c) for c in cells]))
     snapped = [shapely.snap(c, vertices, GRID) for c in cells]
     return [orient(n if isinstance(n, Polygon) and n.is_valid else c, 1.0)
             for c, n in zip(cells, snapped, strict=True)]  # fmt: skip
 
 
-def building_mesh(faces: list[RoofFace], bottom_z: float) -> BuildingMesh:
+def building_mesh(faces: list[RoofFace], bottom_z: float, snap: bool = False) -> BuildingMesh:
     """Mesh the upper envelope of roof faces into a closed solid down to ``bottom_z``.
 
     Parameters
@@ -205,13 +206,16 @@ def building_mesh(faces: list[RoofFace], bottom_z: float) -> BuildingMesh:
         Planar roof faces of all wings, possibly overlapping.
     bottom_z : float
         Height of the bottom face (below the terrain), metres.
+    snap : bool
+        Every cell of the faces' arrangement takes the vertices the other cells have on
+        its boundary (a second try where the mesh was open).
 
     Returns
     -------
     BuildingMesh
     """
     polys = [Polygon(f.xy) for f in faces]
-    cells = _arrangement(faces, polys)
+    cells = _arrangement(faces, polys, snap)
     tops = []
     kept = []
     for c in cells:
@@ -370,12 +374,15 @@ def building_solid(
     The envelope is meshed in the main prior's frame (``theta``, ``origin``), where the
     wings' sides are axis-aligned and their shared corners exactly equal, and turned back:
     rotated, they would be snapped to the mesher's grid apart. Where an edge is still
-    left unpaired, each wing keeps the part of its outline no earlier wing covers, so
-    that no faces overlap."""
+    left unpaired, the arrangement's cells are snapped to each other's vertices; where
+    still, each wing keeps the part of its outline no higher wing covers (so that no
+    faces overlap), unsnapped, then snapped."""
     local = [[_to_frame(f, theta, origin) for f in faces] for faces in wing_faces_]
-    mesh = building_mesh([f for faces in local for f in faces], base_z)
-    if len(unpaired_edges(mesh.triangles)):
-        mesh = building_mesh(_exclusive(local), base_z)
+    every = [f for faces in local for f in faces]
+    for faces, snap in ((every, False), (every, True), (None, False), (None, True)):
+        mesh = building_mesh(_exclusive(local) if faces is None else faces, base_z, snap)
+        if not len(unpaired_edges(mesh.triangles)):
+            break
     c, s = np.cos(theta), np.sin(theta)
     u, v = mesh.vertices[:, 0], mesh.vertices[:, 1]
     mesh.vertices = np.column_stack([origin[0] + c * u - s * v, origin[1] + s * u + c * v,
