@@ -9,6 +9,7 @@ import pytest
 import rasterio
 from affine import Affine
 from shapely.geometry import Polygon, box
+from shapely.ops import unary_union
 
 from modeling.blocks.block_meshes import block_faces
 from modeling.blocks.energy import joinable, likelihood, pair_energy, parameter_distance
@@ -312,6 +313,14 @@ def test_a_gap_narrower_than_a_support_is_filled_not_a_slot():
     assert not gap_supports(supports, mask & ~((Y > -2) & (Y < -1.2)), grid, 3.0)
     wide = [Support(p, rectangle_frame(p), 1) for p in (box(-8, -6, -2, 6), box(2, -6, 8, 6))]
     assert not gap_supports(wide, mask, grid, 3.0)
+    # a 0.8 m ring round a tower's support, inside the podium's: two pieces without holes
+    podium = (box(-8, -6, 8, -3.8), box(-8, 3.8, 8, 6), box(-8, -3.8, -4.8, 3.8),
+              box(4.8, -3.8, 8, 3.8))  # fmt: skip
+    ring = [Support(p, rectangle_frame(p), 1) for p in (box(-4, -3, 4, 3), *podium)]
+    outer = box(-4.8, -3.8, 4.8, 3.8).difference(box(-4, -3, 4, 3))
+    ring_gaps = gap_supports(ring, mask, grid, 3.0)
+    assert len(ring_gaps) == 2 and not any(g.polygon.interiors for g in ring_gaps)
+    assert unary_union([g.polygon for g in ring_gaps]).symmetric_difference(outer).area < 1e-6
     blocks = [Block("flat", 0, False, (10.0,)), Block("flat", 0, False, (20.0,))]
     covered = []
     for extra, more in (([], []), (gaps, [Block("flat", 0, False, (15.0,))])):

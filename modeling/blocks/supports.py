@@ -168,14 +168,29 @@ def gap_supports(supports: list[Support], mask: np.ndarray, grid: Grid,
     d = width_m / 2
     closed = union.buffer(d, join_style="mitre").buffer(-d, join_style="mitre")
     out = []
-    for piece in getattr(closed.difference(union), "geoms", [closed.difference(union)]):
-        if not isinstance(piece, Polygon) or piece.is_empty or piece.interiors:
-            continue
+    for piece in _without_holes(closed.difference(union)):
         if piece.buffer(-grid.gsd / 2, join_style="mitre").is_empty:
             continue  # a sliver where the supports' directions differ by a hair
         cells = rasterize_on(piece, grid)
         if cells.any() and (cells & mask).sum() >= 0.5 * cells.sum():
             out.append(Support(piece, rectangle_frame(piece), 0))
+    return out
+
+
+def _without_holes(geom) -> list[Polygon]:
+    """The polygons of ``geom``, each with holes cut in two along the row through its
+    first hole's centre (a gap all round a tower is a ring; a support has no hole)."""
+    out = []
+    for piece in getattr(geom, "geoms", [geom]):
+        if not isinstance(piece, Polygon) or piece.is_empty:
+            continue
+        if not piece.interiors:
+            out.append(piece)
+            continue
+        x0, y0, x1, y1 = piece.bounds
+        y = Polygon(piece.interiors[0]).centroid.y
+        for half in (box(x0, y0, x1, y), box(x0, y, x1, y1)):
+            out += _without_holes(piece.intersection(half))
     return out
 
 

@@ -378,9 +378,17 @@ def building_solid(
     still, each wing keeps the part of its outline no higher wing covers (so that no
     faces overlap), unsnapped, then snapped."""
     local = [[_to_frame(f, theta, origin) for f in faces] for faces in wing_faces_]
-    every = [f for faces in local for f in faces]
-    for faces, snap in ((every, False), (every, True), (None, False), (None, True)):
-        mesh = building_mesh(_exclusive(local) if faces is None else faces, base_z, snap)
+
+    def attempts():  # made only when the ones before did not close
+        every = [f for faces in local for f in faces]
+        yield every, False
+        yield every, True
+        exclusive = _exclusive(local)
+        yield exclusive, False
+        yield exclusive, True
+
+    for faces, snap in attempts():
+        mesh = building_mesh(faces, base_z, snap)
         if not len(unpaired_edges(mesh.triangles)):
             break
     c, s = np.cos(theta), np.sin(theta)
