@@ -37,13 +37,16 @@ class HiddenColumns:
     """The columns to test: the unknown cells' centres (``x``, ``y``, metres, (n,)), the
     height each column starts at (``bottom``, (n,) metres: the ground under it) and the
     height none needs to be tested above (``top``: the highest surface of the grid), and
-    the step between tested heights (metres)."""
+    the step between tested heights (metres); ``limit`` ((n,) metres, optional): the
+    height each column needs no test above (:mod:`fusion.free_space`), columns in its
+    order test fewer heights."""
 
     x: np.ndarray
     y: np.ndarray
     bottom: np.ndarray
     top: float
     step: float
+    limit: np.ndarray | None = None
 
 
 def trusted_depth(depth: np.ndarray) -> np.ndarray:
@@ -63,8 +66,8 @@ def column_ceilings(
     sees past: the point projects onto a pixel whose depth lies more than ``tolerance``
     metres beyond the point's; +inf where the view sees past none of them. The tested
     heights are the multiples of ``step`` from the one below the column's ``bottom`` up
-    to ``top``: the same whatever the other columns, so that a block of the grid gives a
-    column what the whole grid gives it.
+    to ``top`` (and to the column's ``limit`` where given): the same whatever the other
+    columns, so that a block of the grid gives a column what the whole grid gives it.
 
     Parameters
     ----------
@@ -98,7 +101,12 @@ def column_ceilings(
         idx = np.flatnonzero(seen[a : a + rows]) + a
         if not len(idx):
             continue
-        pc = [cam0[idx, k][:, None] + rise[None, :] * up[k] for k in range(3)]
+        tested = heights
+        if columns.limit is not None:
+            tested = heights[: np.searchsorted(heights, columns.limit[idx].max(), "right")]
+            if not len(tested):
+                continue
+        pc = [cam0[idx, k][:, None] + rise[None, : len(tested)] * up[k] for k in range(3)]
         with np.errstate(divide="ignore", invalid="ignore"):
             u, v = camera.project_camera_frame(pc[0], pc[1], pc[2])
         u, v = np.rint(u), np.rint(v)
@@ -107,10 +115,12 @@ def column_ceilings(
         observed = flat_depth[pixel]
         with np.errstate(invalid="ignore"):  # NaN depths compare False
             past = inside & (observed > pc[2] + tolerance)
-        past &= heights[None, :] >= columns.bottom[idx, None] - step
+        past &= tested[None, :] >= columns.bottom[idx, None] - step
+        if columns.limit is not None:
+            past &= tested[None, :] <= columns.limit[idx, None]
         first = past.argmax(axis=1)
         any_past = past[np.arange(len(idx)), first]
-        out[idx] = np.where(any_past, heights[first], np.inf)
+        out[idx] = np.where(any_past, tested[first], np.inf)
     return out
 
 
@@ -167,15 +177,30 @@ def hidden_ceilings(engine: Engine, shared_views, n_views: int, grid: Grid, dsm:
     tolerance : float
         The fusion's visibility tolerance, metres.
     """
-    hidden = ~np.isfinite(dsm)
-    out = np.full(grid.shape, np.nan, np.float32)
-    if not hidden.any():
-        return out
-    columns = hidden_columns(hidden, ground, dsm, grid)
+    hidden, columns = hidden_columns_of(dsm, ground, grid)
     ceiling = np.full(len(columns.x), np.float32(columns.top), np.float32)
-    shared_columns = engine.share(columns)  # a city's are megabytes: sent once
-    for seen in engine.map(view_ceilings, range(n_views), shared_views, shared_columns,
-                           tolerance, stage="ceiling"):  # fmt: skip
-        np.minimum(ceiling, seen, out=ceiling)
+    if len(columns.x):
+        shared_columns = engine.share(columns)  # a city's are megabytes: sent once
+        for seen in engine.map(view_ceilings, range(n_views), shared_views, shared_columns,
+                               tolerance, stage="ceiling"):  # fmt: skip
+            np.minimum(ceiling, seen, out=ceiling)
+    return ceiling_raster(hidden, ceiling)
+
+
+def hidden_columns_of(dsm: np.ndarray, ground: np.ndarray,
+                      grid: Grid) -> tuple[np.ndarray, HiddenColumns]:  # fmt: skip
+    """The cells ``dsm`` leaves unknown ((H, W) bool) and their :func:`hidden_columns`
+    (none when there are none)."""
+    hidden = ~np.isfinite(dsm)
+    if not hidden.any():
+        none = np.zeros(0)
+        return hidden, HiddenColumns(none, none, none, 0.0, grid.gsd)
+    return hidden, hidden_columns(hidden, ground, dsm, grid)
+
+
+def ceiling_raster(hidden: np.ndarray, ceiling: np.ndarray) -> np.ndarray:
+    """(H, W) float32 ``ceiling`` ((n,) per hidden cell, in row-major order) on the
+    ``hidden`` cells ((H, W) bool), NaN elsewhere."""
+    out = np.full(hidden.shape, np.nan, np.float32)
     out[hidden] = ceiling
     return out

@@ -86,6 +86,12 @@ class FusionOptions:
         "planar part of one that continues a building's roof (a shaded face beside a crown); "
         "off: the classes as the forest and the class CRF leave them",
     )  # fmt: skip
+    free_space: bool = option(
+        True, "views with depth maps: a cell not classed tree whose column a view sees past "
+        "more than the tolerance below its height takes the height of its observations "
+        "below that (the points of a wall seen edge-on), and an object the views see "
+        "through at most of its cells becomes tree (a crown); off: the heights as fused",
+    )  # fmt: skip
     raster_prior: bool = option(
         False, "multiply the views' class probabilities by those of a forest on the fused "
         "rasters (nDSM, slope, roughness, colour), trained on the synthetic city; not in the "

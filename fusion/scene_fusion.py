@@ -78,6 +78,7 @@ from .crowns import (
 )
 from .dsm_depth import DsmSurface
 from .flat_colours import weigh_by_stroke_colours
+from .free_space import FreeSpace, ceilings_and_free_space, relabel_porous, seen_through
 from .geometry_cues import cue_columns, geometric_cues
 from .grid_rasters import GridRasters
 from .ground import dtm_from_dsm
@@ -470,17 +471,34 @@ def fused_products(s: FusedSurface, shared_views, forest, strokes, class_source,
     the training ``strokes`` (:func:`training_strokes`, or None): the colour pass, the
     classes and the crowns' corrections, and the ceiling over the cells no view saw.
     The result's record holds the figures of these products; the caller adds the run's."""
+    free = None
     with timer.stage("ceiling"):
-        ceiling = hidden_ceilings(engine, shared_views, len(s.cache.present), s.grid, s.dsm,
-                                  s.dtm_full, opts.tolerance)  # fmt: skip
+        if mode == "depth maps" and opts.free_space:
+            free = ceilings_and_free_space(engine, shared_views, len(s.cache.present), s.grid,
+                                           s.dsm, s.dtm_full, opts.tolerance)  # fmt: skip
+            ceiling = free.ceiling
+        else:
+            ceiling = hidden_ceilings(engine, shared_views, len(s.cache.present), s.grid,
+                                      s.dsm, s.dtm_full, opts.tolerance)  # fmt: skip
     with timer.stage("colour_and_class"):
         c = colours_and_classes(s.cache, shared_views, forest is not None, s.dsm, s.heights,
                                 mode, opts, engine)  # fmt: skip
     h = s.heights
+    dsm, from_ground = s.dsm, np.zeros(s.grid.shape, bool)
+    carved = porous = from_ground
+    if free is not None:
+        with timer.stage("free_space_heights"):
+            dsm, carved, from_ground, porous = under_free_space(s, c, free, engine, opts.tolerance)
+        if class_source is not None:  # None: the views are not classified
+            class_source += (
+                "; objects above the ground that the views see through at most of their "
+                "cells made tree (fusion.free_space; counted in porous_objects_made_tree_cells)"
+            )
     dsm, ndsm, class_prob, classes, ortho, count16, crowns, cleared, planar, flat, class_source = (
-        _finish(c, h, s.dsm, s.dtm, s.spikes, s.holes, forest, strokes, class_source, s.grid,
+        _finish(c, h, dsm, s.dtm, s.spikes, s.holes, forest, strokes, class_source, s.grid,
                 mode, opts, timer, engine, s.origin)
     )  # fmt: skip
+    count16[from_ground] = FILLED
     record = {
         "tiles": len(s.cache.tiles),
         "observations": int(h.n_obs),
@@ -493,11 +511,83 @@ def fused_products(s: FusedSurface, shared_views, forest, strokes, class_source,
         "crown_sightings_raised": int((np.isfinite(c.crown_z) & ~cleared).sum()),
         "crown_sightings_cleared_beside_buildings": int(cleared.sum()),
         "hidden_cells": int(np.isfinite(ceiling).sum()),
+        "seen_through_cells_lowered": int(carved.sum()),
+        "seen_through_cells_from_ground": int(from_ground.sum()),
+        "porous_objects_made_tree_cells": int(porous.sum()),
     }
     ablation = {"dsm_mean": h.dsm_mean, "ortho_mean": c.ortho_mean}
     ceiling[np.isfinite(dsm)] = np.nan  # the crowns' corrections fill a few
     return FusionResult(s.grid, ortho, dsm, s.dtm, ndsm, class_prob, count16, ablation, record,
                         forest, class_map=classes, ceiling=ceiling)  # fmt: skip
+
+
+def under_free_space(s: FusedSurface, c: FusedColours, free: FreeSpace, engine: Engine,
+                     tolerance: float):  # fmt: skip
+    """The DSM kept under the free space the views see (:mod:`fusion.free_space`), and the
+    accumulated class probabilities of the objects the views see through made tree.
+
+    ``free`` is :func:`~fusion.free_space.ceilings_and_free_space`'s. A
+    cell :func:`~fusion.free_space.seen_through` contradicts, where the views that see
+    past it are not fewer than those with a trusted observation above its free space
+    (a crown classed building is seen from above by many more views than see beneath its
+    canopy), takes the weighted median of its observations at or below the free space
+    (:func:`heights_under`), the ground (``s.dtm_full``) where it has none; in the porous
+    objects tree and each cell's most probable class trade places in ``c.prob_sum`` (in
+    place).
+
+    Returns the DSM (a new array), and the (H, W) bool cells lowered, those of them
+    that took the ground, and those made tree.
+    """
+    sums = c.prob_sum
+    with np.errstate(invalid="ignore"):
+        elevated = np.isfinite(s.dsm) & (s.dsm - s.dtm_full > tolerance)
+    candidates, porous = seen_through(free.lowest, sums, elevated & ~np.isfinite(c.crown_z))
+    median, views_above = heights_under(s.cache, engine,
+                                        np.where(candidates, free.lowest, np.nan))  # fmt: skip
+    # the views that see past a point are evidence it is empty, as those that put a
+    # surface there are that it is not: the free space holds unless it is outnumbered
+    lowered = candidates & (free.views >= views_above)
+    from_ground = lowered & ~np.isfinite(median)
+    dsm = s.dsm.copy()
+    dsm[lowered] = np.where(from_ground, s.dtm_full, median)[lowered]
+    relabel_porous(sums, porous)
+    return dsm, lowered, from_ground, porous
+
+
+def heights_under(cache: ObservationCache, engine: Engine,
+                  cap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Where ``cap`` ((H, W) metres) is known: (H, W) float32 the weighted median height
+    of the cell's trusted observations at or below it (NaN where none is), and (H, W)
+    int32 how many views have a trusted observation above it; NaN and 0 elsewhere. A
+    task per tile that holds such a cell."""
+    median = np.full(cache.grid.shape, np.nan, np.float32)
+    above = np.zeros(cache.grid.shape, np.int32)
+    tiles = [t for t, (r0, c0, h, w) in enumerate(cache.tiles)
+             if np.isfinite(cap[r0 : r0 + h, c0 : c0 + w]).any()]  # fmt: skip
+    results = engine.map(tile_heights_under, tiles, cache, cap, stage="free_space_heights")
+    for t, (m, n) in zip(tiles, results, strict=True):
+        r0, c0, h, w = cache.tiles[t]
+        median[r0 : r0 + h, c0 : c0 + w], above[r0 : r0 + h, c0 : c0 + w] = m, n
+    return median, above
+
+
+def tile_heights_under(t: int, cache: ObservationCache, cap: np.ndarray) -> tuple:
+    """Task: tile ``t``'s (h, w) parts of :func:`heights_under`."""
+    r0, c0, h, w = cache.tiles[t]
+    cap = cap[r0 : r0 + h, c0 : c0 + w].ravel()
+    above = np.zeros(h * w, np.int32)
+    kept = []
+    for i in cache.touching(t):
+        cells, z, weight, top = cache.in_tile(i, t, "cells", "z", "weight", "top")
+        cells, z, weight = cells[top], z[top], weight[top]
+        limit = cap[cells]
+        below = z <= limit  # NaN caps compare False
+        kept.append((cells[below], z[below], weight[below]))
+        above[np.unique(cells[z > limit])] += 1
+    cells, z, weight = (_joined([k[j] for k in kept], dtype)
+                        for j, dtype in enumerate((np.int64, np.float32, np.float32)))  # fmt: skip
+    (median,) = group_weighted_quantile(cells, z, weight, h * w, (0.5,))
+    return median.reshape(h, w).astype(np.float32), above.reshape(h, w)
 
 
 @contextmanager
@@ -723,12 +813,7 @@ def tile_heights(t: int, cache: ObservationCache) -> tuple:
     """Task: tile ``t``'s (h, w) median, mean, upper quantile and interquartile range of
     the trusted heights, their count, and the number of observations fused."""
     _, _, h, w = cache.tiles[t]
-    parts = [cache.in_tile(i, t, "cells", "z", "weight", "top") for i in cache.touching(t)]
-    cells, z, weight, rel = (
-        _joined([p[k] for p in parts], dtype)
-        for k, dtype in enumerate((np.int64, np.float32, np.float32, bool))
-    )
-    cells, z, weight = cells[rel], z[rel], weight[rel]
+    cells, z, weight = _trusted_heights(cache, t)
     # the median, the quartiles and the upper quantile from one sort
     q1, median, q3, upper = group_weighted_quantile(
         cells, z, weight, h * w, (0.25, 0.5, 0.75, CROWN_QUANTILE)
@@ -738,6 +823,17 @@ def tile_heights(t: int, cache: ObservationCache) -> tuple:
     f32 = np.float32
     return median.astype(f32), mean.astype(f32), upper.astype(f32), (q3 - q1).astype(f32), \
         count, len(z)  # fmt: skip
+
+
+def _trusted_heights(cache: ObservationCache, t: int) -> tuple:
+    """Tile ``t``'s trusted observations (on a cell's top surface): (N,) cell index in
+    the tile, height and weight."""
+    parts = [cache.in_tile(i, t, "cells", "z", "weight", "top") for i in cache.touching(t)]
+    cells, z, weight, rel = (
+        _joined([p[k] for p in parts], dtype)
+        for k, dtype in enumerate((np.int64, np.float32, np.float32, bool))
+    )
+    return cells[rel], z[rel], weight[rel]
 
 
 def fused_ground(h: FusedHeights, grid: Grid, mode: str, given,

@@ -1070,6 +1070,16 @@ def _tower_and_tier_views():
     return grid, dsm, surface, oblique, nadir
 
 
+class _RayCast:
+    """A view whose depth map is ray-cast from ``surface`` (a DsmSurface)."""
+
+    def __init__(self, surface, camera):
+        self.surface, self.camera = surface, camera
+
+    def read_depth(self):
+        return self.surface.depth_map(self.camera).astype(np.float32)
+
+
 def test_the_ceiling_over_a_hidden_column_is_the_lowest_ray_past_it():
     """Over the tier hidden behind the tower, and the ground beyond it, the oblique view
     sees past each column from 30 - x m up: exactly so on the ray-cast depth, half a
@@ -1097,19 +1107,97 @@ def test_the_ceiling_over_a_hidden_column_is_the_lowest_ray_past_it():
                                  1.0)  # fmt: skip
     np.testing.assert_allclose(from_above, np.where(xs < 14, 11.25, 1.25), atol=1e-6)
 
-    class RayCast:
-        def __init__(self, camera):
-            self.camera = camera
-
-        def read_depth(self):
-            return surface.depth_map(self.camera).astype(np.float32)
-
     X, Y = grid.cell_centers()
     unseen = dsm.copy()
     unseen[(X > 10) & (X < 20) & (np.abs(Y) < 8)] = np.nan
-    ceiling = hidden_ceilings(ThreadEngine(1), [RayCast(oblique), RayCast(nadir)], 2, grid,
-                              unseen, np.zeros(grid.shape), 1.0)  # fmt: skip
+    views = [_RayCast(surface, oblique), _RayCast(surface, nadir)]
+    ceiling = hidden_ceilings(ThreadEngine(1), views, 2, grid, unseen, np.zeros(grid.shape), 1.0)
     r, c = grid.world_to_cell(xs, np.zeros_like(xs))
     np.testing.assert_allclose(ceiling[r.astype(int), c.astype(int)], from_above)
     assert np.isnan(ceiling[np.isfinite(unseen)]).all()
     assert np.isfinite(ceiling[~np.isfinite(unseen)]).all()
+    from fusion.free_space import ceilings_and_free_space
+
+    both = ceilings_and_free_space(ThreadEngine(1), views, 2, grid, unseen, np.zeros(grid.shape),
+                                   1.0)  # fmt: skip
+    np.testing.assert_array_equal(both.ceiling, ceiling)  # one reading of the views for both
+
+
+def test_the_nearest_depth_around_a_pixel_is_none_beside_an_unknown_one():
+    from fusion.free_space import nearest_around
+
+    depth = np.full((7, 8), 50.0, np.float32)
+    depth[2, 3] = 40.0
+    depth[0, 0] = np.nan
+    near = nearest_around(depth)
+    assert (near[1:4, 2:5] == 40.0).all() and near[4, 5] == 50.0
+    assert near[0, 0] == near[1, 1] == 0.0 and near[2, 2] == 40.0
+    assert (near[:, 0] == 0).all() and (near[-1] == 0).all()  # the image's edge: unknown
+
+
+def test_free_space_is_what_a_view_sees_past_below_a_cell_and_never_a_true_roof():
+    """Beside the tier's east wall (x 14-15 m), a fused DSM standing 8 m on the ground
+    (the wall's points seen edge-on): the nadir view sees the ground there, so the
+    lowest height it sees past is the first tested one more than the 1 m tolerance
+    above the ground, 1.25 m; the oblique view's rays pass above the wall's 7 m limit.
+    The cells whose pixels' neighbourhoods reach the tier's edge (within 1.5 pixels,
+    0.19 m, of the ray-cast surface's ramp between the cell centres) are not seen past,
+    nor is any cell of the tower, the tier or the ground as fused."""
+    from fusion.free_space import ceilings_and_free_space
+    from workbench.engine import ThreadEngine
+
+    grid, dsm, surface, oblique, nadir = _tower_and_tier_views()
+
+    X, Y = grid.cell_centers()
+    fused = dsm.copy()
+    strip = (X > 14) & (X < 15) & (np.abs(Y) < 5)
+    fused[strip] = 8.0
+    views = [_RayCast(surface, oblique), _RayCast(surface, nadir)]
+    space = ceilings_and_free_space(ThreadEngine(1), views, 2, grid, fused, np.zeros(grid.shape),
+                                    1.0)  # fmt: skip
+    free, past = space.lowest, space.views
+    assert np.isnan(space.ceiling).all()  # every cell seen
+    clear = strip & (X > 14.5)
+    np.testing.assert_allclose(free[clear], 1.25)
+    assert (past[clear] == 1).all()
+    assert np.isnan(free[strip & (X < 14.25)]).all()  # pixels on the tier's edge
+    assert np.isnan(free[~strip]).all() and (past[~strip] == 0).all()
+
+
+def test_a_cell_seen_through_is_contradicted_unless_its_object_is_a_crown():
+    """Two objects above the ground, classed building: a roof with a strip of 3 cells
+    a view sees past (wall points beside it), and a crown seen past at 6 of its 9 cells
+    (beneath its canopy), which is porous, and at 3 of them, which is not; a cell the
+    views give tree a third of their votes is left alone, and one classed tree is never
+    tested. The porous cells' tree and building votes trade places."""
+    from fusion.free_space import relabel_porous, seen_through
+
+    elevated = np.zeros((8, 12), bool)
+    elevated[1:7, 1:6] = True  # the roof, 30 cells
+    elevated[2:5, 8:11] = True  # the crown, 9 cells
+    free = np.full(elevated.shape, np.nan)
+    free[1:4, 5] = 2.0  # the strip along the roof's east side
+    free[2:4, 8:11] = 3.0
+    prob = np.zeros((4,) + elevated.shape)
+    prob[3] = 3.0  # building
+    prob[0] = 1.0
+    prob[2, 3, 5] = 2.0  # a third of the votes: tree
+    contradicted, porous = seen_through(free, prob, elevated)
+    expected = np.zeros(elevated.shape, bool)
+    expected[1:3, 5] = True
+    np.testing.assert_array_equal(contradicted, expected)
+    crown = np.zeros(elevated.shape, bool)
+    crown[2:5, 8:11] = True
+    np.testing.assert_array_equal(porous, crown)
+    half = free.copy()
+    half[3, 8:11] = np.nan  # 3 of its 9 cells seen past: a roof's, contradicted
+    half[1, 2] = 2.0
+    as_tree = prob.copy()
+    as_tree[2, 1, 2] = 4.0  # the forest's tree: never tested
+    contradicted, porous = seen_through(half, as_tree, elevated)
+    assert not porous.any()
+    assert contradicted[2, 8:11].all() and contradicted.sum() == 5 and not contradicted[1, 2]
+    relabel_porous(prob, crown)
+    np.testing.assert_array_equal(prob[2][crown], 3.0)
+    np.testing.assert_array_equal(prob[3][crown], 0.0)
+    assert (prob[3][~crown & elevated] == 3.0).all()
