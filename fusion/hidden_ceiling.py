@@ -101,12 +101,15 @@ def column_ceilings(
         idx = np.flatnonzero(seen[a : a + rows]) + a
         if not len(idx):
             continue
-        tested = heights
+        # the heights below every column's bottom are never tested, nor above every limit
+        j0 = int(np.searchsorted(heights, (columns.bottom[idx] - step).min(), "left"))
+        j1 = len(heights)
         if columns.limit is not None:
-            tested = heights[: np.searchsorted(heights, columns.limit[idx].max(), "right")]
-            if not len(tested):
-                continue
-        pc = [cam0[idx, k][:, None] + rise[None, : len(tested)] * up[k] for k in range(3)]
+            j1 = int(np.searchsorted(heights, columns.limit[idx].max(), "right"))
+        if j1 <= j0:
+            continue
+        tested = heights[j0:j1]
+        pc = [cam0[idx, k][:, None] + rise[None, j0:j1] * up[k] for k in range(3)]
         with np.errstate(divide="ignore", invalid="ignore"):
             u, v = camera.project_camera_frame(pc[0], pc[1], pc[2])
         u, v = np.rint(u), np.rint(v)
