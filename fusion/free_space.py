@@ -32,7 +32,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from workbench.engine import Engine
-from workbench.raster import TREE, Grid
+from workbench.raster import GRASS, GROUND, TREE, Grid
 
 from .hidden_ceiling import (
     HiddenColumns,
@@ -177,10 +177,28 @@ def relabel_porous(prob_sum: np.ndarray, porous: np.ndarray) -> None:
     places at the ``porous`` cells ((H, W) bool): tree becomes the most probable and
     every confidence is kept."""
     r, c = np.nonzero(porous)
+    _trade_places(prob_sum, r, c, np.full(len(r), TREE - 1))
+
+
+def relabel_grounded(prob_sum: np.ndarray, grounded: np.ndarray) -> None:
+    """In ``prob_sum`` ((K, H, W), in place), at the ``grounded`` cells ((H, W) bool:
+    those the free space put on the ground), the more probable of ground and grass
+    trades places with the most probable class. Their votes are the points the free
+    space contradicts, a wall's (building) or a canopy's (tree), which the elevation
+    prior's damping cannot overturn where nothing else voted; a cell on the ground is
+    neither."""
+    r, c = np.nonzero(grounded)
+    flat = np.nan_to_num(prob_sum[GROUND - 1 : GRASS, r, c], nan=-1.0).argmax(axis=0)
+    _trade_places(prob_sum, r, c, flat + GROUND - 1)
+
+
+def _trade_places(prob_sum: np.ndarray, r: np.ndarray, c: np.ndarray, to: np.ndarray) -> None:
+    """At cells (``r``, ``c``), class index ``to`` (per cell) and the most probable class
+    trade their votes in ``prob_sum`` (in place)."""
     p = prob_sum[:, r, c]
     best = np.nan_to_num(p, nan=-1.0).argmax(axis=0)
     cols = np.arange(len(r))
-    p[TREE - 1], p[best, cols] = p[best, cols], p[TREE - 1].copy()
+    p[to, cols], p[best, cols] = p[best, cols], p[to, cols].copy()
     prob_sum[:, r, c] = p
 
 

@@ -78,7 +78,13 @@ from .crowns import (
 )
 from .dsm_depth import DsmSurface
 from .flat_colours import weigh_by_stroke_colours
-from .free_space import FreeSpace, ceilings_and_free_space, relabel_porous, seen_through
+from .free_space import (
+    FreeSpace,
+    ceilings_and_free_space,
+    relabel_grounded,
+    relabel_porous,
+    seen_through,
+)
 from .geometry_cues import cue_columns, geometric_cues
 from .grid_rasters import GridRasters
 from .ground import dtm_from_dsm
@@ -488,7 +494,9 @@ def fused_products(s: FusedSurface, shared_views, forest, strokes, class_source,
     carved = porous = from_ground
     if free is not None:
         with timer.stage("free_space_heights"):
-            dsm, carved, from_ground, porous = under_free_space(s, c, free, engine, opts.tolerance)
+            dsm, carved, from_ground, porous = under_free_space(
+                s, c, free, engine, opts.tolerance, opts.label_split
+            )
         if class_source is not None:  # None: the views are not classified
             class_source += (
                 "; objects above the ground that the views see through at most of their "
@@ -522,7 +530,7 @@ def fused_products(s: FusedSurface, shared_views, forest, strokes, class_source,
 
 
 def under_free_space(s: FusedSurface, c: FusedColours, free: FreeSpace, engine: Engine,
-                     tolerance: float):  # fmt: skip
+                     tolerance: float, label_split: float):  # fmt: skip
     """The DSM kept under the free space the views see (:mod:`fusion.free_space`), and the
     accumulated class probabilities of the objects the views see through made tree.
 
@@ -533,7 +541,9 @@ def under_free_space(s: FusedSurface, c: FusedColours, free: FreeSpace, engine: 
     canopy), takes the weighted median of its observations at or below the free space
     (:func:`heights_under`), the ground (``s.dtm_full``) where it has none; in the porous
     objects tree and each cell's most probable class trade places in ``c.prob_sum`` (in
-    place).
+    place), and so do the more probable of ground and grass in the lowered cells now
+    within half the ``label_split`` (metres) of the ground
+    (:func:`~fusion.free_space.relabel_grounded`).
 
     Returns the DSM (a new array), and the (H, W) bool cells lowered, those of them
     that took the ground, and those made tree.
@@ -551,6 +561,8 @@ def under_free_space(s: FusedSurface, c: FusedColours, free: FreeSpace, engine: 
     dsm = s.dsm.copy()
     dsm[lowered] = np.where(from_ground, s.dtm_full, median)[lowered]
     relabel_porous(sums, porous)
+    with np.errstate(invalid="ignore"):
+        relabel_grounded(sums, lowered & (dsm - s.dtm_full < label_split / 2))
     return dsm, lowered, from_ground, porous
 
 

@@ -1201,3 +1201,22 @@ def test_a_cell_seen_through_is_contradicted_unless_its_object_is_a_crown():
     np.testing.assert_array_equal(prob[2][crown], 3.0)
     np.testing.assert_array_equal(prob[3][crown], 0.0)
     assert (prob[3][~crown & elevated] == 3.0).all()
+
+
+def test_a_cell_put_on_the_ground_takes_the_flat_class_it_was_given_most():
+    """The votes of a cell the free space lowered to the ground are its wall's points':
+    building (3 of 4) trades places with ground (1), or with grass where grass had more;
+    the other cells are left as they were."""
+    from fusion.free_space import relabel_grounded
+
+    prob = np.zeros((4, 2, 3))
+    prob[:, 0, 0] = [1.0, 0.0, 0.0, 3.0]
+    prob[:, 0, 1] = [0.0, 0.5, 0.0, 3.5]
+    prob[:, 1, 2] = [0.0, 0.0, 2.0, 2.0]
+    grounded = np.zeros((2, 3), bool)
+    grounded[0, :2] = True
+    before = prob.copy()
+    relabel_grounded(prob, grounded)
+    np.testing.assert_array_equal(prob[:, 0, 0], [3.0, 0.0, 0.0, 1.0])
+    np.testing.assert_array_equal(prob[:, 0, 1], [0.0, 3.5, 0.0, 0.5])
+    np.testing.assert_array_equal(prob[:, ~grounded], before[:, ~grounded])
