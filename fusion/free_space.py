@@ -88,8 +88,9 @@ def view_ceilings_and_free_space(i: int, views: list, hidden: HiddenColumns,
     each (n,) float32, +inf none: the depth map read and screened once for both."""
     v = views[i]
     depth = trusted_depth(v.read_depth())
+    free = nearest_around(depth) if len(elevated.x) else depth  # none: nothing to read
     return (column_ceilings(v.camera, depth, hidden, tolerance),
-            column_ceilings(v.camera, nearest_around(depth), elevated, tolerance))  # fmt: skip
+            column_ceilings(v.camera, free, elevated, tolerance))  # fmt: skip
 
 
 @dataclass
@@ -107,15 +108,17 @@ class FreeSpace:
 
 
 def ceilings_and_free_space(engine: Engine, shared_views, n_views: int, grid: Grid,
-                            dsm: np.ndarray, ground: np.ndarray,
-                            tolerance: float) -> FreeSpace:  # fmt: skip
+                            dsm: np.ndarray, ground: np.ndarray, tolerance: float,
+                            free_space: bool = True) -> FreeSpace:  # fmt: skip
     """The ceiling over the cells no view saw and the free space over the elevated seen
     cells, a view's task each (:func:`view_ceilings_and_free_space`). The parameters
     are :func:`~fusion.hidden_ceiling.hidden_ceilings`'; ``tolerance`` (metres) is also
-    how far below the DSM a ray must pass.
+    how far below the DSM a ray must pass. ``free_space`` False: the ceiling alone (no
+    column of a seen cell is tested; ``lowest`` all NaN, ``views`` 0).
     """
     hidden, hidden_cols = hidden_columns_of(dsm, ground, grid)
-    rows, cols, columns = elevated_columns(dsm, ground, grid, tolerance)
+    rows, cols, columns = elevated_columns(dsm if free_space else np.full_like(dsm, np.nan),
+                                           ground, grid, tolerance)  # fmt: skip
     ceiling = np.full(len(hidden_cols.x), np.float32(hidden_cols.top), np.float32)
     lowest = np.full(len(columns.x), np.inf, np.float32)
     past = np.zeros(len(columns.x), np.int32)

@@ -88,7 +88,6 @@ from .free_space import (
 from .geometry_cues import cue_columns, geometric_cues
 from .grid_rasters import GridRasters
 from .ground import dtm_from_dsm
-from .hidden_ceiling import hidden_ceilings
 from .interpolate import fill_small_holes, push_pull_fill, small_holes
 from .observations import (
     close_neighbours,
@@ -477,22 +476,18 @@ def fused_products(s: FusedSurface, shared_views, forest, strokes, class_source,
     the training ``strokes`` (:func:`training_strokes`, or None): the colour pass, the
     classes and the crowns' corrections, and the ceiling over the cells no view saw.
     The result's record holds the figures of these products; the caller adds the run's."""
-    free = None
+    test_free_space = mode == "depth maps" and opts.free_space
     with timer.stage("ceiling"):
-        if mode == "depth maps" and opts.free_space:
-            free = ceilings_and_free_space(engine, shared_views, len(s.cache.present), s.grid,
-                                           s.dsm, s.dtm_full, opts.tolerance)  # fmt: skip
-            ceiling = free.ceiling
-        else:
-            ceiling = hidden_ceilings(engine, shared_views, len(s.cache.present), s.grid,
-                                      s.dsm, s.dtm_full, opts.tolerance)  # fmt: skip
+        free = ceilings_and_free_space(engine, shared_views, len(s.cache.present), s.grid, s.dsm,
+                                       s.dtm_full, opts.tolerance, test_free_space)  # fmt: skip
+    ceiling = free.ceiling
     with timer.stage("colour_and_class"):
         c = colours_and_classes(s.cache, shared_views, forest is not None, s.dsm, s.heights,
                                 mode, opts, engine)  # fmt: skip
     h = s.heights
     dsm, from_ground = s.dsm, np.zeros(s.grid.shape, bool)
     carved = porous = from_ground
-    if free is not None:
+    if test_free_space:
         with timer.stage("free_space_heights"):
             dsm, carved, from_ground, porous = under_free_space(
                 s, c, free, engine, opts.tolerance, opts.label_split
@@ -825,7 +820,12 @@ def tile_heights(t: int, cache: ObservationCache) -> tuple:
     """Task: tile ``t``'s (h, w) median, mean, upper quantile and interquartile range of
     the trusted heights, their count, and the number of observations fused."""
     _, _, h, w = cache.tiles[t]
-    cells, z, weight = _trusted_heights(cache, t)
+    parts = [cache.in_tile(i, t, "cells", "z", "weight", "top") for i in cache.touching(t)]
+    cells, z, weight, rel = (
+        _joined([p[k] for p in parts], dtype)
+        for k, dtype in enumerate((np.int64, np.float32, np.float32, bool))
+    )
+    cells, z, weight = cells[rel], z[rel], weight[rel]
     # the median, the quartiles and the upper quantile from one sort
     q1, median, q3, upper = group_weighted_quantile(
         cells, z, weight, h * w, (0.25, 0.5, 0.75, CROWN_QUANTILE)
@@ -835,17 +835,6 @@ def tile_heights(t: int, cache: ObservationCache) -> tuple:
     f32 = np.float32
     return median.astype(f32), mean.astype(f32), upper.astype(f32), (q3 - q1).astype(f32), \
         count, len(z)  # fmt: skip
-
-
-def _trusted_heights(cache: ObservationCache, t: int) -> tuple:
-    """Tile ``t``'s trusted observations (on a cell's top surface): (N,) cell index in
-    the tile, height and weight."""
-    parts = [cache.in_tile(i, t, "cells", "z", "weight", "top") for i in cache.touching(t)]
-    cells, z, weight, rel = (
-        _joined([p[k] for p in parts], dtype)
-        for k, dtype in enumerate((np.int64, np.float32, np.float32, bool))
-    )
-    return cells[rel], z[rel], weight[rel]
 
 
 def fused_ground(h: FusedHeights, grid: Grid, mode: str, given,

@@ -1121,6 +1121,10 @@ def test_the_ceiling_over_a_hidden_column_is_the_lowest_ray_past_it():
     both = ceilings_and_free_space(ThreadEngine(1), views, 2, grid, unseen, np.zeros(grid.shape),
                                    1.0)  # fmt: skip
     np.testing.assert_array_equal(both.ceiling, ceiling)  # one reading of the views for both
+    alone = ceilings_and_free_space(ThreadEngine(1), views, 2, grid, unseen, np.zeros(grid.shape),
+                                    1.0, free_space=False)  # fmt: skip
+    np.testing.assert_array_equal(alone.ceiling, ceiling)
+    assert np.isnan(alone.lowest).all() and not alone.views.any()
 
 
 def test_the_nearest_depth_around_a_pixel_is_none_beside_an_unknown_one():
