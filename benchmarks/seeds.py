@@ -33,6 +33,7 @@ ROWS = {
     "fusion": (
         ("dsm.rmse_m", "DSM RMSE (m)", 2),
         ("dsm.rmse_off_jumps_m", "DSM RMSE off height jumps (m)", 2),
+        ("dsm.valid_fraction", "DSM cells known (share of the truth's)", 3),
         ("classification.overall_accuracy", "classes, overall accuracy", 3),
         ("classification.building_accuracy", "classes, building / other", 3),
         ("footprint_2d.quality", "footprint 2D quality", 3),

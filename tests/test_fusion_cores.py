@@ -11,6 +11,7 @@ from fusion.ground import dtm_from_dsm
 from fusion.interpolate import fill_small_holes, push_pull_fill, small_holes
 from fusion.observations import (
     OBSERVE_MARGIN,
+    behind_occlusions,
     close_neighbours,
     depth_jumps,
     depth_outliers,
@@ -481,6 +482,30 @@ def test_depth_jumps_beside_a_hole_use_the_known_side():
     assert not j[5:35, 3:20].any() and not j[5:35, 25:37].any()
 
 
+def test_behind_occlusions_flags_the_background_beside_a_hole_not_the_nearer_side():
+    # along each row: a roof at 52 m, the 7-pixel hole matching leaves beside its edge,
+    # then the background at 60 m, with a lone dropped pixel in it
+    d = np.full((12, 50), 60.0, np.float32)
+    d[:, :15] = 52.0
+    d[:, 15:22] = np.nan
+    d[:, 35] = np.nan
+    flagged = behind_occlusions(d)
+    # the background's 3 pixels beside the hole (the first known pixel across it is 8 m
+    # nearer, over max(1 m, 3 % of 60 m)); not the roof, across whose hole lies farther
+    # ground; not the background beside its lone pixel
+    assert flagged[:, 22:25].all() and flagged.sum() == 3 * 12
+    # the same along columns, and mirrored
+    np.testing.assert_array_equal(behind_occlusions(d.T.copy()), flagged.T)
+    np.testing.assert_array_equal(behind_occlusions(d[:, ::-1].copy()), flagged[:, ::-1])
+    # a step of 1.5 m (under the 1.8 m threshold at 60 m) is no jump
+    low = np.where(d == 52.0, np.float32(58.5), d)
+    assert not behind_occlusions(low).any()
+    # across a wider hole the roof counts up to 24 pixels away (the reach), not 25
+    wide = d.copy()
+    wide[:, 15:37] = np.nan
+    assert behind_occlusions(wide)[:, 37:39].all() and behind_occlusions(wide).sum() == 2 * 12
+
+
 def test_near_side_keeps_the_nearer_surface_not_its_ramp():
     # a row of a view: a roof sloping gently away (60 m + 5 cm a pixel), its edge rounded
     # by matching into a ramp (columns 13-15), then the ground at 100 m
@@ -588,6 +613,30 @@ def _oblique_view_of_a_floor():
     _, dirs = cam.pixel_rays(np.column_stack([u.ravel(), v.ravel()]).astype(float))
     zc = (dirs @ R.T)[:, 2]  # z-depth per unit ray length
     return cam, ((-20.0 / dirs[:, 2]) * zc).reshape(64, 64).astype(np.float32)
+
+
+def test_observe_does_not_trust_the_background_behind_an_occlusion(monkeypatch):
+    import fusion.observations as observations
+
+    # an oblique view of a floor, a surface 10 m nearer over columns 10-20, and the hole
+    # matching leaves beside its edge (columns 21-27)
+    cam, d = _oblique_view_of_a_floor()
+    d[:, 10:21] -= 10.0
+    d[:, 21:28] = np.nan
+    grid = Grid.from_bounds(-40.0, 0.0, 40.0, 80.0, 0.5)
+    rows = slice(20, 44)  # away from the rows np.roll compares across the image's edge
+
+    def trusted(columns):
+        o = observe(cam, d, grid)
+        at = np.zeros((64, 64), bool)
+        at.ravel()[o.pixels[o.top_surface]] = True
+        return at[rows, columns]
+
+    assert trusted(slice(10, 18)).all()
+    assert not trusted(slice(28, 31)).any() and trusted(slice(31, 50)).all()
+    # without the test, the hole hid the jump from the floor's 3 pixels beside it
+    monkeypatch.setattr(observations, "behind_occlusions", lambda d: np.zeros(d.shape, bool))
+    assert trusted(slice(28, 31)).all()
 
 
 def test_normals_stay_known_beside_a_dropped_pixel():
