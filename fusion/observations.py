@@ -41,7 +41,8 @@ class ViewObservations:
         the camera (1 level and facing up, 0 vertical, negative facing down).
     near_jump : (N,) bool
         Within a few pixels of a depth discontinuity (:func:`depth_jumps`), and not on
-        its nearer surface (:func:`near_side`).
+        its nearer surface (:func:`near_side`), or behind an occlusion
+        (:func:`behind_occlusions`).
     height_weight : (N,) float32
         Weight of the point's height in its cell's median (:func:`height_weights`).
     """
@@ -277,7 +278,9 @@ def behind_occlusions(
     saw. Reading their normal away from the hole instead did not help (seed 0's DSM RMSE
     off the height jumps 0.367 -> 0.387 m): their depth is the ramp's. The nearer side of
     the occlusion is not flagged (across its hole lies a farther surface), nor is a
-    surface beside a lone unknown pixel.
+    surface beside a lone unknown pixel. :func:`observe` does not trust the flagged
+    pixels; what a view sees past still counts them
+    (:func:`~fusion.hidden_ceiling.trusted_depth`).
     """
     d = np.asarray(depth, dtype=np.float32)
     unknown = ~np.isfinite(d)
@@ -503,13 +506,11 @@ def in_window(window: tuple[slice, slice], shape: tuple[int, int], pixels, xyz):
 
 def screened_depth(depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A view's depth map (H, W) with its gross matching errors NaN
-    (:func:`depth_outliers`), the pixels near its jumps (:func:`depth_jumps`) or behind
-    an occlusion (:func:`behind_occlusions`), and those near a jump that lie on its
-    nearer surface (:func:`near_side`), each (H, W)."""
+    (:func:`depth_outliers`), the pixels near its jumps (:func:`depth_jumps`) and those
+    of them on a jump's nearer surface (:func:`near_side`), each (H, W)."""
     depth = np.where(depth_outliers(depth), np.float32(np.nan), depth)
     jumps = depth_jumps(depth)
-    side = near_side(depth, jumps)  # the background behind an occlusion has no near side
-    return depth, jumps | behind_occlusions(depth), side
+    return depth, jumps, near_side(depth, jumps)
 
 
 def observe(
@@ -531,13 +532,16 @@ def observe(
     H, W = depth.shape
     # on the whole image: np.roll compares the pixels by its edges with its far side
     depth, jumps, side = screened_depth(depth)
+    # not trusted as a surface, but its depth still bounds what the view sees past
+    # (:func:`~fusion.hidden_ceiling.trusted_depth`): the ray did pass the occluder
+    behind = behind_occlusions(depth)
     window = grid_window(depth, camera, grid, OBSERVE_MARGIN)
     if window is None:
         none = np.zeros(0, np.int64)
         return ViewObservations(none, none, np.zeros((0, 3)), np.zeros(0, np.float32),
                                 np.zeros(0, bool), np.zeros(0, np.float32), np.zeros(0, bool),
                                 np.zeros(0, np.float32))  # fmt: skip
-    depth, jumps, side = depth[window], jumps[window], side[window]
+    depth, jumps, side, behind = depth[window], jumps[window], side[window], behind[window]
     _, rays = camera.pixel_grid_rays(window=window)
     pixels, xyz = lift_depth(camera, depth, rays)
     # indices of half cells: the cell is the index // 2, the quarter of it the index % 2
@@ -550,7 +554,7 @@ def observe(
     # a pixel on a jump's nearer surface takes that surface's normal, and is trusted
     # unless that normal is unknown
     nz_image = normals_from_near_side(normal_z_image(camera, depth, rays=rays), side)
-    jumps = jumps & ~((side > 0) & np.isfinite(nz_image))
+    jumps = (jumps & ~((side > 0) & np.isfinite(nz_image))) | behind
     nz = np.nan_to_num(nz_image.ravel()[pixels], nan=1.0)
     top = nz > STEEP_NORMAL_Z
     groups, n_groups = visibility_groups(

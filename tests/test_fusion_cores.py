@@ -634,6 +634,10 @@ def test_observe_does_not_trust_the_background_behind_an_occlusion(monkeypatch):
 
     assert trusted(slice(10, 18)).all()
     assert not trusted(slice(28, 31)).any() and trusted(slice(31, 50)).all()
+    # their rays did pass the nearer surface: what the view sees past still counts them
+    from fusion.hidden_ceiling import trusted_depth
+
+    assert np.isfinite(trusted_depth(d)[rows, 28:31]).all()
     # without the test, the hole hid the jump from the floor's 3 pixels beside it
     monkeypatch.setattr(observations, "behind_occlusions", lambda d: np.zeros(d.shape, bool))
     assert trusted(slice(28, 31)).all()
