@@ -202,6 +202,9 @@ def _building_object(b, pool: _VertexPool, rms_m: float | None) -> dict:
     volume = _volume(local, tri)
     bottom = _bottom_area(local, tri) or sum(p.area for p in footprint)
     top_z = b.base_z + volume / bottom if bottom > 0 else b.ridge_z
+    # the mean height of a solid is under its top, but for the millimetres the welded
+    # vertices were rounded by (a flat roof's block: 1 mm over its ridge)
+    top_z = min(top_z, b.ridge_z)
     geometry = []
     if footprint and np.isfinite(b.base_z):
         geometry.append(_footprint_surface(footprint, b.base_z, pool))
