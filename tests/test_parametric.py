@@ -624,21 +624,21 @@ def modelled(tiny_models):
 def test_models_match_the_truth_from_fused_rasters(modelled):
     """Thresholds a little under what was measured (tiny, seed 0): 2D quality 0.930,
     3D quality 0.911 (0.918 and 0.893 before the ceiling), 6 of 6 buildings, roof types
-    5 of 6, mean height error 3.5 % (0.4 % before the fusion kept the roofs' rims:
+    5 of 6, mean height error 3.45 % (0.4 % before the fusion kept the roofs' rims:
     building 3, half under a crown, now has its ridge 1.2 m high, 11.9 %; 2.1 % before
     the hidden parts under the fusion's ceiling: a cell or two of hidden ground along
     its walls joins its outline, 18.2 %). Roof types were 6 of 6 until the fusion
     stopped trusting the background beside an occlusion: at the gable end of building
-    1's wing, a hole of 5 roof-rim cells, which was interpolated, now joins the ground
-    cells beside it that only such pixels saw, is over 9 cells and stays unknown, and
-    the wing's end is fitted hipped."""
+    1's wing, five single-cell holes along the roof's rim, which were interpolated, now
+    join the ground cells beside them that only such pixels saw, over 9 cells, and stay
+    unknown; the wing's end is fitted hipped."""
     out, record, m = modelled
     assert m["complexity"]["watertight_fraction"] == 1.0
     assert m["footprint_2d"]["quality"] > 0.89
     assert m["volume_3d"]["quality"] > 0.86
     assert m["footprint_2d"]["objects"]["found"] == 6
     assert m["buildings"]["roof_type_accuracy"] > 0.8
-    assert m["buildings"]["height_error_pct_mean"] < 3.7
+    assert m["buildings"]["height_error_pct_mean"] < 3.5
     b = record["buildings"][0]
     for key in ("family", "parts", "wings", "energy_2d", "energy_3d_rms_m", "iterations",
                 "seconds"):  # fmt: skip
