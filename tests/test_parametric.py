@@ -30,6 +30,7 @@ from modeling.parametric.path import (
     segment_boxes,
     stack_tiers,
     tree_crowns,
+    unknown_objects,
 )
 from modeling.parametric.roof_geometry import (
     RoofFit,
@@ -315,6 +316,27 @@ def test_a_crown_beside_the_roof_is_left_to_the_data_term():
     assert abs(b.footprint.area - 18 * 14) < 6.0
     assert b.record["unknown_object_m2"] > 20.0
     assert b.roof_type == "flat" and abs(b.ridge_z - 30.0) < 0.1
+
+
+def test_an_unknown_object_stands_apart_from_the_roof_beside_it():
+    """A 20 m x 16 m roof level at 30 m with a 6 m x 6 m piece of a neighbour's roof at
+    15 m inside its segment, and a model whose wrong wing stands 3-8 m over the roof's
+    other corner (a segment merged with its neighbour's building, fitted as an L: dev
+    seed 1's 82 m tower lost that corner to the unknown label and was fitted as an L).
+    Both are off the model; only the neighbour's roof is an unknown object."""
+    gsd = 0.25
+    y, x = np.mgrid[0:80, 0:64] * gsd
+    mask = np.ones(x.shape, bool)
+    dsm = np.full(x.shape, 30.0)
+    neighbour = (x < 6) & (y < 6)
+    dsm[neighbour] = 15.0
+    heights = np.full(x.shape, 30.0)
+    corner = (x >= 10) & (y >= 14)
+    heights[corner] = 33.0 + 0.8 * (x[corner] - 10)  # a shed wing rising to 38 m
+    unknown = unknown_objects(dsm, mask, heights, gsd, ParametricOptions(), 64)
+    assert unknown[neighbour].all()
+    assert not unknown[corner].any()
+    assert unknown.sum() == neighbour.sum()
 
 
 def test_a_crown_over_the_roof_is_no_tier():

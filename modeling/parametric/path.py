@@ -623,9 +623,28 @@ def unknown_objects(dsm, mask, heights, gsd: float, options, min_cells) -> np.nd
     off &= mask & np.isfinite(dsm)
     core = _large_parts(off, gsd, options, min_cells)
     labels, _ = ndimage.label(off)  # the objects whole: the opening trims them
-    unknown = np.isin(labels, np.unique(labels[core]))
+    objects = np.unique(labels[core])
+    explained = mask & np.isfinite(dsm) & ~off
+    objects = [j for j in objects if j and _stands_apart(labels == j, dsm, heights, explained,
+                                                         options.tier_step_m)]  # fmt: skip
+    unknown = np.isin(labels, objects)
     # an object wholly outside the outline is already left to the data term
     return unknown if (unknown & np.isfinite(heights)).any() else np.zeros_like(unknown)
+
+
+def _stands_apart(obj, dsm, heights, explained, step: float) -> bool:
+    """Whether the unexplained object ``obj`` stands apart from the roof beside it: fewer
+    than half of its cells within ``step`` metres of the model's median height over the
+    explained cells it touches. A part of the roof that a wrong wing stood over (a
+    segment merged with its neighbour's building, whose L put a wing across the tower's
+    corner) is level with the roof beside it; a crown or a neighbour's roof is not."""
+    beside = ndimage.binary_dilation(obj, np.ones((3, 3), bool)) & explained
+    if not beside.any():
+        return True
+    level = float(np.median(heights[beside]))
+    z = dsm[obj]
+    z = z[np.isfinite(z)]
+    return not len(z) or np.mean(np.abs(z - level) <= step) < 0.5
 
 
 def _large_parts(mask, gsd: float, options, min_cells) -> np.ndarray:
