@@ -97,19 +97,50 @@ def normal_z_image(
     # points relative to the camera centre, in float32: half the memory traffic, and
     # millimetres over the few hundred metres of an aerial view; one image per axis
     # (NumPy's loops run along rows, not along (x, y, z) triples)
-    P = [rays[:, k].reshape(H, W).astype(np.float32) * smooth for k in range(3)]
+    P = np.stack([rays[:, k].reshape(H, W).astype(np.float32) * smooth for k in range(3)])
     s = step
-    dx = [p[s:-s, 2 * s :] - p[s:-s, : -2 * s] for p in P]  # the interior, where both
-    dy = [p[2 * s :, s:-s] - p[: -2 * s, s:-s] for p in P]  # differences exist
+    Pp = np.pad(P, ((0, 0), (2 * s, 2 * s), (2 * s, 2 * s)), constant_values=np.nan)
+    dx = _one_sided_difference(Pp, s, axis=2)
+    dy = _one_sided_difference(Pp, s, axis=1)
     nx = dx[1] * dy[2] - dx[2] * dy[1]
     ny = dx[2] * dy[0] - dx[0] * dy[2]
     n_z = dx[0] * dy[1] - dx[1] * dy[0]
-    c = [p[s:-s, s:-s] for p in P]
-    toward = -np.sign(nx * c[0] + ny * c[1] + n_z * c[2])  # camera at P = 0
-    nz = np.full((H, W), np.nan, np.float32)
+    toward = -np.sign(nx * P[0] + ny * P[1] + n_z * P[2])  # camera at P = 0
     with np.errstate(invalid="ignore", divide="ignore"):
-        nz[s:-s, s:-s] = toward * n_z / np.sqrt(nx * nx + ny * ny + n_z * n_z)
+        nz = (toward * n_z / np.sqrt(nx * nx + ny * ny + n_z * n_z)).astype(np.float32)
+    nz[:, :s], nz[:, -s:], nz[:s], nz[-s:] = np.nan, np.nan, np.nan, np.nan
     return nz
+
+
+def _one_sided_difference(Pp: np.ndarray, s: int, axis: int) -> np.ndarray:
+    """(3, H, W) the difference of the points over ``2 s`` pixels along ``axis`` (1 rows,
+    2 columns), taken on the side whose points lie straighter (the smaller second
+    difference over ``s``), NaN where neither side is known. ``Pp``: (3, H + 4 s,
+    W + 4 s) the points padded with ``2 s`` NaN on every side.
+
+    A central difference across a convex crease (a roof's edge over its wall) mixes the
+    two faces' slopes, and the wall's top pixels, seen by an oblique view, pass for a top
+    surface. On the side away from the crease the difference is the pixel's own face's:
+    dev fusions of seeds 0-2, DSM RMSE off the height jumps 0.344, 0.395, 0.407 ->
+    0.337, 0.371, 0.404 m; dev seeds 6, 7, 10 0.507, 0.672, 0.506 -> 0.453, 0.643,
+    0.470 m."""
+    m = 2 * s
+    H, W = Pp.shape[1] - 2 * m, Pp.shape[2] - 2 * m
+
+    def at(offset: int) -> np.ndarray:  # a view of the points ``offset`` pixels along
+        if axis == 1:
+            return Pp[:, m + offset : m + offset + H, m : m + W]
+        return Pp[:, m : m + H, m + offset : m + offset + W]
+
+    P = at(0)
+    ahead, behind = at(m) - P, P - at(-m)
+    with np.errstate(invalid="ignore"):
+        # second differences over s on each side, squared lengths
+        bend_ahead = ((ahead + 2 * (P - at(s))) ** 2).sum(axis=0)
+        bend_behind = ((behind + 2 * (at(-s) - P)) ** 2).sum(axis=0)
+        take_ahead = (bend_ahead <= bend_behind) | np.isnan(bend_behind)
+    take_ahead &= np.isfinite(ahead[0])  # unknown ahead: behind, or NaN if that is too
+    return np.where(take_ahead, ahead, behind)
 
 
 def close_neighbours(values: np.ndarray, threshold) -> np.ndarray:

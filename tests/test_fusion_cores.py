@@ -1277,3 +1277,27 @@ def test_a_cell_put_on_the_ground_takes_the_flat_class_it_was_given_most():
     np.testing.assert_array_equal(prob[:, 0, 0], [3.0, 0.0, 0.0, 1.0])
     np.testing.assert_array_equal(prob[:, 0, 1], [0.0, 3.5, 0.0, 0.5])
     np.testing.assert_array_equal(prob[:, ~grounded], before[:, ~grounded])
+
+
+def test_a_walls_top_below_a_roofs_edge_keeps_a_steep_normal():
+    """The tower's west wall and roof seen by the 45-degree oblique view from the west,
+    ray-cast: the wall's pixels right under the roof's edge (a convex crease) have the
+    wall's normal, not one mixed with the roof's, and the roof's pixels by the edge keep
+    the roof's."""
+    from fusion.observations import STEEP_NORMAL_Z, lift_depth
+
+    _, _, surface, oblique, _ = _tower_and_tier_views()
+    depth = _RayCast(surface, oblique).read_depth()
+    nz = normal_z_image(oblique, depth)
+    pixels, xyz = lift_depth(oblique, depth)
+    n = nz.ravel()[pixels]
+    x, z = xyz[:, 0], xyz[:, 2]
+    known = np.isfinite(n)
+    wall = known & (x > -0.01) & (x < 0.13) & (z > 15.0) & (z < 19.95)  # its cells
+    # the roof off its north and south edges (depth jumps, which the fusion screens)
+    roof = known & (x > 0.1) & (x < 9.0) & (np.abs(z - 20.0) < 0.01) & (np.abs(xyz[:, 1]) < 8)
+    assert wall.sum() > 3000 and (z[wall] > 19.5).sum() > 100 and roof.sum() > 5000
+    # central differences: 138 of the wall's pixels over 0.26 (up to 0.46), 588 of the
+    # roof's under 0.99 (down to 0.70, by the crease and the far edge)
+    assert (n[wall] < STEEP_NORMAL_Z).all()
+    assert (n[roof] > 0.99).all()
