@@ -463,9 +463,10 @@ def visibility_groups(
 
 
 # pixels the normals read around a pixel in :func:`observe`: OpenCV's Gaussian kernel of
-# sigma 1.5 reaches 6, the differences a step of 3, and a pixel on a jump's nearer
-# surface reads its normal 6 pixels in (:func:`normals_from_near_side`)
-OBSERVE_MARGIN = 6 + 3 + 6
+# sigma 1.5 reaches 6, the one-sided differences 6 (:func:`_one_sided_difference`), and a
+# pixel on a jump's nearer surface reads its normal 6 pixels in
+# (:func:`normals_from_near_side`)
+OBSERVE_MARGIN = 6 + 6 + 6
 COLUMN_BLOCK = 64  # float32 columns: four AVX-512 vectors
 WINDOW_BAND = 32  # image rows whose rays grid_window holds at once: 0.6 MB at 1024 columns
 

@@ -105,7 +105,12 @@ def test_model_city_json_is_cityjson_every_reader_takes(path_run):
         assert a["roofType"] == b["roof_type"] and a["ridge_z"] == b["ridge_z"]
         assert b["base_z"] < a["lod1_z"] <= b["ridge_z"]
         if spec.name != "voxel":  # the raster paths: the model's distance to the DSM
-            assert 0 < a["rmse_m"] < 2.0
+            # the parametric path's mansard reaches 2.2 m (0.11 m before the fusion's
+            # one-sided normals): the fused DSM reads more of the cells a fifth under its
+            # eave at the eave, its rectangle registers 0.3 m wider and takes in ground
+            # cells; against the truth the run's height RMSE off the jumps went 1.89 ->
+            # 1.57 m
+            assert 0 < a["rmse_m"] < 2.5
 
 
 def test_compare_scores_the_run(path_run):
