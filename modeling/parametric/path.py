@@ -613,8 +613,9 @@ def tree_crowns(mask, tree, gsd: float, options, min_cells) -> np.ndarray:
 def unknown_objects(dsm, mask, heights, gsd: float, options, min_cells) -> np.ndarray:
     """(h, w) bool cells of the segment that the fitted roofs do not explain: outside
     the outline or standing more than a tier's step off the model, in parts wider than
-    the smallest part and of at least ``min_cells``, taken whole, that reach into the
-    outline (none otherwise). A crown over or beside the roof is such an object, which
+    the smallest part and of at least ``min_cells``, taken whole, that stand apart from
+    the roof beside them (:func:`_stands_apart`) and reach into the outline (none
+    otherwise). A crown over or beside the roof is such an object, which
     eq. 4 leaves to the data term; the building's own tiers and wings are in the model.
 
     dsm, heights : (h, w) float, metres; mask : (h, w) bool, the segment."""
