@@ -541,6 +541,24 @@ def test_l_prior_wins_and_registers_its_notch():
     assert len(prior.wings()) == 2
 
 
+@pytest.mark.parametrize("notch", [1.5, 2.4])
+def test_a_u_notch_narrower_than_an_arm_registers(notch):
+    """A U's notch is ground, not an arm: one narrower than --min-part (3 m) is a U all
+    the same (seed 2's 2.4 m wide yard, read 1.5-2 m wide in its segment, was fitted as
+    a rectangle: the notch had to be 3 m wide, and the opening that reads it erased it),
+    its outline within a cell of the truth along the notch's sides."""
+    xs, ys, X, Y = _grid_cells()
+    u = Polygon([(-12, -8), (12, -8), (12, 8), (-12, 8)]).difference(
+        Polygon([(-notch / 2, 0), (notch / 2, 0), (notch / 2, 9), (-notch / 2, 9)])
+    )
+    frame = segment_frame(contains_xy(u, X, Y), xs, ys, 0.25)
+    prior, energies = compete_priors(frame, ("rect", "L", "T", "U", "courtyard"), 3.0, 0.95)
+    assert prior is not None and prior.family == "U"
+    assert energies["U"] < 0.6 * energies["rect"]
+    # the notch's 8 m sides and its end, each within a cell (0.25 m)
+    assert prior.polygon().symmetric_difference(u).area < 0.25 * (2 * 8 + notch) + 0.5
+
+
 def _grid_cells(half=20.0, step=0.25):
     xs = np.arange(-half, half, step) + step / 2
     ys = xs[::-1]

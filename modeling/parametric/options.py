@@ -69,8 +69,8 @@ class ParametricOptions:
     )  # fmt: skip
     min_area_m2: float = option(20.0, "smallest building kept", unit="m2", flag="--min-area")
     min_part_m: float = option(
-        3.0, "narrowest wing or notch of a footprint prior, and of a part decomposed from a "
-        "complex outline", unit="m",
+        3.0, "narrowest wing of a footprint prior (a U's notch and a courtyard's hole may be "
+        "narrower), and of a part decomposed from a complex outline", unit="m",
     )  # fmt: skip
     opening_m: float = option(
         1.0, "radius of the opening that splits weakly touching segments", unit="m",

@@ -233,10 +233,25 @@ def _initial_params(frame: SegmentFrame, family: str, min_part: float) -> np.nda
         return b
     empty = ~inside & (frame.u > b[0]) & (frame.u < b[1]) & (frame.v > b[2]) & (frame.v < b[3])
     # an opening narrower than any arm parts a notch from the slivers the segment's
-    # rounded corners leave, which would otherwise join it and touch the wrong sides
-    r = int(np.ceil(0.5 * min_part / frame.step)) - 1
-    if r > 0:
-        empty = ndimage.binary_opening(empty, np.ones((3, 3), bool), iterations=r)
+    # rounded corners leave, which would otherwise join it and touch the wrong sides; a
+    # U's notch and a courtyard's hole are ground, not arms, and may be narrower than
+    # that opening: for them the opening narrows until it leaves one
+    widest = int(np.ceil(0.5 * min_part / frame.step)) - 1
+    radii = range(widest, -1, -1) if family in ("U", "courtyard") else [widest]
+    for r in radii:
+        opened = empty if r == 0 else ndimage.binary_opening(empty, np.ones((3, 3), bool),
+                                                              iterations=r)  # fmt: skip
+        q = _notch_read(frame, family, b, opened, min_part)
+        if q is not None:
+            return np.concatenate([b, q])
+    return None
+
+
+def _notch_read(
+    frame: SegmentFrame, family: str, b: np.ndarray, empty: np.ndarray, min_part: float
+) -> np.ndarray | None:
+    """The family's notch parameters read off the largest empty component of the box that
+    touches the sides where the family has its notch; None when none is min_part^2 large."""
     labels, n = ndimage.label(empty)
     best, best_cells = None, 0
     for k in range(1, n + 1):
@@ -246,7 +261,9 @@ def _initial_params(frame: SegmentFrame, family: str, min_part: float) -> np.nda
         near = np.abs(ext - b) < 1.5 * frame.step  # which sides of the box it touches
         if family == "L" and near[0] and near[2] and not near[1] and not near[3]:
             q = np.array([ext[1] - b[0], ext[3] - b[2]])
-        elif family == "U" and near[3] and not (near[0] or near[1] or near[2]):
+        elif (family == "U" and near[3] and not (near[0] or near[1] or near[2])
+              and b[3] - ext[2] >= min_part - frame.step):  # fmt: skip
+            # a dent shallower than the arms are long is not a U's notch
             q = np.array([ext[0], ext[1], b[3] - ext[2]])
         elif family == "courtyard" and not near.any():
             q = ext.copy()
@@ -265,7 +282,7 @@ def _initial_params(frame: SegmentFrame, family: str, min_part: float) -> np.nda
             best, best_cells = q, cells.sum()
     if best is None or best_cells * frame.step**2 < min_part**2:
         return None
-    return np.concatenate([b, best])
+    return best
 
 
 def _feasible(family: str, p: np.ndarray, min_part: float) -> bool:
@@ -275,21 +292,28 @@ def _feasible(family: str, p: np.ndarray, min_part: float) -> bool:
     q = p[4:]
     if family == "L":
         return min_part <= q[0] <= u1 - u0 - min_part and min_part <= q[1] <= v1 - v0 - min_part
-    if family in ("T", "U"):
+    # the arms are parts, at least min_part wide and (a U's, beyond its base) long; a U's
+    # notch and a courtyard's hole are ground, of any width
+    if family == "T":
         a, b, depth = q
         return (a - u0 >= min_part and u1 - b >= min_part and b - a >= min_part
+                and min_part <= depth <= v1 - v0 - min_part)  # fmt: skip
+    if family == "U":
+        a, b, depth = q
+        return (a - u0 >= min_part and u1 - b >= min_part and b > a
                 and min_part <= depth <= v1 - v0 - min_part)  # fmt: skip
     if family == "courtyard":
         a, b, c, d = q
         return (a - u0 >= min_part and u1 - b >= min_part and c - v0 >= min_part
-                and v1 - d >= min_part and b - a >= min_part and d - c >= min_part)  # fmt: skip
+                and v1 - d >= min_part and b > a and d > c)  # fmt: skip
     return True
 
 
-def _projected(family: str, p: np.ndarray, min_part: float) -> np.ndarray | None:
+def _projected(family: str, p: np.ndarray, min_part: float, gap: float) -> np.ndarray | None:
     """The nearest pose to ``p`` whose notches leave every arm ``min_part`` wide (a
-    segment's ragged edge can make a notch read off it a little too deep); None when
-    the box itself is too small for the family."""
+    segment's ragged edge can make a notch read off it a little too deep) and a U's notch
+    or a courtyard's hole at least ``gap`` wide; None when the box itself is too small for
+    the family."""
     p = p.copy()
     u0, u1, v0, v1 = p[:4]
     if u1 - u0 < min_part or v1 - v0 < min_part:
@@ -299,19 +323,25 @@ def _projected(family: str, p: np.ndarray, min_part: float) -> np.ndarray | None
             return None
         p[4] = np.clip(p[4], min_part, u1 - u0 - min_part)
         p[5] = np.clip(p[5], min_part, v1 - v0 - min_part)
-    elif family in ("T", "U"):
+    elif family == "T":
         if u1 - u0 < 3 * min_part or v1 - v0 < 2 * min_part:
             return None
         p[4] = np.clip(p[4], u0 + min_part, u1 - 2 * min_part)
         p[5] = np.clip(p[5], p[4] + min_part, u1 - min_part)
         p[6] = np.clip(p[6], min_part, v1 - v0 - min_part)
-    elif family == "courtyard":
-        if min(u1 - u0, v1 - v0) < 3 * min_part:
+    elif family == "U":
+        if u1 - u0 < 2 * min_part + gap or v1 - v0 < 2 * min_part:
             return None
-        p[4] = np.clip(p[4], u0 + min_part, u1 - 2 * min_part)
-        p[5] = np.clip(p[5], p[4] + min_part, u1 - min_part)
-        p[6] = np.clip(p[6], v0 + min_part, v1 - 2 * min_part)
-        p[7] = np.clip(p[7], p[6] + min_part, v1 - min_part)
+        p[4] = np.clip(p[4], u0 + min_part, u1 - min_part - gap)
+        p[5] = np.clip(p[5], p[4] + gap, u1 - min_part)
+        p[6] = np.clip(p[6], min_part, v1 - v0 - min_part)
+    elif family == "courtyard":
+        if min(u1 - u0, v1 - v0) < 2 * min_part + gap:
+            return None
+        p[4] = np.clip(p[4], u0 + min_part, u1 - min_part - gap)
+        p[5] = np.clip(p[5], p[4] + gap, u1 - min_part)
+        p[6] = np.clip(p[6], v0 + min_part, v1 - min_part - gap)
+        p[7] = np.clip(p[7], p[6] + gap, v1 - min_part)
     return p
 
 
@@ -324,7 +354,7 @@ def register_prior(frame: SegmentFrame, family: str, min_part: float) -> Prior |
     for quarter in range(4 if family != "rect" and family != "courtyard" else 1):
         f = _rotated(frame, quarter)
         x0 = _initial_params(f, family, min_part)
-        x0 = None if x0 is None else _projected(family, x0, min_part)
+        x0 = None if x0 is None else _projected(family, x0, min_part, f.step)
         if x0 is None or not _feasible(family, x0, min_part):
             continue
         evaluations = 0
