@@ -559,6 +559,21 @@ def test_a_u_notch_narrower_than_an_arm_registers(notch):
     assert prior.polygon().symmetric_difference(u).area < 0.25 * (2 * 8 + notch) + 0.5
 
 
+def test_a_dent_shallower_than_an_arm_is_not_a_u_notch():
+    """A 13 m x 9 m rectangle whose segment has a 2 m deep, 4.3 m long dent in a long
+    side (seed 0's segment of a 109 m² rectangle has one 1-2 m deep): the arms of a U
+    beyond its base are parts, at least --min-part (3 m) long, so the dent is no U's
+    notch; a U made of it cost the block path the arms' stubs, shorter than a part (the
+    building lost 17 m²)."""
+    xs, ys, X, Y = _grid_cells(half=9.0)
+    dented = Polygon([(-6.5, -4.5), (6.5, -4.5), (6.5, 4.5), (-6.5, 4.5)]).difference(
+        Polygon([(-3.0, 2.5), (1.3, 2.5), (1.3, 5.0), (-3.0, 5.0)])
+    )
+    frame = segment_frame(contains_xy(dented, X, Y), xs, ys, 0.25)
+    prior, energies = compete_priors(frame, ("rect", "L", "T", "U", "courtyard"), 3.0, 0.95)
+    assert prior is not None and prior.family == "rect", energies
+
+
 def _grid_cells(half=20.0, step=0.25):
     xs = np.arange(-half, half, step) + step / 2
     ys = xs[::-1]
