@@ -559,6 +559,21 @@ def test_a_u_notch_narrower_than_an_arm_registers(notch):
     assert prior.polygon().symmetric_difference(u).area < 0.25 * (2 * 8 + notch) + 0.5
 
 
+def test_a_courtyard_with_a_slit_through_a_thin_side_is_no_u():
+    """A podium around a tower (dev seed 7's): its cells are a ring whose east side is a
+    1 m strip with a slit through it. A U's notch opens onto its side along its width, so
+    the hole the slit joins to the outside is a courtyard's; read as a U's notch, it left
+    the strip at ground level between the tower and the edge (the run's height RMSE over
+    buildings 0.71 -> 1.32 m)."""
+    xs, ys, X, Y = _grid_cells(half=16.0)
+    ring = Polygon([(-11, -9.5), (11, -9.5), (11, 9.5), (-11, 9.5)])
+    ring = ring.difference(Polygon([(-5, -4.5), (10, -4.5), (10, 4), (-5, 4)]))
+    ring = ring.difference(Polygon([(9, 0), (12, 0), (12, 0.5), (9, 0.5)]))
+    frame = segment_frame(contains_xy(ring, X, Y), xs, ys, 0.25)
+    prior, energies = compete_priors(frame, ("rect", "L", "T", "U", "courtyard"), 3.0, 0.95)
+    assert prior is not None and prior.family == "courtyard", energies
+
+
 def test_a_dent_shallower_than_an_arm_is_not_a_u_notch():
     """A 13 m x 9 m rectangle whose segment has a 2 m deep, 4.3 m long dent in a long
     side (seed 0's segment of a 109 m² rectangle has one 1-2 m deep): the arms of a U

@@ -262,8 +262,11 @@ def _notch_read(
         if family == "L" and near[0] and near[2] and not near[1] and not near[3]:
             q = np.array([ext[1] - b[0], ext[3] - b[2]])
         elif (family == "U" and near[3] and not (near[0] or near[1] or near[2])
-              and b[3] - ext[2] >= min_part - frame.step):  # fmt: skip
-            # a dent shallower than the arms are long is not a U's notch
+              and b[3] - ext[2] >= min_part - frame.step
+              and _mouth(frame, cells, b[3]) >= 0.5 * (ext[1] - ext[0])):  # fmt: skip
+            # a dent shallower than the arms are long is not a U's notch, nor a hole that
+            # a slit through a thin side joins to the outside: a U's notch opens onto its
+            # side along its width
             q = np.array([ext[0], ext[1], b[3] - ext[2]])
         elif family == "courtyard" and not near.any():
             q = ext.copy()
@@ -283,6 +286,16 @@ def _notch_read(
     if best is None or best_cells * frame.step**2 < min_part**2:
         return None
     return best
+
+
+def _mouth(frame: SegmentFrame, cells: np.ndarray, v1: float) -> float:
+    """The extent along u, metres, of ``cells`` within a cell and a half of the box's side
+    at v = ``v1``: where an empty component opens onto that side."""
+    at_side = cells & (frame.v > v1 - 1.5 * frame.step)
+    if not at_side.any():
+        return 0.0
+    u = frame.u[at_side]
+    return float(u.max() - u.min()) + frame.step
 
 
 def _feasible(family: str, p: np.ndarray, min_part: float) -> bool:
