@@ -263,10 +263,12 @@ def _notch_read(
             q = np.array([ext[1] - b[0], ext[3] - b[2]])
         elif (family == "U" and near[3] and not (near[0] or near[1] or near[2])
               and b[3] - ext[2] >= min_part - frame.step
-              and _mouth(frame, cells, b[3]) >= 0.5 * (ext[1] - ext[0])):  # fmt: skip
+              and _mouth(frame, cells, b[3]) >= min(min_part, 0.5 * (ext[1] - ext[0]))
+              ):  # fmt: skip
             # a dent shallower than the arms are long is not a U's notch, nor a hole that
             # a slit through a thin side joins to the outside: a U's notch opens onto its
-            # side along its width
+            # side over half its width, or an arm's width (an L's notch, whose far side a
+            # rounded tip closes, opens over less than half)
             q = np.array([ext[0], ext[1], b[3] - ext[2]])
         elif family == "courtyard" and not near.any():
             q = ext.copy()
