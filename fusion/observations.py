@@ -78,7 +78,8 @@ def normal_z_image(
     """(H, W) z of surface normals from a depth map, NaN where unknown.
 
     The depth is smoothed first (dense-matching noise is as large as a pixel's
-    footprint) and differentiated over ``step`` pixels; a lone unknown pixel takes the
+    footprint) and differentiated over ``2 step`` pixels on one side of each pixel, the
+    straighter (:func:`_one_sided_difference`); a lone unknown pixel takes the
     smoothed depth of its neighbours, so that the normals around it stay known. Each
     normal is turned toward the camera, so a surface the view sees from below has a
     negative z. ``rays``: as for :func:`lift_depth`.
