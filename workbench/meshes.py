@@ -109,13 +109,17 @@ def self_intersecting(
     mesh: o3d.geometry.TriangleMesh | None = None,
     coplanar_m: float = 0.0,
 ) -> bool:
-    """Whether two triangles that share no vertex intersect (Open3D), with the pairs Open3D
-    reports in one plane checked again by their overlap in that plane.
+    """Whether two triangles that share no vertex intersect (Open3D), with every pair Open3D
+    reports checked again: a pair in one plane by its overlap in that plane, any other
+    pair by the separating axes of two triangles.
 
     Open3D reports disjoint coplanar triangles as intersecting when their coordinates are
     large (isl-org/Open3D#6462: a proxy's floor in world metres), and also disjoint
     triangles of one polygon whose corners were rounded off its plane by millimetres (a
-    CityJSON file's). A coplanar pair intersects only if it overlaps by an area.
+    CityJSON file's). A coplanar pair intersects only if it overlaps by an area. Its
+    test of two triangles in different planes also answers yes for some that stand
+    apart (isl-org/Open3D#5117; two roof triangles of an L's hips 9 mm apart): such a
+    pair intersects only if no axis separates them.
 
     Parameters
     ----------
@@ -129,9 +133,29 @@ def self_intersecting(
     mesh = mesh if mesh is not None else _o3d_mesh(vertices, triangles)
     for a, b in np.asarray(mesh.get_self_intersecting_triangles()):
         ta, tb = vertices[triangles[a]], vertices[triangles[b]]
-        if not _coplanar(ta, tb, abs_tol=coplanar_m) or _overlap_area(ta, tb) > 0:
+        if _coplanar(ta, tb, abs_tol=coplanar_m):
+            if _overlap_area(ta, tb) > 0:
+                return True
+        elif not _separated(ta, tb):
             return True
     return False
+
+
+def _separated(ta: np.ndarray, tb: np.ndarray) -> bool:
+    """Whether an axis separates two triangles (3, 3) that are not in one plane: their
+    normals and the nine cross products of their edges (the separating axis theorem for
+    convex polyhedra; a touch, within a billionth of their size, is no separation)."""
+    ea, eb = np.roll(ta, -1, axis=0) - ta, np.roll(tb, -1, axis=0) - tb
+    axes = np.vstack([np.cross(ea[0], ea[1]), np.cross(eb[0], eb[1]),
+                      np.cross(ea[:, None, :], eb[None, :, :]).reshape(9, 3)])  # fmt: skip
+    norms = np.linalg.norm(axes, axis=1)
+    axes = axes[norms > 1e-12 * max(float(norms.max()), 1e-300)]
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    centre = ta.mean(axis=0)
+    pa, pb = (ta - centre) @ axes.T, (tb - centre) @ axes.T  # (3, n_axes)
+    gap = 1e-9 * float(np.ptp(np.vstack([ta, tb]), axis=0).max())
+    return bool(np.any((pa.max(axis=0) < pb.min(axis=0) - gap)
+                       | (pb.max(axis=0) < pa.min(axis=0) - gap)))  # fmt: skip
 
 
 def _o3d_mesh(vertices: np.ndarray, triangles: np.ndarray) -> o3d.geometry.TriangleMesh:

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import rasterio.features
+import shapely
 from scipy import ndimage
 from shapely.geometry import mapping, shape
 from shapely.ops import unary_union
@@ -76,6 +77,7 @@ from .roof_geometry import (
     robust_cost,
     roof_type,
     side_distances,
+    wing_samples,
 )
 from .segmentation import heaviside, level_set_segmentation, signed_distance
 
@@ -739,8 +741,28 @@ def fit_wings(priors, X, Y, dsm, inside, options: ParametricOptions, gsd: float,
         z_main = float(np.median([f.z_main for f in fits]))
         fits = [fit(d, z, options.robust_m, z_main, h)
                 for (_, _, d, z), h in zip(cells_of, hidden, strict=True)]  # fmt: skip
-    return [(Wing(rect, f, roof_type(f, rect, h), hidden=h), p)
-            for (rect, p, _, _), f, h in zip(cells_of, fits, hidden, strict=True)]  # fmt: skip
+    covered = covered_samples([(rect, p) for rect, p, _, _ in cells_of])
+    return [(Wing(rect, f, roof_type(f, rect, h, c), hidden=h), p) for (rect, p, _, _), f, h, c
+            in zip(cells_of, fits, hidden, covered, strict=True)]  # fmt: skip
+
+
+def covered_samples(rects: list) -> list[np.ndarray]:
+    """Per wing, which of its :func:`wing_samples` lie under the building's other wings,
+    where the DSM shows their roof, not its own: (N,) bool each.
+
+    rects : list of (rect (4,), Prior) in the prior's frame."""
+    polys = [p.frame_polygon(r) for r, p in rects]
+    out = []
+    for i, (r, p) in enumerate(rects):
+        u, v = wing_samples(r)
+        others = unary_union([q for j, q in enumerate(polys) if j != i])
+        if others.is_empty:
+            out.append(np.zeros(u.shape, bool))
+            continue
+        c, s = np.cos(p.theta), np.sin(p.theta)
+        x, y = p.origin[0] + c * u - s * v, p.origin[1] + s * u + c * v
+        out.append(shapely.contains_xy(others, x, y))
+    return out
 
 
 def hidden_sides(rects: list) -> list[tuple[bool, ...]]:
