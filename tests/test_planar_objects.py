@@ -9,6 +9,7 @@ from fusion.planar_objects import (
     FACE_EDGE_M,
     MIN_AREA_M2,
     dsm_noise,
+    object_planes,
     planar_roofs_classed_tree,
     planar_tree_objects,
     relabel_planar_objects,
@@ -188,7 +189,9 @@ def test_a_roofs_faces_joined_to_a_crown_are_roof_and_the_crown_stays_tree(monke
     labels, _ = ndimage.label(tall)
     assert len(np.unique(labels[faces_inner | crown])) == 1  # the case: one tree object
     roof, found = planar_tree_objects(classes, dsm, dsm.copy(), GSD)
-    assert found == 0  # the crown outweighs the faces: the whole-object test says tree
+    # the crown outweighs the faces: the whole-object test takes none of it (its first
+    # draw takes nothing; a later one the largest face, under 0.7 of them)
+    assert roof[crown].mean() < 0.01 and roof[faces_inner].mean() < 0.7
     faces, found = roof_faces_beside_buildings(classes, dsm, dsm.copy(), GSD)
     assert found >= 1 and faces[faces_inner].mean() > 0.97
     assert faces[crown].mean() < 0.01
@@ -241,7 +244,7 @@ def test_faces_are_made_building_in_both_rasters():
         *np.indices(classes.shape),
     ] = 1.0
     new_classes, new_prob, counts = planar_roofs_classed_tree(classes, prob, dsm, dsm.copy(), GSD)
-    assert counts["planar_objects_made_building"] == 0 and counts["roof_faces_made_building"] >= 1
+    assert counts["roof_faces_made_building"] >= 1
     assert (new_classes[faces_inner] == BUILDING).mean() > 0.97
     assert (new_classes[crown] == TREE).mean() > 0.99
     made = (classes == TREE) & (new_classes == BUILDING)
@@ -287,3 +290,25 @@ def test_sequential_planes_finds_a_gable_roofs_two_faces():
         yy = side * np.array([1.0, 2.0])
         assert plane_heights(p, np.zeros(2), yy) == pytest.approx(4.0 - 0.5 * np.abs(yy), abs=0.03)
     assert len(sequential_planes(np.c_[x, y, z], 0.06, 200, 1, 75.0, seed=0)) == 1
+
+
+def test_a_draw_whose_planes_miss_a_small_hipped_l_gets_another(monkeypatch):
+    """A hipped L of 5.2 m wings (16.3 x 12 m, 29.5 degree faces) in its walls' blur (a
+    ring of 0.75 m between ground and eave, as a fusion leaves it): on draw seed 4 the
+    greedy sequential RANSAC explains too little of it, as on dev seed 8's moss-green
+    hipped L of 121 m^2 (0.66). Another draw makes it a roof."""
+    rng = np.random.default_rng(4)
+    y, x = np.mgrid[0:64, 0:74] * GSD - 2.0
+    z, roof = np.full(x.shape, -np.inf), np.zeros(x.shape, bool)
+    for u0, u1, v0, v1 in ((0, 16.3, 0, 5.2), (0, 5.2, 0, 12.0)):
+        wing = (x >= u0) & (x <= u1) & (y >= v0) & (y <= v1)
+        d = np.minimum.reduce([x - u0, u1 - x, y - v0, v1 - y])
+        z = np.where(wing, np.maximum(z, 10 + d * np.tan(np.radians(29.5))), z)
+        roof |= wing
+    z = np.where(roof, z + rng.normal(0, 0.04, x.shape), 0.0)
+    blur = ndimage.binary_dilation(roof, iterations=3) & ~roof
+    z[blur] = rng.uniform(3, 10, blur.sum())
+    found = object_planes(roof | blur, z, GSD, 0.1, np.random.default_rng(4), 4)
+    assert found is not None and (found & roof).sum() >= 0.9 * roof.sum()
+    monkeypatch.setattr("fusion.planar_objects.DRAWS", 1)
+    assert object_planes(roof | blur, z, GSD, 0.1, np.random.default_rng(4), 4) is None
