@@ -734,60 +734,53 @@ def fit_wings(priors, X, Y, dsm, inside, options: ParametricOptions, gsd: float,
         if keep.sum() < 10:
             continue
         cells_of.append((rect, p, d[:, keep], z[keep]))
-    hidden = hidden_sides([(rect, p) for rect, p, _, _ in cells_of])
+    hidden, covered = under_other_wings([(rect, p) for rect, p, _, _ in cells_of])
     fits = [fit(d, z, options.robust_m, None, h)
             for (_, _, d, z), h in zip(cells_of, hidden, strict=True)]  # fmt: skip
     if len(fits) > 1:  # the paper's h_m is one per building: the wings share the median
         z_main = float(np.median([f.z_main for f in fits]))
         fits = [fit(d, z, options.robust_m, z_main, h)
                 for (_, _, d, z), h in zip(cells_of, hidden, strict=True)]  # fmt: skip
-    covered = covered_samples([(rect, p) for rect, p, _, _ in cells_of])
     return [(Wing(rect, f, roof_type(f, rect, h, c), hidden=h), p) for (rect, p, _, _), f, h, c
             in zip(cells_of, fits, hidden, covered, strict=True)]  # fmt: skip
 
 
-def covered_samples(rects: list) -> list[np.ndarray]:
-    """Per wing, which of its :func:`wing_samples` lie under the building's other wings,
-    where the DSM shows their roof, not its own: (N,) bool each.
+def under_other_wings(rects: list) -> tuple[list[tuple[bool, ...]], list[np.ndarray]]:
+    """Per wing, what of it lies under the building's other wings, where the DSM shows
+    their roof, not its own.
 
-    rects : list of (rect (4,), Prior) in the prior's frame."""
+    rects : list of (rect (4,), Prior) in the prior's frame.
+
+    Returns
+    -------
+    hidden : list of (4,) bool tuples
+        Whether each side (u0, v0, u1, v1) does: the strip along it, half the wing's
+        width deep, at least half covered. A plane rising from such a side (an L's inner
+        corner) shows in the DSM over the strip's rest at most.
+    covered : list of (N,) bool
+        Which of its :func:`wing_samples` do.
+    """
     polys = [p.frame_polygon(r) for r, p in rects]
-    out = []
+    hidden, covered = [], []
     for i, (r, p) in enumerate(rects):
         u, v = wing_samples(r)
         others = unary_union([q for j, q in enumerate(polys) if j != i])
         if others.is_empty:
-            out.append(np.zeros(u.shape, bool))
-            continue
-        c, s = np.cos(p.theta), np.sin(p.theta)
-        x, y = p.origin[0] + c * u - s * v, p.origin[1] + s * u + c * v
-        out.append(shapely.contains_xy(others, x, y))
-    return out
-
-
-def hidden_sides(rects: list) -> list[tuple[bool, ...]]:
-    """Per wing, whether each side (u0, v0, u1, v1) lies under the building's other
-    wings: the strip along it, half the wing's width deep, at least half covered. A
-    plane rising from such a side (an L's inner corner) never shows in the DSM, so its
-    angle says nothing of the roof's type.
-
-    rects : list of (rect (4,), Prior) in the prior's frame."""
-    polys = [p.frame_polygon(r) for r, p in rects]
-    out = []
-    for i, (r, p) in enumerate(rects):
-        others = unary_union([q for j, q in enumerate(polys) if j != i])
-        if others.is_empty:
-            out.append((False,) * 4)
+            hidden.append((False,) * 4)
+            covered.append(np.zeros(u.shape, bool))
             continue
         u0, u1, v0, v1 = r
         half = 0.5 * min(u1 - u0, v1 - v0)
         strips = ([u0, u0 + half, v0, v1], [u0, u1, v0, v0 + half],
                   [u1 - half, u1, v0, v1], [u0, u1, v1 - half, v1])  # fmt: skip
-        out.append(tuple(
+        hidden.append(tuple(
             bool(s.intersection(others).area >= 0.5 * s.area)
             for s in (p.frame_polygon(np.array(b)) for b in strips)
         ))  # fmt: skip
-    return out
+        cos, sin = np.cos(p.theta), np.sin(p.theta)
+        covered.append(shapely.contains_xy(others, p.origin[0] + cos * u - sin * v,
+                                           p.origin[1] + sin * u + cos * v))  # fmt: skip
+    return hidden, covered
 
 
 def roof_wings(
