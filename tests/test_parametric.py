@@ -176,16 +176,18 @@ def test_a_side_hidden_under_another_wing_partners_the_plane_opposite_it():
 
 def test_a_small_l_wing_under_the_other_wing_reads_its_type_where_it_shows():
     """Dev seed 6's hipped L of 59 m^2, 5 m wings: the other wing covers three of this
-    wing's side strips by half or more, so by the sides alone only its hip end counted,
-    and the partner that end has under the other wing made a gable. On the samples no
-    other wing covers, both long sides show: hipped. The same wing with a gable end
-    stays a gable: its inner end is fitted to whatever angle, under the other wing."""
+    wing's side strips by half or more. When a plane on a hidden side did not count,
+    only its hip end did, and the partner that end has under the other wing made a
+    gable; the hidden sides' strips (half the wing's width deep, the default) cover all
+    of this 5.15 m wide wing: no plane shows. On the samples the other wing leaves, both
+    long sides show: hipped. The same wing with a gable end stays a gable: its inner
+    end is fitted to whatever angle, under the other wing."""
     wing = np.array([-4.669, 3.695, -1.358, 3.793])
     u, v = wing_samples(wing)
     covered = u > -1.347  # the other wing: u -1.347..3.695, v -4.721..3.793
     hidden = (False, True, True, True)
     hipped = RoofFit(52.3, np.radians([27.3, 32.7, 35.6, 30.1]), None, 0, 0, 0)
-    assert roof_type(hipped, wing, hidden) == "gable"  # the sides alone
+    assert roof_type(hipped, wing, hidden) == "flat"  # the hidden sides' strips alone
     assert roof_type(hipped, wing, hidden, covered) == "hipped"
     gable = RoofFit(52.3, np.radians([89.5, 32.7, 35.6, 30.1]), None, 0, 0, 0)
     assert roof_type(gable, wing, hidden, covered) == "gable"

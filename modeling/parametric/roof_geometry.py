@@ -375,11 +375,11 @@ def roof_type(
     apart), or two adjacent planes; with a cap: mansard (over faces steeper than
     STEEP_DEG), else platform. A plane counts when it tops at least ``min_share`` of the
     square on the wing's short side (a hip end of a long, narrow wing tops a quarter of
-    it) outside the building's other wings, where the DSM shows it: with ``covered``
-    ((N,) bool, the :func:`wing_samples` under another wing), on the samples it leaves;
-    without, a plane rising from a side ``hidden`` under another wing does not count. A
-    counted plane whose opposite side is hidden has a partner there, as the roof goes
-    on under the other wing.
+    it) outside the building's other wings, where the DSM shows it: on the samples
+    ``covered`` ((N,) bool, the :func:`wing_samples` under another wing) leaves; by
+    default on those off the strips along the ``hidden`` sides, half the wing's width
+    deep. A counted plane whose opposite side is hidden has a partner there, as the
+    roof goes on under the other wing.
 
     The samples under other wings decide since 2026-12-06: a small L's wings are half
     covered, each of three sides "hidden", and a hipped L's wing kept only its hip end,
@@ -400,12 +400,14 @@ def roof_type(
     if fit.cap is not None:
         owner = np.where(h >= fit.cap - 1e-6, 4, owner)
     side_u, side_v = u1 - u0, v1 - v0
-    seen = owner if covered is None else owner[~covered]
+    if covered is None:
+        half = 0.5 * min(side_u, side_v)
+        covered = np.any([(d[k] <= half) & hidden[k] for k in range(4)], axis=0)
     # each plane's area (where the DSM shows it) over the square on the short side
-    share = np.bincount(seen, minlength=5) / owner.size * side_u * side_v / min(side_u, side_v) ** 2
+    share = (np.bincount(owner[~covered], minlength=5) / owner.size * side_u * side_v
+             / min(side_u, side_v) ** 2)  # fmt: skip
     deg = np.degrees(fit.omega)
-    sloped = [k for k in _sloped(deg)
-              if share[k] >= min_share and (covered is not None or not hidden[k])]  # fmt: skip
+    sloped = [k for k in _sloped(deg) if share[k] >= min_share]
     if not sloped or h.max() - h.min() < 0.3:
         return "flat"
     if fit.cap is not None and share[4] >= min_share:
