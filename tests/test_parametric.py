@@ -115,6 +115,45 @@ def test_pyramid_needs_a_point_apex():
     assert roof_type(fit, WING) == "hipped"  # the same angles on 12 x 8: a ridge
 
 
+def _short_rectangle(true_u: float, true_v: float, short_m: float, omega_deg, seed=0):
+    """Cells of a wing registered ``short_m`` inside the walls at both of its u ends, and
+    the DSM there (0.05 m of seeded noise) of a roof whose planes rise at ``omega_deg``
+    from the true walls at 10 m. Returns the registered wing (4,), d (4, N), z (N,)."""
+    wing = np.array([0.0, true_u - 2 * short_m, 0.0, true_v])
+    u, v = np.meshgrid(np.arange(0.3, wing[1] - 0.3, 0.25), np.arange(0.3, true_v - 0.3, 0.25))
+    d = side_distances(u.ravel(), v.ravel(), wing)
+    on_walls = d + np.array([short_m, 0.0, short_m, 0.0])[:, None]
+    noise = np.random.default_rng(seed).normal(0.0, 0.05, d.shape[1])
+    return wing, d, 10.0 + roof_heights(on_walls, np.radians(omega_deg))[0] + noise
+
+
+def test_a_pyramid_registered_short_of_its_walls_keeps_its_apex():
+    """Dev seed 9's pyramid, 11.36 x 8.89 m with its apex 3.07 m up (34.6 and 28.4 deg),
+    registered 0.56 m short of its walls at both ends: with the eaves on the registered
+    sides its planes steepen and cross on a 1.4 m ridge (it read hipped); free to find
+    their eaves, they meet in the apex again, at their own pitches."""
+    half_u, half_v = 11.36 / 2, 8.89 / 2
+    omega = np.degrees(np.arctan(3.07 / np.array([half_u, half_v, half_u, half_v])))
+    wing, d, z = _short_rectangle(11.36, 8.89, 0.56, omega)
+    fit = fit_roof(d, z, robust_m=0.3)
+    assert np.allclose(np.degrees(fit.omega), omega, atol=0.5)
+    assert fit.rms < 0.06  # the noise's 0.05 m: the eaves found
+    assert roof_type(fit, wing) == "pyramid"
+    faces = wing_faces(wing, fit, 0.0, np.zeros(2))
+    top = max(float((f.xy @ f.plane[:2] + f.plane[2]).max()) for f in faces)
+    assert abs(top - 13.07) < 0.05  # the apex, 3.07 m over the walls at 10 m
+
+
+@pytest.mark.parametrize("ridge_m", [0.85, 1.5])
+def test_a_hipped_roof_with_a_short_ridge_stays_hipped(ridge_m):
+    """Dev seed 11's hipped roof, 10.13 x 9.28 m at 27.5 deg all round (a 0.85 m ridge),
+    registered 0.3 m short at both ends: a pyramid costs more than the planes free to
+    find their eaves (1.22 times on the seed's DSM), and the roof stays hipped."""
+    wing, d, z = _short_rectangle(9.28 + ridge_m, 9.28, 0.3, [27.5] * 4, seed=1)
+    fit = fit_roof(d, z, robust_m=0.3)
+    assert roof_type(fit, wing) == "hipped"
+
+
 def test_a_ridge_off_the_centre_line_is_an_offset_not_a_dissymmetry():
     """A gable whose ridge stands 0.6 m off the registered rectangle's centre line (the
     footprint missed the walls by that much): the fit slides the planes rather than
@@ -172,6 +211,23 @@ def test_a_side_hidden_under_another_wing_partners_the_plane_opposite_it():
     assert roof_type(gable, WING, hidden=(False, False, False, True)) == "gable"
     adjacent = RoofFit(10.0, np.radians([89.5, 35.0, 40.0, 89.5]), None, 0, 0, 0)
     assert roof_type(adjacent, WING) == "dissymmetric"
+
+
+def test_a_narrow_plane_along_a_long_wings_end_counts_its_own_area():
+    """A plane's share is its area: a gable end the walls' blur tilted to 71.5 degrees
+    on a 6 m x 34 m wing with 33.8 degree sides tops a triangle 6 m wide and
+    3 tan(33.8) / tan(71.5) = 0.669 m deep, 2.01 m^2: 0.0557 of the 36 m^2 square on
+    the short side (under the 0.08 a hip end needs: a gable). Samples on the wing's
+    sides counted the end's row whole and made it 0.094 (dev seed 8's gable Ls typed
+    hipped). A hip end at the sides' pitch tops 9 m^2, 0.25: hipped."""
+    wing = np.array([0.0, 6.0, 0.0, 34.0])
+    end = RoofFit(10.0, np.radians([33.8, 71.5, 33.8, 89.5]), None, 0, 0, 0)
+    assert roof_type(end, wing, min_share=0.050) == "hipped"
+    assert roof_type(end, wing, min_share=0.060) == "gable"
+    assert roof_type(end, wing) == "gable"
+    hip = RoofFit(10.0, np.radians([33.8, 33.8, 33.8, 89.5]), None, 0, 0, 0)
+    assert roof_type(hip, wing, min_share=0.24) == "hipped"
+    assert roof_type(hip, wing, min_share=0.26) == "gable"
 
 
 def test_a_small_l_wing_under_the_other_wing_reads_its_type_where_it_shows():

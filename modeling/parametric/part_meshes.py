@@ -15,7 +15,7 @@ import numpy as np
 
 from modeling.shared.roof_envelope import RoofFace, lowest_plane_faces
 
-from .roof_geometry import RoofFit
+from .roof_geometry import RoofFit, eave_shifts
 
 
 def wing_planes(wing: np.ndarray, fit: RoofFit) -> list[np.ndarray]:
@@ -23,9 +23,9 @@ def wing_planes(wing: np.ndarray, fit: RoofFit) -> list[np.ndarray]:
     u0, u1, v0, v1 = wing
     t = fit.snapped()
     z = fit.z_main
-    du, dv = fit.offset
-    sides = (np.array([1.0, 0.0, du - u0]), np.array([0.0, 1.0, dv - v0]),
-             np.array([-1.0, 0.0, u1 - du]), np.array([0.0, -1.0, v1 - dv]))  # fmt: skip
+    e = eave_shifts(fit.offset)  # plane k: tan(omega_k) (d_k + e_k) above P_m
+    sides = (np.array([1.0, 0.0, e[0] - u0]), np.array([0.0, 1.0, e[1] - v0]),
+             np.array([-1.0, 0.0, u1 + e[2]]), np.array([0.0, -1.0, v1 + e[3]]))  # fmt: skip
     planes = [tk * side + np.array([0.0, 0.0, z])
               for tk, side in zip(t, sides, strict=True) if np.isfinite(tk)]  # fmt: skip
     if fit.cap is not None or not planes:

@@ -666,7 +666,7 @@ def closed_solid(wings: list, base_z: float, main: Prior):
     shell). Returns the wings as meshed, how (``_MESHED``), faces, solid."""
     attempts = [(_MESHED[0], wings)]
     if any(np.any(w.fit.offset) for w, _ in wings):
-        attempts.append((_MESHED[1], [(_refit(w, offset=np.zeros(2)), p) for w, p in wings]))
+        attempts.append((_MESHED[1], [(_refit(w, offset=np.zeros(4)), p) for w, p in wings]))
     attempts.append((_MESHED[2], [(_flat_wing(w), p) for w, p in wings]))
     for attempt in attempts:
         how, candidate = attempt
@@ -689,7 +689,7 @@ def _flat_wing(w: Wing) -> Wing:
     U, V = np.meshgrid(u0 + t * (u1 - u0), v0 + t * (v1 - v0))
     h = exact_heights(side_distances(U.ravel(), V.ravel(), w.rect), w.fit)
     z = w.fit.z_main + float(np.median(h))
-    flat = _refit(w, z_main=z, omega=np.zeros(4), offset=np.zeros(2), cap=None)
+    flat = _refit(w, z_main=z, omega=np.zeros(4), offset=np.zeros(4), cap=None)
     return dataclasses.replace(flat, roof_type="flat")
 
 
