@@ -650,6 +650,27 @@ def test_roof_types_of_fitted_models():
     assert got == "mansard"
 
 
+@pytest.mark.parametrize("turn_deg", [0.0, 30.0, 45.0, 60.0])
+def test_roof_types_do_not_turn_with_the_building(turn_deg):
+    """The 10 x 6 m hipped roof of ``test_roof_types_of_fitted_models`` turned about its
+    centre, each face a few tenths of a degree off as fitted faces are: they face four
+    ways whatever the turn. In the world's quarters, at 45 degrees the faces fell on
+    either side of the quarters' bounds, two of them into one quarter ("complex")."""
+    t = np.tan(np.radians(40))
+    slopes = [(0, t), (0, -t), (t, 0), (-t, 0)]
+    off = np.radians([-0.2, -0.3, 0.4, 0.4])
+    a = np.radians(turn_deg) + off
+    turned = [(gx * np.cos(ak) - gy * np.sin(ak), gx * np.sin(ak) + gy * np.cos(ak))
+              for (gx, gy), ak in zip(slopes, a, strict=True)]  # fmt: skip
+    ridge = 5 + 3 * t  # each face rises from its eave at 5 m, 3 m (long sides) or 5 m out
+    reach = [3.0, 3.0, 5.0, 5.0]
+    planes = np.array([_plane(gx, gy, 5 + t * r)
+                       for (gx, gy), r in zip(turned, reach, strict=True)])  # fmt: skip
+    areas, heights = np.array([20.0, 20, 10, 10]), np.full(4, 5 + t)
+    got = roof_type(planes, areas, heights, np.full(8, 5.0), ridge_z=ridge, centre=(0, 0, 7.7))
+    assert got == "hipped"
+
+
 def test_unseen_edge_cells_stay_within_reach_and_when_enclosed():
     faces = np.zeros((7, 12), int)
     faces[1:6, 1:11] = 1

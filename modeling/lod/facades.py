@@ -4,20 +4,31 @@ projections of near-vertical normals for the building's two orthogonal direction
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage as ndi
 
 STEEP = np.cos(np.radians(45.0))  # a normal below this n_z is a wall's, as a grid sees it
+GRADIENT_SIGMA_CELLS = 2.0  # the DSM's gradient at walls: a Gaussian derivative this wide
 
 
 def wall_normals(normal: np.ndarray | None, dsm: np.ndarray, gsd: float, mask: np.ndarray):
     """(N, 2) horizontal unit normals of the walls about ``mask``: the normal map's steep
     normals (a vertical ray meets a wall only at its rounded top), and the DSM's gradient
-    where it rises more steeply than 45 degrees (a 2.5D grid's walls), inside ``mask``."""
+    where it rises more steeply than 45 degrees (a 2.5D grid's walls), inside ``mask``.
+
+    The gradient is a Gaussian derivative of GRADIENT_SIGMA_CELLS: a wall rasterised at
+    an angle is a staircase whose cells' own differences point along the grid's axes
+    and diagonals, and the consensus took the axes (a rectangle turned by 8.8 or 20
+    degrees came out at 0; seed 0's 8.8 degree building at 3.5, its outline 2-15 cells
+    off the truth's on one side); over 2 cells the staircase averages to its wall
+    (within 0.2 degrees from 3 to 37 degrees, measured in ``test_lod``)."""
     out = []
     if normal is not None:
         n = normal[:, mask]
         ok = np.isfinite(n).all(axis=0) & (n[2] < STEEP)
         out.append(n[:2, ok].T)
-    gy, gx = np.gradient(np.nan_to_num(dsm, nan=np.nanmin(dsm) if np.isfinite(dsm).any() else 0))
+    filled = np.nan_to_num(dsm, nan=np.nanmin(dsm) if np.isfinite(dsm).any() else 0)
+    gy = ndi.gaussian_filter(filled, GRADIENT_SIGMA_CELLS, order=(1, 0), mode="nearest")
+    gx = ndi.gaussian_filter(filled, GRADIENT_SIGMA_CELLS, order=(0, 1), mode="nearest")
     g = np.column_stack([-gx[mask], gy[mask]]) / gsd  # downhill, x east, y north
     steep = np.hypot(g[:, 0], g[:, 1]) > 1.0
     out.append(g[steep])

@@ -57,7 +57,7 @@ def roof_type(
     edges lie off the walls (a 40-degree roof drops 0.4 m over half a metre).
     """
     keep = areas >= 0.08 * areas.sum()
-    planes, heights = planes[keep], heights[keep]
+    planes, heights, areas = planes[keep], heights[keep], areas[keep]
     slope = np.degrees(np.arccos(np.clip(planes[:, 2], -1, 1)))
     sloped = slope >= flat_deg
     if not sloped.any():
@@ -66,8 +66,12 @@ def roof_type(
     steep = slope >= steep_deg
     if steep.any() and (~steep).any() and heights[~steep].mean() > heights[steep].mean():
         return "mansard"  # steep lower faces under a flatter top
-    azimuth = np.degrees(np.arctan2(planes[sloped, 0], planes[sloped, 1])) % 360
-    sectors = np.unique(np.round(azimuth / 90.0).astype(int) % 4)
+    # the sides the planes face, in quarters turned from the largest one's: in the
+    # world's quarters a roof turned by 45 degrees straddled them (a hipped roof's four
+    # faces fell in two quarters, "complex")
+    azimuth = np.degrees(np.arctan2(planes[sloped, 0], planes[sloped, 1]))
+    turned = (azimuth - azimuth[np.argmax(areas[sloped])]) % 360
+    sectors = np.unique(np.round(turned / 90.0).astype(int) % 4)
     ridge = max(float(heights.max()), -np.inf if ridge_z is None else float(ridge_z))
     eave = float(np.median(outline_z))
     level_eaves = np.quantile(outline_z, 0.9) - eave < 0.5 * max(ridge - eave, 1e-6)
