@@ -221,25 +221,33 @@ def flat_fit(d: np.ndarray, z: np.ndarray, robust_m: float, z_main: float | None
         start = np.r_[np.median(z[ring]), np.zeros(6)]
         z_main = _fit_groups(start, [[0]], d[:, ring], z[ring], robust_m, None).z_main
     if z_main is not None:
-        r = z_main - z
-        return RoofFit(z_main, np.zeros(4), None, float(np.sqrt(np.mean(r**2))),
-                       robust_cost(r, robust_m), 0)  # fmt: skip
+        return _fitted(z_main, np.zeros(4), None, z_main - z, robust_m, 0, np.zeros(2))
     return _fit_groups(np.r_[np.median(z), np.zeros(6)], [[0]], d, z, robust_m, None)
 
 
-def _solve(x0, d, z, robust_m, lo, hi, capped: bool, tie=None) -> RoofFit:
+def _least_squares(residuals, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, robust_m: float):
+    """Eq. 6 under the soft-L1 loss of scale ``robust_m``: SciPy's bounded trust-region
+    least squares from ``x0`` (moved inside the bounds), ``residuals(p)`` giving the
+    residuals and their Jacobian."""
     x0 = np.clip(x0, lo + 1e-9, hi - 1e-9)
-    res = optimize.least_squares(
-        lambda p: _residuals(p, d, z, capped, tie)[0], x0,
-        jac=lambda p: _residuals(p, d, z, capped, tie)[1], bounds=(lo, hi), loss="soft_l1",
-        f_scale=robust_m, max_nfev=60,
-    )  # fmt: skip
+    return optimize.least_squares(lambda p: residuals(p)[0], x0, jac=lambda p: residuals(p)[1],
+                                  bounds=(lo, hi), loss="soft_l1", f_scale=robust_m,
+                                  max_nfev=60)  # fmt: skip
+
+
+def _fitted(z_main, omega, cap, r: np.ndarray, robust_m: float, evaluations: int, offset):
+    """The RoofFit with the residuals ``r`` (metres) its RMS and robust cost."""
+    return RoofFit(float(z_main), np.array(omega, dtype=np.float64), cap,
+                   float(np.sqrt(np.mean(r**2))), robust_cost(r, robust_m), int(evaluations),
+                   np.array(offset, dtype=np.float64))  # fmt: skip
+
+
+def _solve(x0, d, z, robust_m, lo, hi, capped: bool, tie=None) -> RoofFit:
+    res = _least_squares(lambda p: _residuals(p, d, z, capped, tie), x0, lo, hi, robust_m)
     full = res.x if tie is None else tie @ res.x
     r = _residuals(full, d, z, capped)[0]
     cap = float(full[7]) if capped else None
-    rms = float(np.sqrt(np.mean(r**2)))
-    return RoofFit(float(full[0]), full[1:5].copy(), cap, rms, robust_cost(r, robust_m),
-                   int(res.nfev), full[5:7].copy())  # fmt: skip
+    return _fitted(full[0], full[1:5], cap, r, robust_m, res.nfev, full[5:7])
 
 
 def _sloped(deg: np.ndarray) -> list[int]:
@@ -259,9 +267,8 @@ def symmetric_fit(
     angle when the DSM does not tell them apart: all four (a hipped roof's one pitch)
     or the four meeting in a point (:func:`pyramid_fit`), both pairs, or one pair (a
     gable's), the most tied whose robust cost is at most SYMMETRY_COST times the untied
-    one's. A real dissymmetric roof costs clearly more
-    tied and keeps its angles. (A lone sloped plane's offset is the main height's: it
-    stays at 0.)
+    one's. A real dissymmetric roof costs clearly more tied and keeps its angles. (A
+    lone sloped plane's offset is the main height's: it stays at 0.)
 
     d : (4, N) side distances, metres; z : (N,) heights, metres; hidden : (4,) bool,
     sides whose planes the DSM never shows (neither tied nor offset)."""
@@ -296,11 +303,11 @@ def pyramid_fit(
     """Eq. 6 minimised over roofs whose four planes meet in one point: the apex's
     height H above P_m and its place (s_u, s_v) from the wing's centre, and the four
     angles; each plane's eave line where it falls to P_m, its shift from the wing's side
-    (:func:`eave_shifts`). The eaves are
-    free because a pyramid's apex sits where its planes cross, not on the registered
-    rectangle: tied to eaves on a rectangle 1.1 m short of the walls (dev seed 9's
-    11.4 x 8.9 m pyramid), the planes steepen and cross on a 1.4 m ridge, a hipped
-    roof, while planes free to find their eaves meet within 0.05 m.
+    (:func:`eave_shifts`). The eaves are free because a pyramid's apex sits where its
+    planes cross, not on the registered rectangle: tied to eaves on a rectangle 1.1 m
+    short of the walls (dev seed 9's 11.4 x 8.9 m pyramid), the planes steepen and cross
+    on a 1.4 m ridge, a hipped roof, while planes free to find their eaves meet within
+    0.05 m.
 
     None where a shift exceeds MAX_OFFSET_M or the planes with their eaves free
     (:func:`free_eaves`) cost less than 1 / SYMMETRY_COST as much: the DSM shows a ridge.
@@ -330,16 +337,11 @@ def pyramid_fit(
     rise = float(np.mean(t * reach(np.r_[0.0, apex])))
     lo = np.r_[0.1, -0.9 * half, np.full(4, np.radians(FLAT_DEG))]
     hi = np.r_[np.inf, 0.9 * half, np.full(4, np.radians(MAX_DEG))]
-    x0 = np.clip(np.r_[max(rise, 0.2), apex, fit.omega], lo + 1e-9, hi - 1e-9)
-    res = optimize.least_squares(lambda p: residuals(p)[0], x0, jac=lambda p: residuals(p)[1],
-                                 bounds=(lo, hi), loss="soft_l1", f_scale=robust_m,
-                                 max_nfev=60)  # fmt: skip
+    res = _least_squares(residuals, np.r_[max(rise, 0.2), apex, fit.omega], lo, hi, robust_m)
     shifts = res.x[0] / np.tan(res.x[3:7]) - reach(res.x)
-    r = residuals(res.x)[0]
-    pyramid = RoofFit(zm, res.x[3:7].copy(), None, float(np.sqrt(np.mean(r**2))),
-                      robust_cost(r, robust_m), int(res.nfev), shifts)  # fmt: skip
     if np.abs(shifts).max() > MAX_OFFSET_M:
         return None
+    pyramid = _fitted(zm, res.x[3:7], None, residuals(res.x)[0], robust_m, res.nfev, shifts)
     ridge = free_eaves(pyramid, d, z, robust_m)
     return pyramid if pyramid.cost <= SYMMETRY_COST * ridge.cost else None
 
@@ -364,13 +366,9 @@ def free_eaves(fit: RoofFit, d: np.ndarray, z: np.ndarray, robust_m: float) -> R
 
     lo = np.r_[np.zeros(4), np.full(4, -MAX_OFFSET_M)]
     hi = np.r_[np.full(4, np.radians(MAX_DEG)), np.full(4, MAX_OFFSET_M)]
-    x0 = np.clip(np.r_[fit.omega, eave_shifts(fit.offset)], lo + 1e-9, hi - 1e-9)
-    res = optimize.least_squares(lambda p: residuals(p)[0], x0, jac=lambda p: residuals(p)[1],
-                                 bounds=(lo, hi), loss="soft_l1", f_scale=robust_m,
-                                 max_nfev=60)  # fmt: skip
+    res = _least_squares(residuals, np.r_[fit.omega, eave_shifts(fit.offset)], lo, hi, robust_m)
     r = residuals(res.x)[0]
-    return RoofFit(fit.z_main, res.x[:4].copy(), None, float(np.sqrt(np.mean(r**2))),
-                   robust_cost(r, robust_m), int(res.nfev), res.x[4:8].copy())  # fmt: skip
+    return _fitted(fit.z_main, res.x[:4], None, r, robust_m, res.nfev, res.x[4:8])
 
 
 def vertical_ends(
