@@ -62,19 +62,23 @@ FACE_CONTINUES = 0.5  # share of that edge where the heights carry on across it
 COUNTS = ("planar_objects_made_building", "roof_faces_made_building")  # in fusion.json
 
 
-def dsm_noise(dsm: np.ndarray, classes: np.ndarray, gsd: float) -> float:
+def dsm_noise(dsm: np.ndarray, classes: np.ndarray, gsd: float, on: int = GROUND) -> float:
     """The DSM's noise, metres: the median RMS residual of the least-squares plane in the
-    ~1.25 m window around each cell classed ground (ground is locally planar wherever it
-    slopes), NaN without such cells."""
+    ~1.25 m window around each cell of class ``on`` (ground, by default: locally planar
+    wherever it slopes), NaN without such cells."""
     residual = plane_residual(dsm, window_cells(WINDOWS_M[0], gsd))
-    on_ground = (classes == GROUND) & np.isfinite(residual)
-    return float(np.median(residual[on_ground])) if on_ground.any() else float("nan")
+    on_class = (classes == on) & np.isfinite(residual)
+    return float(np.median(residual[on_class])) if on_class.any() else float("nan")
 
 
-def inlier_tolerance(dsm: np.ndarray, classes: np.ndarray, gsd: float) -> float:
+def inlier_tolerance(dsm: np.ndarray, classes: np.ndarray, gsd: float,
+                     on: int = GROUND) -> float:  # fmt: skip
     """The planes' inlier distance, metres: :data:`NOISE_FACTOR` times
-    :func:`dsm_noise` (NaN without ground)."""
-    return NOISE_FACTOR * dsm_noise(dsm, classes, gsd)
+    :func:`dsm_noise` on class ``on``, else on the ground (NaN without either)."""
+    noise = dsm_noise(dsm, classes, gsd, on)
+    if not np.isfinite(noise) and on != GROUND:
+        noise = dsm_noise(dsm, classes, gsd)
+    return NOISE_FACTOR * noise
 
 
 def tall_trees(classes: np.ndarray, dsm: np.ndarray, ndsm: np.ndarray) -> np.ndarray:
@@ -378,14 +382,20 @@ def largest_component(mask: np.ndarray) -> np.ndarray:
 
 
 def planar_roof_cells(
-    classes: np.ndarray, dsm: np.ndarray, ndsm: np.ndarray, gsd: float, seed: int = 0
+    classes: np.ndarray,
+    dsm: np.ndarray,
+    ndsm: np.ndarray,
+    gsd: float,
+    seed: int = 0,
+    noise_on: int = GROUND,
 ) -> tuple[np.ndarray, dict]:
     """(H, W) bool the cells classed tree that are roofs: whole objects
     (:func:`planar_tree_objects`), then faces joined to a crown
     (:func:`roof_faces_beside_buildings`); and how many of each were found, by the
-    names in :data:`COUNTS`. The LOD path tests its MRF labelling with it too."""
-    # the noise is measured on the ground, which neither step relabels
-    tolerance = inlier_tolerance(dsm, classes, gsd)
+    names in :data:`COUNTS`. The LOD path tests its MRF labelling with it too, the
+    noise measured on the roofs (``noise_on``, a class code; ground by default)."""
+    # the noise is measured on a class neither step relabels (tree cells become building)
+    tolerance = inlier_tolerance(dsm, classes, gsd, noise_on)
     roof, objects = planar_tree_objects(classes, dsm, ndsm, gsd, seed, tolerance)
     with_roofs = np.where(roof, BUILDING, classes).astype(classes.dtype)
     faces, found = roof_faces_beside_buildings(with_roofs, dsm, ndsm, gsd, seed, tolerance)

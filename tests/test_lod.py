@@ -175,6 +175,24 @@ def test_a_crack_another_building_holds_stays_out():
     np.testing.assert_array_equal(hidden, expected)
 
 
+def test_a_lower_tier_every_view_lost_behind_a_tower_joins_at_its_level():
+    """Seed 1's 40 m tower at the survey's edge: its 33 m tier along the east side is
+    seen on its first rows only; the mesh has no surface on the rest, nor on the ground
+    the two hide beyond (east and south). The tier has the building on one side only."""
+    dsm = np.zeros((48, 48))
+    dsm[10:30, 10:23] = 40.0
+    dsm[10:30, 23:30] = 33.0
+    dsm[14:36, 23:36] = np.nan
+    dsm[30:36, 10:23] = np.nan
+    dtm = np.zeros(dsm.shape)
+    mask = np.isfinite(dsm) & (dsm > 5.0)
+    hidden, level = unseen_in_outline(mask, dsm, dtm, np.zeros(mask.shape, bool))
+    tier = np.zeros(mask.shape, bool)
+    tier[14:30, 23:30] = True  # within the rectangle of the seen cells, no further
+    np.testing.assert_array_equal(hidden, tier)
+    assert (level[tier] == 33.0).all()  # the lowest level around it, not the tower's
+
+
 def test_the_dtm_goes_on_under_its_holes():
     dtm = np.array([[1.0, np.nan, np.nan, 4.0], [1.0, 2.0, np.nan, np.nan]])
     assert dtm_across_holes(dtm).tolist() == [[1.0, 1.0, 4.0, 4.0], [1.0, 2.0, 2.0, 4.0]]

@@ -9,6 +9,7 @@ from fusion.planar_objects import (
     FACE_EDGE_M,
     MIN_AREA_M2,
     dsm_noise,
+    inlier_tolerance,
     object_planes,
     planar_roofs_classed_tree,
     planar_tree_objects,
@@ -16,7 +17,7 @@ from fusion.planar_objects import (
     roof_faces_beside_buildings,
 )
 from workbench.planes import plane_heights, sequential_planes
-from workbench.raster import BUILDING, TREE
+from workbench.raster import BUILDING, GROUND, TREE
 
 GSD = 0.25
 SIGMA = 0.03  # the DSM's noise, metres
@@ -250,6 +251,27 @@ def test_faces_are_made_building_in_both_rasters():
     made = (classes == TREE) & (new_classes == BUILDING)
     assert (new_prob[:, made].argmax(axis=0) == BUILDING - 1).all()
     assert (new_prob[:, ~made] == prob[:, ~made]).all()
+
+
+def test_the_noise_is_measured_on_the_class_asked_for_else_on_the_ground():
+    """Ground with 0.03 m of noise, a sloped roof with 0.06 m (a mesh facets its sloped
+    faces): each class's own noise, and the ground's when the class has no cells."""
+    rng = np.random.default_rng(5)
+    y, x = np.mgrid[0:80, 0:80] * GSD
+    classes = np.full(x.shape, GROUND, np.uint8)
+    classes[:, 40:] = BUILDING
+    dsm = np.where(classes == BUILDING, 10.0 + 0.5 * y + rng.normal(0, 0.06, x.shape),
+                   rng.normal(0, 0.03, x.shape))  # fmt: skip
+    inner = np.zeros(x.shape, bool)
+    inner[:, 4:36] = inner[:, 44:76] = True  # off the edge between them
+    on_ground = dsm_noise(np.where(inner, dsm, np.nan), classes, GSD)
+    on_roof = dsm_noise(np.where(inner, dsm, np.nan), classes, GSD, on=BUILDING)
+    assert on_ground == pytest.approx(0.03, rel=0.15)
+    assert on_roof == pytest.approx(0.06, rel=0.15)
+    no_roof = np.full(x.shape, GROUND, np.uint8)
+    assert inlier_tolerance(dsm[:, :40], no_roof[:, :40], GSD, on=BUILDING) == pytest.approx(
+        2 * dsm_noise(dsm[:, :40], no_roof[:, :40], GSD)
+    )
 
 
 def test_no_ground_no_noise_no_change():

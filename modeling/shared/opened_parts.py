@@ -138,8 +138,8 @@ def unseen_parts(
         return between
     frame = BuildingFrame(region)
     open_ = ~np.isfinite(dsm) & np.isfinite(ceiling)
-    inside = frame.back(frame.rectangle(), region.shape) & open_
-    grown = frame.back(frame.rectangle(reach), region.shape) & open_
+    inside = frame.rectangle() & open_
+    grown = frame.rectangle(reach) & open_
     # the ground beside a wall whose ramp the views dropped is as unknown as a hidden
     # tier, and a ray grazing the roof's edge passes over it: its group borders the
     # ground the views saw beyond, a hidden tier's the building and the ground it hides
@@ -236,7 +236,8 @@ class BuildingFrame:
     and columns. ``framed`` is the region in that frame."""
 
     def __init__(self, region: np.ndarray):
-        h, w = region.shape
+        h, w = self.shape = region.shape
+        self.region = region
         pts = np.argwhere(region)[:, ::-1].astype(np.float32)
         (cx, cy), _, angle = cv2.minAreaRect(pts)
         self.side = int(np.ceil(np.hypot(h, w))) + 2
@@ -264,12 +265,18 @@ class BuildingFrame:
         return out
 
     def rectangle(self, grow: int = 0) -> np.ndarray:
-        """The frame's cells within the region's rows and columns (its least rectangle),
-        and ``grow`` more on every side."""
-        r = np.flatnonzero(self.framed.any(axis=1))
-        c = np.flatnonzero(self.framed.any(axis=0))
-        out = np.zeros(self.framed.shape, bool)
-        out[max(r[0] - grow, 0) : r[-1] + 1 + grow, max(c[0] - grow, 0) : c[-1] + 1 + grow] = True
+        """(h, w) bool the building's cells within its least rectangle, and ``grow``
+        cells more on every side: those whose centres, turned into the frame, lie within
+        the range of the region's along both of its sides. Taken from the cells' own
+        coordinates, not resampled into the frame and back: a nearest cell each way
+        dropped a side's last column where the frame's centre fell between cells (every
+        rectangle turned by 90 degrees)."""
+        rows, cols = np.indices(self.shape, dtype=np.float64)
+        out = np.ones(self.shape, bool)
+        for a, b, t in self.turn:  # the frame's columns, then its rows
+            along = a * cols + b * rows + t
+            inner = along[self.region]
+            out &= (along >= inner.min() - grow - 1e-6) & (along <= inner.max() + grow + 1e-6)
         return out
 
 
