@@ -359,10 +359,14 @@ def lod_run(tiny_scene, tmp_path_factory):
 
 def test_lod_end_to_end_from_the_mesh(lod_run):
     root, record, m = lod_run
-    # measured on the tiny city: classes 0.925, 2D 0.872, 6 of 6, plane angle 1.2 deg
+    # measured on the tiny city: classes 0.926, 2D 0.824, 6 of 6, plane angle 1.2 deg,
+    # height RMSE off the jumps 1.09 m. The mesh's holes within a building's least
+    # rectangle join it (path.unseen_in_outline): off the jumps 2.33 -> 1.09 m, and 2D
+    # quality 0.863 -> 0.824, the hidden ground at the tiny city's edges taken in
     assert m["classification"]["overall_accuracy"] > 0.92
     assert m["footprint_2d"]["objects"]["found"] == 6
-    assert m["footprint_2d"]["quality"] > 0.85
+    assert m["footprint_2d"]["quality"] > 0.80
+    assert m["height"]["rmse_off_jumps_m"] < 1.3
     assert m["roofs"]["plane_angle_median_deg"] < 2.0
     assert m["complexity"]["watertight_fraction"] == 1.0
     b = record["buildings"][0]

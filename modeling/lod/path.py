@@ -28,7 +28,12 @@ from modeling.shared.in_blocks import (
     each_block,
     plan_blocks,
 )
-from modeling.shared.opened_parts import mid_wall_region, touching, unseen_at_level
+from modeling.shared.opened_parts import (
+    half_eaves,
+    mid_wall_region,
+    touching,
+    unseen_at_level,
+)
 from modeling.shared.raster_ground import dtm_across_holes, vertex_colours
 from modeling.shared.roof_model import closed_roof_model
 from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
@@ -431,11 +436,12 @@ def building_lod(
 
 def unseen_in_outline(mask, dsm, dtm, others) -> tuple[np.ndarray, np.ndarray]:
     """The building's parts the mesh has no surface for, to join its outline: (h, w) bool
-    the unknown cells within the least rectangle of its cells with a height (``mask``)
-    that reach those cells through unknown ones, in groups that border the seen ground
-    for at most a tenth, not another building's (``others``), as the other paths take
-    them in (:func:`~modeling.shared.opened_parts.unseen_parts`); and (h, w) metres
-    ``dsm`` with them at their level, the lowest of the building's heights around them
+    the unknown cells within the least rectangle of its cells with a height that reach
+    those cells through unknown ones, in groups that border the seen ground for at most
+    a tenth, not another building's (``others``), as the other paths take them in
+    (:func:`~modeling.shared.opened_parts.unseen_parts`), with the roof cells the mesh
+    saw around ``mask``; and (h, w) metres ``dsm`` with the unknown ones at their level,
+    the lowest of the building's heights around them
     (:func:`~modeling.shared.opened_parts.lowest_around`: what no view saw lies below
     what hid it).
 
@@ -459,15 +465,27 @@ def unseen_in_outline(mask, dsm, dtm, others) -> tuple[np.ndarray, np.ndarray]:
     0.932). A views fusion's ceiling (``ceiling.tif``) is not read: the cells it lets in
     beside the walls joined the outlines at the roofs' level (seed 0's views fusion: 2D
     quality 0.928 without it, 0.915 with it, against 0.923 with neither).
+
+    The rectangle spans every roof cell the mesh saw within two cells of ``mask``,
+    above half the eaves (:func:`~modeling.shared.opened_parts.half_eaves`): a mesh
+    rounds a wall's top off, and keeps a few cells of the roof's last rows, which the
+    outline's majority filter drops (:func:`~modeling.shared.opened_parts.mid_wall_region`);
+    the rectangle then stopped a row or two inside the wall, on seed 0's 48 m tower
+    along its whole north side (off the jumps 1.61 -> 1.12 m, seed 2 0.85 -> 0.72 m;
+    2D quality -0.002, +0.002). Those cells join the outline too.
     dsm : (h, w) metres, NaN unknown; dtm : (h, w) metres, known everywhere."""
-    region = mask & np.isfinite(dsm)
     known = np.isfinite(dsm)
+    ndsm = dsm - dtm
+    near = ndi.binary_dilation(mask, iterations=2) & ~others
+    with np.errstate(invalid="ignore"):  # NaN compares False: unknown, not roof
+        roof = near & known & (ndsm > half_eaves(ndsm, mask))
+    region = touching((mask & known) | roof, mask & known)
     ceiling = np.where(known, np.nan, dsm[known].max() if known.any() else np.nan)
     # no margin under it (it bounds nothing) and no reach past the rectangle (the
     # ground beside a wall is as unknown: nothing in the mesh says where the wall
     # stands in it); a group another building's cells cut off from this one's stays out
     hidden, level = unseen_at_level(region, dsm, dtm, ceiling, 0, 0.0, exclude=others)
-    return touching(hidden, region), level
+    return touching(hidden, region) | (region & ~mask), level
 
 
 def lod_models(
