@@ -282,6 +282,23 @@ def test_a_flat_roof_gives_the_horizontal_plane():
     assert planes.tolist() == [[0.0, 0.0, 1.0, -12.0]]
 
 
+def test_a_face_no_view_saw_takes_the_plane_vertically_nearest_its_level():
+    """A face over cells no view saw, at their level of 10 m: a 70-degree plane that
+    passes through the level at its west edge and rises 2.75 m a cell, and a flat one
+    at 14 m. Eq. 9's distance to the steep plane is its vertical one times cos 70
+    degrees (26 a row, against 32 to the flat one); the vertical distance, which a level
+    is, gives 77 against 32."""
+    faces = np.ones((4, 8), np.int64)
+    X, Y = np.meshgrid(np.arange(8.0), np.arange(4.0))
+    pts = np.dstack([X, Y, np.full(X.shape, 10.0)])
+    t = np.tan(np.radians(70.0))
+    n = np.array([-t, 0.0, 1.0]) / np.hypot(t, 1.0)
+    planes = np.array([[*n, -10.0 * n[2]], [0.0, 0.0, 1.0, -14.0]])
+    assert label_faces(faces, pts, planes, beta=1.0, gsd=1.0).tolist() == [0]
+    levels = np.ones(faces.shape, bool)
+    assert label_faces(faces, pts, planes, beta=1.0, gsd=1.0, levels=levels).tolist() == [1]
+
+
 def test_a_segment_slices_a_square_and_the_faces_take_their_planes():
     mask = np.zeros((20, 20), bool)
     mask[2:18, 2:18] = True

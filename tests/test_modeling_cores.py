@@ -834,3 +834,17 @@ def test_model_of_a_turned_gable_with_regularised_outline():
             assert np.allclose(off, 0, atol=1.0)
             assert outline.area == pytest.approx(160, rel=0.03)
     assert corners[10.0] == 4 < corners[0.0]
+
+
+def test_closing_a_roof_model_stops_when_no_face_has_a_neighbour(monkeypatch):
+    """Two flat faces apart, as if neither closed (a mesh judged open): no face has a
+    neighbouring face to take its cells, so the mending stops and the model comes back
+    as it is, where it looped for ever (the LOD path on seed 5, a 4-cell island)."""
+    import modeling.shared.roof_model as rm
+
+    faces = np.zeros((20, 30), np.int64)
+    faces[2:10, 2:12], faces[12:14, 20:22] = 1, 2
+    planes = np.array([[0.0, 0.0, 1.0, -10.0], [0.0, 0.0, 1.0, -6.0]])
+    monkeypatch.setattr(rm, "_watertight", lambda b: False)
+    b = rm.closed_roof_model(faces, Grid(0.0, 20 * 0.25, 0.25, 30, 20), planes, 0.0, 0.5)
+    assert b is not None and b.record["faces_merged_for_closure"] == 0

@@ -416,7 +416,8 @@ def building_lod(
             return "no height in the DSM", np.zeros(mask.shape, np.int64), win
         planes = np.array([[0.0, 0.0, 1.0, -z]])
     # 5.4 faces labelled with planes
-    face_plane = label_faces(faces, faces_points, planes, options.beta, g.gsd)
+    face_plane = label_faces(faces, faces_points, planes, options.beta, g.gsd,
+                             hidden & ~np.isfinite(dsm))  # fmt: skip
     plane_raster = np.where(faces > 0, face_plane[np.maximum(faces, 1) - 1] + 1, 0)
     b = lod_models(plane_raster, crop, planes, dsm, dtm, mask, options)
     if b is None:
@@ -479,7 +480,11 @@ def unseen_in_outline(mask, dsm, dtm, others) -> tuple[np.ndarray, np.ndarray]:
     near = ndi.binary_dilation(mask, iterations=2) & ~others
     with np.errstate(invalid="ignore"):  # NaN compares False: unknown, not roof
         roof = near & known & (ndsm > half_eaves(ndsm, mask))
-    region = touching((mask & known) | roof, mask & known)
+    # the roof cells that share a side with the outline's cells (a cell met at a
+    # corner only makes a face the model cannot close)
+    parts, _ = ndi.label(roof & ~mask)
+    joined = np.unique(parts[ndi.binary_dilation(mask) & (parts > 0)])
+    region = (mask & known) | np.isin(parts, joined[joined > 0])
     ceiling = np.where(known, np.nan, dsm[known].max() if known.any() else np.nan)
     # no margin under it (it bounds nothing) and no reach past the rectangle (the
     # ground beside a wall is as unknown: nothing in the mesh says where the wall

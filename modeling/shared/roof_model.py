@@ -36,7 +36,8 @@ def closed_roof_model(
     that whole face) go to the neighbour whose plane lies nearest its own, until it is
     (counted in the record's ``faces_merged_for_closure``): faces meeting at a vertex can
     leave two parts of the roof touching along a vertical line there, which is not a
-    manifold.
+    manifold. A face with no neighbouring face to go to ends the mending, and the model
+    is returned as it is (not watertight).
 
     Parameters
     ----------
@@ -65,7 +66,13 @@ def closed_roof_model(
         among = np.unique(faces[near & (faces > 0)]) if near is not None else None
         # first only the cells at the open edges, then whole faces
         within = near if merged < LOCAL_MENDS else None
-        faces = merge_smallest_face(faces, among, planes, grid, within)
+        mended = merge_smallest_face(faces, among, planes, grid, within)
+        if np.array_equal(mended, faces):  # the face has no neighbouring face to go to
+            if within is None:
+                break
+            merged = LOCAL_MENDS
+            continue
+        faces = mended
         merged += 1
     if model is not None:
         model.record["faces_merged_for_closure"] = merged
