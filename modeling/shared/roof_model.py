@@ -56,24 +56,21 @@ def closed_roof_model(
     -------
     Building (id left empty) or None when no face gives a polygon.
     """
-    merged = 0
-    while True:
-        model = _closed_model(faces, grid, planes, ground, simplify, regularise_deg)
-        closed = model is not None and _watertight(model)
-        if closed or len(np.unique(faces[faces > 0])) == 1:
-            break
+    merged, local = 0, True
+    model = _closed_model(faces, grid, planes, ground, simplify, regularise_deg)
+    while not (model is not None and _watertight(model)) and len(np.unique(faces[faces > 0])) > 1:
         near = _cells_at_open_edges(model, faces, grid)
         among = np.unique(faces[near & (faces > 0)]) if near is not None else None
         # first only the cells at the open edges, then whole faces
-        within = near if merged < LOCAL_MENDS else None
+        within = near if local and merged < LOCAL_MENDS else None
         mended = merge_smallest_face(faces, among, planes, grid, within)
         if np.array_equal(mended, faces):  # the face has no neighbouring face to go to
             if within is None:
                 break
-            merged = LOCAL_MENDS
+            local = False  # the same faces, the same model: whole faces next
             continue
-        faces = mended
-        merged += 1
+        faces, merged = mended, merged + 1
+        model = _closed_model(faces, grid, planes, ground, simplify, regularise_deg)
     if model is not None:
         model.record["faces_merged_for_closure"] = merged
     return model
