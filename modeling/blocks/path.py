@@ -329,13 +329,15 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
                 mask |= mid_wall_region((seg == k) | unseen, whole - rim_dtm, others, g.gsd,
                                         options.outline_reach_m)  # fmt: skip
         mask &= np.isfinite(whole)
-        supports, regions, off_level = automatic_supports(mask, whole, xs, ys, crop,
-                                                      options.min_part_m, min_cells,
-                                                      options.step_m)  # fmt: skip
+        found = automatic_supports(mask, whole, xs, ys, crop, options.min_part_m, min_cells,
+                                   options.step_m, dtm)  # fmt: skip
+        supports, regions, off_level = found.supports, found.regions, found.off_level
+        tiers, tier_cells = found.tiers, found.tier_cells
     else:
         supports = inputs.given[k - 1]
         mask = rasterize_on(unary_union([s.polygon for s in supports]), crop) & np.isfinite(dsm)
         regions, off_level = np.zeros(mask.shape, np.int32), np.zeros(mask.shape, bool)
+        tiers, tier_cells = [], off_level
     # crowns are no roof: their cells stay out of the likelihood; so do the parts no view
     # saw, but for a support that is mostly such a part (a lower tier behind the upper
     # one from every view): it is fitted to the level they were given, or it had no block
@@ -372,11 +374,19 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
                     seed=[options.seed, k])  # fmt: skip
     anneal_s = time.perf_counter() - t_anneal
     blocks = result.blocks
-    # the gaps between the supports too narrow for one, each a flat block at the level of
-    # the DSM in it: left open, each is a slot down to the ground
-    gaps = [] if inputs.segments is None else gap_supports(supports, mask, crop,
-                                                           options.min_part_m)  # fmt: skip
-    gap_blocks = [Block("flat", 0, False, (_gap_level(gap, whole, crop, blocks),)) for gap in gaps]
+    # the lower tiers narrower than a support, each a flat block at the level of its
+    # tier's cells; the gaps between the supports too narrow for one, each a flat block
+    # at the level of the DSM in it: left open, each is a slot down to the ground
+    gaps, levels, n_tiers = (
+        list(tiers),
+        [np.where(tier_cells, whole, np.nan)] * len(tiers),
+        len(tiers),
+    )
+    if inputs.segments is not None:
+        gaps += gap_supports(supports + gaps, mask, crop, options.min_part_m)
+        levels += [whole] * (len(gaps) - len(levels))
+    gap_blocks = [Block("flat", 0, False, (_gap_level(gap, z, crop, blocks),))
+                  for gap, z in zip(gaps, levels, strict=True)]  # fmt: skip
     all_supports, all_ends = supports + gaps, ends + [(False,) * 4] * len(gaps)
     ground = dtm[mask & np.isfinite(dtm)]
     roof_low = min(min(float(d.z.min()) for d in data), min(b.gutter for b in blocks))
@@ -397,8 +407,8 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
             for s, b, e in zip(supports, blocks, ends, strict=True)
         ]
         + [
-            dict(s.record(), block=b.record(), gap=True)
-            for s, b in zip(gaps, gap_blocks, strict=True)
+            dict(s.record(), block=b.record(), gap=True, tier=i < n_tiers)
+            for i, (s, b) in enumerate(zip(gaps, gap_blocks, strict=True))
         ],
         "neighbours": [[p.i, p.j] for p in pairs],
         "face_blocks": face_blocks(solid, all_supports, meshed, all_ends),
@@ -571,10 +581,12 @@ def summary_lines(record: dict, buildings=()) -> list[str]:
     """What ``workbench model blocks`` prints beside the counts (``buildings``: model.json's
     building records, read once)."""
     forms: dict[str, int] = {}
-    warned = switched = gaps = 0
+    warned = switched = gaps = tiers = 0
     for b in buildings:
         for s in b["supports"]:
-            if s.get("gap"):
+            if s.get("tier"):
+                tiers += 1
+            elif s.get("gap"):
                 gaps += 1
             else:
                 forms[s["block"]["form"]] = forms.get(s["block"]["form"], 0) + 1
@@ -585,8 +597,8 @@ def summary_lines(record: dict, buildings=()) -> list[str]:
         f"{record['iterations_per_second']:.0f} iterations/s, "
         f"{record['seconds_per_building']} s per building",
         "  blocks: " + ", ".join(f"{k} {v}" for k, v in sorted(forms.items()))
-        + f" ({switched} changed form at zero temperature); {gaps} gaps between supports "
-        "too narrow for one, flat",
+        + f" ({switched} changed form at zero temperature); flat: {tiers} lower tiers and "
+        f"{gaps} gaps between supports too narrow for a support",
         *([f"  {warned} buildings did not converge (see warnings in model.json)"]
           if warned else []),
         *blocks_lines(record.get("blocks")),

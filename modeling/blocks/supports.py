@@ -10,7 +10,10 @@ decomposed in turn), and each prior's arms cut where they overlap
 (:func:`connected_rectangles`), so that an L is two rectangles sharing an edge. This is
 the deterministic rectangle decomposition the issue allows in place of Ortner's marked
 point process: the priors are fitted to the outline by least squares, not drawn, and
-their arms meet on common edges by construction.
+their arms meet on common edges by construction. A lower tier narrower than a support
+(a podium's ring round a tower) is what the building's whole outline holds beyond its
+regions' supports (:func:`tier_supports`); a gap between supports narrower than one is
+closed (:func:`gap_supports`); both carry flat blocks.
 
 ``--supports FILE``: the quadrilaterals (or triangles) of a vector file, the paper's
 interactive mode; supports that touch form one building.
@@ -37,6 +40,7 @@ _MAX_PARTS = 4  # priors per height region
 _EDGE_TOLERANCE = 0.1  # metres: sides this close are one common edge
 _MIN_EDGE_M = 1.0  # a common edge shorter than this makes no neighbours
 _STEP_DISTANCE_M = 0.5  # the step is measured between cells this far apart
+_MIN_TIER_CELLS = 10  # a piece of the outline with fewer cells of a tier is no tier
 
 
 @dataclass
@@ -59,11 +63,17 @@ class Support:
 
 
 def height_regions(
-    mask: np.ndarray, dsm: np.ndarray, gsd: float, step_m: float, min_cells: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """(h, w) int regions 1..n of ``mask`` that no height step crosses, 0 elsewhere; and
+    mask: np.ndarray,
+    dsm: np.ndarray,
+    gsd: float,
+    step_m: float,
+    min_cells: int,
+    min_part_m: float = 3.0,
+    tiers: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(h, w) int regions 1..n of ``mask`` that no height step crosses, 0 elsewhere;
     (h, w) bool the cells off their region's level: its steps and the small levels
-    joined to it.
+    joined to it; and (h, w) bool the cells of the lower tiers too small for a region.
 
     A cell is on a step where the DSM (3 x 3 median) differs by more than ``step_m``
     from a cell ``_STEP_DISTANCE_M`` away along a row or column (a wall; a roof of 70
@@ -71,7 +81,16 @@ def height_regions(
     step cells join the region nearest to them, for the outline. A small region lies
     beyond a step from the one it joins: a level too small for a block of its own (the
     strip of a lower tier along a tower's wall), whose cells no block of the region it
-    joins should fit."""
+    joins should fit.
+
+    But a small level that is flat and lower than the region nearest it by more than
+    ``step_m`` is a tier of its own, narrower than a support (a podium's ring 1.5 m wide
+    round a tower): it joins no region, nor do the step cells nearest it, so that the
+    tower's supports stop at the tower's wall. Flat: the plane fitted to it rises by
+    less than ``step_m`` over ``min_part_m``, the narrowest support (a level no block
+    would step on; a mansard's 70-degree slopes, split by the steps its noise makes,
+    rise 8 m). Its cells (0 in the regions) are the third output, the step cells it
+    took left out. ``tiers=False``: such levels join a region as the other small ones."""
     z = ndimage.median_filter(np.where(np.isfinite(dsm), dsm, np.nanmin(dsm)), size=3)
     k = max(1, int(round(_STEP_DISTANCE_M / gsd)))
     step = np.zeros(mask.shape, bool)
@@ -87,13 +106,52 @@ def height_regions(
     keep = sizes >= min_cells
     keep[0] = False
     if not keep.any():
-        return mask.astype(np.int32), step & mask
+        return mask.astype(np.int32), step & mask, np.zeros(mask.shape, bool)
+    m = int(keep.sum())
     new = np.zeros(n + 1, np.int32)
-    new[keep] = np.arange(1, keep.sum() + 1)
-    labels = new[labels]
-    # every other cell of the mask to the nearest kept region
-    _, (ri, ci) = ndimage.distance_transform_edt(labels == 0, return_indices=True)
-    return np.where(mask, labels[ri, ci], 0).astype(np.int32), mask & (labels == 0)
+    new[keep] = np.arange(1, m + 1)
+    kept = new[labels]
+    lower = _lower_tiers(labels, keep, kept, z, gsd, step_m, step_m / min_part_m) if tiers else []
+    new[lower] = m + 1 + np.arange(len(lower))
+    levels = new[labels]
+    # every other cell of the mask to the nearest kept region or lower tier
+    _, (ri, ci) = ndimage.distance_transform_edt(levels == 0, return_indices=True)
+    nearest = np.where(mask, levels[ri, ci], 0)
+    regions = np.where(nearest > m, 0, nearest).astype(np.int32)
+    return regions, mask & (kept == 0), (levels > m) & mask
+
+
+def _lower_tiers(
+    labels: np.ndarray,
+    keep: np.ndarray,
+    kept: np.ndarray,
+    z: np.ndarray,
+    gsd: float,
+    step_m: float,
+    max_slope: float,
+) -> np.ndarray:
+    """The labels of :func:`height_regions`' small levels that are lower tiers: the
+    plane fitted to their heights ``z`` (metres, cells of ``gsd`` m) is no steeper than
+    ``max_slope`` (m per m) and their median lies more than ``step_m`` below the median
+    of the kept region ``kept`` (regions 1..m) nearest them."""
+    small = np.flatnonzero(~keep[1:]) + 1
+    if not len(small):
+        return small
+    _, (ri, ci) = ndimage.distance_transform_edt(kept == 0, return_indices=True)
+    nearest = kept[ri, ci]
+    region_level = np.asarray(ndimage.median(z, kept, np.arange(1, int(kept.max()) + 1)))
+    out = []
+    for j in small:
+        r, c = np.nonzero(labels == j)
+        below = region_level[np.bincount(nearest[r, c]).argmax() - 1]
+        zj = z[r, c]
+        if np.median(zj) >= below - step_m or len(zj) < 3:
+            continue
+        a = np.column_stack([c * gsd, r * gsd, np.ones(len(zj))])
+        (gx, gy, _), *_ = np.linalg.lstsq(a, zj, rcond=None)
+        if np.hypot(gx, gy) <= max_slope:
+            out.append(j)
+    return np.asarray(out, int)
 
 
 def _shifted(z: np.ndarray, k: int, axis: int) -> np.ndarray:
@@ -119,6 +177,17 @@ def connected_rectangles(prior: Prior) -> list[np.ndarray]:
     return out
 
 
+@dataclass
+class FoundSupports:
+    """What :func:`automatic_supports` finds in one building."""
+
+    supports: list[Support]  # the regions' rectangles, each a block of the annealing
+    tiers: list[Support]  # the lower tiers narrower than a support: flat, not annealed
+    regions: np.ndarray  # (h, w) int, :func:`height_regions`
+    off_level: np.ndarray  # (h, w) bool
+    tier_cells: np.ndarray  # (h, w) bool, the tiers' own cells (their level)
+
+
 def automatic_supports(
     mask: np.ndarray,
     dsm: np.ndarray,
@@ -128,27 +197,90 @@ def automatic_supports(
     min_part_m: float,
     min_cells: int,
     step_m: float,
-) -> tuple[list[Support], np.ndarray, np.ndarray]:
+    dtm: np.ndarray | None = None,
+) -> FoundSupports:
     """The supports of one building: its height regions, each decomposed into the
-    rectangles of its footprint priors.
+    rectangles of its footprint priors, and its lower tiers too narrow for a support
+    (:func:`tier_supports`).
 
-    mask : (h, w) bool the building's cells on ``grid``; dsm : (h, w) metres;
-    xs : (w,), ys : (h,) cell centres. Returns the supports, the regions and the cells
-    off their region's level (:func:`height_regions`)."""
-    regions, off_level = height_regions(mask, dsm, grid.gsd, step_m, min_cells)
-    out: list[Support] = []
-    for r in range(1, int(regions.max()) + 1):
-        priors, _ = decompose_outline(regions == r, xs, ys, grid, _FAMILIES, min_part_m,
-                                      np.inf, 1.0, min_cells, _MAX_PARTS,
-                                      lambda_label=0.95)  # fmt: skip
-        for p in priors:
-            for rect in connected_rectangles(p):
-                frame = Frame(float(p.theta), (float(p.origin[0]), float(p.origin[1])),
-                              tuple(float(v) for v in rect))  # fmt: skip
-                poly = p.frame_polygon(rect)
-                if poly.area >= min_cells * grid.gsd**2:
-                    out.append(Support(poly, frame, r))
-    return out, regions, off_level
+    mask : (h, w) bool the building's cells on ``grid``; dsm, dtm : (h, w) metres (a
+    tier stands more than ``step_m`` above the DTM: lower, it is ground the outline took
+    in); xs : (w,), ys : (h,) cell centres. When the tiers give no support, the supports
+    are those of the regions their cells join (:func:`height_regions`, ``tiers=False``):
+    the tower's cover the ring at its own height rather than leave a slot."""
+    for split in (True, False):
+        regions, off_level, tier_cells = height_regions(mask, dsm, grid.gsd, step_m, min_cells,
+                                                        min_part_m, split)  # fmt: skip
+        if dtm is not None:
+            tier_cells &= dsm - dtm > step_m
+        supports = [
+            Support(poly, frame, r)
+            for r in range(1, int(regions.max()) + 1)
+            for poly, frame in _prior_rectangles(regions == r, xs, ys, grid, min_part_m, min_cells)
+        ]
+        if not (mask & (regions == 0)).any():
+            return FoundSupports(supports, [], regions, off_level, tier_cells)
+        tiers = tier_supports(supports, mask, tier_cells, xs, ys, grid, min_part_m,
+                              min_cells)  # fmt: skip
+        if tiers:
+            return FoundSupports(supports, tiers, regions, off_level, tier_cells)
+    return FoundSupports(supports, [], regions, off_level, tier_cells)
+
+
+def _prior_rectangles(
+    mask: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    grid: Grid,
+    min_part_m: float,
+    min_cells: int,
+) -> list[tuple[Polygon, Frame]]:
+    """The rectangles of the footprint priors decomposed from ``mask``'s outline, each a
+    polygon (world metres) and its prior's frame, those of ``min_cells`` cells or more."""
+    priors, _ = decompose_outline(mask, xs, ys, grid, _FAMILIES, min_part_m, np.inf, 1.0,
+                                  min_cells, _MAX_PARTS, lambda_label=0.95)  # fmt: skip
+    out = []
+    for p in priors:
+        for rect in connected_rectangles(p):
+            frame = Frame(float(p.theta), (float(p.origin[0]), float(p.origin[1])),
+                          tuple(float(v) for v in rect))  # fmt: skip
+            poly = p.frame_polygon(rect)
+            if poly.area >= min_cells * grid.gsd**2:
+                out.append((poly, frame))
+    return out
+
+
+def tier_supports(
+    supports: list[Support],
+    mask: np.ndarray,
+    tiers: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    grid: Grid,
+    min_part_m: float,
+    min_cells: int,
+) -> list[Support]:
+    """Supports for the lower tiers narrower than a support (``tiers``, (h, w) bool on
+    ``grid``, :func:`height_regions`): the pieces of the building's whole outline (the
+    rectangles of the footprint priors of ``mask``) that the regions' ``supports`` leave
+    uncovered, each at least a cell wide with ``_MIN_TIER_CELLS`` or more on a tier.
+
+    Without them a tower's supports stop at its wall and the podium's ring round it is a
+    slot down to the ground; a prior of the podium's own cells has no arm as narrow as
+    the ring (``min_part_m``). The building's outline has: the ring is what its
+    rectangle holds beyond the tower's."""
+    if not supports or tiers.sum() < _MIN_TIER_CELLS:
+        return []
+    outer = unary_union([poly for poly, _ in _prior_rectangles(mask, xs, ys, grid, min_part_m,
+                                                                min_cells)])  # fmt: skip
+    union = unary_union([s.polygon for s in supports])
+    out = []
+    for piece in _without_holes(outer.difference(union)):
+        if piece.buffer(-grid.gsd / 2, join_style="mitre").is_empty:
+            continue
+        if (rasterize_on(piece, grid) & tiers).sum() >= _MIN_TIER_CELLS:
+            out.append(Support(piece, rectangle_frame(piece), 0))
+    return out
 
 
 def gap_supports(supports: list[Support], mask: np.ndarray, grid: Grid,
