@@ -414,6 +414,36 @@ def test_a_lower_tier_narrower_than_a_support_keeps_its_level():
     assert np.allclose(top[(X > -3.5) & (X < 4.5) & (np.abs(Y) < 3.5)], 30.0, atol=0.05)
 
 
+def test_a_middle_tier_between_a_podium_and_a_tower_keeps_its_level():
+    """Three levels: a podium of 16 m x 14 m at 20 m, a middle tier of 9 m x 7 m at 30 m,
+    a tower of 5 m x 5 m at 40 m. The podium's ring (3.5 m wide) is a region whose
+    courtyard prior reaches under the middle tier; the middle tier's ring (2 m wide east
+    and west, 1 m north and south) is too small for a region. Its piece is cut from the
+    outline of the part above the podium, and its block stands on the podium's in the
+    envelope (measured before: the ring split between the podium's 20 m and the tower's
+    40 m)."""
+    grid = Grid(-10.0, 9.0, 0.25, 80, 72)
+    X, Y = grid.cell_centers()
+    podium = (np.abs(X) < 8) & (np.abs(Y) < 7)
+    middle = (np.abs(X) < 4.5) & (np.abs(Y) < 3.5)
+    tower = (np.abs(X) < 2.5) & (np.abs(Y) < 2.5)
+    noise = np.random.default_rng(0).normal(0, 0.03, X.shape)
+    dsm = np.where(tower, 40.0, np.where(middle, 30.0, np.where(podium, 20.0, 0.0))) + noise
+    boxes = np.array([[0, 0, 0, 0], [0, grid.height, 0, grid.width]])
+    inputs = BlocksInputs(grid, dsm, np.zeros(X.shape), None, boxes, podium.astype(np.int32))
+    building = building_task(1, inputs, BlocksOptions(iterations=2000)).building
+    tiers = [s["block"]["params"]["h_gutter"] for s in building.record["supports"] if s.get("tier")]
+    assert tiers and np.allclose(tiers, 30.0, atol=0.05)
+    mesh = building.mesh
+    _, top, _ = TopDown(mesh.vertices, mesh.triangles, np.ones(len(mesh.triangles)),
+                        grid).window(slice(0, grid.height), slice(0, grid.width))  # fmt: skip
+    ring = (np.abs(X) > 3) & (np.abs(X) < 4) & (np.abs(Y) < 3)  # clear of its walls
+    assert np.allclose(top[ring], 30.0, atol=0.05)
+    assert np.allclose(top[(np.abs(X) < 2) & (np.abs(Y) < 2)], 40.0, atol=0.05)
+    assert np.allclose(top[podium & ((np.abs(X) > 5) | (np.abs(Y) > 4))
+                           & (np.abs(X) < 7.5) & (np.abs(Y) < 6.5)], 20.0, atol=0.05)  # fmt: skip
+
+
 def test_parameter_ranges_keep_hips_hips():
     """A hip end is at most twice as steep as the sides (shorter is a shaved gable end)."""
     r = parameter_ranges("hipped", 12.0, 8.0, 10.0, 20.0)

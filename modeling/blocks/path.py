@@ -332,12 +332,12 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
         found = automatic_supports(mask, whole, xs, ys, crop, options.min_part_m, min_cells,
                                    options.step_m, dtm)  # fmt: skip
         supports, regions, off_level = found.supports, found.regions, found.off_level
-        tiers, tier_cells = found.tiers, found.tier_cells
+        tiers = found.tiers
     else:
         supports = inputs.given[k - 1]
         mask = rasterize_on(unary_union([s.polygon for s in supports]), crop) & np.isfinite(dsm)
         regions, off_level = np.zeros(mask.shape, np.int32), np.zeros(mask.shape, bool)
-        tiers, tier_cells = [], off_level
+        tiers = []
     # crowns are no roof: their cells stay out of the likelihood; so do the parts no view
     # saw, but for a support that is mostly such a part (a lower tier behind the upper
     # one from every view): it is fitted to the level they were given, or it had no block
@@ -374,19 +374,15 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
                     seed=[options.seed, k])  # fmt: skip
     anneal_s = time.perf_counter() - t_anneal
     blocks = result.blocks
-    # the lower tiers narrower than a support, each a flat block at the level of its
-    # tier's cells; the gaps between the supports too narrow for one, each a flat block
-    # at the level of the DSM in it: left open, each is a slot down to the ground
-    gaps, levels, n_tiers = (
-        list(tiers),
-        [np.where(tier_cells, whole, np.nan)] * len(tiers),
-        len(tiers),
-    )
+    # the lower tiers narrower than a support, each a flat block at its tier's level; the
+    # gaps between the supports too narrow for one, each a flat block at the level of the
+    # DSM in it: left open, each is a slot down to the ground
+    gaps, n_tiers = list(tiers), len(tiers)
     if inputs.segments is not None:
         gaps += gap_supports(supports + gaps, mask, crop, options.min_part_m)
-        levels += [whole] * (len(gaps) - len(levels))
-    gap_blocks = [Block("flat", 0, False, (_gap_level(gap, z, crop, blocks),))
-                  for gap, z in zip(gaps, levels, strict=True)]  # fmt: skip
+    gap_blocks = [Block("flat", 0, False, (gap.level if i < n_tiers else
+                                           _gap_level(gap, whole, crop, blocks),))
+                  for i, gap in enumerate(gaps)]  # fmt: skip
     all_supports, all_ends = supports + gaps, ends + [(False,) * 4] * len(gaps)
     ground = dtm[mask & np.isfinite(dtm)]
     roof_low = min(min(float(d.z.min()) for d in data), min(b.gutter for b in blocks))

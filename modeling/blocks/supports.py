@@ -46,11 +46,13 @@ _MIN_TIER_CELLS = 10  # a piece of the outline with fewer cells of a tier is no 
 @dataclass
 class Support:
     """A 2D support: its polygon (world metres), the frame of its bounding rectangle,
-    and the height region it was cut from (supports of one region may be junctions)."""
+    the height region it was cut from (supports of one region may be junctions) and, for
+    a lower tier's, the tier's level (metres)."""
 
     polygon: Polygon
     frame: Frame
     region: int = 0
+    level: float = float("nan")
 
     def record(self) -> dict:
         return {
@@ -68,7 +70,6 @@ def height_regions(
     gsd: float,
     step_m: float,
     min_cells: int,
-    min_part_m: float = 3.0,
     tiers: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(h, w) int regions 1..n of ``mask`` that no height step crosses, 0 elsewhere;
@@ -83,13 +84,14 @@ def height_regions(
     strip of a lower tier along a tower's wall), whose cells no block of the region it
     joins should fit.
 
-    But a small level that is flat and lower than the region nearest it by more than
-    ``step_m`` is a tier of its own, narrower than a support (a podium's ring 1.5 m wide
-    round a tower): it joins no region, nor do the step cells nearest it, so that the
-    tower's supports stop at the tower's wall. Flat: the plane fitted to it rises by
-    less than ``step_m`` over ``min_part_m``, the narrowest support (a level no block
-    would step on; a mansard's 70-degree slopes, split by the steps its noise makes,
-    rise 8 m). Its cells (0 in the regions) are the third output, the step cells it
+    But a small level that is flat and more than ``step_m`` below a region beside it
+    (across the wall's steps) is a tier of its own, narrower than a support (a podium's
+    ring 1.5 m wide round a tower, a middle tier's between the podium and the tower): it
+    joins no region, nor do the step cells nearest it, so that the tower's supports stop
+    at the tower's wall. Flat: the plane fitted to it rises less than half a step over a
+    step's distance (a mansard's 70-degree lower slope, split by the steps its noise
+    makes, rises nearly a whole one; a DSM's blur at a ring's walls tilts its plane by
+    far less). Its cells (0 in the regions) are the third output, the step cells it
     took left out. ``tiers=False``: such levels join a region as the other small ones."""
     z = ndimage.median_filter(np.where(np.isfinite(dsm), dsm, np.nanmin(dsm)), size=3)
     k = max(1, int(round(_STEP_DISTANCE_M / gsd)))
@@ -111,7 +113,7 @@ def height_regions(
     new = np.zeros(n + 1, np.int32)
     new[keep] = np.arange(1, m + 1)
     kept = new[labels]
-    lower = _lower_tiers(labels, keep, kept, z, gsd, step_m, step_m / min_part_m) if tiers else []
+    lower = _lower_tiers(labels, keep, kept, z, gsd, step_m, 2 * k + 1) if tiers else []
     new[lower] = m + 1 + np.arange(len(lower))
     levels = new[labels]
     # every other cell of the mask to the nearest kept region or lower tier
@@ -128,28 +130,30 @@ def _lower_tiers(
     z: np.ndarray,
     gsd: float,
     step_m: float,
-    max_slope: float,
+    reach: int,
 ) -> np.ndarray:
-    """The labels of :func:`height_regions`' small levels that are lower tiers: the
-    plane fitted to their heights ``z`` (metres, cells of ``gsd`` m) is no steeper than
-    ``max_slope`` (m per m) and their median lies more than ``step_m`` below the median
-    of the kept region ``kept`` (regions 1..m) nearest them."""
+    """The labels of :func:`height_regions`' small levels that are lower tiers: flat
+    (the plane fitted to their heights ``z``, metres on cells of ``gsd`` m, rises less
+    than half of ``step_m`` over ``_STEP_DISTANCE_M``) and with a median more than
+    ``step_m`` below the highest kept region (``kept``, regions 1..m) within ``reach``
+    cells of them (the wall between them and their cells on a step)."""
     small = np.flatnonzero(~keep[1:]) + 1
     if not len(small):
         return small
-    _, (ri, ci) = ndimage.distance_transform_edt(kept == 0, return_indices=True)
-    nearest = kept[ri, ci]
-    region_level = np.asarray(ndimage.median(z, kept, np.arange(1, int(kept.max()) + 1)))
+    level = np.concatenate([[-np.inf], ndimage.median(z, kept, np.arange(1, int(kept.max()) + 1))])
+    boxes = ndimage.find_objects(labels)
     out = []
     for j in small:
-        r, c = np.nonzero(labels == j)
-        below = region_level[np.bincount(nearest[r, c]).argmax() - 1]
-        zj = z[r, c]
-        if np.median(zj) >= below - step_m or len(zj) < 3:
+        box = tuple(slice(max(b.start - reach, 0), b.stop + reach) for b in boxes[j - 1])
+        own = labels[box] == j
+        near = ndimage.binary_dilation(own, iterations=reach)
+        r, c = np.nonzero(own)
+        zj = z[box][own]
+        if len(zj) < 3 or np.median(zj) >= level[kept[box][near]].max() - step_m:
             continue
-        a = np.column_stack([c * gsd, r * gsd, np.ones(len(zj))])
+        a = np.column_stack([(c - c.mean()) * gsd, (r - r.mean()) * gsd, np.ones(len(zj))])
         (gx, gy, _), *_ = np.linalg.lstsq(a, zj, rcond=None)
-        if np.hypot(gx, gy) <= max_slope:
+        if np.hypot(gx, gy) * _STEP_DISTANCE_M < step_m / 2:
             out.append(j)
     return np.asarray(out, int)
 
@@ -185,7 +189,6 @@ class FoundSupports:
     tiers: list[Support]  # the lower tiers narrower than a support: flat, not annealed
     regions: np.ndarray  # (h, w) int, :func:`height_regions`
     off_level: np.ndarray  # (h, w) bool
-    tier_cells: np.ndarray  # (h, w) bool, the tiers' own cells (their level)
 
 
 def automatic_supports(
@@ -210,7 +213,7 @@ def automatic_supports(
     the tower's cover the ring at its own height rather than leave a slot."""
     for split in (True, False):
         regions, off_level, tier_cells = height_regions(mask, dsm, grid.gsd, step_m, min_cells,
-                                                        min_part_m, split)  # fmt: skip
+                                                        split)  # fmt: skip
         if dtm is not None:
             tier_cells &= dsm - dtm > step_m
         supports = [
@@ -219,12 +222,12 @@ def automatic_supports(
             for poly, frame in _prior_rectangles(regions == r, xs, ys, grid, min_part_m, min_cells)
         ]
         if not (mask & (regions == 0)).any():
-            return FoundSupports(supports, [], regions, off_level, tier_cells)
-        tiers = tier_supports(supports, mask, tier_cells, xs, ys, grid, min_part_m,
-                              min_cells)  # fmt: skip
+            return FoundSupports(supports, [], regions, off_level)
+        tiers = tier_supports(supports, mask, tier_cells, regions, dsm, xs, ys, grid,
+                              min_part_m, min_cells, step_m)  # fmt: skip
         if tiers:
-            return FoundSupports(supports, tiers, regions, off_level, tier_cells)
-    return FoundSupports(supports, [], regions, off_level, tier_cells)
+            return FoundSupports(supports, tiers, regions, off_level)
+    return FoundSupports(supports, [], regions, off_level)
 
 
 def _prior_rectangles(
@@ -254,32 +257,66 @@ def tier_supports(
     supports: list[Support],
     mask: np.ndarray,
     tiers: np.ndarray,
+    regions: np.ndarray,
+    dsm: np.ndarray,
     xs: np.ndarray,
     ys: np.ndarray,
     grid: Grid,
     min_part_m: float,
     min_cells: int,
+    step_m: float,
 ) -> list[Support]:
     """Supports for the lower tiers narrower than a support (``tiers``, (h, w) bool on
-    ``grid``, :func:`height_regions`): the pieces of the building's whole outline (the
-    rectangles of the footprint priors of ``mask``) that the regions' ``supports`` leave
-    uncovered, each at least a cell wide with ``_MIN_TIER_CELLS`` or more on a tier.
+    ``grid``, :func:`height_regions`), level by level: the pieces of the outline of the
+    building's part at or above a tier's level (its area, the cells of ``mask`` in no
+    region, with the higher regions' cells; the rectangles of its footprint priors)
+    that the higher regions' ``supports`` leave uncovered, each at least a cell wide and
+    with ``_MIN_TIER_CELLS`` or more on that tier. Tiers within ``step_m`` of one another
+    are one level (``dsm``, metres: their cells' medians).
 
     Without them a tower's supports stop at its wall and the podium's ring round it is a
     slot down to the ground; a prior of the podium's own cells has no arm as narrow as
     the ring (``min_part_m``). The building's outline has: the ring is what its
-    rectangle holds beyond the tower's."""
+    rectangle holds beyond the tower's. A middle tier between a podium and a tower is
+    the same ring on the outline of the part above the podium; its block, higher than
+    the podium's (whose courtyard arms, ``min_part_m`` wide at least, may reach under
+    it), stands on them in the envelope."""
     if not supports or tiers.sum() < _MIN_TIER_CELLS:
         return []
-    outer = unary_union([poly for poly, _ in _prior_rectangles(mask, xs, ys, grid, min_part_m,
-                                                                min_cells)])  # fmt: skip
-    union = unary_union([s.polygon for s in supports])
+    area = mask & (regions == 0)
+    parts, n = ndimage.label(area)
+    part_level = np.full(n + 1, np.nan)
+    for p in range(1, n + 1):
+        z = dsm[(parts == p) & tiers]
+        part_level[p] = np.median(z) if len(z) else np.nan
+    # parts within a step of one another are one level; a part with no tier cell (a wall's
+    # steps) goes with the level whose tier cells are nearest
+    group = np.zeros(n + 1, int)
+    levels: list[float] = []
+    for p in np.argsort(part_level):  # NaN last
+        if not np.isfinite(part_level[p]):
+            break
+        if not levels or part_level[p] > levels[-1] + step_m:
+            levels.append(part_level[p])
+        group[p] = len(levels)
+    grouped = group[parts]
+    _, (ri, ci) = ndimage.distance_transform_edt(grouped == 0, return_indices=True)
+    grouped = np.where(area, grouped[ri, ci], 0)
+    ids = np.arange(1, int(regions.max()) + 1)
+    region_level = np.concatenate([[np.nan], ndimage.median(dsm, regions, ids)])
     out = []
-    for piece in _without_holes(outer.difference(union)):
-        if piece.buffer(-grid.gsd / 2, join_style="mitre").is_empty:
-            continue
-        if (rasterize_on(piece, grid) & tiers).sum() >= _MIN_TIER_CELLS:
-            out.append(Support(piece, rectangle_frame(piece), 0))
+    for g, low in enumerate(levels, start=1):
+        own = grouped == g
+        level = float(np.median(dsm[own & tiers]))
+        higher = region_level[regions] > low - step_m
+        above = [s.polygon for s in supports if region_level[s.region] > low - step_m]
+        rects = _prior_rectangles(own | higher, xs, ys, grid, min_part_m, min_cells)
+        outer = unary_union([poly for poly, _ in rects])
+        for piece in _without_holes(outer.difference(unary_union(above)) if above else outer):
+            if piece.buffer(-grid.gsd / 2, join_style="mitre").is_empty:
+                continue
+            if (rasterize_on(piece, grid) & tiers & own).sum() >= _MIN_TIER_CELLS:
+                out.append(Support(piece, rectangle_frame(piece), 0, level))
     return out
 
 
