@@ -10,10 +10,10 @@ decomposed in turn), and each prior's arms cut where they overlap
 (:func:`connected_rectangles`), so that an L is two rectangles sharing an edge. This is
 the deterministic rectangle decomposition the issue allows in place of Ortner's marked
 point process: the priors are fitted to the outline by least squares, not drawn, and
-their arms meet on common edges by construction. A lower tier narrower than a support
-(a podium's ring round a tower) is what the building's whole outline holds beyond its
-regions' supports (:func:`tier_supports`); a gap between supports narrower than one is
-closed (:func:`gap_supports`); both carry flat blocks.
+their arms meet on common edges by construction. A tier narrower than a support (a
+podium's ring round a tower) is what the outline of the building's part at or above its
+level holds beyond those regions' supports (:func:`tier_supports`); a gap between
+supports narrower than one is closed (:func:`gap_supports`); both carry flat blocks.
 
 ``--supports FILE``: the quadrilaterals (or triangles) of a vector file, the paper's
 interactive mode; supports that touch form one building.
