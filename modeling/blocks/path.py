@@ -377,12 +377,12 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
     # the lower tiers narrower than a support, each a flat block at its tier's level; the
     # gaps between the supports too narrow for one, each a flat block at the level of the
     # DSM in it: left open, each is a slot down to the ground
-    gaps, n_tiers = list(tiers), len(tiers)
+    gaps = list(tiers)
     if inputs.segments is not None:
         gaps += gap_supports(supports + gaps, mask, crop, options.min_part_m)
-    gap_blocks = [Block("flat", 0, False, (gap.level if i < n_tiers else
+    gap_blocks = [Block("flat", 0, False, (gap.level if gap.is_tier else
                                            _gap_level(gap, whole, crop, blocks),))
-                  for i, gap in enumerate(gaps)]  # fmt: skip
+                  for gap in gaps]  # fmt: skip
     all_supports, all_ends = supports + gaps, ends + [(False,) * 4] * len(gaps)
     ground = dtm[mask & np.isfinite(dtm)]
     roof_low = min(min(float(d.z.min()) for d in data), min(b.gutter for b in blocks))
@@ -403,8 +403,8 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
             for s, b, e in zip(supports, blocks, ends, strict=True)
         ]
         + [
-            dict(s.record(), block=b.record(), gap=True, tier=i < n_tiers)
-            for i, (s, b) in enumerate(zip(gaps, gap_blocks, strict=True))
+            dict(s.record(), block=b.record(), gap=True, tier=s.is_tier)
+            for s, b in zip(gaps, gap_blocks, strict=True)
         ],
         "neighbours": [[p.i, p.j] for p in pairs],
         "face_blocks": face_blocks(solid, all_supports, meshed, all_ends),

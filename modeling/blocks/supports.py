@@ -54,6 +54,11 @@ class Support:
     region: int = 0
     level: float = float("nan")
 
+    @property
+    def is_tier(self) -> bool:
+        """A lower tier's flat piece (:func:`tier_supports`), which has its level."""
+        return bool(np.isfinite(self.level))
+
     def record(self) -> dict:
         return {
             "polygon_m": [
