@@ -390,10 +390,10 @@ def test_a_lower_tier_narrower_than_a_support_keeps_its_level():
     """A podium of 12 m x 10 m at 20 m round a tower of 9 m x 8 m at 30 m: the podium is
     a ring 2 m wide on the west, 1 m elsewhere, narrower than a support (``min_part_m``,
     3 m), and once its steps are out its west side is a level too small for a region
-    (144 cells under 160). It used to join the tower's region, whose block then covered
-    it at 30 m (seed 9 of the sample city: two multi-level buildings, half of its squared
-    error off the jumps). Now it is a flat tier at 20 m; the 1 m sides, all steps, still
-    go with the tower."""
+    (156 cells, under 160). It used to join the tower's region, whose block then covered
+    it at 30 m (dev seed 9 of the sample city: three multi-level buildings, 0.64 of its
+    squared error off the jumps). Now it is a flat tier at 20 m; the 1 m sides, all
+    steps, still go with the tower."""
     grid = Grid(-10.0, 8.0, 0.25, 80, 64)
     X, Y = grid.cell_centers()
     podium = (np.abs(X) < 6) & (np.abs(Y) < 5)
