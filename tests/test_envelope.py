@@ -164,3 +164,25 @@ def test_a_crossing_within_the_grid_of_an_end_is_that_end():
     p0, p1 = np.array([0.0, 0.0]), np.array([1.0, 0.0])
     assert _wall_pieces(p0, p1, 5.0 + GRID / 10, 4.0, 5.0, 5.0) == []
     assert len(_wall_pieces(p0, p1, 6.0, 4.0, 5.0, 5.0)) == 1  # a real crossing: half a wall
+
+
+def test_a_face_whose_ring_touches_itself_is_meshed():
+    """Four flat faces of a building of the 1 km² city (block path; frame metres): the
+    last, a gap's piece cut by differences, has its last corner on its own first side,
+    a ring that touches itself and is no valid polygon. GEOS's overlays raised a
+    TopologyException ("side location conflict") that stopped the whole command; the
+    faces are now made valid first, and the mesh closes."""
+    faces = [
+        ([[3.566543557, -6.050819114], [3.566543557, 6.799882608],
+          [-3.422069573, 6.799882608], [-3.422069573, -6.050819114]], 65.33086903089088),
+        ([[11.892213706, -11.790808771], [11.748868435, -4.872886604],
+          [5.23140654, -5.007933994], [5.37475181, -11.925856161]], 65.32255763593652),
+        ([[5.55733179, -11.772449827], [5.71850549, -5.939311038],
+          [-3.054941368, -5.696894571], [-3.216115069, -11.530033361]], 69.16228455807338),
+        ([[11.748868435, -4.872886604], [3.566543557, -5.042431381],
+          [3.566543557, -5.879850826], [5.250437486, -5.926377992],
+          [5.23140654, -5.007933994]], 65.45419311523438),
+    ]  # fmt: skip
+    m = building_mesh([RoofFace(np.array(xy), np.array([0.0, 0.0, z])) for xy, z in faces],
+                      30.719425201416016)  # fmt: skip
+    assert _closed_volume(m) > 0

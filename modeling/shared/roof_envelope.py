@@ -159,8 +159,20 @@ def _crossing_ticks(common, d: np.ndarray) -> list:
     return ticks
 
 
-def _arrangement(faces: list[RoofFace], polys: list[Polygon], snap: bool = False):
-    lines = [p.exterior for p in polys]
+def _face_polygon(xy: np.ndarray):
+    """A face's outline as a valid (multi)polygon: a ring that folds back on itself (a
+    spike of zero width where a support's side runs back along itself, 1 km² city) loses
+    the fold; any overlay with an invalid ring raises GEOS's TopologyException."""
+    poly = Polygon(xy)
+    if poly.is_valid:
+        return poly
+    return shapely.union_all(
+        [g for g in shapely.get_parts(shapely.make_valid(poly)) if g.geom_type == "Polygon"]
+    )
+
+
+def _arrangement(faces: list[RoofFace], polys: list, snap: bool = False):
+    lines = [p.boundary for p in polys]
     corners = shapely.MultiPoint(np.concatenate([f.xy for f in faces]))
     for i in range(len(faces)):
         for j in range(i + 1, len(faces)):
@@ -227,7 +239,7 @@ def building_mesh(faces: list[RoofFace], bottom_z: float, snap: bool = False) ->
     -------
     BuildingMesh
     """
-    polys = [Polygon(f.xy) for f in faces]
+    polys = [_face_polygon(f.xy) for f in faces]
     cells = _arrangement(faces, polys, snap)
     tops = []
     kept = []
