@@ -482,9 +482,7 @@ def unseen_in_outline(mask, dsm, dtm, others) -> tuple[np.ndarray, np.ndarray]:
         roof = near & known & (ndsm > half_eaves(ndsm, mask))
     # the roof cells that share a side with the outline's cells (a cell met at a
     # corner only makes a face the model cannot close)
-    parts, _ = ndi.label(roof & ~mask)
-    joined = np.unique(parts[ndi.binary_dilation(mask) & (parts > 0)])
-    region = (mask & known) | np.isin(parts, joined[joined > 0])
+    region = (mask & known) | touching(roof & ~mask, mask, sides_only=True)
     ceiling = np.where(known, np.nan, dsm[known].max() if known.any() else np.nan)
     # no margin under it (it bounds nothing) and no reach past the rectangle (the
     # ground beside a wall is as unknown: nothing in the mesh says where the wall

@@ -217,13 +217,14 @@ def unseen_at_level(
     return kept, level
 
 
-def touching(cells: np.ndarray, region: np.ndarray) -> np.ndarray:
+def touching(cells: np.ndarray, region: np.ndarray, sides_only: bool = False) -> np.ndarray:
     """(h, w) bool the 8-connected groups of ``cells`` that touch ``region`` (both
-    (h, w) bool)."""
-    groups, n = ndimage.label(cells, np.ones((3, 3)))
+    (h, w) bool); with ``sides_only``, the 4-connected groups that share a side with it."""
+    link = None if sides_only else np.ones((3, 3))  # None: scipy's cross, the sides
+    groups, n = ndimage.label(cells, link)
     if n == 0:
         return cells.copy()
-    near = ndimage.binary_dilation(region, np.ones((3, 3)))
+    near = ndimage.binary_dilation(region, link)
     keep = np.zeros(n + 1, bool)
     keep[groups[near]] = True
     keep[0] = False
