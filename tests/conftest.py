@@ -23,8 +23,9 @@ def pytest_collection_modifyitems(items):
     for item in items:
         names = set(item.fixturenames)
         groups = {path for name, path in PATH_FIXTURES.items() if name in names}
-        if "path_run" in names:
-            groups.add(item.callspec.params["path_run"])
+        for by_path in ("path_run", "path_name"):  # a test parametrized over the paths
+            if by_path in names:
+                groups.add(item.callspec.params[by_path])
         if item.get_closest_marker("xdist_group") is None and len(groups) == 1:
             item.add_marker(pytest.mark.xdist_group(groups.pop()))
 

@@ -533,6 +533,11 @@ def model_summary(spec, record: dict, out: Path) -> str:
     ]
     if c["buildings"] == 0:
         lines.append("  no buildings: the model is empty")
+    failed = record.get("failed_tasks", [])
+    if failed:
+        stages = sorted({f["stage"] for f in failed})
+        lines.append(f"  {len(failed)} task(s) failed and were left out ({', '.join(stages)}): "
+                     "model.json's failed_tasks says why (-v: their tracebacks)")  # fmt: skip
     return "\n".join(lines + spec.summary_lines(record, model_buildings(out)))
 
 

@@ -28,6 +28,7 @@ import logging
 import os
 import pickle
 import shutil
+import traceback
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -208,11 +209,15 @@ class Engine:
         Tasks that can run at once.
     store : TaskStore or None
         Where finished tasks are kept (None: nothing is kept).
+    failures : list of dict
+        The tasks that raised and that their stage let fail (``on_failure`` of
+        :meth:`map`): stage, key and reason, in the record's ``failed_tasks``.
     """
 
     workers: int = 1
     store: TaskStore | None = None
     name: str = ""
+    failures: list
 
     @property
     def local(self) -> bool:
@@ -231,6 +236,7 @@ class Engine:
         stage: str,
         keys: Sequence[str] | None = None,
         in_flight: int | None = None,
+        on_failure: Callable | None = None,
     ) -> Iterator:
         """``fn(item, *shared)`` for each item, yielded in the items' order.
 
@@ -252,8 +258,27 @@ class Engine:
             of that many are held at most; a larger window keeps the workers busy when
             the tasks' costs differ (buildings: one large building otherwise holds the
             next ones back while the other workers wait).
+        on_failure : callable, optional
+            ``on_failure(item, reason)``, the result of a task that raised (reason: one
+            line, the error and where it was raised), so that one building's failure
+            leaves the others to finish. The failure is logged, added to
+            :attr:`failures` and not kept in the store (``--resume`` tries it again).
+            Errors of the machine rather than of the task (an ``OSError``, a
+            ``MemoryError``, a :class:`~workbench.errors.WorkbenchError`, a worker
+            killed) stop the stage whatever this says. Default: every error stops it.
         """
         raise NotImplementedError
+
+    def _failed(self, stage: str, key: str, error: BaseException, on_failure, item):
+        """``on_failure``'s result for a task that raised ``error``, or the error
+        raised again when the stage lets no task fail or the error is the machine's."""
+        if on_failure is None or not task_error(error):
+            raise error
+        reason = failure_reason(error)
+        log.warning("%s task %s failed, left out (the others go on): %s", stage, key, reason)
+        log.debug("%s task %s", stage, key, exc_info=error)
+        self.failures.append({"stage": stage, "key": key, "reason": reason})
+        return on_failure(item, f"failed: {reason}")
 
     def close(self) -> None:
         pass
@@ -266,8 +291,11 @@ class Engine:
         return sub
 
     def describe(self) -> dict:
-        """The engine for the run's record."""
-        return {"engine": self.name, "workers": self.workers}
+        """The engine for the run's record (and the tasks that failed, if any)."""
+        return {"engine": self.name, "workers": self.workers, **self._failed_tasks()}
+
+    def _failed_tasks(self) -> dict:
+        return {"failed_tasks": list(self.failures)} if self.failures else {}
 
     def _keys(self, items, keys):
         return [str(k) for k in keys] if keys is not None else [str(i) for i in range(len(items))]
@@ -286,8 +314,9 @@ class ThreadEngine(Engine):
     def __init__(self, workers: int | None = None, store: TaskStore | None = None):
         self.workers = workers or default_workers()
         self.store = store
+        self.failures = []
 
-    def map(self, fn, items, *shared, stage, keys=None, in_flight=None):
+    def map(self, fn, items, *shared, stage, keys=None, in_flight=None, on_failure=None):
         keys = self._keys(items, keys)
         store = self.store
         if store is not None:
@@ -296,7 +325,10 @@ class ThreadEngine(Engine):
         def one(j):
             if store is not None and store.has(stage, keys[j]):
                 return store.load(stage, keys[j])
-            result = fn(items[j], *shared)
+            try:
+                result = fn(items[j], *shared)
+            except Exception as e:  # noqa: BLE001 - _failed raises what may not fail
+                return self._failed(stage, keys[j], e, on_failure, items[j])
             if store is not None:
                 store.save(stage, keys[j], result)
             return result
@@ -325,6 +357,7 @@ class DaskEngine(Engine):
 
     def __init__(self, client, cluster=None, store: TaskStore | None = None):
         self.client, self.store, self.cluster = client, store, cluster
+        self.failures = []
         self.settings = None  # dask settings kept while a local cluster lives
         self.workers = max(1, sum(client.nthreads().values()))
         self.address = client.scheduler.address
@@ -337,7 +370,7 @@ class DaskEngine(Engine):
         # one copy per worker, deserialised once; tasks receive that object
         return self.client.scatter(obj, broadcast=True, hash=False)
 
-    def map(self, fn, items, *shared, stage, keys=None, in_flight=None):
+    def map(self, fn, items, *shared, stage, keys=None, in_flight=None, on_failure=None):
         from distributed import as_completed
 
         keys = self._keys(items, keys)
@@ -375,10 +408,15 @@ class DaskEngine(Engine):
                 else:
                     fut = next(running)
                     j = index.pop(fut.key)
-                    done[j] = _task_result(fut, stage, keys[j])
-                    fut.release()
-                    if store is not None:
-                        store.save(stage, keys[j], done[j])
+                    try:
+                        done[j] = _task_result(fut, stage, keys[j])
+                    except Exception as e:  # noqa: BLE001 - _failed raises what may not fail
+                        done[j] = self._failed(stage, keys[j], e, on_failure, items[j])
+                    else:
+                        if store is not None:
+                            store.save(stage, keys[j], done[j])
+                    finally:
+                        fut.release()
                     continue
                 next_yield += 1
                 next(bar_iter, None)
@@ -407,7 +445,31 @@ class DaskEngine(Engine):
         peaks = self.client.run(peak_memory_mb)
         return {"engine": self.name, "workers": self.workers,
                 "scheduler": None if self.cluster is not None else self.address,
-                "worker_peak_memory_mb": [round(peaks[w], 1) for w in sorted(peaks)]}  # fmt: skip
+                "worker_peak_memory_mb": [round(peaks[w], 1) for w in sorted(peaks)],
+                **self._failed_tasks()}  # fmt: skip
+
+
+def task_error(error: BaseException) -> bool:
+    """Whether ``error`` is the task's own (a bug, a degenerate building), which its
+    stage may let fail, rather than the machine's or the input's: those stop a run."""
+    machine = (OSError, MemoryError, WorkbenchError)
+    return isinstance(error, Exception) and not isinstance(error, machine)
+
+
+def failure_reason(error: BaseException) -> str:
+    """One line: the error's type and first line, and the innermost frame of our code
+    that raised it (``modeling/blocks/supports.py:321 in tier_supports``)."""
+    message = str(error).splitlines()[0] if str(error) else ""
+    frames = traceback.extract_tb(error.__traceback__)
+    ours = [f for f in frames if "site-packages" not in f.filename] or frames
+    where = ""
+    if ours:
+        f = ours[-1]
+        path = Path(f.filename)
+        root = Path(__file__).resolve().parents[1]  # the project's: its modules by their path
+        name = path.relative_to(root).as_posix() if path.is_relative_to(root) else path.name
+        where = f" at {name}:{f.lineno} in {f.name}"
+    return f"{type(error).__name__}: {message}{where}"
 
 
 def _task_result(fut, stage: str, key: str):

@@ -228,9 +228,11 @@ def model_block(
         todo, wide = claims.segments_to_model(block, segments, q, inputs.boxes, last=True)
     with timer.stage("blocks"):
         shared = engine.share(inputs)
-        results = list(engine.map(building_task, todo, shared, options, stage="buildings",
-                                  keys=[str(k) for k in todo],
-                                  in_flight=BUILDINGS_IN_FLIGHT * engine.workers))  # fmt: skip
+        results = list(engine.map(
+            building_task, todo, shared, options, stage="buildings", keys=[str(k) for k in todo],
+            in_flight=BUILDINGS_IN_FLIGHT * engine.workers,
+            on_failure=lambda k, why: BuildingResult(k, skipped=why),
+        ))  # fmt: skip
     number = claims.claim(block, segments, q, todo)
     for x in results:  # numbered on the whole grid
         x.key = int(number[x.key])

@@ -333,7 +333,8 @@ def lod_block(fusion_dir, block: Block, plan: BlockPlan, options: LodOptions, le
     with timer.stage("buildings"):
         done = engine.map(building_lod, todo, engine.share(inputs), options, stage="buildings",
                           keys=[str(k) for k in todo],
-                          in_flight=BUILDINGS_IN_FLIGHT * engine.workers)  # fmt: skip
+                          in_flight=BUILDINGS_IN_FLIGHT * engine.workers,
+                          on_failure=lambda k, why: (why, None, (None, None)))  # fmt: skip
         for k, (b, plane_raster, (rows, cols)) in zip(todo, done, strict=True):
             if isinstance(b, str):
                 skipped.append({"region": int(number[k]), "reason": b})

@@ -284,9 +284,11 @@ def model_block(
                                       ceiling)  # fmt: skip
         with timer.stage("priors_and_roofs" if r == 0 else f"priors_and_roofs_{r + 1}"):
             shared = engine.share(inputs)
-            results = list(engine.map(building_task, todo, shared, options,
-                                      stage=f"segments_{r + 1}", keys=[str(i) for i in todo],
-                                      in_flight=BUILDINGS_IN_FLIGHT * engine.workers))  # fmt: skip
+            results = list(engine.map(
+                building_task, todo, shared, options, stage=f"segments_{r + 1}",
+                keys=[str(i) for i in todo], in_flight=BUILDINGS_IN_FLIGHT * engine.workers,
+                on_failure=lambda i, why: SegmentResult(i, skipped=why),
+            ))  # fmt: skip
         k, nu = label_count(q)
         rounds.append({"segments": len(todo), "labels_k": k, "regions_nu": nu,
                        "buildings": sum(x.building is not None for x in results)})  # fmt: skip

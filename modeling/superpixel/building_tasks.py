@@ -155,6 +155,12 @@ def points_of(pts: SuperpixelPoints, members: np.ndarray) -> SuperpixelPoints:
     return SuperpixelPoints(pts.points[take], starts, ends)
 
 
+def no_roofs(share: BuildingShare, reason: str) -> BuildingRoofs:
+    """The answer of a building whose task failed (``reason``): no part, no face."""
+    return BuildingRoofs(share.id, [], np.zeros(share.known.shape, np.int32),
+                         dict.fromkeys(ROOF_STEPS, 0.0))  # fmt: skip
+
+
 def model_building_roofs(
     share: BuildingShare, options: SuperpixelOptions, edge_reach_m: float
 ) -> BuildingRoofs:

@@ -42,7 +42,7 @@ from workbench.raster import BUILDING, Grid, class_codes, read_raster
 from workbench.records import StageTimer, run_speed
 
 from .aggregation import SuperpixelGraph, superpixel_graph
-from .building_tasks import ROOF_STEPS, building_shares, model_building_roofs
+from .building_tasks import ROOF_STEPS, building_shares, model_building_roofs, no_roofs
 from .buildings import split_buildings
 from .class_crf import (
     choose_omega_class,
@@ -350,7 +350,8 @@ def model_buildings(
     out: list[Building] = []
     done = engine.map(model_building_roofs, shares, options, edge_reach_m, stage="buildings",
                       keys=[str(s.id) for s in shares],
-                      in_flight=BUILDINGS_IN_FLIGHT * engine.workers)  # fmt: skip
+                      in_flight=BUILDINGS_IN_FLIGHT * engine.workers,
+                      on_failure=no_roofs)  # fmt: skip
     for share, roofs in zip(shares, done, strict=True):
         r0, r1, c0, c1 = share.window
         window = faces[r0:r1, c0:c1]

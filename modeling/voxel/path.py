@@ -90,8 +90,11 @@ def run_voxel(
         occluders = engine.share(scene)
         big = largest(proxies) if proxies else -1
         items = [(p, i == big) for i, p in enumerate(proxies)]
+        # a building whose texture task fails is left out; its proxy still hides the
+        # ground behind it
         textured = engine.map(texture_task, items, shared, options, occluders,
-                              stage="textures", keys=[p.id for p in proxies])  # fmt: skip
+                              stage="textures", keys=[p.id for p in proxies],
+                              on_failure=lambda item, why: (None, None, None))  # fmt: skip
         buildings, feet, costs, shown = kept_textured(textured, engine)
     with timer.stage("ground"):
         gtex, ground_z = texture_ground(inputs, proxies, feet, options, engine, shared,
@@ -133,8 +136,12 @@ def build_proxies(
     ids = ids if ids is not None else [f.id for f, _, _ in inputs.buildings]
     shared = shared if shared is not None else inputs
     proxies: list[Proxy] = []
-    tasks = engine.map(proxy_task, range(len(ids)), shared, options, stage="proxies", keys=ids)
-    for p in tasks:
+    tasks = engine.map(proxy_task, range(len(ids)), shared, options, stage="proxies", keys=ids,
+                       on_failure=lambda j, why: why)  # fmt: skip
+    for j, p in enumerate(tasks):
+        if isinstance(p, str):  # the task failed
+            inputs.skipped.append({"id": ids[j], "reason": p})
+            continue
         if p.empty:
             inputs.skipped.append({"id": p.id, "reason": "no photo-consistent roof"})
             log.warning("footprint %s: no photo-consistent roof, skipped", p.id)
@@ -197,12 +204,15 @@ BUILDINGS_PER_BATCH = 32  # textured buildings pickled together when kept on dis
 def kept_textured(textured: Iterable, engine: Engine):
     """The texture tasks' results as they come: the buildings (on disk in the engine's
     task store when it has one, a batch at a time: a city's atlases are gigabytes), their
-    wall feet, their seam costs, and the preview building's texture (None without one)."""
+    wall feet (None for a task that failed), their seam costs, and the preview building's
+    texture (None without one)."""
     store = engine.store
     buildings = BuildingsOnDisk(store.folder / "buildings") if store is not None else []
     feet, costs, shown, batch = [], [], None, []
     for b, foot, t in textured:
         feet.append(foot)
+        if b is None:  # its task failed (the engine's failures say why)
+            continue
         costs.append({k: b.record[k] for k in SEAM_COSTS})
         shown = t if t is not None else shown
         batch.append(b)
@@ -247,7 +257,7 @@ def texture_ground(
     gtex = join_ground_tiles(grid, gz, tiles, list(cuts))
     windows, items, keys = [], [], []
     for p, foot in zip(proxies, feet, strict=True):
-        window = ring_window(gtex.grid, foot, options.ring_m)
+        window = None if foot is None else ring_window(gtex.grid, foot, options.ring_m)
         if window is not None:
             windows.append(window)
             items.append((grid.window(*window), gz[window], foot))
