@@ -183,6 +183,24 @@ def test_ground_the_outline_took_in_at_a_gable_end_is_no_roof_plane(strip_m):
     assert roof_type(fit, WING) == "shed"
 
 
+@pytest.mark.parametrize("strip_m", [0.5, 0.75])
+def test_an_l_wings_gable_end_held_vertical_stays_vertical(strip_m):
+    """An L's gable wing (35 deg, its far end under the other wing) whose outline took
+    in ``strip_m`` of ground along its shown end: vertical_ends holds the tilted end
+    vertical, and symmetric_fit, tying the long sides, keeps it so. Freed there, the
+    0.75 m strip's end went back to 59 deg and the wing read hipped (as two gable Ls
+    of dev seeds 11 and 13, whose ends the walls' blur tilts to 56-64 deg)."""
+    d = _cells()
+    true = RoofFit(10.0, np.radians([90.0, 35.0, 90.0, 35.0]), None, 0, 0, 0)
+    z = 10.0 + exact_heights(d, true) + np.random.default_rng(0).normal(0.0, 0.1, d.shape[1])
+    z[d[0] < strip_m] = 0.0
+    hidden = (False, False, True, False)
+    fit = fit_roof(d, z, robust_m=0.3, hidden=hidden)
+    assert np.degrees(fit.omega[0]) >= 75.0
+    assert np.allclose(np.degrees(fit.omega[[1, 3]]), 35.0, atol=0.5)
+    assert roof_type(fit, WING, hidden=hidden) == "gable"
+
+
 def test_a_steep_plane_the_dsm_needs_stays():
     """vertical_ends keeps a steep plane that explains its cells: hip ends of 60 deg on a
     35 deg gable stay sloped (a hipped roof), where holding them vertical costs more."""

@@ -270,20 +270,27 @@ def symmetric_fit(
     one's. A real dissymmetric roof costs clearly more tied and keeps its angles. (A
     lone sloped plane's offset is the main height's: it stays at 0.)
 
+    The vertical ends stay vertical: freed here, the ends :func:`vertical_ends` held
+    went back to the 56-64 degrees the walls' blur tilts them to, and two gable Ls read
+    hipped (dev seeds 11 and 13).
+
     d : (4, N) side distances, metres; z : (N,) heights, metres; hidden : (4,) bool,
     sides whose planes the DSM never shows (neither tied nor offset)."""
-    sloped = [k for k in _sloped(np.degrees(fit.omega)) if not hidden[k]]
+    deg = np.degrees(fit.omega)
+    sloped = [k for k in _sloped(deg) if not hidden[k]]
     pairs = [(a, b) for a, b in ((0, 2), (1, 3)) if a in sloped and b in sloped]
     if not pairs:
         return fit
+    ends = tuple(k for k in range(4) if deg[k] >= VERTICAL_DEG)
     x = np.r_[fit.z_main, fit.omega, fit.offset, [fit.cap] if fit.cap is not None else []]
     offsets = [[5 + a] for a, _ in pairs]  # (0, 2) slides along u, (1, 3) along v
     cap = [[7]] if fit.cap is not None else []
-    free = _fit_groups(x, [[0], [1], [2], [3], [4]] + offsets + cap, d, z, robust_m, z_main)
+    angles = [[1 + k] for k in range(4) if k not in ends]
+    free = _fit_groups(x, [[0], *angles] + offsets + cap, d, z, robust_m, z_main, ends)
 
     def tied(ties):
-        return lambda: _fit_groups(x, _angle_groups(ties) + offsets + cap, d, z, robust_m,
-                                   z_main)  # fmt: skip
+        return lambda: _fit_groups(x, _angle_groups(ties, ends) + offsets + cap, d, z,
+                                   robust_m, z_main, ends)  # fmt: skip
 
     levels = [[tied(pairs)]] + ([[tied([p]) for p in pairs]] if len(pairs) == 2 else [])
     if len(pairs) == 2:  # a hipped roof's one pitch all round comes first, or a pyramid
@@ -403,10 +410,11 @@ def vertical_ends(
     return best if vertical else fit
 
 
-def _angle_groups(ties: list[tuple]) -> list[list[int]]:
-    """The groups of (h_m, omega_1..4) when the planes in each tuple share one angle."""
-    tied = {k for t in ties for k in t}
-    return [[0]] + [[1 + k for k in t] for t in ties] + [[1 + k] for k in range(4) if k not in tied]
+def _angle_groups(ties: list[tuple], ends: tuple = ()) -> list[list[int]]:
+    """The groups of (h_m, omega_1..4) when the planes in each tuple share one angle,
+    those of the sides in ``ends`` in none (held vertical by :func:`_fit_groups`)."""
+    alone = [[1 + k] for k in range(4) if k not in {*ends, *(k for t in ties for k in t)}]
+    return [[0]] + [[1 + k for k in t] for t in ties] + alone
 
 
 def _fit_groups(x: np.ndarray, groups: list, d, z, robust_m: float, z_main, vertical=()) -> RoofFit:
