@@ -52,6 +52,7 @@ from modeling.parametric.segmentation import (
 )
 from modeling.shared.footprint_priors import (
     SegmentFrame,
+    best_prior,
     compete_priors,
     decompose_outline,
     label_count,
@@ -716,6 +717,40 @@ def test_a_crown_beside_a_roof_does_not_cost_the_roof_its_prior():
     priors, energies = decompose_outline(mask, xs, ys, grid, ("rect",), 3.0, 0.95, 1.0, 160)
     assert len(priors) == 1 and "without_unknown_parts" in energies
     assert np.allclose(priors[0].polygon().bounds, roof.bounds, atol=0.35)
+
+
+def test_a_crown_over_a_corner_leaves_the_rectangle_its_corner():
+    """A 12 m square roof whose south-west corner a taller crown of 4 m radius hides: its
+    segment is an L, and the L wins when the crown's cells count as ground; where no
+    view shows the footprint (the crown's cells off the segment) the rectangle is
+    neither paid for covering them nor the L for leaving them out, and the simpler
+    family, the roof's own square, wins (dev seeds 13 and 14's pyramids)."""
+    xs, ys, X, Y = _grid_cells(half=12.0)
+    roof = Polygon([(-6, -6), (6, -6), (6, 6), (-6, 6)])
+    crown = Point(-5.5, -5.5).buffer(4.0)
+    mask = contains_xy(roof.difference(crown), X, Y)
+    under = contains_xy(crown, X, Y) & ~mask
+    families = ("rect", "L", "T", "U", "courtyard")
+    blind, _ = compete_priors(segment_frame(mask, xs, ys, 0.25), families, 3.0, 0.95)
+    assert blind is not None and blind.family == "L"
+    prior, energies = compete_priors(segment_frame(mask, xs, ys, 0.25, under), families, 3.0,
+                                     0.95)  # fmt: skip
+    assert prior is not None and prior.family == "rect", energies
+    assert prior.polygon().symmetric_difference(roof).area < 0.25 * 48 + 1.0
+    grid = Grid(-12.0, 12.0, 0.25, len(xs), len(ys))
+    priors, _ = decompose_outline(mask, xs, ys, grid, families, 3.0, 0.95, 1.0, 160,
+                                  hidden=under)  # fmt: skip
+    assert [p.family for p in priors] == ["rect"]
+    # a prior mostly of what no view shows is not taken: a crown hiding half of an
+    # 8 m x 6 m roof leaves the rectangle of the roof the views show
+    crown = Point(-4.0, 0.0).buffer(4.0)
+    mask = contains_xy(Polygon([(-4, -3), (4, -3), (4, 3), (-4, 3)]).difference(crown), X, Y)
+    under = contains_xy(crown, X, Y) & ~mask
+    grown = best_prior(segment_frame(mask, xs, ys, 0.25, under), ("rect",), 3.0)[0]
+    assert grown.polygon().area > 50.0  # the crown's cells free, the prior took them in
+    priors, _ = decompose_outline(mask, xs, ys, grid, ("rect",), 3.0, np.inf, 1.0, 16,
+                                  hidden=under)  # fmt: skip
+    assert len(priors) == 1 and abs(priors[0].polygon().area - mask.sum() * 0.25**2) < 4.0
 
 
 def test_unknown_object_and_label_count():

@@ -435,24 +435,34 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
         reach = int(round(options.outline_reach_m / g.gsd))
         hidden, _ = unseen_at_level(region, dsm, dtm, ceiling, reach, g.gsd,
                                     exclude=inputs.segments[r0:r1, c0:c1] != 0)  # fmt: skip
+    known, known_dsm = (mask & ~unknown) | hidden, np.where(unknown, np.nan, dsm)
+    # the crowns over its edge, the segment's own among them: what they hide is neither
+    # roof nor ground to the priors
+    under_crowns = None
+    if inputs.tree is not None and not options.all_building:
+        others = (inputs.segments[r0:r1, c0:c1] != 0) & ~mask
+        under_crowns = crowns_over_the_edge(known, inputs.tree[r0:r1, c0:c1] & ~others, dsm,
+                                            crop.gsd)  # fmt: skip
     if found is None:
-        known, known_dsm = (mask & ~unknown) | hidden, np.where(unknown, np.nan, dsm)
-        found = segment_roofs(known, known_dsm, dtm, xs, ys, crop, options, min_cells, lambda_)
+        found = segment_roofs(known, known_dsm, dtm, xs, ys, crop, options, min_cells, lambda_,
+                              under_crowns)  # fmt: skip
         building = None if inputs.building is None else inputs.building[r0:r1, c0:c1]
         if isinstance(found, str) and building is not None and _classed(mask, building):
             others = (inputs.segments[r0:r1, c0:c1] > 0) & ~mask
             found, known = outline_at_the_walls(found, known, known_dsm, dtm, others, xs, ys,
-                                                crop, options, min_cells, lambda_)  # fmt: skip
+                                                crop, options, min_cells, lambda_,
+                                                under_crowns)  # fmt: skip
             if isinstance(found, str):
                 found, unknown_overruled = building_all_the_same(
-                    found, known, known_dsm, dtm, xs, ys, crop, options, min_cells
+                    found, known, known_dsm, dtm, xs, ys, crop, options, min_cells, under_crowns
                 )
     if not isinstance(found, str):
         more = unknown_objects(dsm, mask & ~unknown, found.heights, crop.gsd, options, min_cells)
         if more.any():  # the segment without them, again
             again = segment_roofs((mask & ~(unknown | more)) | hidden,
                                   np.where(unknown | more, np.nan, dsm),
-                                  dtm, xs, ys, crop, options, min_cells, lambda_)  # fmt: skip
+                                  dtm, xs, ys, crop, options, min_cells, lambda_,
+                                  under_crowns)  # fmt: skip
             if not isinstance(again, str):
                 found, unknown = again, unknown | more
     if isinstance(found, str):
@@ -506,12 +516,19 @@ class SegmentRoofs:
     base_z: float
 
 
-def segment_roofs(mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells, lambda_):
+def segment_roofs(mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells, lambda_,
+                  under_crowns=None):  # fmt: skip
     """Eq. 2-6 on one segment's cells (``mask``; ``dsm`` NaN where it is not to be
-    fitted): a :class:`SegmentRoofs`, or why the segment is skipped (str)."""
+    fitted): a :class:`SegmentRoofs`, or why the segment is skipped (str).
+    ``under_crowns`` : (h, w) bool, optional, cells off the segment whose footprint
+    crowns hide (:func:`crowns_over_the_edge`): the priors' registration leaves them
+    out, and the roofs are not fitted to them."""
     priors, energies = decompose_outline(mask, xs, ys, crop, options.families,
                                          options.min_part_m, lambda_, options.rho, min_cells,
-                                         _MAX_PARTS, lambda_label=options.lambda_)  # fmt: skip
+                                         _MAX_PARTS, lambda_label=options.lambda_,
+                                         hidden=under_crowns)  # fmt: skip
+    if under_crowns is not None:
+        dsm = np.where(under_crowns, np.nan, dsm)
     if not priors:
         return (f"unknown object: no footprint prior explains it (eq. 4 energies "
                 f"{energies})")  # fmt: skip
@@ -539,7 +556,7 @@ def _classed(mask: np.ndarray, cells: np.ndarray) -> bool:
 
 
 def outline_at_the_walls(why: str, mask, dsm, dtm, others, xs, ys, crop: Grid, options,
-                         min_cells, lambda_) -> tuple:  # fmt: skip
+                         min_cells, lambda_, under_crowns=None) -> tuple:  # fmt: skip
     """A segment the fusion classes building that no prior explained better than the
     unknown label (``why``), tried again on its outline where its DSM's walls stand at
     half its eaves' height (:func:`~modeling.shared.opened_parts.mid_wall_region` within
@@ -554,11 +571,15 @@ def outline_at_the_walls(why: str, mask, dsm, dtm, others, xs, ys, crop: Grid, o
         return why, mask
     walls = mid_wall_region(mask, dsm - dtm, others, crop.gsd, options.outline_reach_m)
     walls &= np.isfinite(dsm)
-    found = segment_roofs(walls, dsm, dtm, xs, ys, crop, options, min_cells, lambda_)
+    if under_crowns is not None:
+        under_crowns = under_crowns & ~walls
+    found = segment_roofs(walls, dsm, dtm, xs, ys, crop, options, min_cells, lambda_,
+                          under_crowns)  # fmt: skip
     return (why, mask) if isinstance(found, str) else (found, walls)
 
 
-def building_all_the_same(why: str, mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells):
+def building_all_the_same(why: str, mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells,
+                          under_crowns=None):  # fmt: skip
     """A segment the fusion classes building that no prior explained better than the
     unknown label (``why``): its best prior, fitted without that label, models it when
     the roof fitted on it is planar (a median residual under ``options.planar_m``, as a
@@ -571,15 +592,18 @@ def building_all_the_same(why: str, mask, dsm, dtm, xs, ys, crop: Grid, options,
     the priors fit poorly is left out of the model altogether: small seed 5 lost a T
     and a U, by 0.4 and 15 % of their energy; the T's roof leaves 0.04 m and is kept,
     the rectangle over the U 0.43 m, and it stays out."""
-    found, residual = planar_roof(mask, dsm, dtm, xs, ys, crop, options, min_cells, np.inf)
+    found, residual = planar_roof(mask, dsm, dtm, xs, ys, crop, options, min_cells, np.inf,
+                                  under_crowns)  # fmt: skip
     return (why, None) if found is None else (found, residual)
 
 
-def planar_roof(mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells, lambda_) -> tuple:
+def planar_roof(mask, dsm, dtm, xs, ys, crop: Grid, options, min_cells, lambda_,
+                under_crowns=None) -> tuple:  # fmt: skip
     """:func:`segment_roofs` on the segment ``mask`` and the median residual its roof
     leaves there (:func:`planar_residual`), or (None, None) unless that is under
     ``options.planar_m``: a roof, not a crown."""
-    found = segment_roofs(mask, dsm, dtm, xs, ys, crop, options, min_cells, lambda_)
+    found = segment_roofs(mask, dsm, dtm, xs, ys, crop, options, min_cells, lambda_,
+                          under_crowns)  # fmt: skip
     residual = planar_residual(found, dsm, mask, options.tier_step_m)
     if residual is None or residual >= options.planar_m:
         return None, None
@@ -650,6 +674,25 @@ def _stands_apart(obj, dsm, heights, explained, step: float) -> bool:
     z = dsm[obj]
     z = z[np.isfinite(z)]
     return not len(z) or np.mean(np.abs(z - level) <= step) < 0.5
+
+
+def crowns_over_the_edge(mask, tree, dsm, gsd: float, touch_m: float = 1.0) -> np.ndarray:
+    """(h, w) bool the crowns beside the segment ``mask`` that could hide its roof: the
+    fusion's ``tree`` cells off the segment, in parts that come within ``touch_m`` of
+    it, where the DSM stands above the segment's lowest roof (its 5th percentile, the
+    eaves: a crown under them hides no roof). Whether the roof goes on under them the
+    views cannot tell: a square pyramid with a taller crown over its corner registered
+    as an L (dev seeds 13 and 14).
+
+    dsm : (h, w) metres, NaN unknown; gsd : metres per cell."""
+    roof = dsm[mask & np.isfinite(dsm)]
+    if not len(roof) or not (tree & ~mask).any():
+        return np.zeros(mask.shape, bool)
+    above = tree & ~mask & (np.nan_to_num(dsm, nan=-np.inf) > np.percentile(roof, 5))
+    labels, _ = ndimage.label(above)
+    near = ndimage.binary_dilation(mask, iterations=max(1, int(round(touch_m / gsd))))
+    touching = np.unique(labels[near & above])
+    return np.isin(labels, touching[touching > 0])
 
 
 def _large_parts(mask, gsd: float, options, min_cells) -> np.ndarray:
