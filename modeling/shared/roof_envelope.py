@@ -439,9 +439,12 @@ def _exclusive(wing_faces_: list[list[RoofFace]]) -> list[RoofFace]:
     tier listed after its podium vanished from the mesh)."""
     taken, parts = None, []
     for faces in sorted(wing_faces_, key=lambda fs: -max((_top_z(f) for f in fs), default=-np.inf)):
-        outline = unary_union([Polygon(f.xy) for f in faces])
-        for f in faces:
-            region = Polygon(f.xy) if taken is None else Polygon(f.xy).difference(taken)
+        # the faces' rings made valid, as the arrangement's (a fold raised GEOS's
+        # TopologyException here: dev seed 6's supports widened under a crown)
+        polys = [_face_polygon(f.xy) for f in faces]
+        outline = unary_union(polys)
+        for f, poly in zip(faces, polys, strict=True):
+            region = poly if taken is None else poly.difference(taken)
             for g in getattr(region, "geoms", [region]):
                 if isinstance(g, Polygon) and g.area > _MIN_FACE_M2:
                     xy = np.asarray(orient(g, 1.0).exterior.coords)[:-1]
