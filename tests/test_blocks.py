@@ -26,6 +26,7 @@ from modeling.blocks.path import (
 from modeling.blocks.rjmcmc import Pair, SupportData, _Chain, anneal, form_sweep
 from modeling.blocks.supports import (
     Support,
+    automatic_supports,
     connected_rectangles,
     gap_supports,
     height_regions,
@@ -34,7 +35,7 @@ from modeling.blocks.supports import (
     rectangle_frame,
     supports_from_file,
 )
-from modeling.shared.footprint_priors import Prior
+from modeling.shared.footprint_priors import Prior, crowns_over_the_edge
 from modeling.shared.opened_parts import (
     lowest_around,
     nearest_of,
@@ -384,6 +385,27 @@ def test_height_regions_split_tiers_and_mark_small_levels():
     dsm[:, 58:] = 20.0 + np.tan(np.radians(70.0)) * 0.25 * np.arange(2)
     regions, off, tiers = height_regions(mask, dsm, 0.25, 1.5, min_cells=100)
     assert (regions[strip] == tower).all() and off[strip].all() and not tiers.any()
+
+
+def test_a_crown_over_a_corner_leaves_the_support_its_corner():
+    """A flat roof of 12 m x 10 m at 20 m whose north-east corner a taller crown of 5 m
+    radius hides (its cells the class map's tree, at 25 m): without them the building's
+    cells are an L and the supports leave the corner out; with them hidden from the
+    priors (``crowns_over_the_edge``) one support covers the whole roof."""
+    grid = Grid(-10.0, 10.0, 0.25, 80, 80)
+    X, Y = grid.cell_centers()
+    roof = (np.abs(X) < 6) & (np.abs(Y) < 5)
+    crown = (X - 6) ** 2 + (Y - 5) ** 2 < 5.0**2
+    mask = roof & ~crown
+    dsm = np.where(crown, 25.0, np.where(roof, 20.0, 0.0))
+    xs, ys = X[0], Y[:, 0]
+    hidden = crowns_over_the_edge(mask, crown, dsm, grid.gsd)
+    assert (hidden == crown & ~mask).all()
+    for given, area in ((None, 120.0 - 0.25 * np.pi * 5.0**2), (hidden, 120.0)):
+        found = automatic_supports(mask, dsm, xs, ys, grid, 3.0, 160, 1.5, np.zeros_like(dsm),
+                                   given)  # fmt: skip
+        covered = unary_union([s.polygon for s in found.supports]).area
+        assert abs(covered - area) < 4.0, (given is None, covered)
 
 
 def test_a_lower_tier_narrower_than_a_support_keeps_its_level():

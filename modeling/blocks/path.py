@@ -20,7 +20,7 @@ from scipy import ndimage as ndi
 from shapely.geometry import mapping
 from shapely.ops import unary_union
 
-from modeling.shared.footprint_priors import rasterize_on
+from modeling.shared.footprint_priors import crowns_over_the_edge, rasterize_on
 from modeling.shared.in_blocks import (
     BlockRasters,
     SegmentClaims,
@@ -331,8 +331,13 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
                 mask |= mid_wall_region((seg == k) | unseen, whole - rim_dtm, others, g.gsd,
                                         options.outline_reach_m)  # fmt: skip
         mask &= np.isfinite(whole)
+        # the crowns over its edge hide whether the roof goes on under them
+        under_crowns = None
+        if inputs.crowns is not None and not options.all_building:
+            crowns = inputs.crowns[r0:r1, c0:c1] & ~((seg > 0) & (seg != k))
+            under_crowns = crowns_over_the_edge(mask, crowns, inputs.dsm[r0:r1, c0:c1], g.gsd)
         found = automatic_supports(mask, whole, xs, ys, crop, options.min_part_m, min_cells,
-                                   options.step_m, dtm)  # fmt: skip
+                                   options.step_m, dtm, under_crowns)  # fmt: skip
         supports, regions, off_level = found.supports, found.regions, found.off_level
         tiers = found.tiers
     else:

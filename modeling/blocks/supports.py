@@ -206,6 +206,7 @@ def automatic_supports(
     min_cells: int,
     step_m: float,
     dtm: np.ndarray | None = None,
+    hidden: np.ndarray | None = None,
 ) -> FoundSupports:
     """The supports of one building: its height regions, each decomposed into the
     rectangles of its footprint priors, and its lower tiers too narrow for a support
@@ -215,7 +216,10 @@ def automatic_supports(
     tier stands more than ``step_m`` above the DTM: lower, it is ground the outline took
     in); xs : (w,), ys : (h,) cell centres. When the tiers give no support, the supports
     are those of the regions their cells join (:func:`height_regions`, ``tiers=False``):
-    the tower's cover the ring at its own height rather than leave a slot."""
+    the tower's cover the ring at its own height rather than leave a slot. ``hidden``
+    (h, w) bool, optional: cells off the building whose footprint no view shows (the
+    crowns over its edge, :func:`~modeling.shared.footprint_priors.crowns_over_the_edge`),
+    which the regions' priors neither pay for covering nor for leaving out."""
     for split in (True, False):
         regions, off_level, tier_cells = height_regions(mask, dsm, grid.gsd, step_m, min_cells,
                                                         split)  # fmt: skip
@@ -224,7 +228,9 @@ def automatic_supports(
         supports = [
             Support(poly, frame, r)
             for r in range(1, int(regions.max()) + 1)
-            for poly, frame in _prior_rectangles(regions == r, xs, ys, grid, min_part_m, min_cells)
+            for poly, frame in _prior_rectangles(
+                regions == r, xs, ys, grid, min_part_m, min_cells, hidden
+            )
         ]
         if not (mask & (regions == 0)).any():
             return FoundSupports(supports, [], regions, off_level)
@@ -242,11 +248,14 @@ def _prior_rectangles(
     grid: Grid,
     min_part_m: float,
     min_cells: int,
+    hidden: np.ndarray | None = None,
 ) -> list[tuple[Polygon, Frame]]:
     """The rectangles of the footprint priors decomposed from ``mask``'s outline, each a
-    polygon (world metres) and its prior's frame, those of ``min_cells`` cells or more."""
+    polygon (world metres) and its prior's frame, those of ``min_cells`` cells or more
+    (``hidden``: :func:`~modeling.shared.footprint_priors.decompose_outline`'s)."""
     priors, _ = decompose_outline(mask, xs, ys, grid, _FAMILIES, min_part_m, np.inf, 1.0,
-                                  min_cells, _MAX_PARTS, lambda_label=0.95)  # fmt: skip
+                                  min_cells, _MAX_PARTS, lambda_label=0.95,
+                                  hidden=hidden)  # fmt: skip
     out = []
     for p in priors:
         for rect in connected_rectangles(p):

@@ -25,6 +25,7 @@ from shapely.ops import unary_union
 from modeling.shared.footprint_priors import (
     Prior,
     compete_priors,
+    crowns_over_the_edge,
     decompose_outline,
     label_count,
     rasterize_on,
@@ -674,25 +675,6 @@ def _stands_apart(obj, dsm, heights, explained, step: float) -> bool:
     z = dsm[obj]
     z = z[np.isfinite(z)]
     return not len(z) or np.mean(np.abs(z - level) <= step) < 0.5
-
-
-def crowns_over_the_edge(mask, tree, dsm, gsd: float, touch_m: float = 1.0) -> np.ndarray:
-    """(h, w) bool the crowns beside the segment ``mask`` that could hide its roof: the
-    fusion's ``tree`` cells off the segment, in parts that come within ``touch_m`` of
-    it, where the DSM stands above the segment's lowest roof (its 5th percentile, the
-    eaves: a crown under them hides no roof). Whether the roof goes on under them the
-    views cannot tell: a square pyramid with a taller crown over its corner registered
-    as an L (dev seeds 13 and 14).
-
-    dsm : (h, w) metres, NaN unknown; gsd : metres per cell."""
-    roof = dsm[mask & np.isfinite(dsm)]
-    if not len(roof) or not (tree & ~mask).any():
-        return np.zeros(mask.shape, bool)
-    above = tree & ~mask & (np.nan_to_num(dsm, nan=-np.inf) > np.percentile(roof, 5))
-    labels, _ = ndimage.label(above)
-    near = ndimage.binary_dilation(mask, iterations=max(1, int(round(touch_m / gsd))))
-    touching = np.unique(labels[near & above])
-    return np.isin(labels, touching[touching > 0])
 
 
 def _large_parts(mask, gsd: float, options, min_cells) -> np.ndarray:

@@ -584,6 +584,26 @@ def decompose_outline(
     return priors, energies
 
 
+def crowns_over_the_edge(mask, tree, dsm, gsd: float, touch_m: float = 1.0) -> np.ndarray:
+    """(h, w) bool the crowns beside the segment ``mask`` that could hide its roof: the
+    fusion's ``tree`` cells off the segment, in parts that come within ``touch_m`` of
+    it, where the DSM stands above the segment's lowest roof (its 5th percentile, the
+    eaves: a crown under them hides no roof). Whether the roof goes on under them the
+    views cannot tell: a square pyramid with a taller crown over its corner registered
+    as an L (dev seeds 13 and 14).
+
+    mask, tree : (h, w) bool; dsm : (h, w) metres, NaN unknown; gsd : metres per cell.
+    The answer is :func:`decompose_outline`'s ``hidden``."""
+    roof = dsm[mask & np.isfinite(dsm)]
+    if not len(roof) or not (tree & ~mask).any():
+        return np.zeros(mask.shape, bool)
+    above = tree & ~mask & (np.nan_to_num(dsm, nan=-np.inf) > np.percentile(roof, 5))
+    labels, _ = ndimage.label(above)
+    near = ndimage.binary_dilation(mask, iterations=max(1, int(round(touch_m / gsd))))
+    touching = np.unique(labels[near & above])
+    return np.isin(labels, touching[touching > 0])
+
+
 def _variance(indicator: np.ndarray) -> float:
     """sigma^2 of a template's indicator over its domain (eq. 4's normalisation)."""
     ind = np.asarray(indicator, np.float64)
