@@ -437,11 +437,11 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
         hidden, _ = unseen_at_level(region, dsm, dtm, ceiling, reach, g.gsd,
                                     exclude=inputs.segments[r0:r1, c0:c1] != 0)  # fmt: skip
     known, known_dsm = (mask & ~unknown) | hidden, np.where(unknown, np.nan, dsm)
+    others = (inputs.segments[r0:r1, c0:c1] > 0) & ~mask
     # the crowns over its edge, the segment's own among them: what they hide is neither
     # roof nor ground to the priors
     under_crowns = None
     if inputs.tree is not None and not options.all_building:
-        others = (inputs.segments[r0:r1, c0:c1] != 0) & ~mask
         under_crowns = crowns_over_the_edge(known, inputs.tree[r0:r1, c0:c1] & ~others, dsm,
                                             crop.gsd)  # fmt: skip
     if found is None:
@@ -449,7 +449,6 @@ def building_task(k: int, inputs: ParametricInputs, options: ParametricOptions) 
                               under_crowns)  # fmt: skip
         building = None if inputs.building is None else inputs.building[r0:r1, c0:c1]
         if isinstance(found, str) and building is not None and _classed(mask, building):
-            others = (inputs.segments[r0:r1, c0:c1] > 0) & ~mask
             found, known = outline_at_the_walls(found, known, known_dsm, dtm, others, xs, ys,
                                                 crop, options, min_cells, lambda_,
                                                 under_crowns)  # fmt: skip
