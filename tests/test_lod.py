@@ -9,7 +9,13 @@ from scipy import ndimage as ndi
 
 from modeling.lod.arrangement import arrangement_faces, label_faces, planarity_weight
 from modeling.lod.facades import facade_directions, wall_normals
-from modeling.lod.labelling import data_term, fill_holes, mrf_labelling, normalised_height
+from modeling.lod.labelling import (
+    bridged_cracks,
+    data_term,
+    fill_holes,
+    mrf_labelling,
+    normalised_height,
+)
 from modeling.lod.path import unseen_in_outline
 from modeling.lod.segments import regularise_segments
 from modeling.lod.shapes import roof_directions, roof_planes, snap_to_facades
@@ -162,6 +168,35 @@ def test_a_crack_across_a_roof_joins_the_outline_and_the_ground_beside_a_wall_do
     # wall has it on one side only. Ground-filled (fill_holes), it cut the roof in two.
     np.testing.assert_array_equal(hidden, crack)
     assert (fill_holes(dsm, dtm, 2.5)[crack] == 0.0).all()
+
+
+def test_a_crack_that_runs_onto_hidden_ground_is_bridged_across_the_roof():
+    # the crack reaches the hidden ground beyond the west wall: one hole with it, which
+    # fill_holes gives the ground's height (the previous test); bridged first, the crack
+    # takes the roof's, and the hidden ground on either side stays unknown, then ground
+    dsm, dtm = _cracked_roof()
+    bridged = bridged_cracks(dsm, dtm, 2.5, 0.25)
+    crack = np.zeros(dsm.shape, bool)
+    crack[19:21, 10:26] = True
+    assert (bridged[crack] == 10.0).all()
+    assert np.isnan(bridged[17:23, 9]).all() and np.isnan(bridged[10:30, 30:34]).all()
+    np.testing.assert_array_equal(bridged[~crack], dsm[~crack])
+    filled = fill_holes(bridged, dtm, 2.5)
+    assert (filled[crack] == 10.0).all() and (filled[10:30, 30:34] == 0.0).all()
+
+
+def test_a_gap_between_roofs_at_two_heights_is_not_bridged_and_a_slope_is_followed():
+    dsm = np.zeros((30, 12))
+    dsm[5:13, 2:10] = 20.0  # a tower ...
+    dsm[15:25, 2:10] = 10.0  # ... and a lower roof beyond an unseen alley of 2 rows
+    dsm[13:15, 2:10] = np.nan
+    assert np.isnan(bridged_cracks(dsm, np.zeros(dsm.shape), 2.5, 0.25)[13:15]).sum() == 16
+    # a 30-degree roof rising along the rows: the crack takes the heights between
+    rise = np.tan(np.radians(30)) * 0.25
+    roof = 10.0 + rise * np.arange(12)[None, :].repeat(6, axis=0)
+    roof[:, 5:7] = np.nan
+    out = bridged_cracks(roof, np.zeros(roof.shape), 2.5, 0.25)
+    np.testing.assert_allclose(out[:, 5:7], np.tile(10.0 + rise * np.array([5.0, 6.0]), (6, 1)))
 
 
 def test_a_crack_another_building_holds_stays_out():

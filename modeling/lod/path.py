@@ -49,7 +49,7 @@ from workbench.texture_seams import rgb_to_lab
 
 from .arrangement import arrangement_faces, label_faces
 from .facades import facade_directions, wall_normals
-from .labelling import fill_from_below, fill_holes, mrf_labelling, open_close
+from .labelling import bridged_cracks, fill_from_below, fill_holes, mrf_labelling, open_close
 from .options import LodOptions
 from .segments import (
     detect_segments,
@@ -300,7 +300,9 @@ def lod_block(fusion_dir, block: Block, plan: BlockPlan, options: LodOptions, le
         cells = max(1, round(options.ground_block_m / grid.gsd))
         # the ground goes on under the mesh's holes, where filled heights stand on it
         ground = dtm_across_holes(dtm)
-        filled = fill_from_below(dsm)
+        # the mesh's cracks across roofs closed first, for the labelling and the outlines
+        bridged = bridged_cracks(dsm, ground, options.h_trunc, grid.gsd)
+        filled = fill_from_below(bridged)
         factor = ground_factor(learned.flat, rgb) if learned.flat is not None else None
         classes, _, trace = mrf_labelling(filled, t, options.h_trunc, options.mu,
                                           options.ground_iterations, cells,
@@ -325,7 +327,7 @@ def lod_block(fusion_dir, block: Block, plan: BlockPlan, options: LodOptions, le
         todo, cut = plan.claims.segments_to_model(block, parts, n, None, last=True)
         todo = [k for k in todo if sizes[k] >= options.min_area_m2]
         number = plan.claims.claim(block, parts, n, todo)
-        outline_heights = fill_holes(dsm, ground, options.h_trunc, from_below=filled)
+        outline_heights = fill_holes(bridged, ground, options.h_trunc, from_below=filled)
     inputs = LodInputs(grid, rgb, dsm, outline_heights, ground, normal, parts.astype(np.int32),
                        ndi.find_objects(parts))  # fmt: skip
     buildings, skipped, painted = [], [], np.zeros(grid.shape, np.int64)
