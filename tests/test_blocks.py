@@ -614,6 +614,24 @@ def test_unseen_between_fills_a_notch_not_a_corner_or_a_courtyard(angle):
     assert not inside.any()
 
 
+def test_unseen_between_leaves_an_alley_the_ground_closes_at_both_ends():
+    """Two roofs of one region, at 20 m and 10 m, with a strip 8 cells wide and 120 long
+    between them that no view saw but at its two ends, where the views saw the ground:
+    a passage between two buildings, not a hidden part (``small`` seed 0's tower and its
+    neighbour to the south on the mesh; its ends under a tenth of its ring). Closed at
+    one end by a third part of the region, the same strip is a hidden part, taken in."""
+    dsm = np.zeros((50, 140))
+    dsm[5:25, 10:130] = 20.0
+    dsm[33:45, 10:130] = 10.0
+    dsm[25:33, 10:130] = np.nan
+    zero = np.zeros(dsm.shape)
+    alley = np.isnan(dsm)
+    assert not unseen_between(dsm > 5.0, dsm, zero).any()
+    dsm[5:45, 130:136] = 15.0  # the region's third part across the east end
+    inside = unseen_between(dsm > 5.0, dsm, zero)
+    np.testing.assert_array_equal(inside, alley)
+
+
 def test_a_hidden_part_takes_the_lowest_level_around_it():
     """Hidden cells between an upper tier at 20 m (north) and the lower tier's known
     ends at 10 m (east and west) take 10 m, all of them (the nearest cell's height

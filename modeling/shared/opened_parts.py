@@ -123,14 +123,13 @@ def unseen_parts(
     candidate is any unknown cell within the building's least rectangle (its two
     directions, as :func:`unseen_between` takes them) that reaches the building's known
     cells (``region``) through unknown ones, in groups that border the seen ground for
-    at most a tenth (:func:`off_the_ground`); such a part may carry on ``reach`` cells
-    past the rectangle (the outline's reach: a fusion keeps no roof up to its wall, and
-    the rectangle of the known cells stops short of it). A lower tier along the
-    building's outer side, hidden behind its upper part, has the building on one side
-    only, and
-    :func:`unseen_between` left it out: on ``small`` seed 1 a quarter of a 72-79 m
-    tower. Elsewhere (a cloud's fusion, a run from another tool) the candidates are
-    :func:`unseen_between`'s.
+    at most a tenth and not at both ends (:func:`off_the_ground`); such a part may
+    carry on ``reach`` cells past the rectangle (the outline's reach: a fusion keeps no
+    roof up to its wall, and the rectangle of the known cells stops short of it). A
+    lower tier along the building's outer side, hidden behind its upper part, has the
+    building on one side only, and :func:`unseen_between` left it out: on ``small``
+    seed 1 a quarter of a 72-79 m tower. Elsewhere (a cloud's fusion, a run from
+    another tool) the candidates are :func:`unseen_between`'s.
 
     dsm, dtm : (h, w) float, metres, NaN unknown."""
     between = unseen_between(region, dsm, dtm)
@@ -143,7 +142,7 @@ def unseen_parts(
     # the ground beside a wall whose ramp the views dropped is as unknown as a hidden
     # tier, and a ray grazing the roof's edge passes over it: its group borders the
     # ground the views saw beyond, a hidden tier's the building and the ground it hides
-    within = off_the_ground(touching(inside, region), region, dsm, dtm)
+    within = off_the_ground(touching(inside, region), region, dsm, dtm, passages=True)
     # past the rectangle only to carry on such a part
     return between | touching(grown, within)
 
@@ -285,7 +284,8 @@ def unseen_between(region: np.ndarray, dsm: np.ndarray, dtm: np.ndarray) -> np.n
     """(h, w) bool the building's parts no view saw: the unknown cells (``dsm`` NaN) that
     have cells of ``region`` ((h, w) bool, a building's cells with a height) on both
     sides along one of the building's two directions (its least rectangle's sides,
-    :func:`cv2.minAreaRect`), in groups that do not border the ground. What they are
+    :func:`cv2.minAreaRect`), in groups that do not border the ground, nor the ground
+    at both ends (a passage between two parts, :func:`off_the_ground`). What they are
     given is the caller's (:func:`nearest_of`: the nearest cell's height or roof face).
 
     Where every view looks at a roof from one side (at the edge of a survey), the
@@ -310,16 +310,27 @@ def unseen_between(region: np.ndarray, dsm: np.ndarray, dtm: np.ndarray) -> np.n
         return none
     frame = BuildingFrame(region)
     back = frame.back(frame.between() & ~frame.framed, region.shape)
-    return off_the_ground(back & unknown, region, dsm, dtm)
+    return off_the_ground(back & unknown, region, dsm, dtm, passages=True)
 
 
 def off_the_ground(
-    cells: np.ndarray, region: np.ndarray, dsm: np.ndarray, dtm: np.ndarray
+    cells: np.ndarray,
+    region: np.ndarray,
+    dsm: np.ndarray,
+    dtm: np.ndarray,
+    passages: bool = False,
 ) -> np.ndarray:
     """(h, w) bool the 8-connected groups of ``cells`` (unknown cells, (h, w) bool) of
     whose known neighbours at most a tenth stand at the ground (below half the eaves of
     the building on ``region``, as in :func:`mid_wall_region`): not the ground beside a
-    wall that the views lost with the wall's ramp, nor a courtyard's hidden strip."""
+    wall that the views lost with the wall's ramp, nor a courtyard's hidden strip.
+
+    With ``passages``, nor a group whose ground neighbours lie in two places apart: a
+    strip between two of the region's parts that the ground closes at both ends is a
+    passage between them (an alley between a tower and a lower building one labelled
+    region holds; on ``small`` seed 0's mesh, 4 m wide and 30 m long, its two ends were
+    under a tenth of its ring), where a hidden tier between a tower and its podium's
+    outer part ends on the podium."""
     out = np.zeros(cells.shape, bool)
     groups, n = ndimage.label(cells, structure=np.ones((3, 3)))
     if n == 0:
@@ -331,9 +342,28 @@ def off_the_ground(
         grown = tuple(slice(max(b.start - 1, 0), b.stop + 1) for b in box)
         group = groups[grown] == j
         ring = ndimage.binary_dilation(group, structure=np.ones((3, 3))) & ~group
-        if ground[grown][ring].sum() <= 0.1 * (ring & (known | region)[grown]).sum():
-            out[grown] |= group
+        at_ground = ground[grown] & ring
+        if at_ground.sum() > 0.1 * (ring & (known | region)[grown]).sum():
+            continue
+        if passages and _ends_at_the_ground(group, at_ground):
+            continue
+        out[grown] |= group
     return out
+
+
+def _ends_at_the_ground(group: np.ndarray, at_ground: np.ndarray) -> bool:
+    """Whether the ground the ``group`` of cells borders (``at_ground``, both (h, w)
+    bool) lies in two places or more, each as long as half the group's width (its cells
+    over its length, the length from their spread along their main axis): a strip's two
+    ends, not the ground a notch's corners touch diagonally."""
+    pieces, n = ndimage.label(at_ground, structure=np.ones((3, 3)))
+    if n < 2:
+        return False
+    pts = np.argwhere(group).astype(np.float64)
+    length = np.sqrt(12.0 * np.linalg.eigvalsh(np.cov(pts.T)).max()) if len(pts) > 2 else 1.0
+    width = len(pts) / max(length, 1.0)
+    sizes = np.bincount(pieces.ravel())[1:]
+    return int((sizes >= width / 2).sum()) >= 2
 
 
 def lowest_around(heights: np.ndarray, region: np.ndarray, cells: np.ndarray) -> np.ndarray:
