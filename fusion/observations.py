@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from workbench.camera import Camera
-from workbench.raster import Grid
+from workbench.raster import Grid, shifted
 
 
 @dataclass
@@ -321,11 +321,11 @@ def behind_occlusions(
         n = d.shape[axis]
         # a lone unknown pixel along the axis (a dropped gross error, mostly) has the
         # pixel's own surface beyond it: only runs of two or more are looked across
-        run = unknown & (_shifted(unknown, 1, axis) | _shifted(unknown, -1, axis))
+        run = unknown & (shifted(unknown, 1, axis) | shifted(unknown, -1, axis))
         for sign in (1, -1):
             hole_near = np.zeros(d.shape, bool)
             for o in range(1, k + 1):
-                hole_near |= _shifted(run, sign * o, axis)
+                hole_near |= shifted(run, sign * o, axis)
             rows, cols = np.nonzero(hole_near & ~unknown)  # a few percent of the pixels
             at = rows if axis == 0 else cols
             first = np.full(len(at), reach + 1)  # offset of the hole's first pixel
@@ -343,20 +343,6 @@ def behind_occlusions(
             with np.errstate(invalid="ignore"):
                 nearer = (first <= k) & (beyond < z - np.maximum(jump, rel * z))
             out[rows[nearer], cols[nearer]] = True
-    return out
-
-
-def _shifted(image: np.ndarray, offset: int, axis: int) -> np.ndarray:
-    """``image`` (bool) with each pixel taking the value ``offset`` pixels along ``axis``
-    from it; False past the edge."""
-    out = np.zeros_like(image)
-    src = [slice(None)] * 2
-    dst = [slice(None)] * 2
-    if offset > 0:
-        src[axis], dst[axis] = slice(offset, None), slice(None, -offset)
-    else:
-        src[axis], dst[axis] = slice(None, offset), slice(-offset, None)
-    out[tuple(dst)] = image[tuple(src)]
     return out
 
 

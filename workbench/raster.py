@@ -139,6 +139,20 @@ class Grid:
         return cls(transform.c, transform.f, transform.a, width, height)
 
 
+def shifted(image: np.ndarray, offset: int, axis: int, fill=0) -> np.ndarray:
+    """``image`` ((H, W)) with each cell taking the value ``offset`` cells along ``axis``
+    from it; ``fill`` past the edge."""
+    out = np.full_like(image, fill)
+    src = [slice(None)] * 2
+    dst = [slice(None)] * 2
+    if offset > 0:
+        src[axis], dst[axis] = slice(offset, None), slice(None, -offset)
+    else:
+        src[axis], dst[axis] = slice(None, offset), slice(-offset, None)
+    out[tuple(dst)] = image[tuple(src)]
+    return out
+
+
 def parse_crs(value, *, path: str | os.PathLike, field: str = "crs") -> CRS:
     """Parse an EPSG code (``"EPSG:32631"``, ``32631``), WKT or PROJ string.
 

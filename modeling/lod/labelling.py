@@ -10,7 +10,7 @@ from scipy import ndimage as ndi
 
 from workbench.graph_cuts import alpha_expansion, grid_pairs, squared_differences
 from workbench.grid_blocks import block_layout
-from workbench.raster import GROUND, Grid
+from workbench.raster import GROUND, Grid, shifted
 from workbench.texture_seams import rgb_to_lab
 
 TILE = 256  # cells a side of a tile of the labelling's graph cuts
@@ -176,7 +176,7 @@ def bridged_cracks(
             z = np.full(h.shape, np.nan, np.float32)
             dist = np.zeros(h.shape, np.float32)
             for d in range(reach, 0, -1):  # nearer ones overwrite
-                seen = _shift(roof, sign * d, axis)
+                seen = shifted(roof, -sign * d, axis, fill=np.nan)
                 found = np.isfinite(seen)
                 z[found], dist[found] = seen[found], d
             sides.append((z, dist))
@@ -184,18 +184,6 @@ def bridged_cracks(
         with np.errstate(invalid="ignore"):
             both = todo & (np.abs(z1 - z0) <= (d0 + d1) * gsd)
         out[both] = (z0 + (z1 - z0) * d0 / (d0 + d1))[both]
-    return out
-
-
-def _shift(a: np.ndarray, d: int, axis: int) -> np.ndarray:
-    """(H, W) ``a`` moved ``d`` cells along ``axis`` (cell i takes a[i - d]), NaN where
-    nothing comes in."""
-    out = np.full(a.shape, np.nan, a.dtype)
-    src, dst = [slice(None)] * 2, [slice(None)] * 2
-    src[axis], dst[axis] = (
-        (slice(0, -d), slice(d, None)) if d > 0 else (slice(-d, None), slice(0, d))
-    )
-    out[tuple(dst)] = a[tuple(src)]
     return out
 
 

@@ -142,7 +142,7 @@ def unseen_parts(
     # the ground beside a wall whose ramp the views dropped is as unknown as a hidden
     # tier, and a ray grazing the roof's edge passes over it: its group borders the
     # ground the views saw beyond, a hidden tier's the building and the ground it hides
-    within = off_the_ground(touching(inside, region), region, dsm, dtm, passages=True)
+    within = off_the_ground(touching(inside, region), region, dsm, dtm)
     # past the rectangle only to carry on such a part
     return between | touching(grown, within)
 
@@ -310,22 +310,18 @@ def unseen_between(region: np.ndarray, dsm: np.ndarray, dtm: np.ndarray) -> np.n
         return none
     frame = BuildingFrame(region)
     back = frame.back(frame.between() & ~frame.framed, region.shape)
-    return off_the_ground(back & unknown, region, dsm, dtm, passages=True)
+    return off_the_ground(back & unknown, region, dsm, dtm)
 
 
 def off_the_ground(
-    cells: np.ndarray,
-    region: np.ndarray,
-    dsm: np.ndarray,
-    dtm: np.ndarray,
-    passages: bool = False,
+    cells: np.ndarray, region: np.ndarray, dsm: np.ndarray, dtm: np.ndarray
 ) -> np.ndarray:
     """(h, w) bool the 8-connected groups of ``cells`` (unknown cells, (h, w) bool) of
     whose known neighbours at most a tenth stand at the ground (below half the eaves of
     the building on ``region``, as in :func:`mid_wall_region`): not the ground beside a
     wall that the views lost with the wall's ramp, nor a courtyard's hidden strip.
 
-    With ``passages``, nor a group whose ground neighbours lie in two places apart: a
+    Nor a group whose ground neighbours lie in two places apart (since 2026-12-07): a
     strip between two of the region's parts that the ground closes at both ends is a
     passage between them (an alley between a tower and a lower building one labelled
     region holds; on ``small`` seed 0's mesh, 4 m wide and 30 m long, its two ends were
@@ -345,7 +341,7 @@ def off_the_ground(
         at_ground = ground[grown] & ring
         if at_ground.sum() > 0.1 * (ring & (known | region)[grown]).sum():
             continue
-        if passages and _ends_at_the_ground(group, at_ground):
+        if _ends_at_the_ground(group, at_ground):
             continue
         out[grown] |= group
     return out
