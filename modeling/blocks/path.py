@@ -337,7 +337,7 @@ def building_task(k: int, inputs: BlocksInputs, options: BlocksOptions) -> Build
             crowns = inputs.crowns[r0:r1, c0:c1] & ~((seg > 0) & (seg != k))
             under_crowns = crowns_over_the_edge(mask, crowns, inputs.dsm[r0:r1, c0:c1], g.gsd)
         found = automatic_supports(mask, whole, xs, ys, crop, options.min_part_m, min_cells,
-                                   options.step_m, dtm, under_crowns)  # fmt: skip
+                                   options.step_m, dtm, under_crowns, unseen)  # fmt: skip
         supports, regions, off_level = found.supports, found.regions, found.off_level
         tiers = found.tiers
     else:
