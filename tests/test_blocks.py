@@ -35,7 +35,7 @@ from modeling.blocks.supports import (
     rectangle_frame,
     supports_from_file,
 )
-from modeling.shared.footprint_priors import Prior, crowns_over_the_edge
+from modeling.shared.footprint_priors import Prior, crowns_over_the_edge, rasterize_on
 from modeling.shared.opened_parts import (
     lowest_around,
     nearest_of,
@@ -337,6 +337,24 @@ def test_a_gap_narrower_than_a_support_is_filled_not_a_slot():
     strip = mask & (Y > -1.9) & (Y < -1.3)
     assert covered[0] == pytest.approx(1 - strip.sum() / mask.sum(), abs=0.01)  # the slot
     assert covered[1] == 1.0 and np.allclose(top[strip], 15.0)
+
+
+def test_a_sliver_between_supports_over_cell_centres_is_a_gap():
+    """Two supports cut from different priors a hair apart: a 0.15 m sliver over a row
+    of cell centres is a slot on the grid, and a gap support of its own; a 0.05 m one
+    between two rows of centres is left (measured before: both left, so the row was
+    the ground)."""
+    grid = Grid(-10.0, 8.0, 0.25, 80, 64)
+    X, Y = grid.cell_centers()
+    mask = (np.abs(X) < 8) & (np.abs(Y) < 6)
+    for top_edge, found in ((-0.85, True), (-0.95, False)):  # centres at y = -0.875
+        pair = [Support(p, rectangle_frame(p), 1)
+                for p in (box(-8, -6, 8, -1.0), box(-8, top_edge, 8, 6))]  # fmt: skip
+        gaps = gap_supports(pair, mask, grid, 3.0)
+        assert bool(gaps) == found
+        if found:
+            assert gaps[0].polygon.symmetric_difference(box(-8, -1.0, 8, top_edge)).area < 1e-6
+            assert rasterize_on(gaps[0].polygon, grid).sum() == 64
 
 
 def test_flat_fallback_is_the_roofs_median():

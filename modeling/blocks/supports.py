@@ -353,13 +353,18 @@ def gap_supports(supports: list[Support], mask: np.ndarray, grid: Grid,
                  width_m: float) -> list[Support]:  # fmt: skip
     """Supports for the building's gaps between its supports narrower than ``width_m``:
     the pieces of the supports' union closed by ``width_m / 2`` (square joins, so that a
-    rectilinear outline keeps its corners) that the union leaves uncovered, each at least
-    a cell wide and at least half on the building's cells ``mask`` ((h, w) on ``grid``).
+    rectilinear outline keeps its corners) that the union leaves uncovered, each over
+    the centre of a cell or more and at least half on the building's cells ``mask``
+    ((h, w) on ``grid``).
 
     No footprint prior has an arm narrower than ``width_m`` (the strip of a tier between a
     tower's wall and the podium's edge, a leftover part of an outline), and the solid of
     the blocks is their upper envelope down to the ground: such a strip would be a slot
-    through the building, as deep as the building is tall."""
+    through the building, as deep as the building is tall. So would a sliver between two
+    supports cut from different priors, a hair apart, where it passes over a row or a
+    column of cell centres (dev seed 10: a 0.1 m sliver along a 62 m tower's wall, 0.87
+    of the seed's squared error off the jumps). One that covers no cell centre is left:
+    no raster shows it, and the mesh keeps a crack a few centimetres wide."""
     if not supports:
         return []
     union = unary_union([s.polygon for s in supports])
@@ -367,8 +372,6 @@ def gap_supports(supports: list[Support], mask: np.ndarray, grid: Grid,
     closed = union.buffer(d, join_style="mitre").buffer(-d, join_style="mitre")
     out = []
     for piece in _without_holes(closed.difference(union)):
-        if piece.buffer(-grid.gsd / 2, join_style="mitre").is_empty:
-            continue  # a sliver where the supports' directions differ by a hair
         cells = rasterize_on(piece, grid)
         if cells.any() and (cells & mask).sum() >= 0.5 * cells.sum():
             out.append(Support(piece, rectangle_frame(piece), 0))
