@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from workbench.engine import full_disk_named
+from workbench.engine import Engine, ThreadEngine, full_disk_named
 from workbench.errors import InputError
 from workbench.grid_blocks import block_layout
 from workbench.progress import progress
@@ -36,7 +36,7 @@ from .options import FusionOptions
 from .planar_objects import COUNTS as PLANAR_COUNTS
 from .planar_objects import planar_roofs_classed_tree
 from .raster_forest import classify_rasters, synthetic_raster_forest
-from .scene_fusion import FILLED, HOLE_CELLS, FusionResult, check_memory
+from .scene_fusion import FILLED, HOLE_CELLS, FusionResult, check_memory, workers_in_memory
 
 log = logging.getLogger(__name__)
 
@@ -704,47 +704,111 @@ def mesh_record(mesh, opts: FusionOptions, figures: dict, timer: StageTimer, t0:
     }  # fmt: skip
 
 
+# a block's peak while it makes its products (:func:`surface_products`), bytes a cell of its
+# window: the ortho, the heights, the forest's features and the four classes' probabilities
+BYTES_PER_BLOCK_CELL = 300
+
+
+@dataclass
+class MeshBlocks:
+    """What every block of a mesh's fusion needs: shared once with the workers, who read
+    the sampled ortho and DSM of the whole grid from the run's store (a folder every
+    worker sees)."""
+
+    ortho: WindowedRaster
+    dsm: WindowedRaster
+    grid: Grid
+    opts: FusionOptions
+    blocks: list
+
+
+def mesh_block_products(k: int, ctx: MeshBlocks) -> tuple[dict, dict]:
+    """Task: block ``k``'s products (:func:`surface_products`) over its window of the
+    sampled ortho and DSM, cut to its inside; its figures with its stages' times."""
+    b, timer = ctx.blocks[k], StageTimer()
+    with timer.stage("read"):
+        ortho = np.moveaxis(ctx.ortho.read(*b.outer), 0, -1)
+        dsm = ctx.dsm.read(*b.outer)[0]
+    products, f = surface_products(ortho, dsm, ctx.grid.gsd, ctx.opts, timer, b.origin)
+    products["ortho"] = ortho
+    # the inside of each: class_prob is (4, h, w), the others (h, w) or (h, w, 3)
+    inside = {k: v[(slice(None), *b.inside)] if k == "class_prob" else v[b.inside]
+              for k, v in products.items()}  # fmt: skip
+    f.pop("class_map")
+    f["missed_cells"] = int(np.count_nonzero(inside["count"] != 1))  # not the margin's
+    f["filled_cells"] = int(np.count_nonzero(inside["count"] == FILLED))
+    f["stages"] = timer.stages
+    return {k: np.ascontiguousarray(v) for k, v in inside.items()}, f
+
+
+def mesh_workers(grid: Grid, block_m: float, opts: FusionOptions) -> int:
+    """Blocks of ``block_m`` metres made at once: ``opts.workers``, or as many as this
+    machine has cores and as ``opts.max_memory_fraction`` of its memory holds, at
+    :data:`BYTES_PER_BLOCK_CELL` a cell of the largest block's window."""
+    cells = max(grid.window(*b.outer).width * grid.window(*b.outer).height
+                for b in block_layout(grid, block_m))  # fmt: skip
+    return workers_in_memory(opts, cells * BYTES_PER_BLOCK_CELL)
+
+
 def fuse_mesh_in_blocks(mesh, grid: Grid, opts: FusionOptions, timer: StageTimer, write,
-                        normal: WindowedRaster, block_m: float, scratch: Path) -> dict:  # fmt: skip
+                        normal_path: Path, block_m: float, scratch: Path,
+                        engine: Engine | None = None) -> dict:  # fmt: skip
     """Sample a surface mesh block by block: its memory follows the block, not the area.
 
-    1. The mesh is sampled tile by tile (:func:`sampled_tiles`) into the grid's ortho and
-       DSM, kept in ``scratch``, and its normals, written to ``normal``.
+    1. The mesh is sampled tile by tile (:func:`sampled_tiles`), in this process, into
+       the grid's ortho, DSM and normals, windows of rasters kept in the engine's store
+       (``scratch`` without one); the normals become ``normal_path``.
     2. Each block, with its margin (the largest building's width: the ground filter's
-       largest window and a building the block's edge cuts), makes its products
-       (:func:`surface_products`); ``write(block, products)`` takes their inside.
+       largest window and a building the block's edge cuts), is a task of ``engine``
+       (:func:`mesh_block_products`; default: this process, one after another) that
+       makes its products; ``write(block, products)`` takes their inside, in the
+       blocks' order.
+
+    With a store, a run interrupted in step 2 keeps the samples and the finished blocks
+    for ``--resume``, which samples nothing again and makes only the other blocks. The
+    tiles' lists of triangles go to ``scratch`` when they outgrow memory.
 
     Returns
     -------
     The record's figures, summed over the blocks: the missed and filled cells of their
     insides, the planar objects of their windows (an object in a margin is counted by
-    every block that holds it).
+    every block that holds it); the blocks' stages summed into ``timer``.
     """
+    engine = engine or ThreadEngine(1)
     blocks = block_layout(grid, block_m)
     for b in blocks:  # before the sampling: a block too large stops at once
         check_memory(grid.window(*b.outer), opts, 1)
-    ortho_all = WindowedRaster(scratch / "ortho.tif", grid, None, np.uint8, 3)
-    dsm_all = WindowedRaster(scratch / "dsm.tif", grid, None, np.float32, 1, nodata=np.nan)
-    with timer.stage("sampling"):
-        for rows, cols, o, d, n in sampled_tiles(mesh, grid, scratch=scratch):
-            ortho_all.write(np.moveaxis(o, -1, 0), rows, cols)
-            dsm_all.write(d, rows, cols)
-            normal.write(n, rows, cols)
+    kept = engine.store.scratch("samples") if engine.store is not None else scratch
+    sampled = (kept / "sampled").exists()  # by an interrupted run, for --resume
+    ortho = WindowedRaster(kept / "ortho.tif", grid, None, np.uint8, 3, reopen=sampled)
+    dsm = WindowedRaster(kept / "dsm.tif", grid, None, np.float32, 1, nodata=np.nan,
+                         reopen=sampled)  # fmt: skip
+    normal = WindowedRaster(kept / "normal.tif", grid, mesh.crs, np.float32, 3,
+                            descriptions=["nx", "ny", "nz"], reopen=sampled)  # fmt: skip
+    if sampled:
+        log.info("fusion: the mesh's samples kept by the interrupted run")
+    else:
+        with timer.stage("sampling"):
+            for rows, cols, o, d, n in sampled_tiles(mesh, grid, scratch=scratch):
+                ortho.write(np.moveaxis(o, -1, 0), rows, cols)
+                dsm.write(d, rows, cols)
+                normal.write(n, rows, cols)
+        (kept / "sampled").touch()
+    shared = engine.share(MeshBlocks(ortho, dsm, grid, opts, blocks))
+    done = engine.map(mesh_block_products, range(len(blocks)), shared, stage="blocks",
+                      keys=[str(b.index) for b in blocks], in_flight=engine.workers)  # fmt: skip
     figures: dict = {}
-    for b in progress(blocks, "fusion: the mesh's blocks"):
-        ortho = np.moveaxis(ortho_all.read(*b.outer), 0, -1)
-        products, f = surface_products(ortho, dsm_all.read(*b.outer)[0], grid.gsd, opts, timer,
-                                       b.origin)  # fmt: skip
-        products["ortho"] = ortho
-        # the inside of each: class_prob is (4, h, w), the others (h, w) or (h, w, 3)
-        cut = {k: v[(slice(None), *b.inside)] if k == "class_prob" else v[b.inside]
-               for k, v in products.items()}  # fmt: skip
-        write(b, {k: np.ascontiguousarray(v) for k, v in cut.items()})
-        f["missed_cells"] = int(np.count_nonzero(cut["count"] != 1))  # not the margin's
-        f["filled_cells"] = int(np.count_nonzero(cut["count"] == FILLED))
+    for b, (products, f) in zip(blocks, done, strict=True):
+        write(b, products)
+        timer.add(f.pop("stages"))
         for k, v in f.items():
-            if k != "class_map":
-                figures[k] = figures.get(k, 0) + v
+            figures[k] = figures.get(k, 0) + v
+    # the samples' mark goes first: a run stopped while the normals are copied out of
+    # the store samples again rather than find their windows gone
+    (kept / "sampled").unlink()
+    normal.close()
+    os.replace(normal.path, normal_path)
     figures["blocks"] = {"count": len(blocks), "side_m": round(float(block_m), 3),
                          "margin_m": LARGEST_WINDOW_M}  # fmt: skip
+    figures["engine"] = engine.describe()
     return figures

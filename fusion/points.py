@@ -583,10 +583,7 @@ def fuse_points_in_blocks(survey: Survey, grid: Grid, opts: FusionOptions, timer
         triangulated, occupied = triangulated + f["triangulated"], occupied + f["occupied"]
         sources.add(f["dtm_source"])
         figures["fill_radius"] = f["fill_radius"]
-        for name, st in f["stages"].items():  # the tasks' stages, summed
-            s = timer.stages.setdefault(name, {"wall_s": 0.0, "peak_memory_mb": 0.0})
-            s["wall_s"] = round(s["wall_s"] + st["wall_s"], 3)
-            s["peak_memory_mb"] = max(s["peak_memory_mb"], st["peak_memory_mb"])
+        timer.add(f["stages"])  # the tasks' stages, summed
     figures["dtm_source"] = "; ".join(sorted(sources))
     read = round(sum(returns) / survey.n_used, 3)  # the work the margins add
     figures["blocks"] = {"count": len(blocks), "side_m": round(float(block * survey.unit), 3),

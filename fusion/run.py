@@ -14,7 +14,7 @@ from workbench.engine import engine_for, run_signature
 from workbench.errors import WorkbenchError
 from workbench.metrics import classification, colour_mae, height_errors
 from workbench.options import options_record
-from workbench.raster import WindowedRaster, class_codes
+from workbench.raster import class_codes
 from workbench.records import StageTimer, provenance
 from workbench.scene import load_scene
 from workbench.truth import truth_rasters
@@ -78,10 +78,8 @@ def run_fusion(
     options = options or FusionOptions()
     t0 = time.perf_counter()
     if mesh is not None:
-        if scheduler is not None or resume:
-            log.warning("--scheduler and --resume apply to the fusion of views; a mesh is "
-                        "sampled in this process")  # fmt: skip
-        return _fuse_mesh(out, mesh, crs, options, truth, overwrite, command, t0)
+        return _fuse_mesh(out, mesh, crs, options, truth, overwrite, command, t0, scheduler,
+                          resume)  # fmt: skip
     if points is not None:
         return _fuse_points(out, points, crs, options, truth, overwrite, command, t0,
                             scheduler, resume)  # fmt: skip
@@ -164,15 +162,18 @@ def _close_windows(tmp: Path, windows: FusionWindows, record: dict, truth) -> No
         write_record(tmp, record)
 
 
-def _fuse_mesh(out, path, crs, options, truth, overwrite, command, t0) -> dict:
-    """A mesh's fusion: whole up to 4096 cells a side (or ``--block``), else block by
-    block (:func:`~fusion.mesh_sampling.fuse_mesh_in_blocks`), its rasters written window
-    by window into the run folder, which appears atomically; returns the record."""
+def _fuse_mesh(out, path, crs, options, truth, overwrite, command, t0, scheduler,
+               resume) -> dict:  # fmt: skip
+    """A mesh's fusion: whole up to 4096 cells a side (or ``--block``), else sampled in
+    this process and its blocks made as tasks of the engine
+    (:func:`~fusion.mesh_sampling.fuse_mesh_in_blocks`), its rasters written window by
+    window into the run folder, which appears atomically; returns the record."""
     from .mesh_sampling import (
         fuse_mesh_in_blocks,
         fuse_opened_mesh,
         mesh_inputs,
         mesh_record,
+        mesh_workers,
         opened_mesh,
     )
 
@@ -180,23 +181,29 @@ def _fuse_mesh(out, path, crs, options, truth, overwrite, command, t0) -> dict:
     mesh, grid = opened_mesh(path, options, crs, timer)
     block_m = block_size(grid, options)
     if block_m is None:
+        if scheduler is not None or resume:
+            log.warning("--scheduler and --resume apply to a mesh in blocks (--block); "
+                        "this one is sampled whole in this process")  # fmt: skip
         result, crs, inputs = fuse_opened_mesh(mesh, grid, options, timer, t0)
         return _write(out, result, crs, inputs, options, truth, None, overwrite, command, t0)
     parent = Path(out).absolute().parent
     check_disk(grid, parent)
-    with atomic_output_dir(out, overwrite=overwrite) as tmp, tempfile.TemporaryDirectory(
-            prefix=".mesh-scratch-", dir=parent) as scratch:  # fmt: skip
+    signature = run_signature(options, {"mesh": path})
+    signature["crs"] = crs
+    workers = mesh_workers(grid, block_m, options)
+    with engine_for(out, signature, workers=workers, scheduler=scheduler, resume=resume,
+                    preload=("fusion.mesh_sampling",)) as engine, \
+            atomic_output_dir(out, overwrite=overwrite) as tmp, \
+            tempfile.TemporaryDirectory(prefix=".mesh-scratch-",
+                                        dir=parent) as scratch:  # fmt: skip
         windows = FusionWindows(tmp, grid, mesh.crs)
-        normal = WindowedRaster(tmp / "normal.tif", grid, mesh.crs, np.float32, 3,
-                                descriptions=["nx", "ny", "nz"])  # fmt: skip
         try:
-            figures = fuse_mesh_in_blocks(mesh, grid, options, timer, windows, normal, block_m,
-                                          Path(scratch))  # fmt: skip
+            figures = fuse_mesh_in_blocks(mesh, grid, options, timer, windows,
+                                          tmp / "normal.tif", block_m, Path(scratch),
+                                          engine)  # fmt: skip
         except BaseException:
             windows.discard()
-            normal.discard()
             raise
-        normal.close()
         record = _record(grid, mesh.crs, mesh_inputs(mesh), options,
                          mesh_record(mesh, options, figures, timer, t0), command, t0)  # fmt: skip
         _close_windows(tmp, windows, record, truth)

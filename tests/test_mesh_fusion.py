@@ -181,11 +181,12 @@ def test_the_tiny_city_mesh_sampled_matches_the_truth(mesh_fusion, tiny_scene):
 
 def test_a_mesh_fused_in_blocks_is_written_window_by_window(mesh_fusion, tiny_scene):
     """--block 20 on the tiny city's 64 m: 16 blocks, each with its 80 m margin the whole
-    grid, so each block's products are the whole grid's, written block by block."""
+    grid, so each block's products are the whole grid's, written block by block, made
+    by a local cluster of two worker processes."""
     root, whole, record = mesh_fusion
     out = root / "blocks"
-    proc = run_cli("fusion", "--mesh", root / "city.ply", "-o", out, "--gsd", "0.25",
-                   "--bounds", "-32", "-32", "32", "32", "--block", "20")  # fmt: skip
+    proc = run_cli("fusion", "--mesh", root / "city.ply", "-o", out, "--gsd", "0.25", "--bounds",
+                   "-32", "-32", "32", "32", "--block", "20", "--workers", "2")  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     blocks = json.loads((out / "fusion.json").read_text())
     assert blocks["blocks"]["count"] == 16
@@ -196,7 +197,40 @@ def test_a_mesh_fused_in_blocks_is_written_window_by_window(mesh_fusion, tiny_sc
         b, bgrid, bcrs = read_raster(out / f"{name}.tif")
         assert bgrid == grid and bcrs == crs
         np.testing.assert_array_equal(a, b, err_msg=name)
+    assert blocks["engine"]["workers"] == 2  # a local cluster: the same rasters
     assert not list(root.glob(".mesh-scratch-*"))  # the samples' scratch removed
+    assert not list(root.glob(".blocks.partial"))
+
+
+def test_a_mesh_fused_in_blocks_resumes_with_its_samples(mesh_fusion, monkeypatch):
+    """Sixteen blocks, each a task: stopped (Ctrl-C) at the fourth, the run leaves no
+    output and keeps the mesh's samples and three blocks; started again with resume, it
+    samples nothing again and makes the thirteen others only, and its rasters are the
+    whole grid's, byte for byte."""
+    import fusion.mesh_sampling as ms
+    from fusion.options import FusionOptions
+    from fusion.run import run_fusion
+    from workbench.engine import TaskStore, partial_folder
+
+    root, whole, _ = mesh_fusion
+    out = root / "resumed"
+    opts = FusionOptions(gsd=0.25, bounds=(-32.0, -32.0, 32.0, 32.0), block=20.0, workers=1)
+    real, calls = ms.mesh_block_products, []
+    monkeypatch.setattr(ms, "mesh_block_products", interrupted_after(real, 3, calls))
+    with pytest.raises(KeyboardInterrupt):
+        run_fusion(out, opts, mesh=root / "city.ply")
+    store = TaskStore(partial_folder(out))
+    assert not out.exists() and store.finished("blocks") == 3
+    assert (store.folder / "samples" / "sampled").exists()
+    calls.clear()
+    monkeypatch.setattr(ms, "mesh_block_products", lambda *a: calls.append(1) or real(*a))
+    monkeypatch.setattr(ms, "sampled_tiles", None)  # called, it would fail
+    record = run_fusion(out, opts, mesh=root / "city.ply", resume=True)
+    assert len(calls) == 13 and record["blocks"]["count"] == 16
+    for name in ("ortho", "dsm", "normal", "dtm", "class_prob", "count"):
+        a, b = read_raster(out / f"{name}.tif")[0], read_raster(whole / f"{name}.tif")[0]
+        np.testing.assert_array_equal(a, b, err_msg=name)
+    assert not partial_folder(out).exists() and not list(root.glob(".mesh-scratch-*"))
 
 
 def test_a_path_runs_from_the_mesh_fusion(mesh_fusion, tiny_scene):

@@ -287,13 +287,19 @@ class WindowedRaster:
         The raster's data type and number of bands.
     nodata, descriptions
         As for :func:`write_raster`.
+    reopen : bool
+        Keep the windows a run before wrote into the staging file, if it is there (a
+        resumed run's), instead of starting an empty one.
     """
 
     def __init__(self, path, grid: Grid, crs: CRS | None, dtype, count: int = 1, *,
-                 nodata=None, descriptions: list[str] | None = None):  # fmt: skip
+                 nodata=None, descriptions: list[str] | None = None,
+                 reopen: bool = False):  # fmt: skip
         self.path = Path(path)
         self.profile = cog_profile(grid, crs, dtype, count, nodata)
         self.staging = self.path.with_name(f".{self.path.name}.windows.tif")
+        if reopen and self.staging.exists():
+            return
         cog_only = ("driver", "blocksize", "overview_resampling", "predictor")
         staging = {k: v for k, v in self.profile.items() if k not in cog_only}
         with _gdal_cache(), rasterio.open(self.staging, "w", driver="GTiff", tiled=True,

@@ -62,6 +62,14 @@ class StageTimer:
                 "peak_memory_mb": round(peak_memory_mb(), 1),
             }
 
+    def add(self, stages: dict) -> None:
+        """Another timer's ``stages`` (a task's, run elsewhere) added to these: their
+        times summed, their peaks the larger."""
+        for name, st in stages.items():
+            s = self.stages.setdefault(name, {"wall_s": 0.0, "peak_memory_mb": 0.0})
+            s["wall_s"] = round(s["wall_s"] + st["wall_s"], 3)
+            s["peak_memory_mb"] = max(s["peak_memory_mb"], st["peak_memory_mb"])
+
     @property
     def total_s(self) -> float:
         return round(sum(s["wall_s"] for s in self.stages.values()), 3)
