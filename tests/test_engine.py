@@ -357,3 +357,31 @@ def test_an_interrupted_voxel_run_redoes_only_its_unfinished_buildings(
     for a, b in zip(buildings, whole.buildings, strict=True):
         np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
         np.testing.assert_array_equal(a.mesh.texture.image, b.mesh.texture.image)
+
+
+def test_a_killed_runs_temporary_folder_goes_when_its_output_is_written_again(tmp_path):
+    """A command killed (SIGKILL: no cleanup runs) leaves its temporary folder beside
+    the output. The next run writing that output removes it; a running process's folder
+    (this one's) and another machine's stay."""
+    import os
+    import socket
+
+    from workbench.atomic import atomic_output_dir, killed_runs_folders
+
+    out = tmp_path / "fusion"
+    killed = ("import os, signal\nfrom workbench.atomic import atomic_output_dir\n"
+              f"with atomic_output_dir({str(out)!r}) as tmp:\n"
+              "    (tmp / 'dsm.tif').write_bytes(b'half')\n"
+              "    os.kill(os.getpid(), signal.SIGKILL)\n")  # fmt: skip
+    assert subprocess.run([sys.executable, "-c", killed]).returncode == -9
+    left = list(tmp_path.glob(".fusion.tmp-*"))
+    assert len(left) == 1 and (left[0] / "dsm.tif").exists() and not out.exists()
+    running = tmp_path / f".fusion.tmp-{socket.gethostname()}-{os.getpid()}-x"
+    elsewhere = tmp_path / ".fusion.tmp-another-machine-1-x"
+    running.mkdir()
+    elsewhere.mkdir()
+    assert killed_runs_folders(out) == left
+    with atomic_output_dir(out) as tmp:
+        (tmp / "dsm.tif").write_bytes(b"whole")
+    assert (out / "dsm.tif").read_bytes() == b"whole"
+    assert sorted(tmp_path.iterdir()) == sorted([out, running, elsewhere])

@@ -1,18 +1,24 @@
 """Write an output folder atomically: into a temporary sibling, renamed on success.
 
-A command that fails leaves no half-written output behind.
+A command that fails leaves no half-written output behind; the temporary folder of one
+that was killed goes when the same output is written again.
 """
 
 from __future__ import annotations
 
 import contextlib
+import glob
+import logging
 import os
 import shutil
+import socket
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 from .errors import OutputExistsError
+
+log = logging.getLogger(__name__)
 
 
 @contextlib.contextmanager
@@ -35,7 +41,10 @@ def atomic_output_dir(out: str | os.PathLike, *, overwrite: bool = False) -> Ite
     out = Path(out).absolute()
     check_output_dir(out, overwrite=overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    for stale in killed_runs_folders(out):
+        log.info("removing %s, left by a run that was killed", stale)
+        shutil.rmtree(stale, ignore_errors=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f"{_tmp_prefix(out)}{os.getpid()}-", dir=out.parent))
     try:
         yield tmp
     except BaseException:
@@ -48,6 +57,36 @@ def atomic_output_dir(out: str | os.PathLike, *, overwrite: bool = False) -> Ite
     os.replace(tmp, out)
     if old is not None:
         shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()
+
+
+def _tmp_prefix(out: Path) -> str:
+    """The start of the name of ``out``'s temporary folders made on this machine (the
+    writing process's id follows)."""
+    return f".{out.name}.tmp-{socket.gethostname()}-"
+
+
+def killed_runs_folders(out: str | os.PathLike) -> list[Path]:
+    """The temporary folders of ``out`` whose command, on this machine, no longer runs:
+    a process killed (SIGKILL, out of memory, a machine restarted) writes no more into
+    its folder, nor removes it. Another machine's, or a live process's, are left."""
+    out = Path(out).absolute()
+    prefix = _tmp_prefix(out)
+    found = []
+    for folder in out.parent.glob(f"{glob.escape(prefix)}*"):
+        pid = folder.name[len(prefix) :].split("-", 1)[0]
+        if folder.is_dir() and pid.isdigit() and not _running(int(pid)):
+            found.append(folder)
+    return found
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)  # no signal: only whether the process is there
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
 
 
 def check_output_dir(out: str | os.PathLike, *, overwrite: bool = False) -> None:
