@@ -426,6 +426,19 @@ def test_a_crown_over_a_corner_leaves_the_support_its_corner():
         assert abs(covered - area) < 4.0, (given is None, covered)
 
 
+def _podium_and_tower():
+    """A podium of 12 m x 10 m at 20 m round a tower of 9 m x 8 m at 30 m (a ring 2 m
+    wide on the west, 1 m elsewhere), heights with 3 cm of noise: grid, cell centres,
+    the podium's cells and the DSM."""
+    grid = Grid(-10.0, 8.0, 0.25, 80, 64)
+    X, Y = grid.cell_centers()
+    podium = (np.abs(X) < 6) & (np.abs(Y) < 5)
+    tower = (X > -4) & (X < 5) & (np.abs(Y) < 4)
+    noise = np.random.default_rng(0).normal(0, 0.03, X.shape)
+    dsm = np.where(tower, 30.0, np.where(podium, 20.0, 0.0)) + noise
+    return grid, X, Y, podium, dsm
+
+
 def test_a_lower_tier_narrower_than_a_support_keeps_its_level():
     """A podium of 12 m x 10 m at 20 m round a tower of 9 m x 8 m at 30 m: the podium is
     a ring 2 m wide on the west, 1 m elsewhere, narrower than a support (``min_part_m``,
@@ -434,12 +447,7 @@ def test_a_lower_tier_narrower_than_a_support_keeps_its_level():
     it at 30 m (dev seed 9 of the sample city: three multi-level buildings, 0.64 of its
     squared error off the jumps). Now it is a flat tier at 20 m; the 1 m sides, all
     steps, still go with the tower."""
-    grid = Grid(-10.0, 8.0, 0.25, 80, 64)
-    X, Y = grid.cell_centers()
-    podium = (np.abs(X) < 6) & (np.abs(Y) < 5)
-    tower = (X > -4) & (X < 5) & (np.abs(Y) < 4)
-    noise = np.random.default_rng(0).normal(0, 0.03, X.shape)
-    dsm = np.where(tower, 30.0, np.where(podium, 20.0, 0.0)) + noise
+    grid, X, Y, podium, dsm = _podium_and_tower()
     boxes = np.array([[0, 0, 0, 0], [0, grid.height, 0, grid.width]])
     inputs = BlocksInputs(grid, dsm, np.zeros(X.shape), None, boxes, podium.astype(np.int32))
     building = building_task(1, inputs, BlocksOptions(iterations=2000)).building
@@ -460,18 +468,27 @@ def test_a_tier_over_unknown_ground_is_a_tier():
     ground beside it: dev seed 13's hidden ring east of a tower, 0.41 of its squared
     error, modelled as the ground), but not where the DTM is within a step of it (the
     ground the outline took in)."""
-    grid = Grid(-10.0, 8.0, 0.25, 80, 64)
-    X, Y = grid.cell_centers()
-    podium = (np.abs(X) < 6) & (np.abs(Y) < 5)
-    tower = (X > -4) & (X < 5) & (np.abs(Y) < 4)
-    noise = np.random.default_rng(0).normal(0, 0.03, X.shape)
-    dsm = np.where(tower, 30.0, np.where(podium, 20.0, 0.0)) + noise
+    grid, X, Y, podium, dsm = _podium_and_tower()
     xs, ys = X[0], Y[:, 0]
     west = podium & (X < -4)
     for ground, tier in ((0.0, True), (np.nan, True), (19.0, False)):
         dtm = np.where(west, ground, 0.0)
         found = automatic_supports(podium, dsm, xs, ys, grid, 3.0, 160, 1.5, dtm)
         assert bool(found.tiers) == tier, ground
+
+
+def _three_levels():
+    """A podium of 16 m x 14 m at 20 m, a middle tier of 9 m x 7 m at 30 m, a tower of
+    5 m x 5 m at 40 m, heights with 3 cm of noise: grid, cell centres, the three parts'
+    cells and the DSM."""
+    grid = Grid(-10.0, 9.0, 0.25, 80, 72)
+    X, Y = grid.cell_centers()
+    podium = (np.abs(X) < 8) & (np.abs(Y) < 7)
+    middle = (np.abs(X) < 4.5) & (np.abs(Y) < 3.5)
+    tower = (np.abs(X) < 2.5) & (np.abs(Y) < 2.5)
+    noise = np.random.default_rng(0).normal(0, 0.03, X.shape)
+    dsm = np.where(tower, 40.0, np.where(middle, 30.0, np.where(podium, 20.0, 0.0))) + noise
+    return grid, X, Y, podium, middle, tower, dsm
 
 
 def test_a_middle_tier_between_a_podium_and_a_tower_keeps_its_level():
@@ -482,13 +499,7 @@ def test_a_middle_tier_between_a_podium_and_a_tower_keeps_its_level():
     outline of the part above the podium, and its block stands on the podium's in the
     envelope (measured before: the ring split between the podium's 20 m and the tower's
     40 m)."""
-    grid = Grid(-10.0, 9.0, 0.25, 80, 72)
-    X, Y = grid.cell_centers()
-    podium = (np.abs(X) < 8) & (np.abs(Y) < 7)
-    middle = (np.abs(X) < 4.5) & (np.abs(Y) < 3.5)
-    tower = (np.abs(X) < 2.5) & (np.abs(Y) < 2.5)
-    noise = np.random.default_rng(0).normal(0, 0.03, X.shape)
-    dsm = np.where(tower, 40.0, np.where(middle, 30.0, np.where(podium, 20.0, 0.0))) + noise
+    grid, X, Y, podium, middle, tower, dsm = _three_levels()
     boxes = np.array([[0, 0, 0, 0], [0, grid.height, 0, grid.width]])
     inputs = BlocksInputs(grid, dsm, np.zeros(X.shape), None, boxes, podium.astype(np.int32))
     building = building_task(1, inputs, BlocksOptions(iterations=2000)).building
@@ -513,13 +524,7 @@ def test_a_middle_tier_partly_hidden_keeps_its_rectangle():
     tier's whole rectangle: its south ring, seen in the west only, stays at 30 m across
     (measured before: the podium's 20 m there; dev seeds 9 and 11 of the sample city,
     whose hidden middle-tier corners carried 0.39 and 0.62 of their squared error)."""
-    grid = Grid(-10.0, 9.0, 0.25, 80, 72)
-    X, Y = grid.cell_centers()
-    podium = (np.abs(X) < 8) & (np.abs(Y) < 7)
-    middle = (np.abs(X) < 4.5) & (np.abs(Y) < 3.5)
-    tower = (np.abs(X) < 2.5) & (np.abs(Y) < 2.5)
-    dsm = np.where(tower, 40.0, np.where(middle, 30.0, np.where(podium, 20.0, 0.0)))
-    dsm += np.random.default_rng(0).normal(0, 0.03, X.shape)
+    grid, X, Y, podium, middle, tower, dsm = _three_levels()
     hidden = (X > 0) & (Y < -1) & (Y > -7.5) & ~tower
     dsm[hidden] = np.nan
     dtm = np.where(hidden, np.nan, 0.0)
