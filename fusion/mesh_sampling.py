@@ -745,8 +745,8 @@ def mesh_workers(grid: Grid, block_m: float, opts: FusionOptions) -> int:
     """Blocks of ``block_m`` metres made at once: ``opts.workers``, or as many as this
     machine has cores and as ``opts.max_memory_fraction`` of its memory holds, at
     :data:`BYTES_PER_BLOCK_CELL` a cell of the largest block's window."""
-    cells = max(grid.window(*b.outer).width * grid.window(*b.outer).height
-                for b in block_layout(grid, block_m))  # fmt: skip
+    windows = (grid.window(*b.outer) for b in block_layout(grid, block_m))
+    cells = max(w.width * w.height for w in windows)
     return workers_in_memory(opts, cells * BYTES_PER_BLOCK_CELL)
 
 
