@@ -453,16 +453,19 @@ print(json.dumps({"stages": r["stages"], "counts": r["counts"], "texture": r["te
 """
 
 ROBUSTNESS_CHILD = r"""
-import json, sys
+import json, sys, tempfile
 from pathlib import Path
 from modeling.voxel.inputs import read_inputs
 from modeling.voxel.path import build_proxies
 from modeling.voxel.options import VoxelOptions
 from modeling.voxel.robustness import robustness_experiment
+from workbench.engine import TaskStore
 scene, fusion = Path(sys.argv[1]), Path(sys.argv[2])
 options = VoxelOptions()
 inputs = read_inputs(scene, options, fusion_dir=fusion)
-proxies = build_proxies(inputs, options)
+with tempfile.TemporaryDirectory() as folder:
+    shelf = TaskStore(folder)
+    proxies = [shelf.load("proxy", e.id) for e in build_proxies(inputs, options, shelf)]
 print(json.dumps(robustness_experiment(proxies, inputs.cameras, inputs.images, options)))
 """
 

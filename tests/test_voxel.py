@@ -57,6 +57,7 @@ from modeling.voxel.surface_graph import (
 from modeling.voxel.texture_atlas import atlas, pack_charts
 from modeling.voxel.view_images import footprint_sigma, hs_chroma
 from workbench.camera import Camera, look_at_rotation
+from workbench.engine import TaskStore
 from workbench.meshes import is_watertight
 from workbench.meshio import write_obj
 from workbench.raster import Grid
@@ -1047,7 +1048,9 @@ def test_framing_cameras_keep_every_view_that_sees_the_box(tiny_scene):
     assert len(framing_cameras(cams, far)) < len(cams) // 4
 
 
-def test_a_ring_cut_in_a_window_paints_what_the_whole_ground_would(tiny_scene, tiny_fusion):
+def test_a_ring_cut_in_a_window_paints_what_the_whole_ground_would(
+    tiny_scene, tiny_fusion, tmp_path
+):  # fmt: skip
     import copy
 
     import modeling.voxel.path as vp
@@ -1057,21 +1060,24 @@ def test_a_ring_cut_in_a_window_paints_what_the_whole_ground_would(tiny_scene, t
 
     opts = VoxelOptions()
     inputs = read_inputs(tiny_scene, opts, fusion_dir=tiny_fusion)
-    proxies = vp.build_proxies(inputs, opts)
-    occ = vp.ProxyScene.of(proxies)
-    feet = [vp.texture_task((p, False), inputs, opts, occ)[1] for p in proxies]
+    shelf = TaskStore(tmp_path)
+    proxies = vp.build_proxies(inputs, opts, shelf)
+    occ = vp.proxy_occluders(proxies, inputs)
+    for e in proxies:
+        vp.texture_task((e, False), inputs, opts, occ, shelf)
     grid = vp.ground_grid(inputs.scene, proxies, opts.ground_gsd_m)
     gz = inputs.ground(grid)
     whole = slice(0, grid.height), slice(0, grid.width)
-    cut = ground_cut(grid, gz, inputs.cameras, inputs.images, occ.rays(), opts.overlap_m)
+    everything = occ.scene([shelf.load("mesh", e.id) for e in proxies])
+    cut = ground_cut(grid, gz, inputs.cameras, inputs.images, everything, opts.overlap_m)
     full = join_ground_tiles(grid, gz, [whole], [cut])
     windowed = copy.deepcopy(full)
     painted = 0
-    for foot in feet:
-        a = ring_cut(full, vp.ring_task((grid, gz, foot), inputs, opts, occ), opts.ring_m)
-        window = vp.ring_window(grid, foot, opts.ring_m)
+    for e in proxies:
+        a = ring_cut(full, vp.ring_task((grid, gz, e.id), inputs, opts, occ, shelf), opts.ring_m)
+        window = vp.ring_window(grid, e.outline, opts.ring_m)
         part = windowed.window(*window)
-        samples = vp.ring_task((part.grid, gz[window], foot), inputs, opts, occ)
+        samples = vp.ring_task((part.grid, gz[window], e.id), inputs, opts, occ, shelf)
         b = ring_cut(part, samples, opts.ring_m)
         assert a == b
         painted += a["from_building"]

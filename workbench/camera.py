@@ -181,6 +181,33 @@ def framing_cameras(cameras: list[Camera], vertices: np.ndarray) -> list[int]:
     return out
 
 
+def max_ray_tangent(cameras: list[Camera], margin_px: float = 2.0, per_side: int = 32) -> float:
+    """The largest horizontal-to-vertical ratio of a ray through any of the cameras'
+    frames (the tangent of its largest off-nadir angle), inf if a frame reaches the
+    horizon.
+
+    A point a view frames sees its camera along a line no flatter than this, so only
+    what stands within (its top above the point) x this, horizontally, can hide it. The
+    ratio is quasi-convex on the image plane: without distortion it peaks at a corner;
+    the frame's border is sampled (``per_side`` points a side, ``margin_px`` outside it)
+    for a lens's curved one.
+    """
+    worst = 0.0
+    s = np.linspace(0.0, 1.0, per_side)
+    for cam in cameras:
+        u0, v0 = -margin_px, -margin_px
+        u1, v1 = cam.width - 1 + margin_px, cam.height - 1 + margin_px
+        u = np.concatenate([u0 + s * (u1 - u0), np.full(per_side, u1), u1 - s * (u1 - u0),
+                            np.full(per_side, u0)])  # fmt: skip
+        v = np.concatenate([np.full(per_side, v0), v0 + s * (v1 - v0), np.full(per_side, v1),
+                            v1 - s * (v1 - v0)])  # fmt: skip
+        _, d = cam.pixel_rays(np.column_stack([u, v]))
+        if (d[:, 2] >= 0).any():
+            return float("inf")  # a ray at or above the horizon
+        worst = max(worst, float(np.max(np.hypot(d[:, 0], d[:, 1]) / -d[:, 2])))
+    return worst
+
+
 def _undistort(uv: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
     if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4
         return cv2.undistortPointsIter(uv, K, dist, None, None, _UNDISTORT_CRITERIA)

@@ -14,14 +14,15 @@ import shapely
 from shapely.geometry import Polygon, mapping
 
 from modeling.shared.roof_mesh import extrude_faces
+from workbench.camera import max_ray_tangent
 from workbench.errors import InputError
 from workbench.footprints import Footprint, read_footprints
 from workbench.fusion_run import read_fusion_run
-from workbench.meshes import concatenate_meshes
 from workbench.raster import BUILDING, TREE, Grid, read_raster
-from workbench.raycast import raycasting_scene
+from workbench.raycast import local_origin
 from workbench.scene import Scene, load_scene
 
+from .occluders import Occluders
 from .options import VoxelOptions
 from .view_images import ViewImages
 
@@ -42,13 +43,7 @@ class VoxelInputs:
     footprint_source: str
     footprint_count: int
     fused_ndsm: tuple | None = None  # (ndsm, grid) of the fusion run's roofs, if any
-
-    def prisms(self) -> dict:
-        """Each usable footprint's initial proxy (its prism to the over-estimated height),
-        by id; made once per copy of the inputs (a worker's, in a Dask run)."""
-        if getattr(self, "_prisms", None) is None:
-            self._prisms = {f.id: prism(f.polygon, base, h) for f, base, h in self.buildings}
-        return self._prisms
+    prisms: Occluders | None = None  # the usable footprints' initial proxies
 
 
 def read_inputs(
@@ -68,8 +63,9 @@ def read_inputs(
     kept, skipped = _usable(items, cameras, ground, options.default_height_m)
     fused_ndsm = (roof_heights(fusion["ndsm"], fusion["class"]), fusion["grid"]) if fusion else None
     return VoxelInputs(
-        scene, cameras, images, ground, kept, skipped, source, len(items), fused_ndsm
-    )
+        scene, cameras, images, ground, kept, skipped, source, len(items), fused_ndsm,
+        prism_occluders(kept, max_ray_tangent(cameras)),
+    )  # fmt: skip
 
 
 def check_inputs(
@@ -242,13 +238,24 @@ def prism(polygon: Polygon, base: float, height: float):
     return extrude_faces([polygon], [np.array([0.0, 0.0, 1.0, -(base + height)])], base)
 
 
-def neighbour_scene(f: Footprint, kept, prisms):
-    """The ray-casting scene of the initial proxies of the buildings near ``f``."""
-    reach = 2.0 * max(h for _, _, h in kept)
-    near = [
-        prisms[g.id] for g, _, _ in kept if g.id != f.id and g.polygon.distance(f.polygon) <= reach
-    ]
-    if not near:
-        return None
-    V, T, _ = concatenate_meshes(near)
-    return raycasting_scene(V, T)
+def prism_occluders(kept, tangent: float) -> Occluders:
+    """The boxes of the usable footprints' initial proxies (``kept``: (Footprint, base,
+    height)), in one origin for every scene of them."""
+    boxes = np.array([f.polygon.bounds for f, _, _ in kept], float).reshape(-1, 4)
+    tops = np.array([base + h for _, base, h in kept], float)
+    lo = np.column_stack([boxes[:, :2], [base for _, base, _ in kept]]).reshape(-1, 3)
+    hi = np.column_stack([boxes[:, 2:], tops])
+    origin = local_origin(np.vstack([lo, hi]))
+    return Occluders([f.id for f, _, _ in kept], boxes, tops, tangent, origin)
+
+
+def neighbour_scene(j: int, inputs: VoxelInputs, grow: float):
+    """The ray-casting scene of the initial proxies of the other buildings that can hide
+    some voxel of the ``j``-th usable footprint (grown by ``grow`` metres) from a view
+    (None if none can)."""
+    f, base, _ = inputs.buildings[j]
+    x0, y0, x1, y1 = f.polygon.bounds
+    near = inputs.prisms.near((x0 - grow, y0 - grow, x1 + grow, y1 + grow), base)
+    return inputs.prisms.scene(
+        [prism(g.polygon, b, h) for g, b, h in (inputs.buildings[i] for i in near if i != j)]
+    )

@@ -10,8 +10,10 @@ for one building, :mod:`.inputs` reads what they need. This module orders and ti
 from __future__ import annotations
 
 import logging
+import tempfile
 import time
 from collections.abc import Iterable
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -20,11 +22,9 @@ import rasterio.features
 from scipy.spatial import cKDTree
 from shapely.geometry import mapping
 
-from workbench.engine import Engine, ThreadEngine
-from workbench.meshes import concatenate_meshes
+from workbench.engine import Engine, TaskStore, ThreadEngine
 from workbench.model_run import Building, BuildingsOnDisk, ModelRun, Surface, Texture
 from workbench.raster import Grid
-from workbench.raycast import raycasting_scene
 from workbench.records import StageTimer, peak_memory_mb
 from workbench.scene import Scene
 
@@ -40,8 +40,9 @@ from .ground_texture import (
     ring_samples,
 )
 from .inputs import VoxelInputs, neighbour_scene, read_inputs
+from .occluders import Occluders
 from .options import VoxelOptions
-from .preview import largest, voxel_preview
+from .preview import voxel_preview
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +78,24 @@ def run_voxel(
     """
     options = options or VoxelOptions()
     engine = engine or ThreadEngine(1)  # the views' image cache is one per process
+    with proxy_shelf(engine) as shelf:
+        return _run(scene_dir, options, footprints, fusion_dir, engine, shelf)
+
+
+@contextmanager
+def proxy_shelf(engine: Engine):
+    """Where a run's proxies and wall feet wait between its stages: a folder of the
+    engine's task store (kept for ``--resume``; every worker must see it), else a
+    temporary one. A city's do not fit in the command: some 100 KB a proxy and 16 KB a
+    wall foot on `small`, some 8 GB for a 100 km² city's 67,000 buildings."""
+    if engine.store is not None:
+        yield TaskStore(engine.store.scratch("shelf"))
+        return
+    with tempfile.TemporaryDirectory(prefix="voxel-shelf-") as d:
+        yield TaskStore(d)
+
+
+def _run(scene_dir, options, footprints, fusion_dir, engine, shelf) -> ModelRun:
     timer = StageTimer()
     t_start = time.perf_counter()
     with timer.stage("read"):
@@ -84,23 +103,23 @@ def run_voxel(
         shared = engine.share(inputs)
         ids = [f.id for f, _, _ in inputs.buildings]
     with timer.stage("proxies"):
-        proxies = build_proxies(inputs, options, engine, shared, ids)
+        proxies = build_proxies(inputs, options, shelf, engine, shared, ids)
     with timer.stage("textures"):
-        scene = ProxyScene.of(proxies)
-        occluders = engine.share(scene)
-        big = largest(proxies) if proxies else -1
+        occluders = engine.share(proxy_occluders(proxies, inputs))
+        big = max(range(len(proxies)), key=lambda i: proxies[i].columns) if proxies else -1
         items = [(p, i == big) for i, p in enumerate(proxies)]
         # a building whose texture task fails is left out; its proxy still hides the
         # ground behind it
-        textured = engine.map(texture_task, items, shared, options, occluders,
+        textured = engine.map(texture_task, items, shared, options, occluders, shelf,
                               stage="textures", keys=[p.id for p in proxies],
-                              on_failure=lambda item, why: (None, None, None))  # fmt: skip
+                              on_failure=lambda item, why: (None, False, None))  # fmt: skip
         buildings, feet, costs, shown = kept_textured(textured, engine)
     with timer.stage("ground"):
         gtex, ground_z = texture_ground(inputs, proxies, feet, options, engine, shared,
-                                        occluders)  # fmt: skip
+                                        occluders, shelf)  # fmt: skip
     with timer.stage("preview"):
-        preview = voxel_preview(proxies[big] if proxies else None, shown, buildings, gtex)
+        shown_proxy = shelf.load("proxy", proxies[big].id) if proxies else None
+        preview = voxel_preview(shown_proxy, shown, buildings, gtex)
     return ModelRun(
         "voxel", options, buildings, crs=inputs.scene.crs,
         grid=gtex.grid if gtex is not None else None, dtm=ground_z,
@@ -122,69 +141,90 @@ def run_voxel(
     )  # fmt: skip
 
 
+@dataclass(frozen=True)
+class ProxyEntry:
+    """What the command keeps of a proxy, which waits on the run's shelf.
+
+    Attributes
+    ----------
+    id : str
+    box : (6,) tuple
+        Its mesh's bounds (xmin, ymin, zmin, xmax, ymax, zmax), world metres.
+    outline : (4,) tuple
+        Its outline's bounds (xmin, ymin, xmax, ymax), world metres.
+    columns : int
+        Its voxel columns (the preview shows the largest proxy).
+    """
+
+    id: str
+    box: tuple
+    outline: tuple
+    columns: int
+
+
 def build_proxies(
     inputs: VoxelInputs,
     options: VoxelOptions,
+    shelf: TaskStore,
     engine: Engine | None = None,
     shared=None,
     ids: list[str] | None = None,
-) -> list[Proxy]:
+) -> list[ProxyEntry]:
     """Section 4 for every usable footprint (a task each), each with the initial proxies
     of its neighbours as occlusion masks; footprints without a consistent roof are
-    skipped. ``shared`` is the engine's handle on ``inputs``."""
+    skipped. ``shared`` is the engine's handle on ``inputs``; the proxies go on ``shelf``
+    (stage "proxy", their meshes "mesh"), the command keeps their entries."""
     engine = engine or ThreadEngine(1)
     ids = ids if ids is not None else [f.id for f, _, _ in inputs.buildings]
     shared = shared if shared is not None else inputs
-    proxies: list[Proxy] = []
-    tasks = engine.map(proxy_task, range(len(ids)), shared, options, stage="proxies", keys=ids,
-                       on_failure=lambda j, why: why)  # fmt: skip
-    for j, p in enumerate(tasks):
-        if isinstance(p, str):  # the task failed
-            inputs.skipped.append({"id": ids[j], "reason": p})
+    entries: list[ProxyEntry] = []
+    tasks = engine.map(proxy_task, range(len(ids)), shared, options, shelf, stage="proxies",
+                       keys=ids, on_failure=lambda j, why: why)  # fmt: skip
+    for j, e in enumerate(tasks):
+        if isinstance(e, str):  # the task failed
+            inputs.skipped.append({"id": ids[j], "reason": e})
             continue
-        if p.empty:
-            inputs.skipped.append({"id": p.id, "reason": "no photo-consistent roof"})
-            log.warning("footprint %s: no photo-consistent roof, skipped", p.id)
+        if e is None:
+            inputs.skipped.append({"id": ids[j], "reason": "no photo-consistent roof"})
+            log.warning("footprint %s: no photo-consistent roof, skipped", ids[j])
             continue
-        proxies.append(p)
-    return proxies
+        entries.append(e)
+    return entries
 
 
-def proxy_task(j: int, inputs: VoxelInputs, options: VoxelOptions) -> Proxy:
-    """Task: section 4 for the ``j``-th usable footprint."""
-    kept = inputs.buildings
-    f, base, h = kept[j]
-    occluders = neighbour_scene(f, kept, inputs.prisms())
+def proxy_task(j: int, inputs: VoxelInputs, options: VoxelOptions,
+               shelf: TaskStore) -> ProxyEntry | None:  # fmt: skip
+    """Task: section 4 for the ``j``-th usable footprint; its proxy and mesh go on
+    ``shelf``, its entry comes back (None for an empty proxy)."""
+    f, base, h = inputs.buildings[j]
+    occluders = neighbour_scene(j, inputs, options.grow_m)
     p = building_proxy(
         f.id, f.polygon, h, base, inputs.cameras, inputs.images, options, occluders,
         inputs.fused_ndsm,
     )  # fmt: skip
+    if p.empty:
+        return None
     p.record["height_source"] = f.properties.get("_height_source", "GIS")
     p.record["gis_footprint"] = mapping(f.polygon)
-    return p
+    shelf.save("proxy", p.id, p)
+    shelf.save("mesh", p.id, (p.vertices, p.triangles))
+    lo, hi = p.vertices.min(axis=0), p.vertices.max(axis=0)
+    return ProxyEntry(p.id, (*lo, *hi), p.outline.bounds, int(p.columns.sum()))
 
 
-class ProxyScene:
-    """Every proxy's mesh, for visibility; its ray-casting scene is built where it is
-    first used (once per worker) and not sent."""
+def proxy_occluders(proxies: list[ProxyEntry], inputs: VoxelInputs) -> Occluders:
+    """The proxies' boxes, to pick a window's occluders among their meshes (in the
+    origin of the initial proxies' scenes)."""
+    boxes = np.array([e.box for e in proxies], float).reshape(-1, 6)
+    return replace(inputs.prisms, ids=[e.id for e in proxies], boxes=boxes[:, [0, 1, 3, 4]],
+                   tops=boxes[:, 5])  # fmt: skip
 
-    def __init__(self, vertices: np.ndarray, triangles: np.ndarray):
-        self.vertices, self.triangles = vertices, triangles
-        self._rays = None
 
-    @classmethod
-    def of(cls, proxies: list[Proxy]) -> ProxyScene:
-        V, T, _ = concatenate_meshes([(p.vertices, p.triangles) for p in proxies])
-        return cls(V, T)
-
-    def rays(self):
-        """The :class:`~workbench.raycast.RayScene` (None without a triangle)."""
-        if self._rays is None and len(self.triangles):
-            self._rays = raycasting_scene(self.vertices, self.triangles)
-        return self._rays
-
-    def __getstate__(self):
-        return {"vertices": self.vertices, "triangles": self.triangles, "_rays": None}
+def occluders_near(occluders: Occluders, shelf: TaskStore, bounds, z_low: float):
+    """The ray-casting scene of the proxies that can hide a point inside ``bounds`` no
+    lower than ``z_low`` from a view (None if none can)."""
+    near = occluders.near(bounds, z_low)
+    return occluders.scene([shelf.load("mesh", occluders.ids[i]) for i in near])
 
 
 @dataclass
@@ -203,9 +243,9 @@ BUILDINGS_PER_BATCH = 32  # textured buildings pickled together when kept on dis
 
 def kept_textured(textured: Iterable, engine: Engine):
     """The texture tasks' results as they come: the buildings (on disk in the engine's
-    task store when it has one, a batch at a time: a city's atlases are gigabytes), their
-    wall feet (None for a task that failed), their seam costs, and the preview building's
-    texture (None without one)."""
+    task store when it has one, a batch at a time: a city's atlases are gigabytes),
+    whether each has its wall foot on the shelf (False for a task that failed), their
+    seam costs, and the preview building's texture (None without one)."""
     store = engine.store
     buildings = BuildingsOnDisk(store.folder / "buildings") if store is not None else []
     feet, costs, shown, batch = [], [], None, []
@@ -224,26 +264,31 @@ def kept_textured(textured: Iterable, engine: Engine):
 
 
 def texture_task(item: tuple, inputs: VoxelInputs, options: VoxelOptions,
-                 occluders: ProxyScene):  # fmt: skip
-    """Task: sections 5.1-5.2 for the proxy ``item[0]``: the building of the run, its
-    wall foot, and its whole texture if ``item[1]`` (the preview's building), else None."""
-    p, keep = item
-    t = texture_building(p, inputs.cameras, inputs.images, options, occluders.rays())
+                 occluders: Occluders, shelf: TaskStore):  # fmt: skip
+    """Task: sections 5.1-5.2 for the proxy of entry ``item[0]``: the building of the
+    run, True (its wall foot is on ``shelf``, stage "foot"), and its whole texture if
+    ``item[1]`` (the preview's building), else None."""
+    e, keep = item
+    p = shelf.load("proxy", e.id)
+    x0, y0, z0, x1, y1, _ = e.box
+    near = occluders_near(occluders, shelf, (x0, y0, x1, y1), z0)
+    t = texture_building(p, inputs.cameras, inputs.images, options, near)
     g = t.graph
     low = (np.abs(g.normals[:, 2]) < 0.5) & (g.positions[:, 2] < p.frame.base_z + _WALL_FOOT_M)
     low &= t.stitched.labels >= 0
-    foot = WallFoot(p.outline, g.positions[low, :2], t.views[t.stitched.labels[low]])
-    return voxel_building(p, t), foot, t if keep else None
+    shelf.save("foot", p.id, WallFoot(p.outline, g.positions[low, :2],
+                                      t.views[t.stitched.labels[low]]))  # fmt: skip
+    return voxel_building(p, t), True, t if keep else None
 
 
 def texture_ground(
-    inputs: VoxelInputs, proxies: list[Proxy], feet: list[WallFoot], options: VoxelOptions,
-    engine: Engine, shared, occluders,
+    inputs: VoxelInputs, proxies: list[ProxyEntry], feet: list[bool], options: VoxelOptions,
+    engine: Engine, shared, occluders, shelf: TaskStore,
 ) -> tuple[GroundTexture | None, np.ndarray | None]:  # fmt: skip
     """Sections 5.3-5.4: the ground cut with the proxies masked out, a task per tile of
     ``GROUND_TILE`` texels, then the ring cut around each building in a window around it;
     returns the ground texture and the ground heights on its grid. ``shared`` and
-    ``occluders`` are the engine's handles on the inputs and on the proxies' meshes.
+    ``occluders`` are the engine's handles on the inputs and on the proxies' boxes.
 
     The ring cuts' samples of the views are tasks; the cuts themselves paint the ground
     here, building after building, since neighbouring rings overlap."""
@@ -253,17 +298,18 @@ def texture_ground(
     gz = inputs.ground(grid)
     tiles = grid.tiles(GROUND_TILE)
     items = [(grid.window(rows, cols), gz[rows, cols]) for rows, cols in tiles]
-    cuts = engine.map(ground_tile_task, items, shared, options, occluders, stage="ground")
+    cuts = engine.map(ground_tile_task, items, shared, options, occluders, shelf,
+                      stage="ground")  # fmt: skip
     gtex = join_ground_tiles(grid, gz, tiles, list(cuts))
     windows, items, keys = [], [], []
-    for p, foot in zip(proxies, feet, strict=True):
-        window = None if foot is None else ring_window(gtex.grid, foot, options.ring_m)
+    for e, has_foot in zip(proxies, feet, strict=True):
+        window = ring_window(gtex.grid, e.outline, options.ring_m) if has_foot else None
         if window is not None:
             windows.append(window)
-            items.append((grid.window(*window), gz[window], foot))
-            keys.append(p.id)
-    samples = engine.map(ring_task, items, shared, options, occluders, stage="ring cuts",
-                         keys=keys)  # fmt: skip
+            items.append((grid.window(*window), gz[window], e.id))
+            keys.append(e.id)
+    samples = engine.map(ring_task, items, shared, options, occluders, shelf,
+                         stage="ring cuts", keys=keys)  # fmt: skip
     rings = [
         ring_cut(gtex.window(*w), s, options.ring_m) for w, s in zip(windows, samples, strict=True)
     ]
@@ -272,31 +318,40 @@ def texture_ground(
     return gtex, gz
 
 
-def ring_task(item: tuple, inputs: VoxelInputs, options: VoxelOptions,
-              occluders: ProxyScene) -> RingSamples:  # fmt: skip
+def ring_task(item: tuple, inputs: VoxelInputs, options: VoxelOptions, occluders: Occluders,
+              shelf: TaskStore) -> RingSamples:  # fmt: skip
     """Task: the building side of one ring cut, ``item`` = (the building's window of the
-    ground grid, the ground heights on it, its :class:`WallFoot`)."""
-    grid, z, foot = item
+    ground grid, the ground heights on it, the building's id: its wall foot is on
+    ``shelf``)."""
+    grid, z, key = item
+    foot = shelf.load("foot", key)
     return ring_samples(grid, z, *ring_inputs(grid, foot), inputs.cameras, inputs.images,
-                        occluders.rays(), options.ring_m)  # fmt: skip
+                        window_occluders(occluders, shelf, grid, z), options.ring_m)  # fmt: skip
+
+
+def window_occluders(occluders: Occluders, shelf: TaskStore, grid: Grid, z: np.ndarray):
+    """The scene of the proxies that can hide a texel of ``grid`` at heights ``z`` (the
+    ground's, NaN unknown: then every proxy) from a view."""
+    low = float(np.nanmin(z)) if np.isfinite(z).any() else -np.inf
+    return occluders_near(occluders, shelf, grid.bounds, low)
 
 
 GROUND_TILE = 512  # texels per side of a ground cut's task: 256 m at 0.5 m
 
 
 def ground_tile_task(item: tuple, inputs: VoxelInputs, options: VoxelOptions,
-                     occluders: ProxyScene):  # fmt: skip
+                     occluders: Occluders, shelf: TaskStore):  # fmt: skip
     """Task: the ground cut of one tile, ``item`` = (its grid, its ground heights)."""
     grid, z = item
-    return ground_cut(grid, z, inputs.cameras, inputs.images, occluders.rays(),
-                      options.overlap_m)  # fmt: skip
+    return ground_cut(grid, z, inputs.cameras, inputs.images,
+                      window_occluders(occluders, shelf, grid, z), options.overlap_m)  # fmt: skip
 
 
-def ring_window(grid: Grid, foot: WallFoot, ring_m: float) -> tuple[slice, slice] | None:
-    """Rows and columns of ``grid`` around the building's outline, with the ring and a
-    texel to spare (None if it lies off the grid): every texel of its ring, and every
-    footprint texel nearest to one, is inside."""
-    x0, y0, x1, y1 = foot.outline.bounds
+def ring_window(grid: Grid, outline: tuple, ring_m: float) -> tuple[slice, slice] | None:
+    """Rows and columns of ``grid`` around a building's outline (its bounds: xmin, ymin,
+    xmax, ymax), with the ring and a texel to spare (None if it lies off the grid): every
+    texel of its ring, and every footprint texel nearest to one, is inside."""
+    x0, y0, x1, y1 = outline
     m = ring_m + 2 * grid.gsd
     c0 = max(int(np.floor((x0 - m - grid.xmin) / grid.gsd)), 0)
     c1 = min(int(np.ceil((x1 + m - grid.xmin) / grid.gsd)), grid.width)
@@ -307,12 +362,12 @@ def ring_window(grid: Grid, foot: WallFoot, ring_m: float) -> tuple[slice, slice
     return slice(r0, r1), slice(c0, c1)
 
 
-def ground_grid(scene: Scene, proxies: list[Proxy], gsd: float) -> Grid:
+def ground_grid(scene: Scene, proxies: list[ProxyEntry], gsd: float) -> Grid:
     """The scene's bounds at ``gsd``, else the proxies' with 20 m around them."""
     if scene.bounds is not None:
         return Grid.from_bounds(*scene.bounds, gsd)
-    xy = np.vstack([p.vertices[:, :2] for p in proxies])
-    lo, hi = xy.min(axis=0) - 20.0, xy.max(axis=0) + 20.0
+    boxes = np.array([e.box for e in proxies], float)
+    lo, hi = boxes[:, :2].min(axis=0) - 20.0, boxes[:, 3:5].max(axis=0) + 20.0
     return Grid.from_bounds(lo[0], lo[1], hi[0], hi[1], gsd)
 
 

@@ -16,11 +16,6 @@ from .building import Proxy, Texture
 from .ground_texture import ground_mesh
 
 
-def largest(proxies: list[Proxy]) -> int:
-    """The index of the proxy with the most columns, the preview's building."""
-    return max(range(len(proxies)), key=lambda i: proxies[i].columns.sum())
-
-
 def voxel_preview(p: Proxy | None, t: Texture | None, buildings: list, gtex) -> np.ndarray:
     """(h, w, 3) uint8 contact sheet: the variance of ``p`` (the largest proxy), heights
     before and after clustering, its roof views before and after the graph cuts (its
