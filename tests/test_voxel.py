@@ -1097,3 +1097,57 @@ def test_a_ground_tile_beyond_every_view_is_unseen(tiny_scene):
     record = join_ground_tiles(far, np.zeros(far.shape), [(slice(0, 6), slice(0, 8))],
                                [cut]).record  # fmt: skip
     assert record["unseen_fraction"] == 1.0 and record["views"] == []
+
+
+def test_the_ground_under_a_footprint_is_read_from_a_window_of_the_dtm(tmp_path):
+    """A 300 x 300 cell DTM at 1 m, z = row + column, with a 151-cell hole in the middle,
+    read a window at a time from its file: the median under a footprint over known
+    cells; the nearest known cell for one inside the hole (76 cells away: beyond the
+    first search window) and for one off the raster; heights on another grid."""
+    from modeling.voxel.inputs import Ground
+    from workbench.raster import RasterWindows, write_raster
+
+    grid = Grid(0.0, 300.0, 1.0, 300, 300)
+    rows, cols = np.mgrid[0:300, 0:300]
+    z = (rows + cols).astype(np.float32)
+    z[75:226, 75:226] = np.nan
+    write_raster(tmp_path / "dtm.tif", z, grid, None)
+    ground = Ground("test", RasterWindows(tmp_path / "dtm.tif", grid), grid)
+    # x 10.2-13.8, y 280.2-283.8: rows 16-19, columns 10-13, every cell touched
+    assert ground.under(box(10.2, 280.2, 13.8, 283.8)) == np.median(rows[16:20, 10:14]
+                                                                    + cols[16:20, 10:14])  # fmt: skip
+    # the hole's centre, cell (150, 150): the nearest known cells are 76 away, the first
+    # in row-major order (74, 150)
+    assert ground.under(box(150.1, 149.1, 150.9, 149.9)) == 74 + 150
+    # off the raster, west of row 20: the border cell (20, 0)
+    assert ground.under(box(-50.0, 279.1, -40.0, 279.9)) == 20
+    # on a coarser grid over the hole's corner: its cells' centres, the unknown ones at
+    # the median of the known
+    coarse = Grid(70.5, 229.5, 2.0, 3, 3)  # centres in rows and columns 71, 73 and 75
+    expected = np.array([[142, 144, 146], [144, 146, 148], [146, 148, np.nan]])
+    expected[2, 2] = np.nanmedian(expected)
+    np.testing.assert_array_equal(ground(coarse), expected)
+
+
+def test_the_workers_inputs_hold_the_fusions_rasters_as_files(tiny_scene, tiny_fusion):
+    """What every worker receives reads the fusion's DTM, nDSM and classes a window at a
+    time (a city's whole grids are gigabytes per worker), and reads what the whole
+    arrays hold: a building's fine heights, NaN under the fusion's trees."""
+    import pickle
+
+    from modeling.voxel.inputs import read_inputs, roof_heights
+    from modeling.voxel.options import VoxelOptions
+    from modeling.voxel.proxy import voxelise
+    from workbench.raster import read_raster
+
+    opts = VoxelOptions()
+    inputs = read_inputs(tiny_scene, opts, fusion_dir=tiny_fusion)
+    roofs, grid = inputs.fused_ndsm
+    assert len(pickle.dumps(roofs)) < 1000 and len(pickle.dumps(inputs.ground)) < 1000
+    ndsm = read_raster(tiny_fusion / "ndsm.tif")[0][0]
+    classes = read_raster(tiny_fusion / "class.tif")[0][0]
+    whole = roof_heights(ndsm, classes)
+    for f, base, h in inputs.buildings:
+        frame, _ = voxelise(f.polygon, h, base, opts.voxel_m, opts.grow_m)
+        np.testing.assert_array_equal(fused_fine_heights(frame, roofs, grid),
+                                      fused_fine_heights(frame, whole, grid))  # fmt: skip

@@ -347,17 +347,19 @@ class RasterWindows:
     path : path
     grid : Grid
         The raster's grid.
+    as_float : bool
+        As for :func:`read_raster` (heights of an integer raster).
     """
 
-    def __init__(self, path, grid: Grid):
-        self.path, self.grid = Path(path), grid
+    def __init__(self, path, grid: Grid, *, as_float: bool = False):
+        self.path, self.grid, self.as_float = Path(path), grid, as_float
 
     @property
     def shape(self) -> tuple[int, int]:
         return self.grid.shape
 
     def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
-        return read_raster(self.path, window=key)[0][0]
+        return read_raster(self.path, window=key, as_float=self.as_float)[0][0]
 
 
 GDAL_CACHE_MB = 256  # GDAL's block cache while windows are written and copied

@@ -17,8 +17,8 @@ from modeling.shared.roof_mesh import extrude_faces
 from workbench.camera import max_ray_tangent
 from workbench.errors import InputError
 from workbench.footprints import Footprint, read_footprints
-from workbench.fusion_run import read_fusion_run
-from workbench.raster import BUILDING, TREE, Grid, read_raster
+from workbench.fusion_run import ONE_CELL, read_fusion_run
+from workbench.raster import BUILDING, TREE, Grid, RasterWindows, raster_header
 from workbench.raycast import local_origin
 from workbench.scene import Scene, load_scene
 
@@ -42,7 +42,7 @@ class VoxelInputs:
     skipped: list[dict]
     footprint_source: str
     footprint_count: int
-    fused_ndsm: tuple | None = None  # (ndsm, grid) of the fusion run's roofs, if any
+    fused_ndsm: tuple | None = None  # (FusedRoofs, grid) of the fusion run, if any
     prisms: Occluders | None = None  # the usable footprints' initial proxies
 
 
@@ -61,7 +61,7 @@ def read_inputs(
     items, source = _footprints(scene, footprints, fusion)
     ground = _ground_model(scene, fusion, options.ground_z)
     kept, skipped = _usable(items, cameras, ground, options.default_height_m)
-    fused_ndsm = (roof_heights(fusion["ndsm"], fusion["class"]), fusion["grid"]) if fusion else None
+    fused_ndsm = (FusedRoofs(fusion["ndsm"], fusion["class"]), fusion["grid"]) if fusion else None
     return VoxelInputs(
         scene, cameras, images, ground, kept, skipped, source, len(items), fused_ndsm,
         prism_occluders(kept, max_ray_tangent(cameras)),
@@ -89,10 +89,36 @@ def roof_heights(ndsm: np.ndarray, classes: np.ndarray) -> np.ndarray:
     return np.where(classes == TREE, np.nan, ndsm)
 
 
+class FusedRoofs:
+    """A fusion run's nDSM where it saw no tree (:func:`roof_heights`), read a window at
+    a time: ``roofs[rows, cols]`` (a city's whole grid is gigabytes per worker)."""
+
+    def __init__(self, ndsm: RasterWindows, classes: RasterWindows):
+        self.ndsm, self.classes = ndsm, classes
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.ndsm.shape
+
+    def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
+        return roof_heights(self.ndsm[key], self.classes[key])
+
+
+FUSION_RASTERS = ("dtm", "class", "ndsm")
+
+
 def _read_fusion(folder: Path) -> dict:
-    """The fusion run's DTM, classes and nDSM (first bands), its grid and CRS."""
-    run = read_fusion_run(folder, ("dtm", "class", "ndsm"))
-    return {**{k: v[0] for k, v in run.rasters.items()}, "grid": run.grid, "crs": run.crs}
+    """The fusion run's grid and CRS, and its DTM, classes and nDSM as
+    :class:`~workbench.raster.RasterWindows` (checked to be there on one grid)."""
+    folder = Path(folder)
+    cell = read_fusion_run(folder, FUSION_RASTERS, ONE_CELL)  # there, bands, CRS
+    grid, _, _ = raster_header(folder / "dtm.tif")
+    for name in FUSION_RASTERS[1:]:
+        if raster_header(folder / f"{name}.tif")[0] != grid:
+            raise InputError(folder / f"{name}.tif", "transform",
+                             f"grid differs from {folder}/dtm.tif's")  # fmt: skip
+    windows = {name: RasterWindows(folder / f"{name}.tif", grid) for name in FUSION_RASTERS}
+    return {**windows, "grid": grid, "crs": cell.crs}
 
 
 def _footprints(
@@ -112,7 +138,8 @@ def footprints_from_fusion(fusion: dict, min_area_m2: float = 20.0) -> list[Foot
     """Footprints from a fusion run's building class: one per connected region, its
     height 1.5 times its 99th-percentile nDSM (over-estimated, as GIS heights are)."""
     grid: Grid = fusion["grid"]
-    mask = fusion["class"] == BUILDING
+    whole = slice(0, grid.height), slice(0, grid.width)
+    mask, ndsm = fusion["class"][whole] == BUILDING, fusion["ndsm"][whole]
     out = []
     for geom, _ in rasterio.features.shapes(
         mask.astype(np.uint8), mask=mask, transform=grid.transform, connectivity=4
@@ -121,11 +148,7 @@ def footprints_from_fusion(fusion: dict, min_area_m2: float = 20.0) -> list[Foot
         if poly.area < min_area_m2:
             continue
         inside = rasterio.features.geometry_mask([geom], grid.shape, grid.transform, invert=True)
-        h = (
-            np.nanpercentile(fusion["ndsm"][inside], 99)
-            if np.isfinite(fusion["ndsm"][inside]).any()
-            else np.nan
-        )
+        h = np.nanpercentile(ndsm[inside], 99) if np.isfinite(ndsm[inside]).any() else np.nan
         if not np.isfinite(h) or h <= 0:
             continue
         fid = str(len(out) + 1)
@@ -134,26 +157,41 @@ def footprints_from_fusion(fusion: dict, min_area_m2: float = 20.0) -> list[Foot
 
 
 class Ground:
-    """Ground height: the fusion's DTM, the scene's DTM, or a flat plane."""
+    """Ground height: the fusion's DTM, the scene's DTM (either read a window at a time),
+    or a flat plane.
+
+    Parameters
+    ----------
+    source : str
+        What the ground is, for the record.
+    z : RasterWindows or (H, W) float array, optional
+        Ground heights on ``grid``, metres, NaN unknown (None: the flat plane).
+    grid : Grid, optional
+    flat : float, optional
+        The flat plane's height, metres.
+    """
 
     def __init__(self, source: str, z=None, grid: Grid | None = None, flat: float | None = None):
         self.source, self.z, self.grid, self.flat = source, z, grid, flat
 
     def under(self, polygon: Polygon) -> float:
-        """Median ground height under a footprint, metres."""
+        """Median ground height under a footprint (every cell it touches), metres; off the
+        raster or where it is unknown, the nearest known ground's."""
         if self.z is None:
             return float(self.flat)
-        inside = rasterio.features.geometry_mask(
-            [mapping(polygon)], self.grid.shape, self.grid.transform, invert=True, all_touched=True
-        )
-        vals = self.z[inside]
-        vals = vals[np.isfinite(vals)]
-        if not len(vals):  # off the raster: the nearest known ground
+        window = self._cells_around(polygon.bounds)
+        vals = np.zeros(0)
+        if window is not None:
+            g = self.grid.window(*window)
+            inside = rasterio.features.geometry_mask(
+                [mapping(polygon)], g.shape, g.transform, invert=True, all_touched=True
+            )
+            vals = self.z[window][inside]
+            vals = vals[np.isfinite(vals)]
+        if not len(vals):
             c = polygon.centroid
             r, cc = self.grid.cell_index(np.array([c.x]), np.array([c.y]), clip=True)
-            known = np.argwhere(np.isfinite(self.z))
-            j = np.argmin(np.hypot(known[:, 0] - r[0], known[:, 1] - cc[0]))
-            return float(self.z[tuple(known[j])])
+            return self._nearest_known(int(r[0]), int(cc[0]))
         return float(np.median(vals))
 
     def __call__(self, grid: Grid) -> np.ndarray:
@@ -162,18 +200,50 @@ class Ground:
             return np.full(grid.shape, float(self.flat))
         X, Y = grid.cell_centers()
         r, c = self.grid.cell_index(X.ravel(), Y.ravel(), clip=True)
-        z = self.z[r, c].reshape(grid.shape)
+        r0, c0 = r.min(), c.min()
+        z = self.z[r0 : r.max() + 1, c0 : c.max() + 1][r - r0, c - c0].reshape(grid.shape)
         if np.isfinite(z).any():
             z = np.where(np.isfinite(z), z, np.nanmedian(z))
         return z
+
+    def _cells_around(self, bounds) -> tuple[slice, slice] | None:
+        """The cells of the DTM a box (xmin, ymin, xmax, ymax) touches, and one around
+        (None off the raster)."""
+        x0, y0, x1, y1 = bounds
+        g = self.grid
+        c0 = max(int(np.floor((x0 - g.xmin) / g.gsd)) - 1, 0)
+        c1 = min(int(np.ceil((x1 - g.xmin) / g.gsd)) + 1, g.width)
+        r0 = max(int(np.floor((g.ymax - y1) / g.gsd)) - 1, 0)
+        r1 = min(int(np.ceil((g.ymax - y0) / g.gsd)) + 1, g.height)
+        return (slice(r0, r1), slice(c0, c1)) if r1 > r0 and c1 > c0 else None
+
+    def _nearest_known(self, r: int, c: int, radius: int = 64) -> float:
+        """The known height nearest to cell (r, c) (first in row-major order among the
+        nearest), searched in windows growing until one holds it."""
+        g = self.grid
+        while True:
+            rows = slice(max(r - radius, 0), min(r + radius + 1, g.height))
+            cols = slice(max(c - radius, 0), min(c + radius + 1, g.width))
+            z = self.z[rows, cols]
+            known = np.argwhere(np.isfinite(z))
+            everything = rows == slice(0, g.height) and cols == slice(0, g.width)
+            if len(known):
+                d = np.hypot(known[:, 0] + rows.start - r, known[:, 1] + cols.start - c)
+                j = np.argmin(d)
+                # every cell as near lies in the window: the whole raster's nearest
+                if d[j] <= radius or everything:
+                    return float(z[tuple(known[j])])
+            elif everything:
+                raise InputError(getattr(self.z, "path", None), None, "no known ground height")
+            radius *= 4
 
 
 def _ground_model(scene: Scene, fusion: dict | None, ground_z: float | None) -> Ground:
     if fusion is not None:
         return Ground("fusion DTM", fusion["dtm"], fusion["grid"])
     if scene.dtm is not None:
-        z, grid, _ = read_raster(scene.dtm, field="dtm", as_float=True)
-        return Ground("scene DTM", z[0], grid)
+        grid, _, _ = raster_header(scene.dtm, field="dtm")
+        return Ground("scene DTM", RasterWindows(scene.dtm, grid, as_float=True), grid)
     if ground_z is not None:
         return Ground("flat plane (--ground-z)", flat=ground_z)
     z = flat_ground_from_depth(scene)

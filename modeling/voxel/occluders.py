@@ -54,9 +54,9 @@ class Occluders:
         ``bounds`` (xmin, ymin, xmax, ymax) no lower than ``z_low`` and a view."""
         if not len(self.ids):
             return np.zeros(0, np.int64)
-        reach = np.clip(self.tops - z_low, 0.0, None) * self.tangent + REACH_MARGIN_M
-        if not np.isfinite(z_low) or not np.isfinite(reach).all():
+        if not np.isfinite(z_low) or not np.isfinite(self.tangent):
             return np.arange(len(self.ids))
+        reach = np.clip(self.tops - z_low, 0.0, None) * self.tangent + REACH_MARGIN_M
         x0, y0, x1, y1 = bounds
         r = float(reach.max())
         candidates = self._tree().query(shapely.box(x0 - r, y0 - r, x1 + r, y1 + r))

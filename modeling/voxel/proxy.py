@@ -551,8 +551,9 @@ def fused_fine_heights(frame: VoxelFrame, ndsm: np.ndarray, grid: Grid) -> np.nd
     Parameters
     ----------
     frame : VoxelFrame
-    ndsm : (H, W) float
-        Height above the ground, metres, NaN unknown, on ``grid``.
+    ndsm : (H, W) float, or what reads its windows (``ndsm[rows, cols]``)
+        Height above the ground, metres, NaN unknown, on ``grid``; only the window
+        around the frame is read.
     grid : Grid
     """
     nx, ny, _ = frame.shape
@@ -565,7 +566,10 @@ def fused_fine_heights(frame: VoxelFrame, ndsm: np.ndarray, grid: Grid) -> np.nd
     row, col = grid.cell_index(world[:, 0], world[:, 1])
     inside = grid.contains(row, col)
     h = np.full(len(world), np.nan)
-    h[inside] = ndsm[row[inside], col[inside]]
+    if inside.any():
+        row, col = row[inside], col[inside]
+        r0, c0 = row.min(), col.min()
+        h[inside] = ndsm[r0 : row.max() + 1, c0 : col.max() + 1][row - r0, col - c0]
     return h.reshape(nx, ny, k, k).transpose(0, 2, 1, 3).reshape(nx * k, ny * k)
 
 
