@@ -181,31 +181,30 @@ def framing_cameras(cameras: list[Camera], vertices: np.ndarray) -> list[int]:
     return out
 
 
-def max_ray_tangent(cameras: list[Camera], margin_px: float = 2.0, per_side: int = 32) -> float:
-    """The largest horizontal-to-vertical ratio of a ray through any of the cameras'
-    frames (the tangent of its largest off-nadir angle), inf if a frame reaches the
-    horizon.
+def steepest_sight(cameras: list[Camera], lo: np.ndarray, hi: np.ndarray) -> float:
+    """The largest horizontal-to-vertical ratio of a line from a point of the box ``lo``
+    to ``hi`` ((3,) world metres) to the centre of a camera whose frame can hold it
+    (:func:`framing_cameras`); inf if such a centre stands no higher than the box's top,
+    0 if no frame holds it.
 
-    A point a view frames sees its camera along a line no flatter than this, so only
-    what stands within (its top above the point) x this, horizontally, can hide it. The
-    ratio is quasi-convex on the image plane: without distortion it peaks at a corner;
-    the frame's border is sampled (``per_side`` points a side, ``margin_px`` outside it)
-    for a lens's curved one.
+    A point of the box sees such a camera along a line no flatter than this, so only
+    what stands within (its top above the point) x this of it, horizontally, can hide
+    it. The flight's geometry bounds it, not the views' fields: an oblique frame's top
+    edge nears the horizon, but the points it shows there lie far beyond the box.
     """
-    worst = 0.0
-    s = np.linspace(0.0, 1.0, per_side)
-    for cam in cameras:
-        u0, v0 = -margin_px, -margin_px
-        u1, v1 = cam.width - 1 + margin_px, cam.height - 1 + margin_px
-        u = np.concatenate([u0 + s * (u1 - u0), np.full(per_side, u1), u1 - s * (u1 - u0),
-                            np.full(per_side, u0)])  # fmt: skip
-        v = np.concatenate([np.full(per_side, v0), v0 + s * (v1 - v0), np.full(per_side, v1),
-                            v1 - s * (v1 - v0)])  # fmt: skip
-        _, d = cam.pixel_rays(np.column_stack([u, v]))
-        if (d[:, 2] >= 0).any():
-            return float("inf")  # a ray at or above the horizon
-        worst = max(worst, float(np.max(np.hypot(d[:, 0], d[:, 1]) / -d[:, 2])))
-    return worst
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])])  # fmt: skip
+    framing = framing_cameras(cameras, corners)
+    if not framing:
+        return 0.0
+    c = np.array([cameras[k].center for k in framing])
+    up = c[:, 2] - hi[2]
+    if (up <= 0).any():
+        return float("inf")
+    dx = np.maximum(np.abs(c[:, 0] - lo[0]), np.abs(c[:, 0] - hi[0]))
+    dy = np.maximum(np.abs(c[:, 1] - lo[1]), np.abs(c[:, 1] - hi[1]))
+    return float(np.max(np.hypot(dx, dy) / up))
 
 
 def _undistort(uv: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:

@@ -14,7 +14,6 @@ import shapely
 from shapely.geometry import Polygon, mapping
 
 from modeling.shared.roof_mesh import extrude_faces
-from workbench.camera import max_ray_tangent
 from workbench.errors import InputError
 from workbench.footprints import Footprint, read_footprints
 from workbench.fusion_run import ONE_CELL, read_fusion_run
@@ -64,7 +63,7 @@ def read_inputs(
     fused_ndsm = (FusedRoofs(fusion["ndsm"], fusion["class"]), fusion["grid"]) if fusion else None
     return VoxelInputs(
         scene, cameras, images, ground, kept, skipped, source, len(items), fused_ndsm,
-        prism_occluders(kept, max_ray_tangent(cameras)),
+        prism_occluders(kept),
     )  # fmt: skip
 
 
@@ -308,7 +307,7 @@ def prism(polygon: Polygon, base: float, height: float):
     return extrude_faces([polygon], [np.array([0.0, 0.0, 1.0, -(base + height)])], base)
 
 
-def prism_occluders(kept, tangent: float) -> Occluders:
+def prism_occluders(kept) -> Occluders:
     """The boxes of the usable footprints' initial proxies (``kept``: (Footprint, base,
     height)), in one origin for every scene of them."""
     boxes = np.array([f.polygon.bounds for f, _, _ in kept], float).reshape(-1, 4)
@@ -316,16 +315,19 @@ def prism_occluders(kept, tangent: float) -> Occluders:
     lo = np.column_stack([boxes[:, :2], [base for _, base, _ in kept]]).reshape(-1, 3)
     hi = np.column_stack([boxes[:, 2:], tops])
     origin = local_origin(np.vstack([lo, hi]))
-    return Occluders([f.id for f, _, _ in kept], boxes, tops, tangent, origin)
+    return Occluders([f.id for f, _, _ in kept], boxes, tops, origin)
 
 
-def neighbour_scene(j: int, inputs: VoxelInputs, grow: float):
+def neighbour_scene(j: int, inputs: VoxelInputs, options: VoxelOptions):
     """The ray-casting scene of the initial proxies of the other buildings that can hide
-    some voxel of the ``j``-th usable footprint (grown by ``grow`` metres) from a view
-    (None if none can)."""
-    f, base, _ = inputs.buildings[j]
+    a voxel of the ``j``-th usable footprint (its columns lie within ``grow_m`` of it,
+    its voxels' centres from its ground to a voxel above its height) from a view that
+    frames it (None if none can)."""
+    f, base, h = inputs.buildings[j]
     x0, y0, x1, y1 = f.polygon.bounds
-    near = inputs.prisms.near((x0 - grow, y0 - grow, x1 + grow, y1 + grow), base)
+    g = options.grow_m
+    lo, hi = (x0 - g, y0 - g, base), (x1 + g, y1 + g, base + h + options.voxel_m)
+    near = inputs.prisms.around(inputs.cameras, lo, hi)
     return inputs.prisms.scene(
         [prism(g.polygon, b, h) for g, b, h in (inputs.buildings[i] for i in near if i != j)]
     )

@@ -197,7 +197,7 @@ def proxy_task(j: int, inputs: VoxelInputs, options: VoxelOptions,
     """Task: section 4 for the ``j``-th usable footprint; its proxy and mesh go on
     ``shelf``, its entry comes back (None for an empty proxy)."""
     f, base, h = inputs.buildings[j]
-    occluders = neighbour_scene(j, inputs, options.grow_m)
+    occluders = neighbour_scene(j, inputs, options)
     p = building_proxy(
         f.id, f.polygon, h, base, inputs.cameras, inputs.images, options, occluders,
         inputs.fused_ndsm,
@@ -220,10 +220,14 @@ def proxy_occluders(proxies: list[ProxyEntry], inputs: VoxelInputs) -> Occluders
                    tops=boxes[:, 5])  # fmt: skip
 
 
-def occluders_near(occluders: Occluders, shelf: TaskStore, bounds, z_low: float):
-    """The ray-casting scene of the proxies that can hide a point inside ``bounds`` no
-    lower than ``z_low`` from a view (None if none can)."""
-    near = occluders.near(bounds, z_low)
+# metres the rays' origins may stand above their surface (hidden_from lifts them 5 cm)
+_LIFT_M = 0.1
+
+
+def occluders_near(occluders: Occluders, shelf: TaskStore, cameras: list, lo, hi):
+    """The ray-casting scene of the proxies that can hide a point of the box ``lo`` to
+    ``hi`` ((3,) world metres) from a view that frames it (None if none can)."""
+    near = occluders.around(cameras, lo, (hi[0], hi[1], hi[2] + _LIFT_M))
     return occluders.scene([shelf.load("mesh", occluders.ids[i]) for i in near])
 
 
@@ -270,8 +274,7 @@ def texture_task(item: tuple, inputs: VoxelInputs, options: VoxelOptions,
     ``item[1]`` (the preview's building), else None."""
     e, keep = item
     p = shelf.load("proxy", e.id)
-    x0, y0, z0, x1, y1, _ = e.box
-    near = occluders_near(occluders, shelf, (x0, y0, x1, y1), z0)
+    near = occluders_near(occluders, shelf, inputs.cameras, e.box[:3], e.box[3:])
     t = texture_building(p, inputs.cameras, inputs.images, options, near)
     g = t.graph
     low = (np.abs(g.normals[:, 2]) < 0.5) & (g.positions[:, 2] < p.frame.base_z + _WALL_FOOT_M)
@@ -326,14 +329,20 @@ def ring_task(item: tuple, inputs: VoxelInputs, options: VoxelOptions, occluders
     grid, z, key = item
     foot = shelf.load("foot", key)
     return ring_samples(grid, z, *ring_inputs(grid, foot), inputs.cameras, inputs.images,
-                        window_occluders(occluders, shelf, grid, z), options.ring_m)  # fmt: skip
+                        window_occluders(occluders, shelf, inputs.cameras, grid, z),
+                        options.ring_m)  # fmt: skip
 
 
-def window_occluders(occluders: Occluders, shelf: TaskStore, grid: Grid, z: np.ndarray):
+def window_occluders(occluders: Occluders, shelf: TaskStore, cameras: list, grid: Grid,
+                     z: np.ndarray):  # fmt: skip
     """The scene of the proxies that can hide a texel of ``grid`` at heights ``z`` (the
-    ground's, NaN unknown: then every proxy) from a view."""
-    low = float(np.nanmin(z)) if np.isfinite(z).any() else -np.inf
-    return occluders_near(occluders, shelf, grid.bounds, low)
+    ground's, NaN unknown: then every proxy) from a view that frames it."""
+    x0, y0, x1, y1 = grid.bounds
+    if not np.isfinite(z).any():
+        lo, hi = (x0, y0, -np.inf), (x1, y1, np.inf)
+    else:
+        lo, hi = (x0, y0, float(np.nanmin(z))), (x1, y1, float(np.nanmax(z)))
+    return occluders_near(occluders, shelf, cameras, lo, hi)
 
 
 GROUND_TILE = 512  # texels per side of a ground cut's task: 256 m at 0.5 m
@@ -344,7 +353,8 @@ def ground_tile_task(item: tuple, inputs: VoxelInputs, options: VoxelOptions,
     """Task: the ground cut of one tile, ``item`` = (its grid, its ground heights)."""
     grid, z = item
     return ground_cut(grid, z, inputs.cameras, inputs.images,
-                      window_occluders(occluders, shelf, grid, z), options.overlap_m)  # fmt: skip
+                      window_occluders(occluders, shelf, inputs.cameras, grid, z),
+                      options.overlap_m)  # fmt: skip
 
 
 def ring_window(grid: Grid, outline: tuple, ring_m: float) -> tuple[slice, slice] | None:
