@@ -162,23 +162,33 @@ def framing_cameras(cameras: list[Camera], vertices: np.ndarray) -> list[int]:
     frame misses those corners' bounding rectangle (and a margin for the lens's
     distortion) sees none of it. A city's flight has
     hundreds of views and a building is in a few dozen: the others would only fill the
-    texture's (texels x views) arrays with nothing seen."""
+    texture's (texels x views) arrays with nothing seen. Every camera at once: a task
+    asks this of the flight's hundreds of views several times."""
+    if not cameras:
+        return []
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
                         for z in (lo[2], hi[2])])  # fmt: skip
-    out = []
-    for k, cam in enumerate(cameras):
-        uv, depth = cam.project(corners)
-        if np.all(depth <= 0):
-            continue  # all behind the camera
-        if np.any(depth <= 0):
-            out.append(k)  # the box straddles the camera's plane: keep it, to be safe
-            continue
-        m = 0.1 * max(cam.width, cam.height)  # lens distortion bends the hull a little
-        if (uv[:, 0].max() >= -m and uv[:, 0].min() <= cam.width - 1 + m
-                and uv[:, 1].max() >= -m and uv[:, 1].min() <= cam.height - 1 + m):  # fmt: skip
-            out.append(k)
-    return out
+    R = np.stack([c.R for c in cameras])  # (C, 3, 3)
+    t = np.stack([c.t for c in cameras])
+    K = np.stack([c.K for c in cameras])
+    size = np.array([[c.width, c.height] for c in cameras], float)
+    pc = np.einsum("nj,cij->cni", corners, R) + t[:, None, :]  # (C, 8, 3)
+    depth = pc[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x, y = pc[..., 0] / depth, pc[..., 1] / depth
+        dist = np.stack([c.distortion for c in cameras]).T[:, :, None]  # (5, C, 1)
+        x, y = _distort(x, y, dist)  # zero coefficients leave them as they are
+        u = K[:, 0, 0, None] * x + K[:, 0, 1, None] * y + K[:, 0, 2, None]
+        v = K[:, 1, 1, None] * y + K[:, 1, 2, None]
+    front, behind = (depth > 0).any(axis=1), (depth <= 0).any(axis=1)
+    m = 0.1 * size.max(axis=1)  # lens distortion bends the hull a little
+    with np.errstate(invalid="ignore"):
+        overlaps = ((u.max(axis=1) >= -m) & (u.min(axis=1) <= size[:, 0] - 1 + m)
+                    & (v.max(axis=1) >= -m) & (v.min(axis=1) <= size[:, 1] - 1 + m))  # fmt: skip
+    # a box straddling a camera's plane is kept, to be safe; one wholly behind is not
+    keep = front & (behind | overlaps)
+    return [int(k) for k in np.flatnonzero(keep)]
 
 
 def steepest_sight(cameras: list[Camera], lo: np.ndarray, hi: np.ndarray) -> float:

@@ -5,6 +5,7 @@ and the ground model."""
 from __future__ import annotations
 
 import logging
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -43,6 +44,32 @@ class VoxelInputs:
     footprint_count: int
     fused_ndsm: tuple | None = None  # (FusedRoofs, grid) of the fusion run, if any
     prisms: Occluders | None = None  # the usable footprints' initial proxies
+
+    def initial_proxy(self, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """The ``j``-th usable footprint's initial proxy, its prism to its over-estimated
+        height ((V, 3), (T, 3)); the last :data:`PRISMS_KEPT` made are kept (per copy of
+        the inputs: a worker's)."""
+        kept = self.__dict__.setdefault("_prisms", OrderedDict())
+        if j in kept:
+            kept.move_to_end(j)
+            return kept[j]
+        f, base, h = self.buildings[j]
+        kept[j] = prism(f.polygon, base, h)
+        if len(kept) > PRISMS_KEPT:
+            kept.popitem(last=False)
+        return kept[j]
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state.pop("_prisms", None)
+        return state
+
+
+# initial proxies a worker keeps (some 2 KB each): the footprints' tasks go in their
+# file's order, and a footprint's neighbours are mostly those of the ones before it: on
+# the `city` preset, one worker of two had made 95.6 % of the prisms its tasks needed
+# already with 256 kept, 97.6 % with 1024
+PRISMS_KEPT = 512
 
 
 def read_inputs(
@@ -328,6 +355,4 @@ def neighbour_scene(j: int, inputs: VoxelInputs, options: VoxelOptions):
     g = options.grow_m
     lo, hi = (x0 - g, y0 - g, base), (x1 + g, y1 + g, base + h + options.voxel_m)
     near = inputs.prisms.around(inputs.cameras, lo, hi)
-    return inputs.prisms.scene(
-        [prism(g.polygon, b, h) for g, b, h in (inputs.buildings[i] for i in near if i != j)]
-    )
+    return inputs.prisms.scene([inputs.initial_proxy(i) for i in near if i != j])
