@@ -1151,3 +1151,18 @@ def test_the_workers_inputs_hold_the_fusions_rasters_as_files(tiny_scene, tiny_f
         frame, _ = voxelise(f.polygon, h, base, opts.voxel_m, opts.grow_m)
         np.testing.assert_array_equal(fused_fine_heights(frame, roofs, grid),
                                       fused_fine_heights(frame, whole, grid))  # fmt: skip
+
+
+def test_views_framing_counts_the_cameras_whose_image_holds_each_point():
+    from modeling.voxel.inputs import views_framing
+
+    def nadir(x):  # from 500 m, f = 1000 px, 1001 px wide: +-250 m of the ground
+        K = np.array([[1000.0, 0, 500], [0, 1000.0, 500], [0, 0, 1]])
+        R = look_at_rotation(np.array([0.0, 0.0, -1.0]))
+        return Camera(K, R, -R @ np.array([x, 0.0, 500.0]), 1001, 1001)
+
+    cams = [nadir(0.0), nadir(400.0)]
+    points = np.array([[0.0, 0, 0], [200.0, 0, 0], [300.0, 0, 0], [700.0, 0, 0],
+                       [0.0, 0, 600]])  # fmt: skip
+    # the last stands above the first camera, behind it
+    assert views_framing(cams, points).tolist() == [1, 2, 1, 0, 0]

@@ -173,8 +173,15 @@ def footprints_from_fusion(fusion: dict, min_area_m2: float = 20.0) -> list[Foot
         poly = shapely.geometry.shape(geom).simplify(grid.gsd)
         if poly.area < min_area_m2:
             continue
-        inside = rasterio.features.geometry_mask([geom], grid.shape, grid.transform, invert=True)
-        h = np.nanpercentile(ndsm[inside], 99) if np.isfinite(ndsm[inside]).any() else np.nan
+        # its cells, in the window of its bounds (on cell edges): the whole grid's mask for
+        # every region grew with the regions times the area
+        x0, y0, x1, y1 = shapely.geometry.shape(geom).bounds
+        rows = slice(round((grid.ymax - y1) / grid.gsd), round((grid.ymax - y0) / grid.gsd))
+        cols = slice(round((x0 - grid.xmin) / grid.gsd), round((x1 - grid.xmin) / grid.gsd))
+        w = grid.window(rows, cols)
+        inside = rasterio.features.geometry_mask([geom], w.shape, w.transform, invert=True)
+        z = ndsm[rows, cols][inside]
+        h = np.nanpercentile(z, 99) if np.isfinite(z).any() else np.nan
         if not np.isfinite(h) or h <= 0:
             continue
         fid = str(len(out) + 1)
@@ -300,34 +307,48 @@ def flat_ground_from_depth(scene: Scene, step: int = 8) -> float | None:
 
 
 def _usable(items, cameras, ground: Ground, default_height: float):
+    """The footprints to model, each with its ground height and height, and those
+    skipped with why (a self-intersecting polygon; a centroid fewer than two views
+    frame), both in the footprints' order."""
+    polys = [
+        None if not f.polygon.is_valid
+        else f.polygon if isinstance(f.polygon, Polygon)
+        else max(f.polygon.geoms, key=lambda g: g.area)
+        for f in items
+    ]  # fmt: skip
+    bases = [None if p is None else ground.under(p) for p in polys]
+    centres = np.array([[*p.centroid.coords[0], b] for p, b in zip(polys, bases, strict=True)
+                        if p is not None]).reshape(-1, 3)  # fmt: skip
+    seen = iter(views_framing(cameras, centres))
     kept, skipped = [], []
-    for f in items:
-        if not f.polygon.is_valid:
+    for f, poly, base in zip(items, polys, bases, strict=True):
+        if poly is None:
             log.warning("footprint %s: self-intersecting polygon, skipped", f.id)
             skipped.append({"id": f.id, "reason": "self-intersecting polygon"})
             continue
-        poly = (
-            f.polygon
-            if isinstance(f.polygon, Polygon)
-            else max(f.polygon.geoms, key=lambda g: g.area)
-        )
-        base = ground.under(poly)
         if f.height is None:
             f.properties["_height_source"] = "zonal default"
         h = f.height if f.height is not None else default_height
-        c = np.array([[*poly.centroid.coords[0], base]])
-        seen = 0
-        for cam in cameras:
-            uv, _ = cam.project(c)
-            seen += bool(
-                np.all(np.isfinite(uv)) and 0 <= uv[0, 0] < cam.width and 0 <= uv[0, 1] < cam.height
-            )
-        if seen < 2:
-            log.warning("footprint %s: outside the images (seen by %d views), skipped", f.id, seen)
-            skipped.append({"id": f.id, "reason": f"seen by {seen} views"})
+        n = next(seen)
+        if n < 2:
+            log.warning("footprint %s: outside the images (seen by %d views), skipped", f.id, n)
+            skipped.append({"id": f.id, "reason": f"seen by {n} views"})
             continue
         kept.append((Footprint(f.id, poly, h, f.properties), base, h))
     return kept, skipped
+
+
+def views_framing(cameras, points: np.ndarray) -> np.ndarray:
+    """(N,) int: how many of the cameras frame each of the ``points`` (N, 3) world metres
+    (in front of the camera, inside its image). A camera at a time over every point: a
+    footprint at a time took 7 s of the city's read (495 views, 672 footprints)."""
+    seen = np.zeros(len(points), int)
+    for cam in cameras:
+        uv, _ = cam.project(points)
+        with np.errstate(invalid="ignore"):  # NaN behind the camera: not framed
+            seen += ((uv[:, 0] >= 0) & (uv[:, 0] < cam.width)
+                     & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height))  # fmt: skip
+    return seen
 
 
 def prism(polygon: Polygon, base: float, height: float):
