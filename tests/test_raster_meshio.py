@@ -30,6 +30,18 @@ def test_grid_geometry():
     np.testing.assert_allclose(c, np.arange(40)[None, :] + 0 * X)
 
 
+def test_the_window_of_a_box_is_the_cells_it_touches():
+    g = Grid(100.0, 200.0, 2.0, 10, 8)  # x 100-120, y 184-200
+    # x 103-107.5: columns 1-3; y 195-199: rows 0-2
+    assert g.window_of((103.0, 195.0, 107.5, 199.0)) == (slice(0, 3), slice(1, 4))
+    # a cell around, clipped at the grid's top
+    assert g.window_of((103.0, 195.0, 107.5, 199.0), pad=1) == (slice(0, 4), slice(0, 5))
+    # edges on cell edges touch no more cells
+    assert g.window_of((104.0, 190.0, 108.0, 194.0)) == (slice(3, 5), slice(2, 4))
+    # beyond the grid: none
+    assert g.window_of((130.0, 190.0, 140.0, 194.0)) is None
+
+
 def test_raster_roundtrip_keeps_grid_crs_and_nan(tmp_path):
     g = Grid.from_bounds(100, 200, 132, 232, 1.0)
     data = np.arange(32 * 32, dtype=np.float32).reshape(32, 32)

@@ -2,6 +2,7 @@
 
 import json
 import warnings
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -1129,10 +1130,13 @@ def test_the_ground_under_a_footprint_is_read_from_a_window_of_the_dtm(tmp_path)
     np.testing.assert_array_equal(ground(coarse), expected)
 
 
-def test_the_workers_inputs_hold_the_fusions_rasters_as_files(tiny_scene, tiny_fusion):
+def test_the_workers_inputs_hold_the_fusions_rasters_as_files(
+    tiny_scene, tiny_fusion, monkeypatch
+):  # fmt: skip
     """What every worker receives reads the fusion's DTM, nDSM and classes a window at a
-    time (a city's whole grids are gigabytes per worker), and reads what the whole
-    arrays hold: a building's fine heights, NaN under the fusion's trees."""
+    time (a city's whole grids are gigabytes per worker), by absolute paths (a worker
+    elsewhere starts in another folder), and reads what the whole arrays hold: a
+    building's fine heights, NaN under the fusion's trees."""
     import pickle
 
     from modeling.voxel.inputs import read_inputs, roof_heights
@@ -1141,9 +1145,11 @@ def test_the_workers_inputs_hold_the_fusions_rasters_as_files(tiny_scene, tiny_f
     from workbench.raster import read_raster
 
     opts = VoxelOptions()
-    inputs = read_inputs(tiny_scene, opts, fusion_dir=tiny_fusion)
+    monkeypatch.chdir(tiny_fusion.parent)
+    inputs = read_inputs(tiny_scene, opts, fusion_dir=Path(tiny_fusion.name))
     roofs, grid = inputs.fused_ndsm
     assert len(pickle.dumps(roofs)) < 1000 and len(pickle.dumps(inputs.ground)) < 1000
+    assert roofs.ndsm.path.is_absolute() and inputs.ground.z.path.is_absolute()
     ndsm = read_raster(tiny_fusion / "ndsm.tif")[0][0]
     classes = read_raster(tiny_fusion / "class.tif")[0][0]
     whole = roof_heights(ndsm, classes)

@@ -91,6 +91,16 @@ class Grid:
         return Grid(self.xmin + cols.start * self.gsd, self.ymax - rows.start * self.gsd,
                     self.gsd, cols.stop - cols.start, rows.stop - rows.start)  # fmt: skip
 
+    def window_of(self, bounds, pad: int = 0) -> tuple[slice, slice] | None:
+        """The rows and columns of the cells a box (xmin, ymin, xmax, ymax, world metres)
+        touches, ``pad`` cells around, clipped to the grid (None where none is left)."""
+        x0, y0, x1, y1 = bounds
+        c0 = max(int(np.floor((x0 - self.xmin) / self.gsd)) - pad, 0)
+        c1 = min(int(np.ceil((x1 - self.xmin) / self.gsd)) + pad, self.width)
+        r0 = max(int(np.floor((self.ymax - y1) / self.gsd)) - pad, 0)
+        r1 = min(int(np.ceil((self.ymax - y0) / self.gsd)) + pad, self.height)
+        return (slice(r0, r1), slice(c0, c1)) if r1 > r0 and c1 > c0 else None
+
     def tiles(self, size: int) -> list[tuple[slice, slice]]:
         """Rows and columns of the tiles of ``size`` x ``size`` cells covering the grid,
         row by row (the last of a row or column smaller)."""

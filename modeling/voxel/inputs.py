@@ -135,8 +135,9 @@ FUSION_RASTERS = ("dtm", "class", "ndsm")
 
 def _read_fusion(folder: Path) -> dict:
     """The fusion run's grid and CRS, and its DTM, classes and nDSM as
-    :class:`~workbench.raster.RasterWindows` (checked to be there on one grid)."""
-    folder = Path(folder)
+    :class:`~workbench.raster.RasterWindows` (checked to be there on one grid; absolute
+    paths, for workers started elsewhere)."""
+    folder = Path(folder).absolute()
     cell = read_fusion_run(folder, FUSION_RASTERS, ONE_CELL)  # there, bands, CRS
     grid, _, _ = raster_header(folder / "dtm.tif")
     for name in FUSION_RASTERS[1:]:
@@ -212,7 +213,7 @@ class Ground:
         raster or where it is unknown, the nearest known ground's."""
         if self.z is None:
             return float(self.flat)
-        window = self._cells_around(polygon.bounds)
+        window = self.grid.window_of(polygon.bounds, pad=1)
         vals = np.zeros(0)
         if window is not None:
             g = self.grid.window(*window)
@@ -238,17 +239,6 @@ class Ground:
         if np.isfinite(z).any():
             z = np.where(np.isfinite(z), z, np.nanmedian(z))
         return z
-
-    def _cells_around(self, bounds) -> tuple[slice, slice] | None:
-        """The cells of the DTM a box (xmin, ymin, xmax, ymax) touches, and one around
-        (None off the raster)."""
-        x0, y0, x1, y1 = bounds
-        g = self.grid
-        c0 = max(int(np.floor((x0 - g.xmin) / g.gsd)) - 1, 0)
-        c1 = min(int(np.ceil((x1 - g.xmin) / g.gsd)) + 1, g.width)
-        r0 = max(int(np.floor((g.ymax - y1) / g.gsd)) - 1, 0)
-        r1 = min(int(np.ceil((g.ymax - y0) / g.gsd)) + 1, g.height)
-        return (slice(r0, r1), slice(c0, c1)) if r1 > r0 and c1 > c0 else None
 
     def _nearest_known(self, r: int, c: int, radius: int = 64) -> float:
         """The known height nearest to cell (r, c) (first in row-major order among the

@@ -112,10 +112,10 @@ def _run(scene_dir, options, footprints, fusion_dir, engine, shelf) -> ModelRun:
         # ground behind it
         textured = engine.map(texture_task, items, shared, options, occluders, shelf,
                               stage="textures", keys=[p.id for p in proxies],
-                              on_failure=lambda item, why: (None, False, None))  # fmt: skip
-        buildings, feet, costs, shown = kept_textured(textured, engine)
+                              on_failure=lambda item, why: (None, None))  # fmt: skip
+        buildings, done, costs, shown = kept_textured(textured, engine)
     with timer.stage("ground"):
-        gtex, ground_z = texture_ground(inputs, proxies, feet, options, engine, shared,
+        gtex, ground_z = texture_ground(inputs, proxies, done, options, engine, shared,
                                         occluders, shelf)  # fmt: skip
     with timer.stage("preview"):
         shown_proxy = shelf.load("proxy", proxies[big].id) if proxies else None
@@ -248,13 +248,13 @@ BUILDINGS_PER_BATCH = 32  # textured buildings pickled together when kept on dis
 def kept_textured(textured: Iterable, engine: Engine):
     """The texture tasks' results as they come: the buildings (on disk in the engine's
     task store when it has one, a batch at a time: a city's atlases are gigabytes),
-    whether each has its wall foot on the shelf (False for a task that failed), their
-    seam costs, and the preview building's texture (None without one)."""
+    whether each was textured (its wall foot is then on the shelf; not if its task
+    failed), their seam costs, and the preview building's texture (None without one)."""
     store = engine.store
     buildings = BuildingsOnDisk(store.folder / "buildings") if store is not None else []
-    feet, costs, shown, batch = [], [], None, []
-    for b, foot, t in textured:
-        feet.append(foot)
+    done, costs, shown, batch = [], [], None, []
+    for b, t in textured:
+        done.append(b is not None)
         if b is None:  # its task failed (the engine's failures say why)
             continue
         costs.append({k: b.record[k] for k in SEAM_COSTS})
@@ -264,14 +264,14 @@ def kept_textured(textured: Iterable, engine: Engine):
             buildings.extend(batch)
             batch = []
     buildings.extend(batch)
-    return buildings, feet, costs, shown
+    return buildings, done, costs, shown
 
 
 def texture_task(item: tuple, inputs: VoxelInputs, options: VoxelOptions,
                  occluders: Occluders, shelf: TaskStore):  # fmt: skip
     """Task: sections 5.1-5.2 for the proxy of entry ``item[0]``: the building of the
-    run, True (its wall foot is on ``shelf``, stage "foot"), and its whole texture if
-    ``item[1]`` (the preview's building), else None."""
+    run and its whole texture if ``item[1]`` (the preview's building), else None; its
+    wall foot goes on ``shelf`` (stage "foot")."""
     e, keep = item
     p = shelf.load("proxy", e.id)
     near = occluders_near(occluders, shelf, inputs.cameras, e.box[:3], e.box[3:])
@@ -281,11 +281,11 @@ def texture_task(item: tuple, inputs: VoxelInputs, options: VoxelOptions,
     low &= t.stitched.labels >= 0
     shelf.save("foot", p.id, WallFoot(p.outline, g.positions[low, :2],
                                       t.views[t.stitched.labels[low]]))  # fmt: skip
-    return voxel_building(p, t), True, t if keep else None
+    return voxel_building(p, t), t if keep else None
 
 
 def texture_ground(
-    inputs: VoxelInputs, proxies: list[ProxyEntry], feet: list[bool], options: VoxelOptions,
+    inputs: VoxelInputs, proxies: list[ProxyEntry], done: list[bool], options: VoxelOptions,
     engine: Engine, shared, occluders, shelf: TaskStore,
 ) -> tuple[GroundTexture | None, np.ndarray | None]:  # fmt: skip
     """Sections 5.3-5.4: the ground cut with the proxies masked out, a task per tile of
@@ -305,8 +305,8 @@ def texture_ground(
                       stage="ground")  # fmt: skip
     gtex = join_ground_tiles(grid, gz, tiles, list(cuts))
     windows, items, keys = [], [], []
-    for e, has_foot in zip(proxies, feet, strict=True):
-        window = ring_window(gtex.grid, e.outline, options.ring_m) if has_foot else None
+    for e, textured in zip(proxies, done, strict=True):
+        window = ring_window(gtex.grid, e.outline, options.ring_m) if textured else None
         if window is not None:
             windows.append(window)
             items.append((grid.window(*window), gz[window], e.id))
@@ -363,13 +363,7 @@ def ring_window(grid: Grid, outline: tuple, ring_m: float) -> tuple[slice, slice
     texel of its ring, and every footprint texel nearest to one, is inside."""
     x0, y0, x1, y1 = outline
     m = ring_m + 2 * grid.gsd
-    c0 = max(int(np.floor((x0 - m - grid.xmin) / grid.gsd)), 0)
-    c1 = min(int(np.ceil((x1 + m - grid.xmin) / grid.gsd)), grid.width)
-    r0 = max(int(np.floor((grid.ymax - y1 - m) / grid.gsd)), 0)
-    r1 = min(int(np.ceil((grid.ymax - y0 + m) / grid.gsd)), grid.height)
-    if r1 <= r0 or c1 <= c0:
-        return None
-    return slice(r0, r1), slice(c0, c1)
+    return grid.window_of((x0 - m, y0 - m, x1 + m, y1 + m))
 
 
 def ground_grid(scene: Scene, proxies: list[ProxyEntry], gsd: float) -> Grid:
