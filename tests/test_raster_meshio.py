@@ -14,6 +14,7 @@ from workbench.meshio import (
     texture_of,
     write_mtl,
     write_obj,
+    write_obj_pieces,
     write_ply,
 )
 from workbench.raster import Grid, class_codes, read_raster, write_raster
@@ -129,6 +130,11 @@ def test_obj_written_in_chunks_is_the_obj_written_at_once(tmp_path, monkeypatch)
         one = (tmp_path / f"one{k}.obj").read_bytes()
         assert one == (tmp_path / f"chunks{k}.obj").read_bytes()
         assert one.count(b"\nv ") == 53 and one.count(b"\nf ") == 41
+    # the texture coordinates given piece by piece (a scene's buildings, then its ground)
+    write_obj_pieces(tmp_path / "pieces.obj", lambda: iter([(v, t, None)]), 41,
+                     material=[("a", 10), ("b", 31)],
+                     uvs=lambda: iter([uvs[:10], uvs[10:]]))  # fmt: skip
+    assert (tmp_path / "pieces.obj").read_bytes() == (tmp_path / "one1.obj").read_bytes()
 
 
 def test_cell_index_nearest_and_clipped():

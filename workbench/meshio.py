@@ -281,12 +281,14 @@ def write_obj_pieces(
     *,
     material: str | list[tuple[str, int]] | None = None,
     mtllib: str | None = None,
-    uvs: np.ndarray | None = None,
+    uvs: np.ndarray | Callable[[], Iterable[np.ndarray]] | None = None,
 ) -> None:
     """Write the pieces of a mesh as one OBJ (what :func:`write_obj` writes of them put
     together), one piece and at most ``OBJ_CHUNK`` of its rows formatted at a time.
     ``pieces`` is as for :func:`write_ply_pieces`; the vertices are coloured when the
-    pieces' colours are not None."""
+    pieces' colours are not None. ``uvs``: every triangle's corners' texture coordinates
+    (T, 3, 2), or a function that yields them piece by piece (a city's scene would hold
+    48 bytes a triangle otherwise)."""
     with open(path, "w") as f:
         for text in _obj_chunks(pieces, n_triangles, material, mtllib, uvs):
             f.write(text)
@@ -318,9 +320,10 @@ def _obj_chunks(pieces, n_triangles, material, mtllib, uvs):
                 yield _rows("v %.3f %.3f %.3f %.3f %.3f %.3f\n",
                             np.hstack([v, c[i : i + OBJ_CHUNK]]))  # fmt: skip
     if uvs is not None:
-        uv = np.asarray(uvs, np.float64).reshape(-1, 2)
-        for i in range(0, len(uv), OBJ_CHUNK):
-            yield _rows("vt %.6f %.6f\n", uv[i : i + OBJ_CHUNK])
+        for part in uvs() if callable(uvs) else [uvs]:
+            uv = np.asarray(part, np.float64).reshape(-1, 2)
+            for i in range(0, len(uv), OBJ_CHUNK):
+                yield _rows("vt %.6f %.6f\n", uv[i : i + OBJ_CHUNK])
     runs = [(material, n_triangles)] if isinstance(material, str) else material
     rows = _TriangleRows(pieces)
     for name, count in runs or [(None, n_triangles)]:

@@ -523,9 +523,9 @@ def _write_scene(tmp: Path, parts) -> None:
     if names and textured:
         white = {name: (255, 255, 255) for name, _ in names}
         write_mtl(tmp / "scene.mtl", white, dict(names))
-        uvs = np.concatenate([s.texture.uvs for _, s, _ in parts()])
         write_obj_pieces(tmp / "scene.obj", lambda: pieces(colours=False), n_triangles,
-                         material=runs, mtllib="scene.mtl", uvs=uvs)  # fmt: skip
+                         material=runs, mtllib="scene.mtl",
+                         uvs=lambda: (s.texture.uvs for _, s, _ in parts()))  # fmt: skip
         return
     write_mtl(tmp / "scene.mtl", colours)
     write_obj_pieces(tmp / "scene.obj", pieces, n_triangles, material=runs, mtllib="scene.mtl")
