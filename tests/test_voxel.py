@@ -1172,3 +1172,25 @@ def test_views_framing_counts_the_cameras_whose_image_holds_each_point():
                        [0.0, 0, 600]])  # fmt: skip
     # the last stands above the first camera, behind it
     assert views_framing(cams, points).tolist() == [1, 2, 1, 0, 0]
+
+
+def test_a_fusion_raster_of_another_size_is_one_line_and_writes_nothing(
+    tiny_scene, tiny_fusion, tmp_path
+):  # fmt: skip
+    """The voxel path reads the fusion a window at a time: an nDSM one row short, whose
+    first cell agrees with the DTM's, is refused up front, not read past its edge."""
+    from workbench.raster import read_raster, write_raster
+
+    broken = tmp_path / "fusion"
+    broken.mkdir()
+    for f in tiny_fusion.iterdir():
+        if f.is_file():
+            (broken / f.name).write_bytes(f.read_bytes())
+    ndsm, grid, crs = read_raster(tiny_fusion / "ndsm.tif")
+    short = grid.window(slice(0, grid.height - 1), slice(0, grid.width))
+    write_raster(broken / "ndsm.tif", ndsm[0, :-1], short, crs)
+    out = tmp_path / "out"
+    proc = run_cli("model", "voxel", tiny_scene, "--fusion", broken, "-o", out, "--workers", "1")
+    assert proc.returncode != 0
+    assert "ndsm.tif" in proc.stderr and "grid differs" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not out.exists()

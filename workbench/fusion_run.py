@@ -103,6 +103,10 @@ def checked_fusion_run(folder: str | Path, names: tuple[str, ...], *, classes: b
     if classes:
         class_map(folder, cell.grid, ONE_CELL)
     grid = raster_header(Path(folder) / f"{names[0]}.tif")[0]
+    for name in names[1:]:  # the first cells agree: so must the sizes
+        path = Path(folder) / f"{name}.tif"
+        if raster_header(path)[0] != grid:
+            raise InputError(path, "transform", f"grid differs from {folder}/{names[0]}.tif's")
     return FusionRun(cell.folder, {}, grid, cell.crs, cell.record)
 
 

@@ -17,7 +17,7 @@ from shapely.geometry import Polygon, mapping
 from modeling.shared.roof_mesh import extrude_faces
 from workbench.errors import InputError
 from workbench.footprints import Footprint, read_footprints
-from workbench.fusion_run import ONE_CELL, read_fusion_run
+from workbench.fusion_run import checked_fusion_run
 from workbench.raster import BUILDING, TREE, Grid, RasterWindows, raster_header
 from workbench.raycast import local_origin
 from workbench.scene import Scene, load_scene
@@ -138,14 +138,9 @@ def _read_fusion(folder: Path) -> dict:
     :class:`~workbench.raster.RasterWindows` (checked to be there on one grid; absolute
     paths, for workers started elsewhere)."""
     folder = Path(folder).absolute()
-    cell = read_fusion_run(folder, FUSION_RASTERS, ONE_CELL)  # there, bands, CRS
-    grid, _, _ = raster_header(folder / "dtm.tif")
-    for name in FUSION_RASTERS[1:]:
-        if raster_header(folder / f"{name}.tif")[0] != grid:
-            raise InputError(folder / f"{name}.tif", "transform",
-                             f"grid differs from {folder}/dtm.tif's")  # fmt: skip
-    windows = {name: RasterWindows(folder / f"{name}.tif", grid) for name in FUSION_RASTERS}
-    return {**windows, "grid": grid, "crs": cell.crs}
+    run = checked_fusion_run(folder, FUSION_RASTERS, classes=False)
+    windows = {name: RasterWindows(folder / f"{name}.tif", run.grid) for name in FUSION_RASTERS}
+    return {**windows, "grid": run.grid, "crs": run.crs}
 
 
 def _footprints(
