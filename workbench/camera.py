@@ -203,9 +203,7 @@ def steepest_sight(cameras: list[Camera], lo: np.ndarray, hi: np.ndarray) -> flo
     edge nears the horizon, but the points it shows there lie far beyond the box.
     """
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                        for z in (lo[2], hi[2])])  # fmt: skip
-    framing = framing_cameras(cameras, corners)
+    framing = framing_cameras(cameras, np.array([lo, hi]))
     if not framing:
         return 0.0
     c = np.array([cameras[k].center for k in framing])
