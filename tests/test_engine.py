@@ -332,6 +332,7 @@ def test_an_interrupted_voxel_run_redoes_only_its_unfinished_buildings(
     from modeling.voxel.options import VoxelOptions
 
     opts = VoxelOptions(workers=1)
+    monkeypatch.setattr(vp, "GROUND_TILE", 64)  # the ground in 2 x 2 tiles
     whole = vp.run_voxel(tiny_scene, opts, fusion_dir=tiny_fusion)
     out = tmp_path / "vx"
     sig = run_signature(opts, {"scene": tiny_scene, "fusion": tiny_fusion})
@@ -351,12 +352,21 @@ def test_an_interrupted_voxel_run_redoes_only_its_unfinished_buildings(
         # with a task store the textured buildings wait on disk, not in the command
         assert isinstance(resumed.buildings, BuildingsOnDisk) and len(resumed.buildings) == 6
         buildings = list(resumed.buildings)
+        # so does the ground, a tile at a time
+        assert resumed.ground.folder is not None and resumed.dtm is None
+        ground = list(resumed.ground)
+        dtm = read_raster(resumed.raster_files["dtm"])[0][0]
     assert isinstance(whole.buildings, list)
     assert len(textured) == 3
     assert [b.id for b in buildings] == [b.id for b in whole.buildings]
     for a, b in zip(buildings, whole.buildings, strict=True):
         np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
         np.testing.assert_array_equal(a.mesh.texture.image, b.mesh.texture.image)
+    assert whole.ground.folder is None and len(ground) == len(whole.ground) == 4
+    for a, b in zip(ground, whole.ground, strict=True):
+        np.testing.assert_array_equal(a.vertices, b.vertices)
+        np.testing.assert_array_equal(a.texture.image, b.texture.image)
+    np.testing.assert_array_equal(dtm, whole.dtm.astype(np.float32))
 
 
 def test_a_killed_runs_temporary_folder_goes_when_its_output_is_written_again(tmp_path):

@@ -8,6 +8,7 @@ import pytest
 from shapely.geometry import box
 
 from modeling.shared.roof_mesh import extrude_faces
+from workbench.imageio import read_rgb
 from workbench.meshes import read_mesh
 from workbench.model_run import (
     BUILDING_KEYS,
@@ -16,6 +17,7 @@ from workbench.model_run import (
     ModelRun,
     Surface,
     Texture,
+    TexturedPieces,
     _records_one_by_one,
     model_buildings,
     write_model_run,
@@ -95,6 +97,36 @@ def test_textured_runs_carry_their_atlases(tmp_path):
     mtl = (out / "scene.mtl").read_text()
     assert "map_Kd buildings/a.png" in mtl and "map_Kd ground.png" in mtl
     assert "vt 0.500000 0.500000" in (out / "scene.obj").read_text()
+
+
+def test_a_ground_textured_in_tiles_has_a_material_and_an_image_per_tile(tmp_path):
+    """Two tiles, each its own image (on disk in pieces, as a city's ground waits): the
+    ground and the scene each get a material per tile, mapped to ground/K.png, and
+    every tile's triangles with their texture coordinates."""
+    pieces = TexturedPieces(tmp_path / "pieces")
+    (tmp_path / "pieces").mkdir()
+    for k in range(2):
+        image = np.full((2, 2, 3), 60 * (k + 1), np.uint8)
+        corners = np.array([[30.0 * k, 0, 2], [30.0 * k + 30, 0, 2], [30.0 * k, 20, 2]])
+        uvs = np.array([[[0.0, 0.0], [1.0, 0.0], [0.0, 0.25 * (k + 1)]]])
+        pieces.add(Surface(corners, np.array([[0, 1, 2]]), np.full((3, 3), 60 * (k + 1)),
+                           Texture(image, uvs)))  # fmt: skip
+    run = _run([_box_building("a", 0.0, texture=True)], ground=pieces)
+    write_model_run(run, tmp_path / "run")
+    out = tmp_path / "run"
+    for k in range(2):
+        image = read_rgb(out / "ground" / f"{k}.png")
+        assert (image == 60 * (k + 1)).all()
+    for stem in ("ground", "scene"):
+        mtl = (out / f"{stem}.mtl").read_text()
+        assert "map_Kd ground/0.png" in mtl and "map_Kd ground/1.png" in mtl
+        obj = (out / f"{stem}.obj").read_text()
+        assert "usemtl ground_0" in obj and "usemtl ground_1" in obj
+        assert "vt 0.000000 0.250000" in obj and "vt 0.000000 0.500000" in obj
+    v, t = read_mesh(out / "ground.ply")
+    assert len(t) == 2 and v[:, 0].max() == 60.0
+    mesh = o3d.io.read_triangle_mesh(str(out / "ground.obj"), True)
+    assert len(mesh.textures) == 2 and len(mesh.triangles) == 2
 
 
 def test_a_failed_write_leaves_nothing(tmp_path):

@@ -37,11 +37,27 @@ def test_textured_buildings_drawn_in_batches_are_drawn_as_at_once(monkeypatch):
     buildings = [_block("tall", 0.0, 20.0, colours["tall"]),
                  _block("low", 12.0, 5.0, colours["low"]),
                  _block("far", 26.0, 30.0, colours["far"])]  # fmt: skip
-    at_once = render_textured(buildings, None)
+    at_once = render_textured(buildings)
     shown = {k: (at_once == c).all(axis=2).mean() for k, c in colours.items()}
     assert min(shown.values()) > 0.005, shown  # every building shows its atlas
     monkeypatch.setattr(render, "RENDER_BATCH", 1)  # a batch per building
-    batched = render_textured(buildings, None)
+    batched = render_textured(buildings)
     np.testing.assert_array_equal(batched, at_once)
+    import modeling.voxel.preview as preview
+
+    monkeypatch.setattr(render, "RENDER_BATCH", 10**9)
+    monkeypatch.setattr(preview, "RENDER_IMAGE_BYTES", 1)  # a batch per atlas
+    np.testing.assert_array_equal(render_textured(buildings), at_once)
     # depth decides, not the order: drawn the other way round, the same picture
-    np.testing.assert_array_equal(render_textured(buildings[::-1], None), at_once)
+    np.testing.assert_array_equal(render_textured(buildings[::-1]), at_once)
+
+
+def test_a_batch_closes_at_its_triangles_or_its_images_bytes():
+    """Parts of 3 triangles and a 6-byte image each: with 5 triangles a batch closes
+    after 2 parts (6 triangles), with 12 bytes after 2 (12 bytes), with 13 after 3."""
+    parts = [(None, np.zeros((3, 3)), None, np.zeros(6, np.uint8)) for _ in range(5)]
+    assert [len(b) for b in render.triangle_batches(parts, limit=5)] == [2, 2, 1]
+    by_bytes = render.triangle_batches(parts, limit=100, image_bytes=12)
+    assert [len(b) for b in by_bytes] == [2, 2, 1]
+    by_bytes = render.triangle_batches(parts, limit=100, image_bytes=13)
+    assert [len(b) for b in by_bytes] == [3, 2]

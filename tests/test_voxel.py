@@ -1049,13 +1049,15 @@ def test_framing_cameras_keep_every_view_that_sees_the_box(tiny_scene):
     assert len(framing_cameras(cams, far)) < len(cams) // 4
 
 
-def test_a_ring_cut_in_a_window_paints_what_the_whole_ground_would(
+def test_ring_cuts_paint_the_ground_in_tiles_as_they_would_paint_it_whole(
     tiny_scene, tiny_fusion, tmp_path
 ):  # fmt: skip
-    import copy
-
+    """Each building's ring cut on its window of the ground, in tiles of 16 texels of
+    which two are held, reading its heights from the tiles: the same cut, and in the end
+    the same texture, as the cuts on the whole ground held at once."""
     import modeling.voxel.path as vp
-    from modeling.voxel.ground_texture import ground_cut, join_ground_tiles, ring_cut
+    from modeling.voxel.ground_texture import GroundTexture, ground_cut, ring_cut
+    from modeling.voxel.ground_tiles import CUT, HEIGHTS, GroundTiles, PaintedGround
     from modeling.voxel.inputs import read_inputs
     from modeling.voxel.options import VoxelOptions
 
@@ -1068,26 +1070,33 @@ def test_a_ring_cut_in_a_window_paints_what_the_whole_ground_would(
         vp.texture_task((e, False), inputs, opts, occ, shelf)
     grid = vp.ground_grid(inputs.scene, proxies, opts.ground_gsd_m)
     gz = inputs.ground(grid)
-    whole = slice(0, grid.height), slice(0, grid.width)
     everything = occ.scene([shelf.load("mesh", e.id) for e in proxies])
     cut = ground_cut(grid, gz, inputs.cameras, inputs.images, everything, opts.overlap_m)
-    full = join_ground_tiles(grid, gz, [whole], [cut])
-    windowed = copy.deepcopy(full)
-    painted = 0
+    tiles = GroundTiles(grid, 16, shelf)
+    for k, (rows, cols) in enumerate(tiles.tiles):
+        shelf.save(HEIGHTS, str(k), gz[rows, cols])
+        shelf.save(CUT, str(k), cut.image[rows, cols])
+    whole = GroundTexture(grid, gz, cut.image.copy())
+    painted = PaintedGround(tiles, cached=2)
+    everywhere = slice(0, grid.height), slice(0, grid.width)
+    n = 0
     for e in proxies:
-        a = ring_cut(full, vp.ring_task((grid, gz, e.id), inputs, opts, occ, shelf), opts.ring_m)
+        a = ring_cut(whole, vp.ring_task((everywhere, e.id), inputs, opts, occ, tiles),
+                     opts.ring_m)  # fmt: skip
         window = vp.ring_window(grid, e.outline, opts.ring_m)
-        part = windowed.window(*window)
-        samples = vp.ring_task((part.grid, gz[window], e.id), inputs, opts, occ, shelf)
-        b = ring_cut(part, samples, opts.ring_m)
+        assert len(list(tiles.overlapping(*window))) > 2
+        image = painted.read(*window)
+        samples = vp.ring_task((window, e.id), inputs, opts, occ, tiles)
+        b = ring_cut(GroundTexture(grid.window(*window), None, image), samples, opts.ring_m)
+        painted.paint(*window, image)
         assert a == b
-        painted += a["from_building"]
-    assert painted > 0
-    np.testing.assert_array_equal(full.image, windowed.image)
+        n += a["from_building"]
+    assert n > 0
+    np.testing.assert_array_equal(painted.read(*everywhere), whole.image)
 
 
 def test_a_ground_tile_beyond_every_view_is_unseen(tiny_scene):
-    from modeling.voxel.ground_texture import ground_cut, join_ground_tiles
+    from modeling.voxel.ground_texture import ground_cut, ground_record
     from workbench.raster import Grid
     from workbench.scene import load_scene
 
@@ -1095,8 +1104,7 @@ def test_a_ground_tile_beyond_every_view_is_unseen(tiny_scene):
     far = Grid(5000.0, 5000.0, 0.5, 8, 6)
     cut = ground_cut(far, np.zeros(far.shape), cams, images=None, occluders=None, overlap_m=1.0)
     assert (cut.labels == -1).all() and cut.counts == {"texels": 48, "unseen": 48}
-    record = join_ground_tiles(far, np.zeros(far.shape), [(slice(0, 6), slice(0, 8))],
-                               [cut]).record  # fmt: skip
+    record = ground_record(far, [cut.counts])
     assert record["unseen_fraction"] == 1.0 and record["views"] == []
 
 

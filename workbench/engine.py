@@ -77,6 +77,10 @@ class TaskStore:
                 pickle.dump(result, f, protocol=5)
             os.replace(tmp, path)
 
+    def clear(self, stage: str) -> None:
+        """Forget every result of ``stage``."""
+        shutil.rmtree(self.folder / stage, ignore_errors=True)
+
     def finished(self, stage: str) -> int:
         """How many of ``stage``'s tasks are in the store."""
         d = self.folder / stage

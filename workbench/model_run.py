@@ -9,7 +9,9 @@ A run folder holds::
     buildings/<id>.ply      each building, world metres, vertex colours (the scored mesh)
     buildings/<id>.obj|.mtl the same, with its texture atlas <id>.png where the path makes one
     scene.ply, scene.obj    every building and the ground in one mesh (+ scene.mtl)
-    ground.ply, ground.obj  the ground the buildings stand on (+ ground.png if textured)
+    ground.ply, ground.obj  the ground the buildings stand on (+ ground.png if textured; a
+                            ground textured in tiles has a material and a ground/K.png
+                            per tile)
     dtm.tif                 that ground as a north-up float32 GeoTIFF, NaN nodata
     <name>.tif              the path's own rasters (class.tif, superpixels.tif, ...)
     preview.png             what the path wants a person to look at
@@ -108,6 +110,43 @@ class SurfacePieces:
         for path in self.files:
             with np.load(path) as z:
                 yield z["vertices"], z["triangles"], z["colours"]
+
+
+class TexturedPieces:
+    """A textured surface in pieces, each a :class:`Surface` with its own texture image (a
+    city's ground, tile by tile): held, or on disk with a folder (one pickle a piece), and
+    written piece by piece, a material and an image each. Iterating gives the pieces.
+
+    Parameters
+    ----------
+    folder : path, optional
+        Where the pieces wait (default: held in memory).
+    """
+
+    def __init__(self, folder: str | Path | None = None):
+        self.folder = Path(folder) if folder is not None else None
+        self._held: list[Surface] = []
+        self.count = 0
+
+    def add(self, s: Surface) -> None:
+        """Keep ``s`` (textured, with vertex colours) as the next piece."""
+        if self.folder is None:
+            self._held.append(s)
+        else:
+            with open(self.folder / f"piece_{self.count}.pkl", "wb") as f:
+                pickle.dump(s, f, protocol=5)
+        self.count += 1
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __iter__(self):
+        if self.folder is None:
+            yield from self._held
+            return
+        for k in range(self.count):
+            with open(self.folder / f"piece_{k}.pkl", "rb") as f:
+                yield pickle.load(f)
 
 
 class BuildingsOnDisk:
@@ -238,7 +277,7 @@ class ModelRun:
         The heights the path modelled, metres, NaN unknown: each building's ``rmse_m`` in
         model.city.json is the model's RMS distance to them, vertically (read in the
         building's window).
-    ground : Surface, SurfacePieces or None
+    ground : Surface, SurfacePieces, TexturedPieces or None
         The ground as a mesh (default: none written).
     rasters : {name: ((H, W) or (B, H, W) array, nodata)}
         The path's own rasters on ``grid``.
@@ -264,7 +303,7 @@ class ModelRun:
     grid: Grid | None = None
     dtm: np.ndarray | None = None
     dsm: np.ndarray | None = None
-    ground: Surface | SurfacePieces | None = None
+    ground: Surface | SurfacePieces | TexturedPieces | None = None
     rasters: dict = field(default_factory=dict)
     raster_files: dict = field(default_factory=dict)
     preview: np.ndarray | None = None
@@ -428,10 +467,14 @@ def _write_files(run: ModelRun, tmp: Path):
     def parts():  # material, mesh, its texture's path
         for b in run.buildings:
             yield f"building_{b.id}", b.mesh, f"buildings/{b.id}.png"
-        if run.ground is not None:
-            yield "ground", run.ground, "ground.png"
+        yield from _ground_parts(run.ground)
 
-    if run.ground is not None:
+    if isinstance(run.ground, TexturedPieces):
+        (tmp / "ground").mkdir()
+        for _, s, png in _ground_parts(run.ground):
+            write_rgb(tmp / png, s.texture.image)
+        _write_scene(tmp, lambda: _ground_parts(run.ground), stem="ground")
+    elif run.ground is not None:
         _write_surface(tmp, "ground", run.ground, "ground")
     _write_scene(tmp, parts)
     if run.dtm is not None and run.grid is not None:
@@ -500,11 +543,20 @@ def _write_surface(folder: Path, name: str, s: Surface | SurfacePieces, material
     )  # fmt: skip
 
 
-def _write_scene(tmp: Path, parts) -> None:
-    """scene.ply (vertex colours) and scene.obj|.mtl: textured when every part is. Written
-    part by part, each part piece by piece, so that the scene is never whole in memory;
-    ``parts()`` gives the parts, (material, Surface or SurfacePieces, texture path) each,
-    and is called once for each pass over them."""
+def _ground_parts(ground):
+    """The ground's parts of the scene: (material, mesh, its texture's path) each."""
+    if isinstance(ground, TexturedPieces):
+        for k, s in enumerate(ground):
+            yield f"ground_{k}", s, f"ground/{k}.png"
+    elif ground is not None:
+        yield "ground", ground, "ground.png"
+
+
+def _write_scene(tmp: Path, parts, stem: str = "scene") -> None:
+    """``stem``.ply (vertex colours) and ``stem``.obj|.mtl (default scene.*): textured when
+    every part is. Written part by part, each part piece by piece, so that the scene is
+    never whole in memory; ``parts()`` gives the parts, (material, Surface or
+    SurfacePieces, texture path) each, and is called once for each pass over them."""
     names, n_vertices, n_triangles, textured, colours, runs = [], 0, 0, True, {}, []
     for name, s, png in parts():
         v, t = _counts(s)
@@ -519,16 +571,16 @@ def _write_scene(tmp: Path, parts) -> None:
         for _, s, _ in parts():
             yield from _pieces(s, colours)
 
-    write_ply_pieces(tmp / "scene.ply", pieces, n_vertices, n_triangles, colours=True)
+    write_ply_pieces(tmp / f"{stem}.ply", pieces, n_vertices, n_triangles, colours=True)
     if names and textured:
         white = {name: (255, 255, 255) for name, _ in names}
-        write_mtl(tmp / "scene.mtl", white, dict(names))
-        write_obj_pieces(tmp / "scene.obj", lambda: pieces(colours=False), n_triangles,
-                         material=runs, mtllib="scene.mtl",
+        write_mtl(tmp / f"{stem}.mtl", white, dict(names))
+        write_obj_pieces(tmp / f"{stem}.obj", lambda: pieces(colours=False), n_triangles,
+                         material=runs, mtllib=f"{stem}.mtl",
                          uvs=lambda: (s.texture.uvs for _, s, _ in parts()))  # fmt: skip
         return
-    write_mtl(tmp / "scene.mtl", colours)
-    write_obj_pieces(tmp / "scene.obj", pieces, n_triangles, material=runs, mtllib="scene.mtl")
+    write_mtl(tmp / f"{stem}.mtl", colours)
+    write_obj_pieces(tmp / f"{stem}.obj", pieces, n_triangles, material=runs, mtllib=f"{stem}.mtl")
 
 
 def _rounded(v: float) -> float | None:

@@ -106,17 +106,21 @@ def render_buildings(buildings: Iterable, bounds, low: float | None = None) -> n
     return render_meshes((_grey(batch) for batch in triangle_batches(meshes)), cam)
 
 
-def triangle_batches(parts: Iterable[tuple], limit: int | None = None):
+def triangle_batches(parts: Iterable[tuple], limit: int | None = None,
+                     image_bytes: int | None = None):  # fmt: skip
     """Lists of consecutive ``parts`` (tuples whose second item is a mesh's triangles),
-    each closed once it holds ``limit`` (default ``RENDER_BATCH``) triangles or more."""
+    each closed once it holds ``limit`` (default ``RENDER_BATCH``) triangles or more, or,
+    with ``image_bytes``, once the parts' images (their fourth item) take that many bytes
+    or more."""
     limit = RENDER_BATCH if limit is None else limit
-    batch, size = [], 0
+    batch, size, held = [], 0, 0
     for part in parts:
         batch.append(part)
         size += len(part[1])
-        if size >= limit:
+        held += part[3].nbytes if image_bytes is not None else 0
+        if size >= limit or (image_bytes is not None and held >= image_bytes):
             yield batch
-            batch, size = [], 0
+            batch, size, held = [], 0, 0
     if batch:
         yield batch
 

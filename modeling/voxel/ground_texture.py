@@ -42,31 +42,19 @@ def downward_views(cameras: list[Camera], spread_deg: float = _NADIR_SPREAD_DEG)
 
 @dataclass
 class GroundTexture:
-    """A top-down ground texture.
+    """A top-down ground texture, or a window of it.
 
     Attributes
     ----------
     grid : Grid
-    z : (H, W) float
-        Ground height of every texel, metres.
+    z : (H, W) float or None
+        Ground height of every texel, metres (None where only the image is needed).
     image : (H, W, 3) uint8
-    labels : (H, W) int
-        The scene view of each texel, -1 where no view sees the ground (under buildings).
-    record : dict
     """
 
     grid: Grid
-    z: np.ndarray
+    z: np.ndarray | None
     image: np.ndarray
-    labels: np.ndarray
-    record: dict
-
-    def window(self, rows: slice, cols: slice) -> GroundTexture:
-        """The texture inside ``rows`` x ``cols``, sharing this one's arrays (a ring cut
-        on the window paints this texture)."""
-        window = (rows, cols)
-        return GroundTexture(self.grid.window(*window), self.z[window], self.image[window],
-                             self.labels[window], self.record)  # fmt: skip
 
 
 @dataclass
@@ -130,42 +118,51 @@ def ground_cut(
     return GroundTile(image, scene_views.reshape(grid.shape), counts)
 
 
-def join_ground_tiles(grid: Grid, z: np.ndarray, tiles: list, cuts: list[GroundTile]):
-    """The ground texture of the tiles' cuts, and its record (seam costs per graph edge
-    over all tiles; the tiles' borders are seams the cuts did not place)."""
-    image = np.zeros((grid.height, grid.width, 3), np.uint8)
-    labels = np.full(grid.shape, -1)
+def ground_record(grid: Grid, counts: list[dict]) -> dict:
+    """The ground's record from its tiles' cuts' ``counts`` (:class:`GroundTile`, with the
+    scene views each used under "views"): seam costs per graph edge over all tiles (the
+    tiles' borders are seams the cuts did not place)."""
     total: dict = {}
-    for (rows, cols), cut in zip(tiles, cuts, strict=True):
-        image[rows, cols], labels[rows, cols] = cut.image, cut.labels
-        for k, v in cut.counts.items():
-            total[k] = total.get(k, 0) + v
+    views: set[int] = set()
+    for c in counts:
+        views.update(c.get("views", []))
+        for k, v in c.items():
+            if k != "views":
+                total[k] = total.get(k, 0) + v
     edges = max(total.get("edges", 0), 1)
-    record = {
+    return {
         "texels": [grid.width, grid.height],
         "texel_m": grid.gsd,
-        "tiles": len(tiles),
-        "views": sorted(int(k) for k in np.unique(labels[labels >= 0])),
+        "tiles": len(counts),
+        "views": sorted(int(k) for k in views),
         "unseen_fraction": round(total.get("unseen", 0) / max(total.get("texels", 0), 1), 4),
         "patches_before": total.get("patches_before", 0),
         "patches_after": total.get("patches_after", 0),
         "seam_cost": round(total.get("seam_cost_sum", 0.0) / edges, 4),
         "seam_cost_projective": round(total.get("seam_cost_projective_sum", 0.0) / edges, 4),
     }
-    return GroundTexture(grid, z, image, labels, record)
+
+
+GROUND_MESH_M = 4.0  # the ground mesh's quads, metres
+
+
+def ground_mesh_step(gsd: float, spacing_m: float = GROUND_MESH_M) -> int:
+    """Texels between the ground mesh's vertices."""
+    return max(1, round(spacing_m / gsd))
 
 
 def ground_mesh(
-    ground: GroundTexture, spacing_m: float = 4.0
+    ground: GroundTexture, spacing_m: float = GROUND_MESH_M
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """The textured ground: the ground heights in quads of about ``spacing_m`` metres.
+    """The textured ground: the ground heights in quads of about ``spacing_m`` metres,
+    through every :func:`ground_mesh_step`-th texel centre of ``ground.grid``.
 
     Returns
     -------
     vertices : (V, 3), triangles : (T, 3), uvs : (T, 3, 2) into ``ground.image``
     (u east, v north, 0-1); None when the grid is too small.
     """
-    mesh = raster_mesh(ground.z, ground.grid, step=max(1, round(spacing_m / ground.grid.gsd)))
+    mesh = raster_mesh(ground.z, ground.grid, step=ground_mesh_step(ground.grid.gsd, spacing_m))
     if mesh is None:
         return None
     vertices, triangles = mesh

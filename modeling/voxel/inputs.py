@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import rasterio.features
 import shapely
-from shapely.geometry import Polygon, mapping
+from shapely.geometry import Polygon, box, mapping
 
 from modeling.shared.roof_mesh import extrude_faces
 from workbench.errors import InputError
@@ -158,10 +158,10 @@ def _footprints(
 
 def footprints_from_fusion(fusion: dict, min_area_m2: float = 20.0) -> list[Footprint]:
     """Footprints from a fusion run's building class: one per connected region, its
-    height 1.5 times its 99th-percentile nDSM (over-estimated, as GIS heights are)."""
+    height 1.5 times its 99th-percentile nDSM (over-estimated, as GIS heights are). The
+    building class is read whole (a byte a cell), each region's nDSM in its window."""
     grid: Grid = fusion["grid"]
-    whole = slice(0, grid.height), slice(0, grid.width)
-    mask, ndsm = fusion["class"][whole] == BUILDING, fusion["ndsm"][whole]
+    mask = fusion["class"][0 : grid.height, 0 : grid.width] == BUILDING
     out = []
     for geom, _ in rasterio.features.shapes(
         mask.astype(np.uint8), mask=mask, transform=grid.transform, connectivity=4
@@ -176,7 +176,7 @@ def footprints_from_fusion(fusion: dict, min_area_m2: float = 20.0) -> list[Foot
         cols = slice(round((x0 - grid.xmin) / grid.gsd), round((x1 - grid.xmin) / grid.gsd))
         w = grid.window(rows, cols)
         inside = rasterio.features.geometry_mask([geom], w.shape, w.transform, invert=True)
-        z = ndsm[rows, cols][inside]
+        z = fusion["ndsm"][rows, cols][inside]
         h = np.nanpercentile(z, 99) if np.isfinite(z).any() else np.nan
         if not np.isfinite(h) or h <= 0:
             continue
@@ -224,16 +224,19 @@ class Ground:
         return float(np.median(vals))
 
     def __call__(self, grid: Grid) -> np.ndarray:
-        """Ground height at the cell centres of ``grid``."""
+        """Ground height at the cell centres of ``grid``, metres (unknown cells filled)."""
         if self.z is None:
             return np.full(grid.shape, float(self.flat))
         X, Y = grid.cell_centers()
         r, c = self.grid.cell_index(X.ravel(), Y.ravel(), clip=True)
         r0, c0 = r.min(), c.min()
         z = self.z[r0 : r.max() + 1, c0 : c.max() + 1][r - r0, c - c0].reshape(grid.shape)
-        if np.isfinite(z).any():
-            z = np.where(np.isfinite(z), z, np.nanmedian(z))
-        return z
+        if np.isfinite(z).all():
+            return z
+        # unknown cells take the known ground's median on the grid, or (a tile of a city
+        # under one large building) the nearest known ground's height
+        fill = np.nanmedian(z) if np.isfinite(z).any() else self.under(box(*grid.bounds))
+        return np.where(np.isfinite(z), z, fill)
 
     def _nearest_known(self, r: int, c: int, radius: int = 64) -> float:
         """The known height nearest to cell (r, c) (first in row-major order among the

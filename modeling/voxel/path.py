@@ -23,8 +23,15 @@ from scipy.spatial import cKDTree
 from shapely.geometry import mapping
 
 from workbench.engine import Engine, TaskStore, ThreadEngine
-from workbench.model_run import Building, BuildingsOnDisk, ModelRun, Surface, Texture
-from workbench.raster import Grid
+from workbench.model_run import (
+    Building,
+    BuildingsOnDisk,
+    ModelRun,
+    Surface,
+    Texture,
+    TexturedPieces,
+)
+from workbench.raster import Grid, WindowedRaster
 from workbench.records import StageTimer, peak_memory_mb
 from workbench.scene import Scene
 
@@ -35,10 +42,12 @@ from .ground_texture import (
     RingSamples,
     ground_cut,
     ground_mesh,
-    join_ground_tiles,
+    ground_mesh_step,
+    ground_record,
     ring_cut,
     ring_samples,
 )
+from .ground_tiles import CUT, HEIGHTS, GroundTiles, PaintedGround
 from .inputs import VoxelInputs, neighbour_scene, read_inputs
 from .occluders import Occluders
 from .options import VoxelOptions
@@ -115,15 +124,18 @@ def _run(scene_dir, options, footprints, fusion_dir, engine, shelf) -> ModelRun:
                               on_failure=lambda item, why: (None, None))  # fmt: skip
         buildings, done, costs, shown = kept_textured(textured, engine)
     with timer.stage("ground"):
-        gtex, ground_z = texture_ground(inputs, proxies, done, options, engine, shared,
-                                        occluders, shelf)  # fmt: skip
+        ground = texture_ground(inputs, proxies, done, options, engine, shared, occluders,
+                                shelf)  # fmt: skip
     with timer.stage("preview"):
         shown_proxy = shelf.load("proxy", proxies[big].id) if proxies else None
-        preview = voxel_preview(shown_proxy, shown, buildings, gtex)
+        preview = voxel_preview(shown_proxy, shown, buildings, ground)
     return ModelRun(
         "voxel", options, buildings, crs=inputs.scene.crs,
-        grid=gtex.grid if gtex is not None else None, dtm=ground_z,
-        ground=ground_surface(gtex), preview=preview, stages=timer.stages,
+        grid=ground.grid if ground is not None else None,
+        dtm=ground.dtm if ground is not None else None,
+        raster_files={"dtm": ground.dtm_file} if ground and ground.dtm_file else {},
+        ground=ground.surface if ground is not None else None, preview=preview,
+        stages=timer.stages,
         inputs={
             "scene": str(Path(scene_dir).resolve()), "footprints": inputs.footprint_source,
             "fusion": str(Path(fusion_dir).resolve()) if fusion_dir else None,
@@ -131,7 +143,7 @@ def _run(scene_dir, options, footprints, fusion_dir, engine, shelf) -> ModelRun:
         },
         counts={"skipped": len(inputs.skipped), "footprints": inputs.footprint_count},
         record={
-            "skipped": inputs.skipped, "ground": gtex.record if gtex is not None else None,
+            "skipped": inputs.skipped, "ground": ground.record if ground is not None else None,
             "texture": texture_summary(costs),
             **engine.describe(),
             "seconds_per_building": round((time.perf_counter() - t_start) / max(len(proxies), 1),
@@ -287,49 +299,53 @@ def texture_task(item: tuple, inputs: VoxelInputs, options: VoxelOptions,
 def texture_ground(
     inputs: VoxelInputs, proxies: list[ProxyEntry], done: list[bool], options: VoxelOptions,
     engine: Engine, shared, occluders, shelf: TaskStore,
-) -> tuple[GroundTexture | None, np.ndarray | None]:  # fmt: skip
+) -> TexturedGround | None:  # fmt: skip
     """Sections 5.3-5.4: the ground cut with the proxies masked out, a task per tile of
     ``GROUND_TILE`` texels, then the ring cut around each building in a window around it;
-    returns the ground texture and the ground heights on its grid. ``shared`` and
-    ``occluders`` are the engine's handles on the inputs and on the proxies' boxes.
+    returns the textured ground (None without proxies). ``shared`` and ``occluders`` are
+    the engine's handles on the inputs and on the proxies' boxes.
 
-    The ring cuts' samples of the views are tasks; the cuts themselves paint the ground
-    here, building after building, since neighbouring rings overlap."""
+    The tiles wait on ``shelf``. The ring cuts' samples of the views are tasks; the cuts
+    themselves paint the ground here, building after building, since neighbouring rings
+    overlap."""
     if not proxies:
-        return None, None
+        return None
     grid = ground_grid(inputs.scene, proxies, options.ground_gsd_m)
-    gz = inputs.ground(grid)
-    tiles = grid.tiles(GROUND_TILE)
-    items = [(grid.window(rows, cols), gz[rows, cols]) for rows, cols in tiles]
-    cuts = engine.map(ground_tile_task, items, shared, options, occluders, shelf,
-                      stage="ground")  # fmt: skip
-    gtex = join_ground_tiles(grid, gz, tiles, list(cuts))
-    windows, items, keys = [], [], []
+    tiles = GroundTiles(grid, ground_tile_size(grid.gsd), shelf)
+    items = [(k, grid.window(*t)) for k, t in enumerate(tiles.tiles)]
+    counts = engine.map(ground_tile_task, items, shared, options, occluders, shelf,
+                        stage="ground")  # fmt: skip
+    record = ground_record(grid, list(counts))
+    windows, keys = [], []
     for e, textured in zip(proxies, done, strict=True):
-        window = ring_window(gtex.grid, e.outline, options.ring_m) if textured else None
+        window = ring_window(grid, e.outline, options.ring_m) if textured else None
         if window is not None:
             windows.append(window)
-            items.append((grid.window(*window), gz[window], e.id))
             keys.append(e.id)
-    samples = engine.map(ring_task, items, shared, options, occluders, shelf,
-                         stage="ring cuts", keys=keys)  # fmt: skip
-    rings = [
-        ring_cut(gtex.window(*w), s, options.ring_m) for w, s in zip(windows, samples, strict=True)
-    ]
-    gtex.record["ring_texels"] = int(sum(r["ring_texels"] for r in rings))
-    gtex.record["ring_from_building"] = int(sum(r["from_building"] for r in rings))
-    return gtex, gz
+    samples = engine.map(ring_task, list(zip(windows, keys, strict=True)), shared, options,
+                         occluders, tiles, stage="ring cuts", keys=keys)  # fmt: skip
+    painted = PaintedGround(tiles)
+    ring_texels = from_building = 0
+    for window, s in zip(windows, samples, strict=True):
+        image = painted.read(*window)
+        r = ring_cut(GroundTexture(grid.window(*window), None, image), s, options.ring_m)
+        painted.paint(*window, image)
+        ring_texels += r["ring_texels"]
+        from_building += r["from_building"]
+    record["ring_texels"], record["ring_from_building"] = ring_texels, from_building
+    folder = engine.store.scratch("ground") if engine.store is not None else None
+    return textured_ground(tiles, painted, record, folder, inputs.scene.crs)
 
 
 def ring_task(item: tuple, inputs: VoxelInputs, options: VoxelOptions, occluders: Occluders,
-              shelf: TaskStore) -> RingSamples:  # fmt: skip
+              tiles: GroundTiles) -> RingSamples:  # fmt: skip
     """Task: the building side of one ring cut, ``item`` = (the building's window of the
-    ground grid, the ground heights on it, the building's id: its wall foot is on
-    ``shelf``)."""
-    grid, z, key = item
-    foot = shelf.load("foot", key)
+    ground grid, rows and columns; the building's id: its wall foot is on the shelf)."""
+    window, key = item
+    grid, z = tiles.grid.window(*window), tiles.read(HEIGHTS, *window)
+    foot = tiles.shelf.load("foot", key)
     return ring_samples(grid, z, *ring_inputs(grid, foot), inputs.cameras, inputs.images,
-                        window_occluders(occluders, shelf, inputs.cameras, grid, z),
+                        window_occluders(occluders, tiles.shelf, inputs.cameras, grid, z),
                         options.ring_m)  # fmt: skip
 
 
@@ -345,16 +361,107 @@ def window_occluders(occluders: Occluders, shelf: TaskStore, cameras: list, grid
     return occluders_near(occluders, shelf, cameras, lo, hi)
 
 
-GROUND_TILE = 512  # texels per side of a ground cut's task: 256 m at 0.5 m
+GROUND_TILE = 512  # texels per side of a ground tile: 256 m at 0.5 m
+
+
+def ground_tile_size(gsd: float) -> int:
+    """Texels per side of a ground tile: about ``GROUND_TILE``, a whole number of the
+    ground mesh's quads (so that the tiles' meshes meet at shared vertices)."""
+    step = ground_mesh_step(gsd)
+    return step * max(1, round(GROUND_TILE / step))
 
 
 def ground_tile_task(item: tuple, inputs: VoxelInputs, options: VoxelOptions,
-                     occluders: Occluders, shelf: TaskStore):  # fmt: skip
-    """Task: the ground cut of one tile, ``item`` = (its grid, its ground heights)."""
-    grid, z = item
-    return ground_cut(grid, z, inputs.cameras, inputs.images,
-                      window_occluders(occluders, shelf, inputs.cameras, grid, z),
-                      options.overlap_m)  # fmt: skip
+                     occluders: Occluders, shelf: TaskStore) -> dict:  # fmt: skip
+    """Task: the ground cut of one tile, ``item`` = (its index, its grid); its heights and
+    texture go on ``shelf``, the cut's counts come back (with the views it used)."""
+    k, grid = item
+    z = inputs.ground(grid)
+    cut = ground_cut(grid, z, inputs.cameras, inputs.images,
+                     window_occluders(occluders, shelf, inputs.cameras, grid, z),
+                     options.overlap_m)  # fmt: skip
+    shelf.save(HEIGHTS, str(k), z)
+    shelf.save(CUT, str(k), cut.image)
+    return {**cut.counts, "views": sorted(int(v) for v in np.unique(cut.labels[cut.labels >= 0]))}
+
+
+@dataclass
+class TexturedGround:
+    """The voxel path's ground, as the run writes it.
+
+    Attributes
+    ----------
+    grid : Grid
+    surface : Surface or TexturedPieces
+        The textured mesh: one with one tile, else a piece per tile.
+    dtm : (H, W) float array or None
+        The ground's heights on ``grid``, metres (None when they are in ``dtm_file``).
+    dtm_file : path or None
+        The heights as a GeoTIFF, written a tile at a time.
+    image : (h, w, 3) uint8
+        The texture, decimated to at most ``PREVIEW_TEXELS`` a side (for the preview).
+    record : dict
+    """
+
+    grid: Grid
+    surface: Surface | TexturedPieces | None
+    dtm: np.ndarray | None
+    dtm_file: Path | None
+    image: np.ndarray
+    record: dict
+
+    def surfaces(self) -> Iterable[Surface]:
+        """The textured mesh's pieces."""
+        if isinstance(self.surface, TexturedPieces):
+            return self.surface
+        return [self.surface] if self.surface is not None else []
+
+
+PREVIEW_TEXELS = 1024
+
+
+def textured_ground(tiles: GroundTiles, painted: PaintedGround, record: dict, folder,
+                    crs) -> TexturedGround:  # fmt: skip
+    """The textured ground mesh and the ground's heights, a tile at a time: in memory
+    with one tile or without a ``folder``, else on disk in ``folder``. A tile's mesh
+    reaches the first texel row and column of the tiles east and south of it, where
+    their meshes start, so that the pieces meet."""
+    grid = tiles.grid
+    whole = (slice(0, grid.height), slice(0, grid.width))
+    if len(tiles.tiles) == 1:
+        z, image = tiles.read(HEIGHTS, *whole), painted.read(*whole)
+        s = ground_surface(GroundTexture(grid, z, image))
+        f = max(1, -(-max(grid.shape) // PREVIEW_TEXELS))
+        return TexturedGround(grid, s, z, None, image[::f, ::f], record)
+    pieces = TexturedPieces(folder)
+    f = max(1, -(-max(grid.shape) // PREVIEW_TEXELS))
+    mosaic = np.zeros((-(-grid.height // f), -(-grid.width // f), 3), np.uint8)
+    dtm, dtm_file = None, None
+    if folder is None:
+        dtm = np.empty(grid.shape, np.float32)
+    else:
+        dtm_file = Path(folder) / "dtm.tif"
+        raster = WindowedRaster(dtm_file, grid, crs, np.float32)
+    for rows, cols in tiles.tiles:
+        outer = (slice(rows.start, min(rows.stop + 1, grid.height)),
+                 slice(cols.start, min(cols.stop + 1, grid.width)))  # fmt: skip
+        z, image = tiles.read(HEIGHTS, *outer), painted.read(*outer)
+        s = ground_surface(GroundTexture(grid.window(*outer), z, image))
+        if s is not None:
+            pieces.add(s)
+        h, w = rows.stop - rows.start, cols.stop - cols.start
+        if dtm is not None:
+            dtm[rows, cols] = z[:h, :w]
+        else:
+            raster.write(z[:h, :w].astype(np.float32), rows, cols)
+        # the mosaic's texels are every f-th of the whole grid
+        r0, c0 = -rows.start % f, -cols.start % f
+        part = image[r0:h:f, c0:w:f]
+        at = (rows.start + r0) // f, (cols.start + c0) // f
+        mosaic[at[0] : at[0] + part.shape[0], at[1] : at[1] + part.shape[1]] = part
+    if dtm is None:
+        raster.close()
+    return TexturedGround(grid, pieces, dtm, dtm_file, mosaic, record)
 
 
 def ring_window(grid: Grid, outline: tuple, ring_m: float) -> tuple[slice, slice] | None:
@@ -420,14 +527,15 @@ def vertex_colours(vertices: np.ndarray, tex: BuildingTexture) -> np.ndarray:
     return out
 
 
-def ground_surface(gtex: GroundTexture | None) -> Surface | None:
-    """The textured ground mesh, coloured by its texture at the vertices."""
-    gm = ground_mesh(gtex) if gtex is not None else None
+def ground_surface(ground: GroundTexture) -> Surface | None:
+    """The textured ground mesh, coloured by its texture at the vertices (None when the
+    grid is too small)."""
+    gm = ground_mesh(ground)
     if gm is None:
         return None
     gv, gt, guv = gm
-    r, c = gtex.grid.cell_index(gv[:, 0], gv[:, 1], clip=True)
-    return Surface(gv, gt, gtex.image[r, c], Texture(gtex.image, guv))
+    r, c = ground.grid.cell_index(gv[:, 0], gv[:, 1], clip=True)
+    return Surface(gv, gt, ground.image[r, c], Texture(ground.image, guv))
 
 
 SEAM_COSTS = ("seam_cost", "seam_cost_projective", "seam_cost_greedy")

@@ -13,13 +13,13 @@ from workbench.raycast import cast, raycasting_scene
 from workbench.render import triangle_batches, viewpoints
 
 from .building import Proxy, Texture
-from .ground_texture import ground_mesh
 
 
-def voxel_preview(p: Proxy | None, t: Texture | None, buildings: list, gtex) -> np.ndarray:
+def voxel_preview(p: Proxy | None, t: Texture | None, buildings: list, ground) -> np.ndarray:
     """(h, w, 3) uint8 contact sheet: the variance of ``p`` (the largest proxy), heights
     before and after clustering, its roof views before and after the graph cuts (its
-    texture ``t``), the textured buildings and the ground texture."""
+    texture ``t``), the textured buildings and the ground texture (``ground``, a
+    :class:`~.path.TexturedGround` or None)."""
     if p is None:
         return np.full((64, 64, 3), 255, np.uint8)
     vertical, horiz = p.variance
@@ -38,14 +38,14 @@ def voxel_preview(p: Proxy | None, t: Texture | None, buildings: list, gtex) -> 
     ]
     top_before = _top_labels(p, t, t.initial)
     top_after = _top_labels(p, t, t.stitched.labels)
-    render = render_textured(buildings, gtex)
+    render = render_textured(buildings, ground.surfaces() if ground is not None else [])
     row2 = [
         (top_before, "roof views: best per texel"),
         (top_after, "after graph cuts"),
         (render, "textured proxies"),
     ]
-    if gtex is not None:
-        row2.append((gtex.image, "ground texture"))
+    if ground is not None:
+        row2.append((ground.image, "ground texture"))
     return contact_sheet([row1, row2])
 
 
@@ -77,18 +77,22 @@ def _top_labels(proxy: Proxy, tex: Texture, labels: np.ndarray) -> np.ndarray:
     return _upscale(img, 240)
 
 
-def render_textured(buildings: Iterable, gtex, width: int = 640) -> np.ndarray:
-    """Ray-cast picture of the textured buildings (and ground) from the south-west: each
-    pixel's nearest hit is looked up in its mesh's atlas through the interpolated UVs.
-    ``buildings`` is iterated twice (their extent, then their meshes a batch of at most
-    ``RENDER_BATCH`` triangles at a time: a city's atlases are not all held)."""
+RENDER_IMAGE_BYTES = 64 * 2**20  # atlases held at once when drawing the textured buildings
+
+
+def render_textured(buildings: Iterable, ground: Iterable = (), width: int = 640) -> np.ndarray:
+    """Ray-cast picture of the textured buildings (and the ground's textured pieces) from
+    the south-west: each pixel's nearest hit is looked up in its mesh's atlas through the
+    interpolated UVs. ``buildings`` and ``ground`` are iterated twice (their extent, then
+    their meshes a batch of at most ``RENDER_BATCH`` triangles and ``RENDER_IMAGE_BYTES``
+    of atlases at a time: a city's atlases are not all held)."""
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     for b in buildings:
         lo = np.minimum(lo, b.mesh.vertices.min(axis=0))
         hi = np.maximum(hi, b.mesh.vertices.max(axis=0))
-    gm = ground_mesh(gtex) if gtex is not None else None
-    z = (lo[2], hi[2]) if gm is None else (min(lo[2], gm[0][:, 2].min()),
-                                            max(hi[2], gm[0][:, 2].max()))  # fmt: skip
+    z = [lo[2], hi[2]]
+    for s in ground:
+        z = [min(z[0], s.vertices[:, 2].min()), max(z[1], s.vertices[:, 2].max())]
     cam = viewpoints((lo[0], lo[1], hi[0], hi[1]), (float(z[0]), float(z[1])), width,
                      width * 3 // 4)["south-west"]  # fmt: skip
     origin, dirs = cam.pixel_grid_rays()
@@ -99,10 +103,11 @@ def render_textured(buildings: Iterable, gtex, width: int = 640) -> np.ndarray:
         for b in buildings:
             m = b.mesh
             yield m.vertices, m.triangles, m.texture.uvs, m.texture.image
-        if gm is not None:
-            yield (*gm, gtex.image)
+        for s in ground:
+            yield s.vertices, s.triangles, s.texture.uvs, s.texture.image
 
-    for batch in triangle_batches(parts()):
+    # a city's atlases: some 0.3 MB a building, in the batch together
+    for batch in triangle_batches(parts(), image_bytes=RENDER_IMAGE_BYTES):
         V, T, owner = concatenate_meshes([(v, t) for v, t, _, _ in batch])
         uvs = np.concatenate([u for _, _, u, _ in batch])
         hits = cast(raycasting_scene(V, T), origin, dirs)
