@@ -427,14 +427,13 @@ def textured_ground(tiles: GroundTiles, painted: PaintedGround, record: dict, fo
     reaches the first texel row and column of the tiles east and south of it, where
     their meshes start, so that the pieces meet."""
     grid = tiles.grid
-    whole = (slice(0, grid.height), slice(0, grid.width))
+    f = max(1, -(-max(grid.shape) // PREVIEW_TEXELS))  # the preview's every f-th texel
     if len(tiles.tiles) == 1:
+        whole = (slice(0, grid.height), slice(0, grid.width))
         z, image = tiles.read(HEIGHTS, *whole), painted.read(*whole)
         s = ground_surface(GroundTexture(grid, z, image))
-        f = max(1, -(-max(grid.shape) // PREVIEW_TEXELS))
         return TexturedGround(grid, s, z, None, image[::f, ::f], record)
     pieces = TexturedPieces(folder)
-    f = max(1, -(-max(grid.shape) // PREVIEW_TEXELS))
     mosaic = np.zeros((-(-grid.height // f), -(-grid.width // f), 3), np.uint8)
     dtm, dtm_file = None, None
     if folder is None:
@@ -454,7 +453,6 @@ def textured_ground(tiles: GroundTiles, painted: PaintedGround, record: dict, fo
             dtm[rows, cols] = z[:h, :w]
         else:
             raster.write(z[:h, :w].astype(np.float32), rows, cols)
-        # the mosaic's texels are every f-th of the whole grid
         r0, c0 = -rows.start % f, -cols.start % f
         part = image[r0:h:f, c0:w:f]
         at = (rows.start + r0) // f, (cols.start + c0) // f

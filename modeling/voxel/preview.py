@@ -66,7 +66,7 @@ def _height_image(z: np.ndarray, top: float) -> np.ndarray:
 def _top_labels(proxy: Proxy, tex: Texture, labels: np.ndarray) -> np.ndarray:
     """Roof texels coloured by view, top-down in the building's own frame."""
     g = tex.graph
-    roof = (g.normals[:, 2] > 0.9) & (labels >= 0)
+    roof = (g.normals[:, 2] > 0.5) & (labels >= 0)  # pitched roofs too: walls are below 0.5
     palette = np.random.default_rng(0).integers(40, 255, (int(labels.max()) + 2, 3))
     if not roof.any():
         return np.full((64, 64, 3), 255, np.uint8)
