@@ -1024,6 +1024,29 @@ def test_without_footprints_the_fusion_building_mask_stands_in(tiny_scene, tmp_p
     assert record["counts"]["buildings"] >= len(truth) - 1
 
 
+def test_footprints_from_the_fusion_in_strips_are_the_whole_grids(
+    tiny_fusion, monkeypatch
+):  # fmt: skip
+    """The views fusion's building regions polygonised 7 rows at a time: the same
+    footprints (their regions joined across the strips, simplified on a canonical ring)
+    with the same heights as in one strip."""
+    import workbench.regions
+    from modeling.voxel.inputs import _read_fusion, footprints_from_fusion
+
+    fusion = _read_fusion(tiny_fusion)
+    whole = footprints_from_fusion(fusion)
+    monkeypatch.setattr(workbench.regions, "STRIP_CELLS", 7 * fusion["grid"].width)
+    strips = footprints_from_fusion(fusion)
+    assert len(whole) >= 5 and len(strips) == len(whole)
+    crossing = 0
+    for f in whole:
+        same = [g for g in strips if g.polygon.equals(f.polygon)]
+        assert len(same) == 1 and same[0].height == f.height
+        _, y0, _, y1 = f.polygon.bounds
+        crossing += int((y1 - y0) / fusion["grid"].gsd) > 7
+    assert crossing >= 3  # regions in pieces, put together
+
+
 def test_framing_cameras_keep_every_view_that_sees_the_box(tiny_scene):
     from workbench.camera import framing_cameras
     from workbench.scene import load_scene

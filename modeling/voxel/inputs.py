@@ -20,6 +20,7 @@ from workbench.footprints import Footprint, read_footprints
 from workbench.fusion_run import checked_fusion_run
 from workbench.raster import BUILDING, TREE, Grid, RasterWindows, raster_header
 from workbench.raycast import local_origin
+from workbench.regions import mask_regions
 from workbench.scene import Scene, load_scene
 
 from .occluders import Occluders
@@ -159,23 +160,24 @@ def _footprints(
 def footprints_from_fusion(fusion: dict, min_area_m2: float = 20.0) -> list[Footprint]:
     """Footprints from a fusion run's building class: one per connected region, its
     height 1.5 times its 99th-percentile nDSM (over-estimated, as GIS heights are). The
-    building class is read whole (a byte a cell), each region's nDSM in its window."""
+    class is polygonised a strip of rows at a time (:func:`workbench.regions.mask_regions`),
+    each region's nDSM read in its window."""
     grid: Grid = fusion["grid"]
-    mask = fusion["class"][0 : grid.height, 0 : grid.width] == BUILDING
     out = []
-    for geom, _ in rasterio.features.shapes(
-        mask.astype(np.uint8), mask=mask, transform=grid.transform, connectivity=4
-    ):
-        poly = shapely.geometry.shape(geom).simplify(grid.gsd)
+    regions = mask_regions(lambda rows: fusion["class"][rows, 0 : grid.width] == BUILDING, grid)
+    for region in regions:
+        # on a canonical ring (no collinear corners, a fixed start): a region put
+        # together from strips simplifies as the whole mask's does
+        poly = shapely.normalize(region.simplify(0)).simplify(grid.gsd)
         if poly.area < min_area_m2:
             continue
-        # its cells, in the window of its bounds (on cell edges): the whole grid's mask for
-        # every region grew with the regions times the area
-        x0, y0, x1, y1 = shapely.geometry.shape(geom).bounds
+        # its cells, in the window of its bounds (on cell edges)
+        x0, y0, x1, y1 = region.bounds
         rows = slice(round((grid.ymax - y1) / grid.gsd), round((grid.ymax - y0) / grid.gsd))
         cols = slice(round((x0 - grid.xmin) / grid.gsd), round((x1 - grid.xmin) / grid.gsd))
         w = grid.window(rows, cols)
-        inside = rasterio.features.geometry_mask([geom], w.shape, w.transform, invert=True)
+        inside = rasterio.features.geometry_mask([mapping(region)], w.shape, w.transform,
+                                                 invert=True)  # fmt: skip
         z = fusion["ndsm"][rows, cols][inside]
         h = np.nanpercentile(z, 99) if np.isfinite(z).any() else np.nan
         if not np.isfinite(h) or h <= 0:
