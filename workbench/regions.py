@@ -19,7 +19,7 @@ from shapely.geometry import Polygon, shape
 
 from .raster import Grid
 
-STRIP_CELLS = 2**24  # cells of a strip of rows: 16 M, some 100 MB with its labels
+STRIP_CELLS = 2**22  # cells of a strip of rows: 4 M, some 30 MB with its labels
 
 
 def mask_regions(
@@ -53,11 +53,11 @@ def mask_regions(
         mask = np.asarray(read(rows), bool)
         labels, n = ndimage.label(mask)  # 4-connected, as the polygoniser's connectivity
         labels = np.where(mask, labels + offset, 0).astype(np.int32)
-        for geom, value in rasterio.features.shapes(
-            labels, mask=mask, transform=grid.window(rows, slice(0, grid.width)).transform,
-            connectivity=4,
-        ):  # fmt: skip
-            pieces.setdefault(int(value), []).append(shape(geom))
+        # in the strip's cells, then in world metres from the whole grid's corner: the
+        # strips' common edges get the same coordinates, to the last bit
+        for geom, value in rasterio.features.shapes(labels, mask=mask, connectivity=4):
+            piece = shapely.transform(shape(geom), lambda cr, r0=r0: _world(cr, r0, grid))
+            pieces.setdefault(int(value), []).append(piece)
             parent.setdefault(int(value), int(value))
         if above is not None:
             meet = (above > 0) & (labels[0] > 0)
@@ -69,6 +69,14 @@ def mask_regions(
     for label, polys in pieces.items():  # in the order the pieces came
         regions.setdefault(_root(parent, label), []).extend(polys)
     return [p[0] if len(p) == 1 else shapely.union_all(p) for p in regions.values()]
+
+
+def _world(cr: np.ndarray, r0: int, grid: Grid) -> np.ndarray:
+    """(N, 2) world x, y of cell corners (N, 2) (column, row in a strip from row ``r0``),
+    as GDAL applies a north-up geotransform."""
+    return np.column_stack(
+        [grid.xmin + cr[:, 0] * grid.gsd, grid.ymax + (cr[:, 1] + r0) * -grid.gsd]
+    )
 
 
 def _root(parent: dict, a: int) -> int:
