@@ -58,10 +58,13 @@ class GroundTiles:
                              slice(c0 - cols.start, c1 - cols.start))  # fmt: skip
                 yield tr * per_row + tc, in_tile, in_window
 
-    def read(self, stage: str, rows: slice, cols: slice, load=None) -> np.ndarray:
-        """The window ``rows`` x ``cols`` of ``stage``'s arrays, put together from its
-        tiles (``load(k)`` gives tile ``k``'s array; default: read from the shelf)."""
-        load = load or (lambda k: self.shelf.load(stage, str(k)))
+    def read(self, stage: str, rows: slice, cols: slice) -> np.ndarray:
+        """The window ``rows`` x ``cols`` of ``stage``'s arrays on the shelf."""
+        return self.assemble(rows, cols, lambda k: self.shelf.load(stage, str(k)))
+
+    def assemble(self, rows: slice, cols: slice, load) -> np.ndarray:
+        """The window ``rows`` x ``cols`` put together from its tiles' arrays, ``load(k)``
+        giving tile ``k``'s."""
         out = None
         for k, in_tile, in_window in self.overlapping(rows, cols):
             tile = load(k)
@@ -99,7 +102,7 @@ class PaintedGround:
 
     def read(self, rows: slice, cols: slice) -> np.ndarray:
         """(h, w, 3) uint8, a copy of the texture in ``rows`` x ``cols``."""
-        return self.tiles.read(CUT, rows, cols, load=self._tile)
+        return self.tiles.assemble(rows, cols, self._tile)
 
     def paint(self, rows: slice, cols: slice, image: np.ndarray) -> None:
         """Put ``image`` (h, w, 3) into the texture at ``rows`` x ``cols``."""
