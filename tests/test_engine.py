@@ -98,6 +98,42 @@ def test_a_task_that_fills_the_disk_is_one_line(tmp_path):
     assert store.finished("s") == 2
 
 
+def test_a_command_that_fills_the_disk_is_one_line_and_keeps_its_finished_tasks(
+    tiny_fusion, tmp_path, monkeypatch, capsys
+):  # fmt: skip
+    """The disk fills while the command itself writes (here the run's preview): one line
+    naming the file and the finished tasks kept, exit 2, no output and no temporary
+    folder; another OSError stays an internal error (exit 1); with space again,
+    ``--resume`` finishes the run."""
+    import workbench.model_run
+    from workbench import cli
+
+    real = workbench.model_run.write_rgb
+
+    def full(path, image):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(workbench.model_run, "write_rgb", full)
+    out = tmp_path / "blocks"
+    argv = ["model", "blocks", str(tiny_fusion), "-o", str(out), "--workers", "1"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    partial = partial_folder(out)
+    assert "\n" not in err and err.startswith("workbench: error: ")
+    assert f"preview.png: disk full; the finished tasks are kept in {partial}" in err
+    assert [p.name for p in tmp_path.iterdir()] == [partial.name]
+
+    def denied(path, image):
+        raise PermissionError(errno.EACCES, "Permission denied", str(path))
+
+    monkeypatch.setattr(workbench.model_run, "write_rgb", denied)
+    assert cli.main([*argv, "--resume"]) == 1
+    assert "internal error: PermissionError" in capsys.readouterr().err
+    monkeypatch.setattr(workbench.model_run, "write_rgb", real)
+    assert cli.main([*argv, "--resume"]) == 0
+    assert (out / "preview.png").exists() and not partial.exists()
+
+
 def test_engine_for_leaves_nothing_when_nothing_finished(tmp_path):
     out = tmp_path / "out"
     with pytest.raises(ValueError), engine_for(out, {"a": 1}, workers=1) as engine:

@@ -9,6 +9,7 @@ code 1 (``-v`` shows the traceback).
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import logging
 import sys
@@ -695,16 +696,28 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"workbench: interrupted{_kept(args)}", file=sys.stderr)
         return 130
+    except OSError as exc:
+        if exc.errno != errno.ENOSPC:
+            return _internal_error(exc, args)
+        # a file the command itself was writing (a task's result says so already); the
+        # output is written atomically, so nothing of it is left
+        print(f"workbench: error: {exc.filename or 'a file'}: disk full{_kept(args)}",
+              file=sys.stderr)  # fmt: skip
+        return 2
     except Exception as exc:  # noqa: BLE001 - never a bare traceback from the CLI
-        if args.verbose:
-            traceback.print_exc()
-        msg = str(exc).splitlines()[0] if str(exc) else ""
-        print(
-            f"workbench: internal error: {type(exc).__name__}: {msg} "
-            "(run with -v for the traceback)",
-            file=sys.stderr,
-        )
-        return 1
+        return _internal_error(exc, args)
+
+
+def _internal_error(exc: Exception, args) -> int:
+    """The one line of an error the workbench did not foresee; 1."""
+    if args.verbose:
+        traceback.print_exc()
+    msg = str(exc).splitlines()[0] if str(exc) else ""
+    print(
+        f"workbench: internal error: {type(exc).__name__}: {msg} (run with -v for the traceback)",
+        file=sys.stderr,
+    )
+    return 1
 
 
 def _kept(args) -> str:
