@@ -17,7 +17,7 @@ from workbench.meshio import (
     write_obj_pieces,
     write_ply,
 )
-from workbench.raster import Grid, class_codes, read_raster, write_raster
+from workbench.raster import Grid, class_codes, decimated_cells, read_raster, write_raster
 
 
 def test_grid_geometry():
@@ -29,6 +29,23 @@ def test_grid_geometry():
     r, c = g.world_to_cell(X, Y)
     np.testing.assert_allclose(r, np.arange(20)[:, None] + 0 * X)
     np.testing.assert_allclose(c, np.arange(40)[None, :] + 0 * X)
+
+
+def test_a_mosaic_put_together_window_by_window_is_every_fth_cell():
+    """The grid's rows 5-16, in an array starting at the grid's row 3: of every fourth
+    row, the grid's 8, 12 and 16 (the array's 5, 9 and 13), the decimated grid's rows
+    2-4; and windows of every size and origin put together give ``[::f, ::f]``."""
+    inside, at = decimated_cells(slice(5, 17), slice(0, 7), 4, (3, 0))
+    assert inside == (slice(5, 14, 4), slice(0, 7, 4)) and at == (slice(2, 5), slice(0, 2))
+    whole = np.arange(23 * 17).reshape(23, 17)
+    for f, size in ((1, 5), (3, 4), (4, 8), (5, 7)):
+        mosaic = np.full((-(-23 // f), -(-17 // f)), -1)
+        for rows, cols in Grid(0.0, 23.0, 1.0, 17, 23).tiles(size):
+            origin = (max(rows.start - 1, 0), max(cols.start - 2, 0))  # a margin around
+            window = whole[origin[0] : rows.stop + 1, origin[1] : cols.stop + 2]
+            inside, at = decimated_cells(rows, cols, f, origin)
+            mosaic[at] = window[inside]
+        np.testing.assert_array_equal(mosaic, whole[::f, ::f])
 
 
 def test_the_window_of_a_box_is_the_cells_it_touches():

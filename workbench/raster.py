@@ -149,6 +149,30 @@ class Grid:
         return cls(transform.c, transform.f, transform.a, width, height)
 
 
+def decimated_cells(
+    rows: slice, cols: slice, f: int, origin: tuple[int, int] = (0, 0)
+) -> tuple[tuple[slice, slice], tuple[slice, slice]]:
+    """Where the grid's every ``f``-th cell (rows and columns multiples of ``f``) among
+    the cells ``rows`` x ``cols`` lies: in an array of a window starting at the grid's
+    cell ``origin``, and in the grid decimated by ``f``. A mosaic put together window by
+    window is then the whole grid's ``[::f, ::f]``.
+
+    Returns
+    -------
+    inside : (slice, slice)
+        Of the window's array (steps of ``f``).
+    at : (slice, slice)
+        Of the decimated grid's.
+    """
+    inside, at = [], []
+    for cells, o in zip((rows, cols), origin, strict=True):
+        first = -(-cells.start // f) * f
+        n = len(range(first, cells.stop, f))
+        inside.append(slice(first - o, cells.stop - o, f))
+        at.append(slice(first // f, first // f + n))
+    return (inside[0], inside[1]), (at[0], at[1])
+
+
 def shifted(image: np.ndarray, offset: int, axis: int, fill=0) -> np.ndarray:
     """``image`` ((H, W)) with each cell taking the value ``offset`` cells along ``axis``
     from it; ``fill`` past the edge."""

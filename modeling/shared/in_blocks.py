@@ -31,7 +31,7 @@ from workbench.grid_blocks import Block, auto_block_size, block_layout, whole_gr
 from workbench.meshes import concatenate_meshes
 from workbench.model_run import Building, BuildingsOnDisk, Surface, SurfacePieces
 from workbench.progress import progress
-from workbench.raster import Grid, RasterWindows, WindowedRaster, read_decimated
+from workbench.raster import Grid, RasterWindows, WindowedRaster, decimated_cells, read_decimated
 
 log = logging.getLogger(__name__)
 
@@ -351,16 +351,8 @@ class BlockRasters:
             self.pieces.add(piece)
         elif piece is not None:
             self.pieces.append(piece)
-        f = self.factor
-        (r0, r1), (c0, c1) = ((-(-i.start // f) * f, i.stop) for i in block.inner)
-        inside = (
-            slice(r0 - block.outer[0].start, r1 - block.outer[0].start, f),
-            slice(c0 - block.outer[1].start, c1 - block.outer[1].start, f),
-        )
-        at = (
-            slice(r0 // f, r0 // f + len(range(r0, r1, f))),
-            slice(c0 // f, c0 // f + len(range(c0, c1, f))),
-        )
+        origin = (block.outer[0].start, block.outer[1].start)
+        inside, at = decimated_cells(*block.inner, self.factor, origin)
         for name, a in {"rgb": rgb, **layers}.items():
             if name not in self.arrays:
                 self.arrays[name] = np.zeros(self.coarse.shape + a.shape[2:], a.dtype)

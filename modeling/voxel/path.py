@@ -31,7 +31,7 @@ from workbench.model_run import (
     Texture,
     TexturedPieces,
 )
-from workbench.raster import Grid, WindowedRaster
+from workbench.raster import Grid, WindowedRaster, decimated_cells
 from workbench.records import StageTimer, peak_memory_mb
 from workbench.scene import Scene
 
@@ -453,10 +453,8 @@ def textured_ground(tiles: GroundTiles, painted: PaintedGround, record: dict, fo
             dtm[rows, cols] = z[:h, :w]
         else:
             raster.write(z[:h, :w].astype(np.float32), rows, cols)
-        r0, c0 = -rows.start % f, -cols.start % f
-        part = image[r0:h:f, c0:w:f]
-        at = (rows.start + r0) // f, (cols.start + c0) // f
-        mosaic[at[0] : at[0] + part.shape[0], at[1] : at[1] + part.shape[1]] = part
+        inside, at = decimated_cells(rows, cols, f, (rows.start, cols.start))
+        mosaic[at] = image[inside]
     if dtm is None:
         raster.close()
     return TexturedGround(grid, pieces, dtm, dtm_file, mosaic, record)
