@@ -385,17 +385,27 @@ def lift_depth(
     """
     valid = np.isfinite(depth) & (depth > 0)
     pixels = np.flatnonzero(valid)
+    d = depth.ravel()[pixels]
+    return pixels, lift_pixels(camera, pixels, d, depth.shape[1], rays)
+
+
+def lift_pixels(
+    camera: Camera, pixels: np.ndarray, depth: np.ndarray, width: int,
+    rays: np.ndarray | None = None,
+) -> np.ndarray:  # fmt: skip
+    """(N, 3) float64 world points of the flat ``pixels`` (N,) (row * ``width`` + column)
+    at z-depths ``depth`` (N,), metres; ``rays`` as for :func:`lift_depth`."""
     if rays is None:
-        v, u = np.divmod(pixels, depth.shape[1])
+        v, u = np.divmod(pixels, width)
         _, dirs = camera.pixel_rays(np.column_stack([u, v]).astype(np.float64))
     else:
         dirs = rays[pixels]
-    d = depth.ravel()[pixels].astype(np.float64)
+    d = depth.astype(np.float64)
     xyz = np.empty((len(pixels), 3))
     for k in range(3):  # an axis at a time: NumPy's loops run along columns, not triples
         np.multiply(dirs[:, k], d, out=xyz[:, k])
         xyz[:, k] += camera.center[k]
-    return pixels, xyz
+    return xyz
 
 
 def nearest_depth(cells: np.ndarray, depth: np.ndarray, top: np.ndarray, n_cells: int):

@@ -94,6 +94,7 @@ from .observations import (
     grid_window,
     in_window,
     lift_depth,
+    lift_pixels,
     observe,
     window_pixels,
 )
@@ -329,9 +330,13 @@ def view_features(
     all_pixels, all_xyz = pixels, xyz
     if surface is not None and len(pixels) < depth.size:
         unknown = np.flatnonzero(~np.isfinite(depth))  # a few hundredths of the pixels
-        filled = depth.copy()
-        filled.ravel()[unknown] = surface.depth_at(view.camera, unknown)
-        all_pixels, all_xyz = lift_depth(view.camera, filled)
+        d = surface.depth_at(view.camera, unknown)
+        with np.errstate(invalid="ignore"):
+            hit = d > 0  # False where the ray misses (NaN)
+        unknown, d = unknown[hit], d[hit]
+        # only the filled pixels are lifted again: the elevation image scatters its points
+        all_pixels = np.concatenate([pixels, unknown])
+        all_xyz = np.concatenate([xyz, lift_pixels(view.camera, unknown, d, depth.shape[1])])
     elev = elevation_image(all_pixels, all_xyz, depth.shape, dtm, grid)
     if only is not None:
         keep = only(pixels, xyz) if callable(only) else np.isin(pixels, only, assume_unique=True)

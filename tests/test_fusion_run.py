@@ -413,3 +413,24 @@ def test_an_existing_output_is_refused_before_any_work(tmp_path):
     proc = run_cli("fusion", tmp_path / "no_scene", "-o", tmp_path / "out")
     assert proc.returncode == 2 and "output exists" in proc.stderr  # not the missing scene
     assert (tmp_path / "out" / "keep").exists()
+
+
+def test_lifting_some_pixels_gives_the_points_of_the_whole_maps_lift(tiny_scene):
+    """view_features lifts the pixels the fused surface fills on their own, beside the
+    depth map's lift: each pixel's point must be the one the whole filled map's lift
+    gives it, bit for bit, or the elevation cue (and the fused classes) would change."""
+    from fusion.observations import lift_depth, lift_pixels
+
+    v = load_scene(tiny_scene).views[0]
+    depth = v.read_depth().copy()
+    rng = np.random.default_rng(0)
+    holes = np.sort(rng.choice(np.flatnonzero(np.isfinite(depth)), 500, replace=False))
+    filled = depth.ravel()[holes].copy()
+    depth.ravel()[holes] = np.nan
+    pixels, xyz = lift_depth(v.camera, depth)
+    alone = lift_pixels(v.camera, holes, filled, depth.shape[1])
+    depth.ravel()[holes] = filled
+    all_pixels, all_xyz = lift_depth(v.camera, depth)
+    order = np.argsort(np.concatenate([pixels, holes]))
+    assert np.array_equal(np.concatenate([pixels, holes])[order], all_pixels)
+    assert np.array_equal(np.concatenate([xyz, alone])[order], all_xyz)
