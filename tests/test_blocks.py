@@ -259,6 +259,27 @@ def test_side_by_side_blocks_close_where_their_roofs_cross():
     assert closed and how == "in the frame of support 0"
 
 
+def test_blocks_meshed_from_the_raster_keep_their_roof_planes():
+    """The raster fallback meshes the blocks' own faces (before flattening them): an L of
+    a shed and a gable keeps both roofs' heights at the cells' corners, hand-computed,
+    and closes."""
+    a = Support(box(0, 6, 12, 12), Frame(0.0, (0.0, 0.0), (0.0, 12.0, 6.0, 12.0)))
+    b = Support(box(7, 0, 12, 6), Frame(0.0, (0.0, 0.0), (7.0, 12.0, 0.0, 6.0)))
+    shed = Block("shed", 1, True, (10.0, 13.0))  # along v: low (10 m) at u = 12, 13 at u = 0
+    gable = Block("gable", 1, False, (9.0, 11.0))  # ridge along v at u = 9.5
+    ends = [FREE, (False, False, False, True)]
+    faces = [block_faces(x, s, e) for x, s, e in zip([shed, gable], [a, b], ends, strict=True)]
+    mesh = raster_solid(faces, 0.0, Grid(-1.0, 13.0, 0.5, 30, 28))
+    assert is_watertight(mesh.vertices, mesh.triangles)
+    roof = mesh.vertices[np.unique(mesh.triangles[mesh.part == 0])]
+    x, y, z = roof.T
+    on_shed = y > 6.0 + 1e-6
+    assert np.allclose(z[on_shed], 13.0 - 3.0 * x[on_shed] / 12.0, atol=1e-6)
+    on_gable = (y < 6.0 - 1e-6) & (z < 10.9)  # below the shed's lowest: the gable's own
+    assert np.allclose(z[on_gable], 11.0 - 2.0 * np.abs(x[on_gable] - 9.5) / 2.5, atol=1e-6)
+    assert z.max() == pytest.approx(13.0) and z.min() == pytest.approx(9.0)
+
+
 def test_a_tower_whose_tiers_cross_at_slivers_closes():
     """A tower of the 1 km² city (seed 0, building 559 of the block path): a courtyard of
     four supports at 55.74 m and a tier at 63.33 m turned 1.2 degrees from them, their
@@ -291,7 +312,8 @@ def test_a_tower_whose_tiers_cross_at_slivers_closes():
     ends = [FREE, FREE, (False, True, False, True), (False, True, False, True), FREE]
     how, _, _, solid, closed = closed_solid(blocks, supports, ends, 23.16)
     assert closed and how == "in the frame of support 0"
-    raster = raster_solid(blocks, supports, 23.16, Grid(168.0, -303.0, 0.25, 100, 86))
+    faces = [block_faces(b, s, e) for b, s, e in zip(blocks, supports, ends, strict=True)]
+    raster = raster_solid(faces, 23.16, Grid(168.0, -303.0, 0.25, 100, 86))
     for mesh in (solid, raster):
         assert is_watertight(mesh.vertices, mesh.triangles)
         # the tier stands on the courtyard: its roof is the highest, the ring's the lowest

@@ -17,7 +17,7 @@ import numpy as np
 import rasterio.features
 import shapely
 from scipy import ndimage as ndi
-from shapely.geometry import mapping
+from shapely.geometry import Polygon, mapping
 from shapely.ops import unary_union
 
 from modeling.shared.footprint_priors import crowns_over_the_edge, rasterize_on
@@ -38,7 +38,7 @@ from modeling.shared.opened_parts import (
     unseen_rim_filled,
 )
 from modeling.shared.raster_ground import vertex_colours
-from modeling.shared.roof_envelope import BuildingMesh, building_solid, face_planes
+from modeling.shared.roof_envelope import BuildingMesh, RoofFace, building_solid, face_planes
 from modeling.shared.roof_model import closed_roof_model
 from workbench.engine import BUILDINGS_IN_FLIGHT, Engine, ThreadEngine
 from workbench.errors import InputError
@@ -470,11 +470,13 @@ def closed_solid(blocks: list[Block], supports: list[Support], ends, base_z: flo
     read from a file, a carried roof crossing a neighbour's ridge) can leave that
     envelope open. It is then meshed in the next support's frame; then without the
     carried roofs; then with every support grown by ``_OVERLAP_M``, so that neighbours
-    overlap and the upper roof covers the seam; then with every block flat at its
-    median height (a closed LOD1 block rather than an open LOD2 shell); at last, given
-    the building's ``grid``, those flat blocks meshed from the raster of their supports
-    (:func:`raster_solid`), as the raster paths mesh their roofs. Returns how it was
-    meshed, the blocks as meshed, the faces, the mesh and whether it is closed."""
+    overlap and the upper roof covers the seam. Given the building's ``grid``, the
+    blocks' own faces are then meshed from the raster of their supports
+    (:func:`raster_solid`, as the raster paths mesh their roofs: closed by
+    construction, the roofs' planes kept, the outline in cells). Then every block flat at
+    its median height (a closed LOD1 block rather than an open LOD2 shell), and those
+    flat blocks from the raster. Returns how it was meshed, the blocks as meshed, the
+    faces, the mesh and whether it is closed."""
     carried = []
     for i, (b, s) in enumerate(zip(blocks, supports, strict=True)):
         mine = [st for (k, side), (_, st) in (strips or {}).items()
@@ -482,47 +484,55 @@ def closed_solid(blocks: list[Block], supports: list[Support], ends, base_z: flo
         carried.append(dataclasses.replace(s, polygon=carried_polygon(s, mine)) if mine else s)
 
     def attempts():  # made only when the ones before did not close
-        yield "", blocks, carried
-        yield ", roofs not carried over junctions", blocks, supports
+        yield "", blocks, carried, False
+        yield ", roofs not carried over junctions", blocks, supports, False
         yield f", supports grown by {_OVERLAP_M} m", blocks, [
             dataclasses.replace(s, polygon=s.polygon.buffer(_OVERLAP_M, join_style="mitre"))
-            for s in supports]  # fmt: skip
-        yield ", every block flat at its median height", [
-            flat_block(b, s, e) for b, s, e in zip(blocks, supports, ends, strict=True)
-        ], supports  # fmt: skip
+            for s in supports], False  # fmt: skip
+        yield ", meshed from the raster of its supports", blocks, supports, True
+        flat = [flat_block(b, s, e) for b, s, e in zip(blocks, supports, ends, strict=True)]
+        yield ", every block flat at its median height", flat, supports, False
+        yield (", every block flat at its median height, meshed from the raster of its "
+               "supports", flat, supports, True)  # fmt: skip
 
-    for note, bs, ss in attempts():
+    for note, bs, ss, from_raster in attempts():
+        if from_raster and grid is None:
+            continue
         faces = [block_faces(b, s, e) for b, s, e in zip(bs, ss, ends, strict=True)]
+        if from_raster:
+            raster = raster_solid(faces, base_z, grid)
+            if raster is not None and is_watertight(raster.vertices, raster.triangles):
+                return note.removeprefix(", "), bs, faces, raster, True
+            continue
         for k, s in enumerate(supports[:_MESH_FRAMES]):
             solid = building_solid(faces, base_z, s.frame.theta, np.asarray(s.frame.origin))
             if is_watertight(solid.vertices, solid.triangles):
                 return f"in the frame of support {k}{note}", bs, faces, solid, True
-    if grid is not None:  # the last attempt's flat blocks on the supports as they are
-        raster = raster_solid(bs, ss, base_z, grid)
-        if raster is not None and is_watertight(raster.vertices, raster.triangles):
-            return ("every block flat at its median height, meshed from the raster of its "
-                    "support", bs, faces, raster, True)  # fmt: skip
     return "not closed", blocks, faces, solid, False
 
 
-def raster_solid(flat: list[Block], supports: list[Support], base_z: float,
-                 grid: Grid) -> BuildingMesh | None:  # fmt: skip
-    """Flat blocks meshed from the raster of their supports on ``grid`` (a cell takes the
-    highest block whose support covers its centre), by the mesher of the raster paths
+def raster_solid(faces: list[list[RoofFace]], base_z: float, grid: Grid) -> BuildingMesh | None:
+    """Roof faces meshed from their raster on ``grid``: a cell takes the face highest over
+    its centre among those whose polygon covers it; by the mesher of the raster paths
     (:func:`modeling.shared.roof_model.closed_roof_model`, closed by construction).
 
     Supports of a building's tiers, each regularised to its own direction, cross at
     slivers a few centimetres wide whose envelope is no manifold (six towers of the
-    1 km² city); on the cells they vanish. None when no cell is covered."""
-    faces = np.zeros(grid.shape, np.int64)
+    1 km² city); on the cells they vanish. ``faces``: a list per block, as
+    :func:`~.block_meshes.block_faces` gives them. None when no cell is covered."""
+    labels = np.zeros(grid.shape, np.int64)
     top = np.full(grid.shape, -np.inf)
-    for i, (b, s) in enumerate(zip(flat, supports, strict=True)):
-        higher = rasterize_on(s.polygon, grid) & (b.gutter > top)
-        faces[higher], top[higher] = i + 1, b.gutter
-    if not faces.any():
+    X, Y = grid.cell_centers()
+    planes = []
+    for face in (f for fs in faces for f in fs):
+        a, b, c = face.plane
+        z = a * X + b * Y + c
+        higher = rasterize_on(Polygon(face.xy), grid) & (z > top)
+        planes.append([-a, -b, 1.0, -c])  # a x + b y + c z + d = 0
+        labels[higher], top[higher] = len(planes), z[higher]
+    if not labels.any():
         return None
-    planes = np.array([[0.0, 0.0, 1.0, -b.gutter] for b in flat])
-    model = closed_roof_model(faces, grid, planes, base_z, grid.gsd)
+    model = closed_roof_model(labels, grid, np.array(planes), base_z, grid.gsd)
     if model is None:
         return None
     V, T = model.mesh.vertices, model.mesh.triangles
