@@ -76,18 +76,23 @@ def height_regions(
     step_m: float,
     min_cells: int,
     tiers: bool = True,
+    min_width: int = 1,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(h, w) int regions 1..n of ``mask`` that no height step crosses, 0 elsewhere;
     (h, w) bool the cells off their region's level: its steps and the small levels
     joined to it; and (h, w) bool the cells of the lower tiers too small for a region.
 
-    A cell is on a step where the DSM (3 x 3 median) differs by more than ``step_m``
-    from a cell ``_STEP_DISTANCE_M`` away along a row or column (a wall; a roof of 70
-    degrees rises 1.4 m over that distance). Regions smaller than ``min_cells`` and the
-    step cells join the region nearest to them, for the outline. A small region lies
-    beyond a step from the one it joins: a level too small for a block of its own (the
-    strip of a lower tier along a tower's wall), whose cells no block of the region it
-    joins should fit.
+    A height step is a jump of more than ``step_m`` in the DSM (3 x 3 median) between
+    cells ``_STEP_DISTANCE_M`` apart along a row or column (a wall; a roof of 70 degrees
+    rises 1.4 m over that distance). Its cells are the two of each sharp edge within the
+    jump's span (neighbours more than half a step apart): the wall's own pair, not every
+    cell within the step's distance of it on both sides, which took a metre-wide strip
+    of a lower tier along a tower (four cells) for steps alone and gave it to the tower.
+    Levels smaller than ``min_cells`` or narrower than ``min_width`` cells (twice the
+    largest distance of their cells to their edge) and the step cells join the region
+    nearest to them, for the outline. A small level lies beyond a step from the one it
+    joins: a level too small for a block of its own (the strip of a lower tier along a
+    tower's wall), whose cells no block of the region it joins should fit.
 
     But a small level that is flat and more than ``step_m`` below a region beside it
     (across the wall's steps) is a tier of its own, narrower than a support (a podium's
@@ -102,15 +107,20 @@ def height_regions(
     k = max(1, int(round(_STEP_DISTANCE_M / gsd)))
     step = np.zeros(mask.shape, bool)
     for axis in (0, 1):
-        jump = np.abs(_shifted(z, k, axis)) > step_m
-        lo = [slice(None)] * 2
-        hi = [slice(None)] * 2
-        lo[axis], hi[axis] = slice(0, -k), slice(k, None)
-        step[tuple(lo)] |= jump
-        step[tuple(hi)] |= jump
+        jump = np.abs(_shifted(z, k, axis)) > step_m  # (i, i + k)
+        sharp = np.abs(_shifted(z, 1, axis)) > step_m / 2  # (c, c + 1)
+        # the edge (c, c + 1) lies within a jump's span when one starts at c + 1 - k .. c
+        spanned = np.zeros(sharp.shape, bool)
+        for d in range(k):  # c = i + d for the jump (i, i + k)
+            spanned[_along(axis, d, d + jump.shape[axis])] |= jump
+        edge = sharp & spanned
+        step[_along(axis, 0, -1)] |= edge
+        step[_along(axis, 1, None)] |= edge
     labels, n = ndimage.label(mask & ~step)
     sizes = np.bincount(labels.ravel(), minlength=n + 1)
-    keep = sizes >= min_cells
+    inner = ndimage.distance_transform_edt(np.pad(labels > 0, 1))[1:-1, 1:-1]
+    widest = np.concatenate([[0.0], ndimage.maximum(inner, labels, np.arange(1, n + 1))])
+    keep = (sizes >= min_cells) & (2 * widest >= min_width)
     keep[0] = False
     if not keep.any():
         return mask.astype(np.int32), step & mask, np.zeros(mask.shape, bool)
@@ -161,6 +171,14 @@ def _lower_tiers(
         if np.hypot(gx, gy) * _STEP_DISTANCE_M < step_m / 2:
             out.append(j)
     return np.asarray(out, int)
+
+
+def _along(axis: int, start: int, stop: int | None) -> tuple[slice, slice]:
+    """The index of ``start:stop`` along ``axis`` of a 2-D array, everything along the
+    other."""
+    index = [slice(None)] * 2
+    index[axis] = slice(start, stop)
+    return tuple(index)
 
 
 def _shifted(z: np.ndarray, k: int, axis: int) -> np.ndarray:
@@ -226,8 +244,9 @@ def automatic_supports(
     priors neither pay for covering nor for leaving out (:func:`tier_supports`). A
     tier's cell over an unknown DTM stays a tier's: no view saw the ground beside it."""
     for split in (True, False):
-        regions, off_level, tier_cells = height_regions(mask, dsm, grid.gsd, step_m, min_cells,
-                                                        split)  # fmt: skip
+        regions, off_level, tier_cells = height_regions(
+            mask, dsm, grid.gsd, step_m, min_cells, split, int(min_part_m / grid.gsd)
+        )
         if dtm is not None:
             with np.errstate(invalid="ignore"):  # an unknown ground does not say ground
                 tier_cells &= ~(dsm - dtm <= step_m)
