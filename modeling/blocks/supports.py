@@ -88,13 +88,14 @@ def height_regions(
     jump's span (neighbours more than half a step apart): the wall's own pair, not every
     cell within the step's distance of it on both sides, which took a metre-wide strip
     of a lower tier along a tower (four cells) for steps alone and gave it to the tower.
-    Levels smaller than ``min_cells`` or narrower than ``min_width`` cells (twice the
-    largest distance of their cells to their edge) and the step cells join the region
-    nearest to them, for the outline. A small level lies beyond a step from the one it
-    joins: a level too small for a block of its own (the strip of a lower tier along a
-    tower's wall), whose cells no block of the region it joins should fit.
+    Levels smaller than ``min_cells`` and the step cells join the region nearest to
+    them, for the outline. A small level lies beyond a step from the one it joins: a
+    level too small for a block of its own (the strip of a lower tier along a tower's
+    wall), whose cells no block of the region it joins should fit.
 
-    But a small level that is flat and more than ``step_m`` below a region beside it
+    But a small level, or one narrower than ``min_width`` cells (twice the largest
+    distance of its cells to its edge: narrower than a support), that is flat and more
+    than ``step_m`` below a wider region beside it
     (across the wall's steps) is a tier of its own, narrower than a support (a podium's
     ring 1.5 m wide round a tower, a middle tier's between the podium and the tower): it
     joins no region, nor do the step cells nearest it, so that the tower's supports stop
@@ -102,7 +103,8 @@ def height_regions(
     step's distance (a mansard's 70-degree lower slope, split by the steps its noise
     makes, rises nearly a whole one; a DSM's blur at a ring's walls tilts its plane by
     far less). Its cells (0 in the regions) are the third output, the step cells it
-    took left out. ``tiers=False``: such levels join a region as the other small ones."""
+    took left out. ``tiers=False``: such levels, and the narrow ones, join a region as
+    the other small ones."""
     z = ndimage.median_filter(np.where(np.isfinite(dsm), dsm, np.nanmin(dsm)), size=3)
     k = max(1, int(round(_STEP_DISTANCE_M / gsd)))
     step = np.zeros(mask.shape, bool)
@@ -120,15 +122,23 @@ def height_regions(
     sizes = np.bincount(labels.ravel(), minlength=n + 1)
     inner = ndimage.distance_transform_edt(np.pad(labels > 0, 1))[1:-1, 1:-1]
     widest = np.concatenate([[0.0], ndimage.maximum(inner, labels, np.arange(1, n + 1))])
-    keep = (sizes >= min_cells) & (2 * widest >= min_width)
+    keep = sizes >= min_cells
     keep[0] = False
     if not keep.any():
         return mask.astype(np.int32), step & mask, np.zeros(mask.shape, bool)
+    lower = np.zeros(0, int)
+    wide = keep & (2 * widest >= min_width)
+    if tiers and wide.any():
+        rank = np.zeros(n + 1, np.int32)
+        rank[wide] = np.arange(1, int(wide.sum()) + 1)
+        lower = _lower_tiers(labels, wide, rank[labels], z, gsd, step_m, 2 * k + 1)
+    # a narrow level is a region of its own unless it is a lower tier (without tiers,
+    # it joins a region as the small ones do)
+    keep &= wide if not tiers else ~np.isin(np.arange(n + 1), lower)
     m = int(keep.sum())
     new = np.zeros(n + 1, np.int32)
     new[keep] = np.arange(1, m + 1)
     kept = new[labels]
-    lower = _lower_tiers(labels, keep, kept, z, gsd, step_m, 2 * k + 1) if tiers else []
     new[lower] = m + 1 + np.arange(len(lower))
     levels = new[labels]
     # every other cell of the mask to the nearest kept region or lower tier
@@ -243,9 +253,13 @@ def automatic_supports(
     given (:func:`~modeling.shared.opened_parts.unseen_at_level`), which the tiers'
     priors neither pay for covering nor for leaving out (:func:`tier_supports`). A
     tier's cell over an unknown DTM stays a tier's: no view saw the ground beside it."""
-    for split in (True, False):
+    narrowest = max(int(min_part_m / grid.gsd), 1)
+    # the levels narrower than a support as tiers; where no tier comes of them, as regions
+    # of their own (a LiDAR house's annex 2.8 m wide whose ground the cloud lacks); at
+    # last joined to the regions beside them
+    for split, min_width in dict.fromkeys([(True, narrowest), (True, 1), (False, narrowest)]):
         regions, off_level, tier_cells = height_regions(
-            mask, dsm, grid.gsd, step_m, min_cells, split, int(min_part_m / grid.gsd)
+            mask, dsm, grid.gsd, step_m, min_cells, split, min_width
         )
         if dtm is not None:
             with np.errstate(invalid="ignore"):  # an unknown ground does not say ground
