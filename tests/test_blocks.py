@@ -429,7 +429,7 @@ def test_height_regions_split_tiers_and_mark_small_levels():
     regions, off, tiers = height_regions(mask, dsm, 0.25, 1.5, 160, min_width=12)
     assert (regions[strip] == tower).all() and off[strip].all() and not tiers.any()
     # with min_cells of it, a narrow level that is no lower tier is a region of its own
-    # (an AHN3 house's pitched annex 2.5 m wide, cloud 30, had its own block before the
+    # (an AHN3 house's pitched annex under 3 m wide, cloud 30, had its own block before the
     # narrow levels were tried as tiers, and keeps it)
     regions, off, tiers = height_regions(mask, dsm, 0.25, 1.5, 100, min_width=12)
     assert regions.max() == 3 and (regions[strip] == 3).all() and not off[strip].any()

@@ -128,13 +128,13 @@ def height_regions(
         return mask.astype(np.int32), step & mask, np.zeros(mask.shape, bool)
     lower = np.zeros(0, int)
     wide = keep & (2 * widest >= min_width)
-    if tiers and wide.any():
+    if not tiers:  # a narrow level joins a region as the small ones do
+        keep = wide
+    elif wide.any():
         rank = np.zeros(n + 1, np.int32)
         rank[wide] = np.arange(1, int(wide.sum()) + 1)
         lower = _lower_tiers(labels, wide, rank[labels], z, gsd, step_m, 2 * k + 1)
-    # a narrow level is a region of its own unless it is a lower tier (without tiers,
-    # it joins a region as the small ones do)
-    keep &= wide if not tiers else ~np.isin(np.arange(n + 1), lower)
+        keep[lower] = False  # a narrow level is a region of its own unless a lower tier
     m = int(keep.sum())
     new = np.zeros(n + 1, np.int32)
     new[keep] = np.arange(1, m + 1)
@@ -192,10 +192,7 @@ def _along(axis: int, start: int, stop: int | None) -> tuple[slice, slice]:
 
 
 def _shifted(z: np.ndarray, k: int, axis: int) -> np.ndarray:
-    a = [slice(None)] * 2
-    b = [slice(None)] * 2
-    a[axis], b[axis] = slice(k, None), slice(0, -k)
-    return z[tuple(a)] - z[tuple(b)]
+    return z[_along(axis, k, None)] - z[_along(axis, 0, -k)]
 
 
 def connected_rectangles(prior: Prior) -> list[np.ndarray]:
@@ -255,7 +252,7 @@ def automatic_supports(
     tier's cell over an unknown DTM stays a tier's: no view saw the ground beside it."""
     narrowest = max(int(min_part_m / grid.gsd), 1)
     # the levels narrower than a support as tiers; where no tier comes of them, as regions
-    # of their own (a LiDAR house's annex 2.8 m wide whose ground the cloud lacks); at
+    # of their own (a LiDAR house's annex under 3 m wide whose ground the cloud lacks); at
     # last joined to the regions beside them
     for split, min_width in dict.fromkeys([(True, narrowest), (True, 1), (False, narrowest)]):
         regions, off_level, tier_cells = height_regions(
