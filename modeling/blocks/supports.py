@@ -120,14 +120,16 @@ def height_regions(
         step[_along(axis, 1, None)] |= edge
     labels, n = ndimage.label(mask & ~step)
     sizes = np.bincount(labels.ravel(), minlength=n + 1)
-    inner = ndimage.distance_transform_edt(np.pad(labels > 0, 1))[1:-1, 1:-1]
-    widest = np.concatenate([[0.0], ndimage.maximum(inner, labels, np.arange(1, n + 1))])
     keep = sizes >= min_cells
     keep[0] = False
     if not keep.any():
         return mask.astype(np.int32), step & mask, np.zeros(mask.shape, bool)
     lower = np.zeros(0, int)
-    wide = keep & (2 * widest >= min_width)
+    wide = keep.copy()
+    if min_width > 1:  # twice the largest distance of a level's cells to its edge
+        inner = ndimage.distance_transform_edt(np.pad(labels > 0, 1))[1:-1, 1:-1]
+        widest = np.concatenate([[0.0], ndimage.maximum(inner, labels, np.arange(1, n + 1))])
+        wide &= 2 * widest >= min_width
     if not tiers:  # a narrow level joins a region as the small ones do
         keep = wide
     elif wide.any():
