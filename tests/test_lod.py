@@ -12,6 +12,7 @@ from modeling.lod.facades import facade_directions, wall_normals
 from modeling.lod.labelling import (
     bridged_cracks,
     data_term,
+    eroded_rim,
     fill_holes,
     mrf_labelling,
     normalised_height,
@@ -183,6 +184,30 @@ def test_a_crack_that_runs_onto_hidden_ground_is_bridged_across_the_roof():
     np.testing.assert_array_equal(bridged[~crack], dsm[~crack])
     filled = fill_holes(bridged, dtm, 2.5)
     assert (filled[crack] == 10.0).all() and (filled[10:30, 30:34] == 0.0).all()
+
+
+def test_the_roofs_last_row_lost_into_a_hole_is_given_back_one_cell():
+    # a 10 m flat roof in columns 4-11 of 0.25 m cells over ground at 0 m; the mesh lost
+    # the roof's last row (column 11) and the hidden ground beyond (columns 12-15) into
+    # one hole, which the labelling (on the holes filled from below) calls building up
+    # to column 13; on rows 6-9 the last seen column (10) is on the wall's rounded top
+    dsm = np.zeros((10, 20))
+    dsm[:, 4:12] = 10.0
+    dsm[:, 11:16] = np.nan
+    dsm[6:10, 10] = 7.0  # 3 m under the roof two cells in: steeper than 45 degrees
+    ground = np.zeros(dsm.shape)
+    building = np.zeros(dsm.shape, bool)
+    building[:, 4:14] = True
+    rim = eroded_rim(dsm, ground, building, 2.5, 0.25)
+    expected = np.zeros(dsm.shape, bool)
+    expected[:6, 11] = True  # one cell, beside a roof that runs level up to it
+    np.testing.assert_array_equal(rim, expected)
+    # a hole the labelling calls ground gives nothing back
+    assert not eroded_rim(dsm, ground, np.zeros(dsm.shape, bool), 2.5, 0.25).any()
+    # a roof sloping at 40 degrees towards the hole still runs on up to it
+    slope = np.tan(np.radians(40)) * 0.25
+    dsm[:, 4:11] = 10.0 + slope * np.arange(7)[None, :]
+    assert eroded_rim(dsm, ground, building, 2.5, 0.25)[:6, 11].all()
 
 
 def test_a_gap_between_roofs_at_two_heights_is_not_bridged_and_a_slope_is_followed():

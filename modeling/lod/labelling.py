@@ -231,6 +231,43 @@ def fill_holes(
     return out
 
 
+def eroded_rim(
+    h: np.ndarray, ground: np.ndarray, building: np.ndarray, h_trunc: float, gsd: float
+) -> np.ndarray:
+    """(H, W) bool the unknown cells a roof's last seen row borders, where the roof runs
+    on up to that row: the cells to give the roof's height (:func:`fill_from_below`)
+    for the outlines rather than the ground's (:func:`fill_holes`).
+
+    A cell qualifies when the labelling calls it building (``building``: it reads the
+    holes filled from below, layer by layer, so that a hole between a roof and the
+    ground is split between them) and a roof cell (known, more than ``h_trunc`` above
+    ``ground``) beside it along a row or a column has roof two cells further on, no
+    steeper apart than 45 degrees (a cell on the wall's rounded top, already lower, says
+    the wall stands there).
+
+    A TSDF mesh keeps no roof up to a wall that no view saw from the ground's side: its
+    marching cubes close the surface where both sides of a voxel were seen, and the
+    roof's last row falls into the hole beyond, which reaches the ground and so is
+    ground for the outline. On the mesh fusions of ``small`` seeds 0-2, of the unknown
+    cells next to a roof that the labelling calls building, 0.52, 0.58 and 0.75 are a
+    building's (0.27, 0.39 and 0.48 a cell further out): one cell is what the hole may
+    give back.
+
+    h, ground : (H, W) float metres, NaN unknown (``ground`` known everywhere);
+    building : (H, W) bool; gsd : the cells' size, metres."""
+    known = np.isfinite(h)
+    with np.errstate(invalid="ignore"):
+        roof = np.where(known & (h - ground > h_trunc), h, np.nan)
+    level = np.zeros(h.shape, bool)
+    for axis in (0, 1):
+        for sign in (1, -1):
+            beside = shifted(roof, -sign, axis, fill=np.nan)
+            further = shifted(roof, -3 * sign, axis, fill=np.nan)
+            with np.errstate(invalid="ignore"):
+                level |= np.abs(further - beside) <= 2 * gsd
+    return ~known & building & level
+
+
 def mrf_labelling(
     h: np.ndarray,
     t: np.ndarray,

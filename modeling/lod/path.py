@@ -49,7 +49,14 @@ from workbench.texture_seams import rgb_to_lab
 
 from .arrangement import arrangement_faces, label_faces
 from .facades import facade_directions, wall_normals
-from .labelling import bridged_cracks, fill_from_below, fill_holes, mrf_labelling, open_close
+from .labelling import (
+    bridged_cracks,
+    eroded_rim,
+    fill_from_below,
+    fill_holes,
+    mrf_labelling,
+    open_close,
+)
 from .options import LodOptions
 from .segments import (
     detect_segments,
@@ -328,6 +335,9 @@ def lod_block(fusion_dir, block: Block, plan: BlockPlan, options: LodOptions, le
         todo = [k for k in todo if sizes[k] >= options.min_area_m2]
         number = plan.claims.claim(block, parts, n, todo)
         outline_heights = fill_holes(bridged, ground, options.h_trunc, from_below=filled)
+        # the roofs' last rows the mesh lost into the holes beyond them
+        rim = eroded_rim(bridged, ground, building, options.h_trunc, grid.gsd)
+        outline_heights[rim] = filled[rim]
     inputs = LodInputs(grid, rgb, dsm, outline_heights, ground, normal, parts.astype(np.int32),
                        ndi.find_objects(parts))  # fmt: skip
     buildings, skipped, painted = [], [], np.zeros(grid.shape, np.int64)
