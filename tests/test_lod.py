@@ -375,6 +375,24 @@ def test_a_segment_slices_a_square_and_the_faces_take_their_planes():
     assert labels[west] == 0 and labels[1 - west] == 1
 
 
+def test_a_segment_between_two_cells_parts_them_where_it_runs():
+    # a line segment detector puts a tier's wall between its last cell and the lower
+    # roof's first: at x = 9.5 and y = 4.5 here. Each cell keeps the side its centre is
+    # on, whichever way the segment runs (drawn on the grid, the cells under it went to
+    # the face before them: the east and south tiers one cell out)
+    mask = np.zeros((16, 20), bool)
+    mask[1:15, 1:19] = True
+    for segs in ([[9.5, 0.0, 9.5, 15.0], [0.0, 4.5, 19.0, 4.5]],
+                 [[9.5, 15.0, 9.5, 0.0], [19.0, 4.5, 0.0, 4.5]]):  # fmt: skip
+        faces = arrangement_faces(mask, np.array(segs), 1.0)
+        assert faces.max() == 4
+        for rows, cols in ((slice(1, 5), slice(1, 10)), (slice(1, 5), slice(10, 19)),
+                           (slice(5, 15), slice(1, 10)), (slice(5, 15), slice(10, 19))):  # fmt: skip
+            assert len(np.unique(faces[rows, cols])) == 1  # one face, and only its cells
+        assert len(np.unique(faces[mask])) == 4
+        assert (faces[~mask] == 0).all()
+
+
 def test_planarity_weight_is_one_in_a_plane_and_less_off_it():
     rng = np.random.default_rng(0)
     flat = np.column_stack([rng.uniform(0, 5, (50, 2)), np.zeros(50)])

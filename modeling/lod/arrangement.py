@@ -7,34 +7,52 @@ from __future__ import annotations
 import cv2
 import numpy as np
 from scipy import ndimage as ndi
+from skimage.measure import label as label_runs
 
 from workbench.graph_cuts import alpha_expansion
 
+# the arrangement is drawn on cells this many times finer: odd, so that a cell's centre
+# is a fine cell's, and a segment between two centres passes between those fine cells
+FINE = 3
+
 
 def arrangement_faces(mask: np.ndarray, segments: np.ndarray, extend: float) -> np.ndarray:
-    """(h, w) int face ids 1.. of ``mask`` sliced by ``segments`` ((S, 4) in cells, each
-    drawn extended by ``extend`` cells at both ends), 0 outside; the cells under a
-    segment go to the nearest face.
+    """(h, w) int face ids 1.. of ``mask`` sliced by ``segments`` ((S, 4) x0, y0, x1, y1
+    in cells, a cell's centre at its column and row; each drawn extended by ``extend``
+    cells at both ends), 0 outside: a face is a 4-connected piece of the building
+    between the segments.
 
-    The arrangement is drawn on the grid the heights live on: a face is a 4-connected
-    piece of the building between the segments' lines.
+    The segments are drawn on cells :data:`FINE` times finer, and each cell takes the
+    face its centre lies in (the nearest face where a segment runs through the centre
+    itself). A line segment detector puts an edge between two cells' centres (a
+    tier's wall between its last cell and the lower roof's first); drawn on the grid
+    itself, it took one of the two cells, which then went to the face before it in the
+    distance transform's order: every tier's east and south edges one cell out, its
+    west and north ones one cell in (``small`` seed 2: a 20 m tower on a 12 m podium,
+    1.15 m RMSE where model and truth both have a building).
     """
-    barrier = np.zeros(mask.shape, np.uint8)
+    f = FINE
+    fine = np.repeat(np.repeat(mask, f, axis=0), f, axis=1)
+    barrier = np.zeros(fine.shape, np.uint8)
     for x0, y0, x1, y1 in segments:
         d = np.array([x1 - x0, y1 - y0])
         n = np.hypot(*d)
         if n < 1e-9:
             continue
         e = d / n * extend
-        p = (int(round(x0 - e[0])), int(round(y0 - e[1])))
-        q = (int(round(x1 + e[0])), int(round(y1 + e[1])))
+        # cell c's centre is fine cell f * c + f // 2
+        p = (int(round(f * (x0 - e[0]) + f // 2)), int(round(f * (y0 - e[1]) + f // 2)))
+        q = (int(round(f * (x1 + e[0]) + f // 2)), int(round(f * (y1 + e[1]) + f // 2)))
         cv2.line(barrier, p, q, 1, 1, lineType=cv2.LINE_4)
-    open_cells = mask & (barrier == 0)
-    faces, _ = ndi.label(open_cells)
-    if faces.max() == 0:
+    pieces, _ = ndi.label(fine & (barrier == 0))
+    if pieces.max() == 0:
         return mask.astype(np.int32)
-    _, (r, c) = ndi.distance_transform_edt(faces == 0, return_indices=True)
-    return np.where(mask, faces[r, c], 0).astype(np.int32)
+    _, (r, c) = ndi.distance_transform_edt(pieces == 0, return_indices=True)
+    centre = (slice(f // 2, None, f), slice(f // 2, None, f))
+    faces = np.where(mask, pieces[r[centre], c[centre]], 0)
+    # a fine piece may reach cells apart (a sliver between two segments' ends): each
+    # 4-connected run of one piece's cells is a face of its own
+    return label_runs(faces, background=0, connectivity=1).astype(np.int32)
 
 
 def face_graph(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
