@@ -249,9 +249,10 @@ def eroded_rim(
     marching cubes close the surface where both sides of a voxel were seen, and the
     roof's last row falls into the hole beyond, which reaches the ground and so is
     ground for the outline. On the mesh fusions of ``small`` seeds 0-2, of the unknown
-    cells next to a roof that the labelling calls building, 0.52, 0.58 and 0.75 are a
-    building's (0.27, 0.39 and 0.48 a cell further out): one cell is what the hole may
-    give back.
+    cells next to a roof that the labelling calls building, 0.47, 0.55 and 0.70 are a
+    building's (0.24, 0.37 and 0.46 a cell further out); of those this keeps, beside a
+    roof that runs level up to them, 0.72, 0.73 and 0.81 (0.38, 0.55 and 0.67 a cell
+    further out): one cell is what the hole may give back.
 
     h, ground : (H, W) float metres, NaN unknown (``ground`` known everywhere);
     building : (H, W) bool; gsd : the cells' size, metres."""
