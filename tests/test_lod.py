@@ -8,6 +8,7 @@ import pytest
 from scipy import ndimage as ndi
 
 from modeling.lod.arrangement import arrangement_faces, label_faces, planarity_weight
+from modeling.lod.eaves import faces_to_eaves
 from modeling.lod.facades import facade_directions, wall_normals
 from modeling.lod.labelling import (
     bridged_cracks,
@@ -208,6 +209,60 @@ def test_the_roofs_last_row_lost_into_a_hole_is_given_back_one_cell():
     slope = np.tan(np.radians(40)) * 0.25
     dsm[:, 4:11] = 10.0 + slope * np.arange(7)[None, :]
     assert eroded_rim(dsm, ground, building, 2.5, 0.25)[:6, 11].all()
+
+
+def _gable_at_the_survey_edge(slope_deg=30.0, lost_south_of=-2.5):
+    """A gable roof 12 m (x) by 8 m (y) on cells of 0.25 m, ridge along x at y = 0,
+    eaves at 6 m, in a grid of 20 x 16 m, with all south of ``lost_south_of`` (metres)
+    lost (the survey's edge): (mask, points, normals, planes, roof); the mesh's rounded
+    walls are not drawn."""
+    gsd = 0.25
+    x, y = np.meshgrid(np.arange(-10, 10, gsd) + gsd / 2, np.arange(8, -8, -gsd) - gsd / 2)
+    k = np.tan(np.radians(slope_deg))
+    roof = (np.abs(x) < 6) & (np.abs(y) < 4)
+    z = np.where(roof, 6.0 + k * (4 - np.abs(y)), 0.0)
+    n = np.stack([np.zeros_like(z), np.where(y > 0, k, -k), np.ones_like(z)])
+    n = np.where(roof, n, np.array([0.0, 0.0, 1.0])[:, None, None])
+    n /= np.linalg.norm(n, axis=0)
+    lost = y < lost_south_of
+    z[lost] = np.nan
+    n[:, lost] = np.nan
+    c = 1 / np.hypot(k, 1)
+    planes = np.array([[0, k * c, c, -(6 + 4 * k) * c], [0, -k * c, c, -(6 + 4 * k) * c]])
+    return roof & ~lost, np.dstack([x, y, z]), n, planes, roof
+
+
+def test_a_sloped_face_lost_at_the_survey_edge_runs_on_down_to_the_eaves():
+    mask, points, normals, planes, roof = _gable_at_the_survey_edge()
+    none = np.zeros(mask.shape, bool)
+    run_on, level = faces_to_eaves(mask, points, normals, planes, none, 10.0, 0.3, 0.25)
+    # the south face's lost cells down to its eaves at 4 m south of the ridge, over the
+    # face's seen width, and nothing beyond the gable ends nor the eaves
+    np.testing.assert_array_equal(run_on, roof & ~mask)
+    y = points[..., 1]
+    np.testing.assert_allclose(level[run_on], 6.0 + np.tan(np.radians(30)) * (4 + y[run_on]))
+    # a face seen over less than half its fall is not run on (a wall's rounded top
+    # at a shed roof's twin's pitch)
+    short = _gable_at_the_survey_edge(lost_south_of=-1.5)
+    assert not faces_to_eaves(*short[:4], none, 10.0, 0.3, 0.25)[0].any()
+    # a face with no twin seen (a shed roof) has no eaves to run on down to
+    assert not faces_to_eaves(mask, points, normals, planes[1:], none, 10.0, 0.3, 0.25)[0].any()
+    # another building's cells stay out
+    blocked = none.copy()
+    blocked[:, 40:42] = True
+    run_on, _ = faces_to_eaves(mask, points, normals, planes, blocked, 10.0, 0.3, 0.25)
+    np.testing.assert_array_equal(run_on, roof & ~mask & ~blocked)
+    # a face seen down to its eaves, the ground beyond them lost, is not run on
+    mask, points, normals, planes, roof = _gable_at_the_survey_edge(lost_south_of=-4.0)
+    assert (mask == roof).all()
+    assert not faces_to_eaves(mask, points, normals, planes, none, 10.0, 0.3, 0.25)[0].any()
+
+
+def test_a_flat_roof_lost_at_the_survey_edge_is_not_run_on():
+    mask, points, normals, _, _ = _gable_at_the_survey_edge(slope_deg=0.0)
+    flat = np.array([[0.0, 0.0, 1.0, -6.0]])
+    none = np.zeros(mask.shape, bool)
+    assert not faces_to_eaves(mask, points, normals, flat, none, 10.0, 0.3, 0.25)[0].any()
 
 
 def test_a_gap_between_roofs_at_two_heights_is_not_bridged_and_a_slope_is_followed():

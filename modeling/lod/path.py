@@ -48,6 +48,7 @@ from workbench.records import StageTimer, run_speed
 from workbench.texture_seams import rgb_to_lab
 
 from .arrangement import arrangement_faces, label_faces
+from .eaves import faces_to_eaves
 from .facades import facade_directions, wall_normals
 from .labelling import (
     bridged_cracks,
@@ -396,11 +397,30 @@ def building_lod(
     normal = _normals(inputs.normal, dsm, g.gsd, win)
     X, Y = crop.cell_centers()
     points = np.dstack([X, Y, dsm])
-    # the faces over the hidden parts are labelled at their level, planes fit seen cells
-    faces_points = np.dstack([X, Y, np.where(hidden, level, dsm)])
     # 5.1 facade directions
     theta, share = facade_directions(wall_normals(normal, dsm, g.gsd, _ring(mask)),
                                      options.angle_threshold, seed=options.seed + k)  # fmt: skip
+    # 5.3 roof directions and planes, on the seen cells
+    cells = mask & np.isfinite(dsm) & np.isfinite(normal).all(axis=0)
+    min_count = max(int(options.min_plane_m2 / g.gsd**2), 4)
+    dirs = roof_directions(normal[:, cells].T, theta, options.angle_threshold, min_count,
+                           seed=options.seed + k)  # fmt: skip
+    planes = roof_planes(points[cells], normal[:, cells].T, dirs, options.angle_threshold,
+                         options.plane_inlier_m, min_count)  # fmt: skip
+    if not len(planes):
+        z = np.nanmedian(dsm[mask]) if np.isfinite(dsm[mask]).any() else np.nan
+        if not np.isfinite(z):
+            return "no height in the DSM", np.zeros(mask.shape, np.int64), win
+        planes = np.array([[0.0, 0.0, 1.0, -z]])
+    # the sloped faces the mesh lost into a hole, down to the eaves
+    run_on, run_level = faces_to_eaves(mask, points, normal, planes, others,
+                                       options.angle_threshold, options.plane_inlier_m,
+                                       g.gsd)  # fmt: skip
+    mask |= run_on
+    hidden |= run_on
+    level = np.where(run_on, run_level, level)
+    # the faces over the hidden parts are labelled at their level, planes fit seen cells
+    faces_points = np.dstack([X, Y, np.where(hidden, level, dsm)])
     # 5.2 line segments from four sources, regularised
     near = ndi.binary_dilation(mask, iterations=2)
     sources = {
@@ -416,18 +436,6 @@ def building_lod(
         options.collinear_m / g.gsd, 1.0 / g.gsd,
     )  # fmt: skip
     faces = arrangement_faces(mask, segs, 1.0 / g.gsd)
-    # 5.3 roof directions and planes
-    cells = mask & np.isfinite(dsm) & np.isfinite(normal).all(axis=0)
-    min_count = max(int(options.min_plane_m2 / g.gsd**2), 4)
-    dirs = roof_directions(normal[:, cells].T, theta, options.angle_threshold, min_count,
-                           seed=options.seed + k)  # fmt: skip
-    planes = roof_planes(points[cells], normal[:, cells].T, dirs, options.angle_threshold,
-                         options.plane_inlier_m, min_count)  # fmt: skip
-    if not len(planes):
-        z = np.nanmedian(dsm[mask]) if np.isfinite(dsm[mask]).any() else np.nan
-        if not np.isfinite(z):
-            return "no height in the DSM", np.zeros(mask.shape, np.int64), win
-        planes = np.array([[0.0, 0.0, 1.0, -z]])
     # 5.4 faces labelled with planes
     face_plane = label_faces(faces, faces_points, planes, options.beta, g.gsd,
                              hidden & ~np.isfinite(dsm))  # fmt: skip
@@ -442,6 +450,7 @@ def building_lod(
         "segments_regularised": int(regular.sum()), "segments_kept": int(len(segs)),
         "arrangement_faces": int(faces.max()), "roof_directions": len(dirs),
         "planes_detected": int(len(planes)),
+        "cells_run_on_to_eaves": int(run_on.sum()),
         "symmetric_pairs": _symmetric_pairs(planes),
         "seconds": round(time.perf_counter() - t0, 3),
     })  # fmt: skip
