@@ -236,6 +236,41 @@ def test_a_lower_tier_joined_to_a_crown_is_roof_beside_its_upper_tier(monkeypatc
     assert not faces[strip].any()  # judged on the whole edge, it stays tree
 
 
+def test_a_narrow_lower_tier_below_a_rounded_wall_is_roof(monkeypatch):
+    """A ring-like lower tier 1.75 m wide at 8 m along a 12 m upper tier, whose wall a
+    mesh rounds over two cells that the building class takes (9.3 and 10.7 m), the tier's
+    southern 10 m classed tree and joined to a crown beside it (``small`` seed 0's
+    moss-green ring on its mesh). Its edge with the building class is 40 cells along the
+    rounded wall, which stand 1.3 m and more above it, and 7 with its own tier: the
+    wall's foot is where the building neighbours rise past the face and the building
+    within a metre stands a storey above, and what is left of the edge carries on."""
+    rng = np.random.default_rng(17)
+    rows, cols = np.indices((120, 160))
+    x, y = cols * GSD, (120 - rows) * GSD
+    upper = (x > 4) & (x < 14) & (y > 4) & (y < 16)
+    wall = (x >= 14) & (x < 14.5) & (y > 4) & (y < 16)
+    lower = (x >= 14.5) & (x < 16.25) & (y > 4) & (y < 16)
+    strip = lower & (y < 14)
+    dsm = np.where(upper, 12.0, np.where(lower, 8.0, 0.0))
+    dsm[wall] = np.where(x[wall] < 14.25, 10.7, 9.3)
+    crown = _crown(x, y, 19.5, 8.0, 3.5, 4.0, 10.0, rng)
+    crown_only = np.isfinite(crown) & ~lower & ~wall & ~upper
+    dsm = np.where(crown_only, crown, dsm) + rng.normal(0, SIGMA, dsm.shape)
+    classes = np.where(upper | wall | lower, BUILDING, 1).astype(np.uint8)
+    classes[strip | crown_only] = TREE
+    labels, _ = ndimage.label((classes == TREE) & (dsm > 2.5))
+    assert len(np.unique(labels[strip | crown_only])) == 1  # the case: one tree object
+    faces, found = roof_faces_beside_buildings(classes, dsm, dsm.copy(), GSD)
+    assert found == 1 and faces[strip].mean() > 0.9 and faces[crown_only].mean() < 0.01
+    # with no tier counted within the walls' blur (the rule before: every building
+    # neighbour a storey above), the rounded wall's cells are edge where the heights do
+    # not go on, and the strip stays tree
+    monkeypatch.setattr("fusion.planar_objects._building_within",
+                        lambda dsm, building, radius: np.where(building, dsm, -np.inf))  # fmt: skip
+    faces, _ = roof_faces_beside_buildings(classes, dsm, dsm.copy(), GSD)
+    assert not faces[strip].any()
+
+
 def test_faces_are_made_building_in_both_rasters():
     rng = np.random.default_rng(12)
     dsm, classes, crown, shed, faces_inner = _mansard_beside_a_crown(rng)
