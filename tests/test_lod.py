@@ -241,6 +241,13 @@ def test_a_sloped_face_lost_at_the_survey_edge_runs_on_down_to_the_eaves():
     np.testing.assert_array_equal(run_on, roof & ~mask)
     y = points[..., 1]
     np.testing.assert_allclose(level[run_on], 6.0 + np.tan(np.radians(30)) * (4 + y[run_on]))
+    # the same at UTM coordinates, planes and all
+    utm = points + [500_000.0, 5_000_000.0, 0.0]
+    at_utm = planes.copy()
+    at_utm[:, 3] -= planes[:, :2] @ [500_000.0, 5_000_000.0]
+    np.testing.assert_array_equal(
+        faces_to_eaves(mask, utm, normals, at_utm, none, 10.0, 0.3, 0.25)[0], run_on
+    )
     # a face seen over less than half its fall is not run on (a wall's rounded top
     # at a shed roof's twin's pitch)
     short = _gable_at_the_survey_edge(lost_south_of=-1.5)
