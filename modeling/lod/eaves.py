@@ -38,7 +38,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from .shapes import z_symmetric
+from .shapes import on_plane, z_symmetric
 
 MIN_TILT_DEG = 15.0  # flatter faces are not run on: a degree of fit error is metres of reach
 MAX_TILT_DEG = 45.0  # steeper planes are as often a mesh's rounded wall tops as roof faces
@@ -57,8 +57,8 @@ def faces_to_eaves(
     """The unknown cells beyond each sloped face's last seen cells on which its plane
     stands above its eaves: the cells to join the outline, and the plane's heights there.
 
-    A seen cell is on a plane as :func:`~.shapes.roof_planes` counts it (its normal
-    within ``angle_deg``, its point within ``inlier_m``); the faces are the planes of
+    A seen cell is on a plane as :func:`~.shapes.roof_planes` counts it
+    (:func:`~.shapes.on_plane`); the faces are the planes of
     :data:`MIN_TILT_DEG` to :data:`MAX_TILT_DEG`. A face's eaves stand at the lowest
     cell on its twin, the face of z-symmetric normal whose highest cell is nearest its
     own (the ridge they share); a face seen over less than half its fall to them is
@@ -103,12 +103,12 @@ def faces_to_eaves(
         return run_on, level
     seen = mask & np.isfinite(z) & np.isfinite(normals).all(axis=0)
     X, Y = points[..., 0], points[..., 1]
-    n = np.nan_to_num(normals)
+    seen_points, seen_normals = points[seen], normals[:, seen].T
     cos_tol = np.cos(np.radians(angle_deg))
     on, low, top = {}, {}, {}
     for p in sloped:
-        cells = seen & (np.einsum("k,khw->hw", planes[p, :3], n) >= cos_tol)
-        cells[cells] = np.abs(points[cells] @ planes[p, :3] + planes[p, 3]) <= inlier_m
+        cells = np.zeros(mask.shape, bool)
+        cells[seen] = on_plane(seen_points, seen_normals, planes[p], angle_deg, inlier_m)
         if cells.any():
             height = _plane_height(planes[p], X[cells], Y[cells])
             on[p], low[p], top[p] = cells, float(height.min()), float(height.max())

@@ -117,8 +117,22 @@ def roof_planes(
                 if j[k] - k < min_count:
                     break
                 centre = float(np.median(d_sorted[k : j[k]]))
-                members = np.flatnonzero(near)[np.abs(d - centre) <= inlier_m]
-                planes.append([*n, centre])
+                plane = np.array([*n, centre])
+                members = np.flatnonzero(near & on_plane(points, normals, plane, angle_deg,
+                                                         inlier_m))  # fmt: skip
+                planes.append(plane)
                 taken[members] = True
                 near[members] = False
     return np.asarray(planes, np.float64).reshape(-1, 4)
+
+
+def on_plane(
+    points: np.ndarray, normals: np.ndarray, plane: np.ndarray, angle_deg: float, inlier_m: float
+) -> np.ndarray:
+    """(N,) bool the points that :func:`roof_planes` counts on ``plane`` ((4,) n, d):
+    their unit normals ((N, 3)) within ``angle_deg`` of n, and the points ((N, 3),
+    metres) within ``inlier_m`` of the plane."""
+    n = plane[:3]
+    return (normals @ n >= np.cos(np.radians(angle_deg))) & (
+        np.abs(points @ n + plane[3]) <= inlier_m
+    )
