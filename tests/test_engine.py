@@ -179,6 +179,26 @@ def test_a_second_run_at_once_starts_its_cluster_quietly():
     assert not [w for w in caught if "already in use" in str(w.message)], caught
 
 
+def test_a_local_cluster_is_quietened_only_when_it_closes():
+    """A worker's heartbeat racing the scheduler's shutdown logs a 30-line traceback at
+    ERROR after a run that succeeded: the workers' logs go to CRITICAL just before the
+    cluster closes, and not before (a worker's errors while tasks run still show)."""
+    import logging
+
+    from workbench.engine import local_cluster, quiet_workers
+
+    client, cluster = local_cluster(1)
+    try:
+        logs_errors = lambda: logging.getLogger("distributed.worker").isEnabledFor(logging.ERROR)  # noqa: E731
+        before = list(client.run(logs_errors).values())
+        quiet_workers(client)
+        after = list(client.run(logs_errors).values())
+    finally:
+        client.close()
+        cluster.close()
+    assert before == [True] and after == [False], (before, after)
+
+
 def test_a_local_cluster_keeps_the_shared_context_in_every_worker():
     """Dask's active memory manager would drop a worker's copy of a shared context
     between tasks; the next task there would unpickle it anew (and the fusion rebuild

@@ -435,6 +435,8 @@ class DaskEngine(Engine):
         """Close the client and a cluster this run started (again: nothing)."""
         if self.client.status in ("closing", "closed"):
             return
+        if self.cluster is not None:
+            quiet_workers(self.client)
         self.client.close()
         if self.cluster is not None:
             self.cluster.close()
@@ -568,6 +570,24 @@ def one_opencv_thread() -> None:
     import cv2
 
     cv2.setNumThreads(1)
+
+
+def quiet_workers(client) -> None:
+    """Raise the log level of a local cluster's workers to CRITICAL before it closes.
+
+    A worker whose heartbeat reaches the scheduler while it shuts down logs "Failed to
+    communicate with scheduler during heartbeat" at ERROR with a 30-line traceback
+    (dask/distributed#7192): once in the 2026-12-07 city bench, after a run that had
+    succeeded. Its errors while the tasks ran still reach stderr; a worker already gone
+    is left alone."""
+    try:
+        client.run(_quiet_distributed_logs)
+    except Exception:  # noqa: BLE001 - closing goes on whatever the workers' state
+        log.debug("the workers' logs could not be quietened before closing", exc_info=True)
+
+
+def _quiet_distributed_logs() -> None:
+    logging.getLogger("distributed").setLevel(logging.CRITICAL)
 
 
 def local_cluster(workers: int):
