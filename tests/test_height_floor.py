@@ -94,3 +94,30 @@ def test_dsm_floor_gross_share_on_a_hand_made_dsm(tmp_path):
     assert got["gross_cells"] == pytest.approx(1 / 380)
     share = 3.1**2 / (3.1**2 + 379 * 0.01)
     assert got["gross_share_of_squared_error"] == pytest.approx(share, rel=1e-5)  # float32
+
+
+def test_survey_edge_splits_the_error_between_buildings_inside_and_beyond_the_viewpoints():
+    """Two flat 10 m x 10 m roofs, one inside the viewpoints' rectangle, one reaching past
+    its east side; a model 1 m high on the second only: 0 m inside, 1 m beyond, and over
+    both the square root of the second's share of the scored cells."""
+    from survey_edge import beyond_viewpoints, edge_split
+
+    grid = Grid(0.0, 40.0, 0.5, 80, 80)
+    X, Y = grid.cell_centers()
+    ids = np.zeros(grid.shape, np.int64)
+    ids[(X > 5) & (X < 15) & (Y > 5) & (Y < 15)] = 1
+    ids[(X > 25) & (X < 35) & (Y > 5) & (Y < 15)] = 2
+    dtm = np.zeros(grid.shape)
+    surface = np.where(ids > 0, 8.0, np.nan)
+    truth = Truth(grid, None, dsm=np.where(ids > 0, 8.0, 0.0), dtm=dtm, building_ids=ids,
+                  building_surface=surface)  # fmt: skip
+    centres = np.array([[0.0, 0.0, 150.0], [30.0, 40.0, 150.0]])  # x 0..30: building 2 past it
+    beyond = beyond_viewpoints(truth, centres)
+    assert np.array_equal(beyond, ids == 2)
+    model = np.where(ids == 2, 9.0, np.where(ids == 1, 8.0, 0.0))
+    f = edge_split(truth, beyond, model)
+    # each roof is 20 x 20 cells; the jumps take its outer ring: 18 x 18 scored each
+    assert f["cells_inside"] == f["cells_beyond"] == 18 * 18
+    assert f["inside_rmse_off_jumps_m"] == 0.0 and f["beyond_rmse_off_jumps_m"] == 1.0
+    assert f["rmse_off_jumps_m"] == pytest.approx(np.sqrt(0.5))
+    assert f["beyond_share_of_square"] == 1.0
