@@ -39,22 +39,23 @@ def beyond_viewpoints(truth: Truth, centres: np.ndarray) -> np.ndarray:
 
 
 def edge_split(truth: Truth, beyond: np.ndarray, surface: np.ndarray) -> dict:
-    """Height RMSE off the truth's jumps over every true building cell, over the buildings
-    inside the viewpoints and over those beyond them; the share of the squared error
-    beyond. ``surface`` is the model's (H, W) height, the ground where it has none."""
+    """Height RMSE off the truth's jumps (:func:`workbench.metrics.height_errors`, as
+    `compare` scores it) over every true building cell, over the buildings inside the
+    viewpoints and over those beyond them; the share of the squared error beyond.
+    ``surface`` is the model's (H, W) height, the ground where it has none."""
     tb = truth.building_surface
-    scored = (truth.building_ids > 0) & np.isfinite(tb) & ~metrics.height_jumps(tb)
-    e2 = np.where(scored, (surface - tb) ** 2, 0.0)
+    on = truth.building_ids > 0
+    jumps = metrics.height_jumps(tb)
+    scored = on & np.isfinite(tb) & ~jumps
 
-    def rmse(sel):
-        return float(np.sqrt(e2[sel].sum() / sel.sum())) if sel.any() else None
+    def rmse(mask):
+        return metrics.height_errors(surface, tb, mask, jumps).get("rmse_off_jumps_m")
 
-    total = e2[scored].sum()
     return {
-        "rmse_off_jumps_m": rmse(scored),
-        "inside_rmse_off_jumps_m": rmse(scored & ~beyond),
-        "beyond_rmse_off_jumps_m": rmse(scored & beyond),
-        "beyond_share_of_square": float(e2[scored & beyond].sum() / total) if total else None,
+        "rmse_off_jumps_m": rmse(on),
+        "inside_rmse_off_jumps_m": rmse(on & ~beyond),
+        "beyond_rmse_off_jumps_m": rmse(on & beyond),
+        "beyond_share_of_square": metrics.error_share_off_jumps(surface, tb, on, beyond, jumps),
         "cells_inside": int((scored & ~beyond).sum()),
         "cells_beyond": int((scored & beyond).sum()),
     }
