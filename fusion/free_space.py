@@ -38,6 +38,7 @@ from .hidden_ceiling import (
     HiddenColumns,
     ceiling_raster,
     column_ceilings,
+    columns_in_view,
     hidden_columns_of,
     trusted_depth,
 )
@@ -85,12 +86,19 @@ def view_ceilings_and_free_space(i: int, views: list, hidden: HiddenColumns,
     """Task: view ``i``'s lowest heights seen past over the ``hidden`` columns (its
     trusted depth, :func:`~fusion.hidden_ceiling.column_ceilings`) and over the
     ``elevated`` ones (with every pixel around each projection, :func:`nearest_around`),
-    each (n,) float32, +inf none: the depth map read and screened once for both."""
+    each (n,) float32, +inf none: the depth map read and screened once for both, and
+    not at all by a view that sees none of the columns (a block of a city that the view
+    does not look at: the results are those of the test, all +inf)."""
     v = views[i]
+    seen_hidden = columns_in_view(v.camera, hidden)
+    seen_elevated = columns_in_view(v.camera, elevated)
+    if not (seen_hidden.any() or seen_elevated.any()):
+        return (np.full(len(hidden.x), np.inf, np.float32),
+                np.full(len(elevated.x), np.inf, np.float32))  # fmt: skip
     depth = trusted_depth(v.read_depth())
     free = nearest_around(depth) if len(elevated.x) else depth  # none: nothing to read
-    return (column_ceilings(v.camera, depth, hidden, tolerance),
-            column_ceilings(v.camera, free, elevated, tolerance))  # fmt: skip
+    return (column_ceilings(v.camera, depth, hidden, tolerance, seen_hidden),
+            column_ceilings(v.camera, free, elevated, tolerance, seen_elevated))  # fmt: skip
 
 
 @dataclass

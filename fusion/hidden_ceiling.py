@@ -60,7 +60,11 @@ def trusted_depth(depth: np.ndarray) -> np.ndarray:
 
 
 def column_ceilings(
-    camera: Camera, depth: np.ndarray, columns: HiddenColumns, tolerance: float
+    camera: Camera,
+    depth: np.ndarray,
+    columns: HiddenColumns,
+    tolerance: float,
+    seen: np.ndarray | None = None,
 ) -> np.ndarray:
     """(n,) float32, for each column, the lowest of its tested heights that the view
     sees past: the point projects onto a pixel whose depth lies more than ``tolerance``
@@ -78,6 +82,8 @@ def column_ceilings(
     tolerance : float
         Depth band behind a point within which the pixel's surface may be the point's
         own, metres (the fusion's visibility tolerance).
+    seen : (n,) bool, optional
+        :func:`columns_in_view` of the camera and columns, if the caller has it.
     """
     n = len(columns.x)
     out = np.full(n, np.inf, np.float32)
@@ -85,15 +91,12 @@ def column_ceilings(
         return out
     H, W = depth.shape
     step = columns.step
-    heights = np.arange(np.floor(columns.bottom.min() / step), np.floor(columns.top / step) + 1)
-    heights *= step
+    heights = _tested_heights(columns)
     low = float(heights[0])
-    # positions relative to the camera: the world's projected metres lose a float32's
-    # precision, and x_cam = R (X - C) needs no translation after
-    base = np.column_stack([columns.x, columns.y, np.full(n, low)]) - camera.center
-    cam0 = base @ camera.R.T  # (n, 3) the columns' lowest tested points, camera frame
+    cam0 = _lowest_in_camera(camera, columns)  # (n, 3) camera frame
     up = camera.R[:, 2]  # a metre up, in the camera frame
-    seen = _in_view(camera, cam0, cam0 + (columns.top - low) * up)
+    if seen is None:
+        seen = columns_in_view(camera, columns)
     flat_depth = depth.ravel()
     rise = heights - low
     rows = max(1, CHUNK_SAMPLES // len(heights))
@@ -127,6 +130,34 @@ def column_ceilings(
     return out
 
 
+def _tested_heights(columns: HiddenColumns) -> np.ndarray:
+    """The heights :func:`column_ceilings` tests, metres: the multiples of the step from
+    the one below the lowest bottom up to the top."""
+    step = columns.step
+    heights = np.arange(np.floor(columns.bottom.min() / step), np.floor(columns.top / step) + 1)
+    return heights * step
+
+
+def _lowest_in_camera(camera: Camera, columns: HiddenColumns) -> np.ndarray:
+    """(n, 3) the columns' lowest tested points in the camera frame, metres."""
+    low = float(_tested_heights(columns)[0])
+    # positions relative to the camera: the world's projected metres lose a float32's
+    # precision, and x_cam = R (X - C) needs no translation after
+    base = np.column_stack([columns.x, columns.y, np.full(len(columns.x), low)]) - camera.center
+    return base @ camera.R.T
+
+
+def columns_in_view(camera: Camera, columns: HiddenColumns) -> np.ndarray:
+    """(n,) bool: the columns whose tested heights may project into the image
+    (:func:`_in_view`, conservatively); :func:`column_ceilings` tests no other, so a
+    view with none needs no depth map read."""
+    if len(columns.x) == 0:
+        return np.zeros(0, bool)
+    cam0 = _lowest_in_camera(camera, columns)
+    low = float(_tested_heights(columns)[0])
+    return _in_view(camera, cam0, cam0 + (columns.top - low) * camera.R[:, 2])
+
+
 def _in_view(camera: Camera, bottom: np.ndarray, top: np.ndarray) -> np.ndarray:
     """(n,) bool: the columns from ``bottom`` to ``top`` ((n, 3) camera frame) whose
     image's bounding box meets the image, in front of the camera (conservatively)."""
@@ -145,7 +176,10 @@ def _in_view(camera: Camera, bottom: np.ndarray, top: np.ndarray) -> np.ndarray:
 def view_ceilings(i: int, views: list, columns: HiddenColumns, tolerance: float) -> np.ndarray:
     """Task: :func:`column_ceilings` of view ``i``."""
     v = views[i]
-    return column_ceilings(v.camera, trusted_depth(v.read_depth()), columns, tolerance)
+    seen = columns_in_view(v.camera, columns)
+    if not seen.any():  # no column in the image: nothing to read
+        return np.full(len(columns.x), np.inf, np.float32)
+    return column_ceilings(v.camera, trusted_depth(v.read_depth()), columns, tolerance, seen)
 
 
 def hidden_columns(hidden: np.ndarray, ground: np.ndarray, dsm: np.ndarray,

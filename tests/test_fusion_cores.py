@@ -1180,6 +1180,46 @@ def test_the_ceiling_over_a_hidden_column_is_the_lowest_ray_past_it():
     assert np.isnan(alone.lowest).all() and not alone.views.any()
 
 
+class _Unread(_RayCast):
+    """A view whose depth map must not be read."""
+
+    def read_depth(self):
+        raise AssertionError("the depth map of a view that sees no column was read")
+
+
+def test_a_view_that_sees_no_column_reads_no_depth_map():
+    """A block of a city that a view does not look at: its task gives +inf for every
+    column without reading the view's depth map (a block's views are all the run's), and
+    the ceilings and free space of the views that do see it are unchanged."""
+    from fusion.free_space import ceilings_and_free_space, view_ceilings_and_free_space
+    from fusion.hidden_ceiling import HiddenColumns, columns_in_view, view_ceilings
+    from workbench.engine import ThreadEngine
+
+    grid, dsm, surface, oblique, nadir = _tower_and_tier_views()
+    K = np.array([[800.0, 0, 319.5], [0, 800.0, 239.5], [0, 0, 1]])
+    R = look_at_rotation(np.array([0.0, 0.0, -1.0]))
+    elsewhere = Camera(K, R, -R @ np.array([500.0, 0.0, 100.0]), 640, 480)  # 500 m east
+    xs = np.array([10.5, 13.0, 18.0])
+    columns = HiddenColumns(xs, np.zeros_like(xs), np.zeros_like(xs), 20.0, 0.25)
+    assert not columns_in_view(elsewhere, columns).any()
+    assert columns_in_view(nadir, columns).all()
+    unread = [_Unread(surface, elsewhere)]
+    assert np.isinf(view_ceilings(0, unread, columns, 1.0)).all()
+    hidden, elevated = view_ceilings_and_free_space(0, unread, columns, columns, 1.0)
+    assert np.isinf(hidden).all() and np.isinf(elevated).all()
+
+    X, Y = grid.cell_centers()
+    unseen = dsm.copy()
+    unseen[(X > 10) & (X < 20) & (np.abs(Y) < 8)] = np.nan
+    seeing = [_RayCast(surface, oblique), _RayCast(surface, nadir)]
+    args = (grid, unseen, np.zeros(grid.shape), 1.0)
+    alone = ceilings_and_free_space(ThreadEngine(1), seeing, 2, *args)
+    with_it = ceilings_and_free_space(ThreadEngine(1), [*seeing, *unread], 3, *args)
+    np.testing.assert_array_equal(with_it.ceiling, alone.ceiling)
+    np.testing.assert_array_equal(with_it.lowest, alone.lowest)
+    np.testing.assert_array_equal(with_it.views, alone.views)
+
+
 def test_the_nearest_depth_around_a_pixel_is_none_beside_an_unknown_one():
     from fusion.free_space import nearest_around
 
