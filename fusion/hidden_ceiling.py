@@ -93,10 +93,10 @@ def column_ceilings(
     step = columns.step
     heights = _tested_heights(columns)
     low = float(heights[0])
-    cam0 = _lowest_in_camera(camera, columns)  # (n, 3) camera frame
+    cam0 = _lowest_in_camera(camera, columns, low)  # (n, 3) camera frame
     up = camera.R[:, 2]  # a metre up, in the camera frame
     if seen is None:
-        seen = columns_in_view(camera, columns)
+        seen = _in_view(camera, cam0, cam0 + (columns.top - low) * up)
     flat_depth = depth.ravel()
     rise = heights - low
     rows = max(1, CHUNK_SAMPLES // len(heights))
@@ -138,9 +138,8 @@ def _tested_heights(columns: HiddenColumns) -> np.ndarray:
     return heights * step
 
 
-def _lowest_in_camera(camera: Camera, columns: HiddenColumns) -> np.ndarray:
-    """(n, 3) the columns' lowest tested points in the camera frame, metres."""
-    low = float(_tested_heights(columns)[0])
+def _lowest_in_camera(camera: Camera, columns: HiddenColumns, low: float) -> np.ndarray:
+    """(n, 3) the columns' points at height ``low`` in the camera frame, metres."""
     # positions relative to the camera: the world's projected metres lose a float32's
     # precision, and x_cam = R (X - C) needs no translation after
     base = np.column_stack([columns.x, columns.y, np.full(len(columns.x), low)]) - camera.center
@@ -153,8 +152,8 @@ def columns_in_view(camera: Camera, columns: HiddenColumns) -> np.ndarray:
     view with none needs no depth map read."""
     if len(columns.x) == 0:
         return np.zeros(0, bool)
-    cam0 = _lowest_in_camera(camera, columns)
     low = float(_tested_heights(columns)[0])
+    cam0 = _lowest_in_camera(camera, columns, low)
     return _in_view(camera, cam0, cam0 + (columns.top - low) * camera.R[:, 2])
 
 
